@@ -1,0 +1,1 @@
+"""Per-machine application modules (see :mod:`pmcal.machines`)."""

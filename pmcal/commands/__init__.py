@@ -1,0 +1,1 @@
+"""One module per ``pmcal`` subcommand (or group); each defines ``register(subparsers)``."""

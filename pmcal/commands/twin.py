@@ -1,0 +1,45 @@
+"""``pmcal twin measure|render``: virtual measurement campaigns and pictures of the digital twin."""
+
+from __future__ import annotations
+
+import argparse
+
+from pmcal.machines import dispatch
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("twin", help="the digital twin: virtual measurement campaigns, pictures")
+    tsub = p.add_subparsers(dest="twin_command", metavar="TWIN_COMMAND", required=True)
+
+    m = tsub.add_parser("measure", help="measure a virtual campaign on the twin and write the CSV")
+    _machine_errors(m)
+    m.add_argument("--poses", type=int, default=24, help="number of poses (default 24)")
+    m.add_argument("--targets", default=None, metavar="TARGETS.csv",
+                   help="explicit target orientations (phi_deg, theta_deg) instead of planned poses")
+    m.add_argument("--noise", type=float, default=None, metavar="MM",
+                   help="tracker noise, standard deviation per coordinate, mm (default from the machine)")
+    m.add_argument("--seed", type=int, default=1, help="random seed (poses, approach, noise)")
+    m.add_argument("--theta-max", type=float, default=None, metavar="DEG",
+                   help="largest tilt of planned poses, deg (default from the machine, 60)")
+    m.add_argument("--no-random-approach", action="store_true",
+                   help="approach every pose from the same side (default: random per motor)")
+    m.add_argument("--effect", action="append", default=[], metavar="NAME=VALUE",
+                   help="switch on a physical effect (repeatable), see docs/effects.md")
+    m.add_argument("-o", "--output", required=True, metavar="MEAS.csv")
+    m.set_defaults(func=lambda a: dispatch("twin_measure", a))
+
+    r = tsub.add_parser("render", help="write a PNG of the machine at a pose")
+    _machine_errors(r)
+    r.add_argument("--pose", default="0,0", metavar="PHI,THETA", help="orientation in deg (default 0,0)")
+    r.add_argument("--width", type=int, default=800)
+    r.add_argument("--height", type=int, default=600)
+    r.add_argument("-o", "--output", required=True, metavar="IMAGE.png")
+    r.set_defaults(func=lambda a: dispatch("twin_render", a))
+
+
+def _machine_errors(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--preset", default=None, help="built-in error set (e.g. paper-table2, nominal)")
+    g.add_argument("--errors", default=None, metavar="PARAMS.json", help="error set of the real machine")
+    p.add_argument("--stiffness-ratio", type=float, default=None,
+                   help="actuated-closure/SS over passive-closure stiffness (default from the machine)")

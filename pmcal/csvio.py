@@ -1,0 +1,121 @@
+"""Reading and writing the project's CSV files (UTF-8, header row, ``#`` comment lines at the top).
+
+Rows are numbered from 1 after the header, as a person sees them; every problem raises
+:class:`pmcal.errors.InputError` naming the file, the row and the field.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from pmcal.errors import InputError
+from pmcal.fileio import atomic_write
+
+
+@dataclass
+class CsvTable:
+    """A parsed CSV file: header, string rows, comment lines and the file's name (for messages)."""
+
+    path: str
+    header: list[str]
+    rows: list[list[str]]
+    comments: list[str]
+
+    def has(self, column: str) -> bool:
+        return column in self.header
+
+    def require(self, columns: Iterable[str]) -> None:
+        missing = [c for c in columns if c not in self.header]
+        if missing:
+            raise InputError(f"missing column{'s' if len(missing) > 1 else ''} {', '.join(missing)}",
+                             file=self.path, field=missing[0])
+
+    def text(self, column: str) -> list[str]:
+        k = self.header.index(column)
+        return [r[k].strip() for r in self.rows]
+
+    def numbers(self, column: str, *, allow_empty: bool = False, default: float = math.nan) -> np.ndarray:
+        """A column as floats; a non-number or non-finite value raises naming row and field."""
+        k = self.header.index(column)
+        out = np.empty(len(self.rows))
+        for i, row in enumerate(self.rows):
+            cell = row[k].strip()
+            if cell == "" and allow_empty:
+                out[i] = default
+                continue
+            try:
+                v = float(cell)
+            except ValueError:
+                raise InputError(f"'{cell}' is not a number", file=self.path, row=i + 1, field=column) from None
+            if not math.isfinite(v):
+                raise InputError(f"value '{cell}' is not finite", file=self.path, row=i + 1, field=column)
+            out[i] = v
+        return out
+
+    def unique_ids(self, column: str) -> list[str]:
+        ids = self.text(column)
+        seen: dict[str, int] = {}
+        for i, v in enumerate(ids):
+            if v == "":
+                raise InputError("empty id", file=self.path, row=i + 1, field=column)
+            if v in seen:
+                raise InputError(f"duplicate id '{v}' (first at row {seen[v]})", file=self.path, row=i + 1,
+                                 field=column)
+            seen[v] = i + 1
+        return ids
+
+
+def read_csv(path: str | Path) -> CsvTable:
+    """Read a CSV file with optional leading ``#`` comment lines."""
+    p = str(path)
+    try:
+        raw = Path(path).read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise InputError("file not found", file=p) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read file ({exc.__class__.__name__}: {exc})", file=p) from None
+    lines = raw.splitlines()
+    comments = []
+    while lines and (lines[0].lstrip().startswith("#") or not lines[0].strip()):
+        comments.append(lines.pop(0).lstrip()[1:].strip() if lines[0].strip() else "")
+    if not lines:
+        raise InputError("no header row", file=p)
+    reader = csv.reader(io.StringIO("\n".join(lines)))
+    header = [h.strip() for h in next(reader)]
+    if len(set(header)) != len(header):
+        dup = next(h for h in header if header.count(h) > 1)
+        raise InputError("duplicate column", file=p, field=dup)
+    rows = []
+    for i, row in enumerate(reader):
+        if not any(c.strip() for c in row):
+            continue
+        if len(row) != len(header):
+            raise InputError(f"{len(row)} fields where the header has {len(header)}", file=p, row=len(rows) + 1)
+        rows.append(row)
+    if not rows:
+        raise InputError("no data rows", file=p)
+    return CsvTable(path=p, header=header, rows=rows, comments=[c for c in comments if c])
+
+
+def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence], comments: Sequence[str] = (),
+              float_format: str = "{:.6f}") -> None:
+    """Write a CSV atomically; floats with ``float_format``, comments as leading ``#`` lines."""
+    def cell(v):
+        if isinstance(v, (float, np.floating)):
+            return float_format.format(float(v))
+        return str(v)
+
+    with atomic_write(path) as fh:
+        for c in comments:
+            fh.write(f"# {c}\n")
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(header)
+        for row in rows:
+            w.writerow([cell(v) for v in row])

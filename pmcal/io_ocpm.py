@@ -1,0 +1,184 @@
+"""File formats of the over-constrained PM (INTERFACES.md): measurements, parameters, targets, setpoints.
+
+Validation happens here, at the edge: one :class:`InputError` naming file, row and field.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from calib.ocpm.config import Geometry, default_geometry
+from calib.ocpm.data import Measurements
+from calib.ocpm.kinematics import nominal_fk
+from calib.ocpm.params import check_key
+from calib.rigid import fit_pose
+from calib.rotations import pointing_error, tilt_torsion
+from pmcal.csvio import read_csv, write_csv
+from pmcal.errors import InputError
+from pmcal.fileio import atomic_write
+
+MECHANISM = "ocpm_2dof"
+TARGET_AXES = ("x", "y", "z")
+
+#: Largest disagreement between the measured tilt and the tilt the commands give on the nominal machine
+#: that is still plausible for a machine with geometric errors (deg). Beyond it, a unit mix-up is likely.
+PLAUSIBLE_POINTING_DEG = 5.0
+#: Largest plausible error of a measured distance between two targets (mm).
+PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
+
+
+def target_columns(k: int) -> list[str]:
+    return [f"t{i}_{a}" for i in range(1, k + 1) for a in TARGET_AXES]
+
+
+def read_measurements(path: str | Path, geom: Geometry | None = None, check_units: bool = True) -> Measurements:
+    """Read and validate a measurement CSV (INTERFACES.md): missing columns, non-numbers, NaN, duplicate
+    ids, targets inconsistent with the platform (metres?), commands outside the workspace or
+    disagreeing with the measured tilt (radians?)."""
+    geom = geom or default_geometry()
+    t = read_csv(path)
+    k = 3
+    while t.has(f"t{k + 1}_x"):
+        k += 1
+    if k > len(geom.targets):
+        raise InputError(f"target t{k} has no platform coordinates in the machine configuration",
+                         file=t.path, field=f"t{k}_x")
+    t.require(["pose_id", "m1_cmd_deg", "m2_cmd_deg"] + target_columns(k))
+    ids = t.unique_ids("pose_id")
+    m = np.stack([t.numbers("m1_cmd_deg"), t.numbers("m2_cmd_deg")], axis=1)
+    coords = np.stack([t.numbers(c) for c in target_columns(k)], axis=1).reshape(len(ids), k, 3)
+    optional = {c: (t.numbers(c, allow_empty=True, default=d) if t.has(c) else None)
+                for c, d in (("temp_c", math.nan), ("time_s", math.nan), ("payload_kg", 0.0))}
+    if optional["payload_kg"] is not None and np.any(optional["payload_kg"] < 0):
+        row = int(np.flatnonzero(optional["payload_kg"] < 0)[0]) + 1
+        raise InputError("payload must not be negative", file=t.path, row=row, field="payload_kg")
+    approach = None
+    if t.has("m1_approach") and t.has("m2_approach"):
+        approach = np.stack([t.numbers("m1_approach"), t.numbers("m2_approach")], axis=1)
+    meas = Measurements(pose_id=ids, m_cmd_deg=m, targets=coords, approach=approach, **optional)
+    if check_units:
+        check_plausible(meas, geom, t.path)
+    return meas
+
+
+def check_plausible(meas: Measurements, geom: Geometry, path: str) -> None:
+    """Catch unit mix-ups and impossible rows with a message naming the row and field."""
+    X = geom.targets[: meas.targets.shape[1]]
+    k = len(X)
+    pairs = [(a, b) for a in range(k) for b in range(a + 1, k)]
+    d_nom = np.array([np.linalg.norm(X[a] - X[b]) for a, b in pairs])
+    d_meas = np.stack([np.linalg.norm(meas.targets[:, a] - meas.targets[:, b], axis=1) for a, b in pairs], 1)
+    bad = np.abs(d_meas - d_nom) > PLAUSIBLE_TARGET_DISTANCE_MM
+    if bad.any():
+        row, p = np.argwhere(bad)[0]
+        a, b = pairs[p]
+        ratio = d_meas[row, p] / d_nom[p]
+        hint = " (values look like metres: the file must be in mm)" if 5e-4 < ratio < 2e-3 else ""
+        raise InputError(f"targets t{a + 1} and t{b + 1} are {d_meas[row, p]:.4g} mm apart, the platform "
+                         f"has them {d_nom[p]:.4g} mm apart{hint}", file=path, row=int(row) + 1,
+                         field=f"t{b + 1}_x")
+    beta = np.deg2rad(meas.m_cmd_deg)
+    phi, theta = nominal_fk(beta, geom)
+    _, R_meas, _ = fit_pose(meas.targets, X)
+    for i in np.flatnonzero(~np.isfinite(theta)):
+        hint = ""
+        as_rad = np.rad2deg(beta[i])
+        if np.all(np.isfinite(nominal_fk(np.deg2rad(as_rad)[None], geom)[1])):
+            hint = " (values look like radians: the file must be in degrees)"
+        raise InputError(f"commands ({meas.m_cmd_deg[i, 0]:.6g}, {meas.m_cmd_deg[i, 1]:.6g}) deg are outside "
+                         f"the workspace of the machine{hint}", file=path, row=int(i) + 1, field="m1_cmd_deg")
+    err = np.rad2deg(pointing_error(tilt_torsion(phi, theta), R_meas))
+    for i in np.flatnonzero(err > PLAUSIBLE_POINTING_DEG):
+        raise InputError(f"the measured platform points {err[i]:.3g} deg away from where the commands put a "
+                         f"nominal machine (limit {PLAUSIBLE_POINTING_DEG} deg): wrong units (radians?) or a "
+                         "mislabelled row", file=path, row=int(i) + 1, field="m1_cmd_deg")
+
+
+def write_measurements(path: str | Path, meas: Measurements, comments=()) -> None:
+    """Write a measurement CSV (INTERFACES.md), atomically; optional columns only when present."""
+    k = meas.targets.shape[1]
+    header = ["pose_id", "m1_cmd_deg", "m2_cmd_deg"] + target_columns(k)
+    cols = [np.asarray(meas.m_cmd_deg)[:, 0], np.asarray(meas.m_cmd_deg)[:, 1]] + \
+        [meas.targets[:, i // 3, i % 3] for i in range(3 * k)]
+    fmts = ["{:.6f}", "{:.6f}"] + ["{:.5f}"] * (3 * k)
+    for name, arr, fmt in (("temp_c", meas.temp_c, "{:.3f}"), ("time_s", meas.time_s, "{:.2f}"),
+                           ("payload_kg", meas.payload_kg, "{:.3f}")):
+        if arr is not None:
+            header.append(name)
+            cols.append(np.asarray(arr))
+            fmts.append(fmt)
+    if meas.approach is not None:
+        header += ["m1_approach", "m2_approach"]
+        cols += [meas.approach[:, 0], meas.approach[:, 1]]
+        fmts += ["{:+.0f}", "{:+.0f}"]
+    rows = ([pid] + [f.format(float(c[i])) for c, f in zip(cols, fmts)] for i, pid in enumerate(meas.pose_id))
+    write_csv(path, header, rows, comments)
+
+
+def read_params(path: str | Path, geom: Geometry | None = None) -> tuple[dict[str, float], dict]:
+    """Read a parameters JSON (INTERFACES.md); returns (params in mm/deg, whole document)."""
+    geom = geom or default_geometry()
+    p = str(path)
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("file not found", file=p) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read file ({exc})", file=p) from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=p) from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("params", None), dict):
+        raise InputError("expected an object with a 'params' object", file=p, field="params")
+    mech = doc.get("mechanism", MECHANISM)
+    if mech != MECHANISM:
+        raise InputError(f"parameters are for mechanism '{mech}', not '{MECHANISM}'", file=p, field="mechanism")
+    params = {}
+    for key, value in doc["params"].items():
+        msg = check_key(key, geom.n_limbs, geom.actuated)
+        if msg:
+            raise InputError(msg, file=p, field=key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise InputError(f"value {value!r} is not a finite number", file=p, field=key)
+        params[key] = float(value)
+    return params, doc
+
+
+def write_params(path: str | Path, params: dict[str, float], **extra) -> None:
+    """Write a parameters JSON atomically: ``{"mechanism", "units", "params", ...extra}``."""
+    doc = {"mechanism": MECHANISM, "units": {"length": "mm", "angle": "deg"},
+           "params": {k: float(v) for k, v in params.items()}}
+    doc.update(extra)
+    with atomic_write(path) as fh:
+        json.dump(doc, fh, indent=2, default=_json_default)
+        fh.write("\n")
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def read_targets(path: str | Path, theta_max_deg: float = 90.0) -> tuple[np.ndarray, np.ndarray]:
+    """Target orientations (``phi_deg``, ``theta_deg``) from a targets CSV."""
+    t = read_csv(path)
+    t.require(["phi_deg", "theta_deg"])
+    phi, theta = t.numbers("phi_deg"), t.numbers("theta_deg")
+    for i in np.flatnonzero((theta < 0) | (theta > theta_max_deg)):
+        raise InputError(f"tilt {theta[i]:g} deg is outside 0..{theta_max_deg:g} deg", file=t.path,
+                         row=int(i) + 1, field="theta_deg")
+    return phi, theta
+
+
+def write_setpoints(path: str | Path, phi_deg, theta_deg, m_deg, comments=()) -> None:
+    """Targets with the motor commands that reach them appended (``m1_deg``, ``m2_deg``)."""
+    rows = ([f"{p:.6f}", f"{t:.6f}", f"{m[0]:.6f}", f"{m[1]:.6f}"] for p, t, m in zip(phi_deg, theta_deg, m_deg))
+    write_csv(path, ["phi_deg", "theta_deg", "m1_deg", "m2_deg"], rows, comments)

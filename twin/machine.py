@@ -1,0 +1,149 @@
+"""The digital twin of the over-constrained PM: a "real" machine that reaches motor commands.
+
+A :class:`Twin` is the nominal MJCF model plus a set of geometric errors (all four limbs and SS) and the
+closure compliance. Driving it to motor commands solves the closed chain quasi-statically
+(:mod:`twin.assembly`) from an initial guess given by the closed-form nominal kinematics, and reads the
+platform pose and the tracker targets off the MuJoCo model.
+
+Interface units: mm and degrees for commands; the returned :class:`TwinState` is in mm and radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.ocpm.config import Geometry, default_geometry
+from calib.ocpm.kinematics import limb_frames, limb_ik, nominal_fk, nominal_pose
+from calib.ocpm.params import ErrorSet
+from calib.rotations import rot_x, rot_y
+from twin.assembly import AssemblyResult, BatchAssembler, Stiffness
+from twin.model import MM, build_model
+
+
+@dataclass
+class TwinState:
+    """Where the machine went (mm, rad), one row per commanded pose.
+
+    r : (N, 3) platform frame origin (the target-defined C_E) in the base frame, mm.
+    R : (N, 3, 3) platform orientation.
+    targets : (N, k, 3) tracker target centres in the base frame, mm (noise-free).
+    joint : (N, 2) true motor joint angles (commanded + zero offset + drive effects), rad.
+    gaps : (N, 4, 3) closure gaps S1_j - S2_j, mm (zero on a consistent machine).
+    converged : (N,) bool; iterations : (N,) int.
+    """
+
+    r: np.ndarray
+    R: np.ndarray
+    targets: np.ndarray
+    joint: np.ndarray
+    gaps: np.ndarray
+    ss_axial: np.ndarray
+    converged: np.ndarray
+    iterations: np.ndarray
+    qpos: np.ndarray
+
+    @property
+    def closure_residual(self) -> np.ndarray:
+        """(N, 4) norm of each limb's closure gap, mm."""
+        return np.linalg.norm(self.gaps, axis=-1)
+
+
+class Twin:
+    """A real over-constrained PM: nominal model + errors + closure compliance.
+
+    Parameters
+    ----------
+    errors : ErrorSet or dict of interface keys (mm, deg); None is the nominal machine.
+    geom : nominal geometry (default: the built-in machine.toml).
+    stiffness_ratio : actuated-closure and SS stiffness over passive-closure stiffness (default from
+        machine.toml, reference 1000).
+    passive_stiffness : passive closure stiffness, N/mm (default from machine.toml).
+    gravity : include the gravity load in the equilibrium (default False: a geometric twin).
+    """
+
+    def __init__(self, errors: ErrorSet | dict | None = None, geom: Geometry | None = None,
+                 stiffness_ratio: float | None = None, passive_stiffness: float | None = None,
+                 gravity: bool = False):
+        self.geom = geom or default_geometry()
+        if isinstance(errors, dict):
+            errors = ErrorSet.from_dict(errors, self.geom.n_limbs, self.geom.actuated)
+        self.errors = errors if errors is not None else ErrorSet()
+        self.model, self.index = build_model(self.errors, self.geom)
+        ratio = self.geom.stiffness_ratio if stiffness_ratio is None else float(stiffness_ratio)
+        k_p = (self.geom.passive_closure_stiffness if passive_stiffness is None else passive_stiffness) / MM
+        self.stiffness = Stiffness.reference(k_p, ratio, self.geom.n_limbs, self.geom.actuated)
+        self.assembler = BatchAssembler(self.model, self.index, self.stiffness, gravity=gravity)
+
+    # ------------------------------------------------------------------ configuration guesses
+    def initial_qpos(self, joint: np.ndarray) -> np.ndarray:
+        """Configurations (N, nq) near the equilibrium for true motor joint angles (N, 2) rad.
+
+        The pose comes from the nominal forward kinematics; the limb angles from the real IK of this
+        machine at that pose. Exact for the nominal machine; within the error size otherwise.
+        """
+        geom, idx = self.geom, self.index
+        phi, theta = nominal_fk(joint, geom)
+        if np.any(~np.isfinite(theta)):
+            bad = int(np.flatnonzero(~np.isfinite(theta))[0])
+            raise ValueError(f"pose {bad}: motor angles {np.rad2deg(joint[bad]).round(3)} deg are outside "
+                             "the workspace of the machine")
+        r, R = nominal_pose(phi, theta, geom)
+        N = len(joint)
+        q = np.tile(self.model.qpos0, (N, 1))
+        ik = limb_ik(r, R, self.errors, geom, limbs=tuple(range(1, geom.n_limbs + 1)))
+        beta = np.where(np.isfinite(ik.beta), ik.beta, np.deg2rad(-39.351))
+        q[:, idx.qadr_base] = beta
+        q[:, idx.qadr_base[:2]] = joint
+        # Universal joint at O: Rx(u1) Ry(u2) e_z = r / |r|; the ball takes the rest of R.
+        n = r / np.linalg.norm(r, axis=1, keepdims=True)
+        u2 = np.arcsin(np.clip(n[:, 0], -1, 1))
+        u1 = np.arctan2(-n[:, 1], n[:, 2])
+        qa = self.model.jnt_qposadr
+        q[:, qa[mj_joint(self.model, "ss_u1")]] = u1
+        q[:, qa[mj_joint(self.model, "ss_u2")]] = u2
+        R_ball = np.swapaxes(rot_x(u1) @ rot_y(u2), 1, 2) @ R
+        q[:, qa[idx.jnt_ball]:qa[idx.jnt_ball] + 4] = _mat2quat(R_ball)
+        # Second links: direction S - A in the link frame R Q2_j = (cos g, 0, -sin g).
+        Q2 = limb_frames(geom.psi, self.errors.dmu, self.errors.dnu)
+        v = np.einsum("nji,nkj->nki", R, ik.S - ik.A)        # platform coordinates
+        v = np.einsum("kji,nkj->nki", Q2, v)                  # link-2 local coordinates
+        q[:, idx.qadr_plat] = np.arctan2(-v[..., 2], v[..., 0])
+        return q
+
+    # ------------------------------------------------------------------ driving
+    def reach_joint(self, joint: np.ndarray, qpos: np.ndarray | None = None) -> TwinState:
+        """Assemble at true motor joint angles (N, 2) rad (after zero offsets and drive effects)."""
+        joint = np.atleast_2d(np.asarray(joint, float))
+        q = self.initial_qpos(joint) if qpos is None else np.array(qpos, dtype=float, copy=True)
+        q[:, self.index.qadr_base[:2]] = joint
+        res = self.assembler.solve(q)
+        return self._state(res, joint)
+
+    def reach(self, m_cmd_deg: np.ndarray) -> TwinState:
+        """Drive to commanded motor angles (N, 2) deg; the joints go to command + zero offset."""
+        joint = np.deg2rad(np.atleast_2d(np.asarray(m_cmd_deg, float))) + self.errors.dtheta[:2]
+        return self.reach_joint(joint)
+
+    def _state(self, res: AssemblyResult, joint: np.ndarray) -> TwinState:
+        N = len(joint)
+        xpos, xmat = self.assembler.bodies(N, self.index.platform)
+        targets = self.assembler.sites(N, self.index.site_targets) / MM
+        return TwinState(r=xpos / MM, R=xmat, targets=targets, joint=joint, gaps=res.gaps / MM,
+                         ss_axial=res.ss_axial / MM, converged=res.converged,
+                         iterations=res.iterations, qpos=res.qpos)
+
+
+def mj_joint(m, name: str) -> int:
+    import mujoco
+
+    return mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
+
+
+def _mat2quat(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) → unit quaternions (N, 4), w first (MuJoCo convention)."""
+    from scipy.spatial.transform import Rotation
+
+    xyzw = Rotation.from_matrix(R).as_quat()
+    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)

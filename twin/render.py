@@ -1,0 +1,62 @@
+"""Offscreen pictures of the machine (PNG bytes), for reports and model READMEs.
+
+Uses ``mujoco.Renderer`` headless: set ``MUJOCO_GL=egl`` (default here) or ``osmesa`` before MuJoCo
+creates its first context.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+
+import numpy as np
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco  # noqa: E402
+
+from twin.model import SCENE_XML, ModelIndex, apply_errors, load_model  # noqa: E402
+
+
+class RenderUnavailable(RuntimeError):
+    """No offscreen OpenGL context could be created."""
+
+
+def render_png(qpos: np.ndarray | None = None, errors=None, width: int = 800, height: int = 600,
+               azimuth: float = 135.0, elevation: float = -22.0, distance: float = 1.35,
+               lookat=(0.0, 0.0, 0.22)) -> bytes:
+    """PNG image of the machine (scene with floor and light) at configuration ``qpos`` (default home)."""
+    from calib.ocpm.config import default_geometry
+    from calib.ocpm.params import ErrorSet
+
+    m = load_model(SCENE_XML)
+    geom = default_geometry()
+    apply_errors(m, errors if errors is not None else ErrorSet(), geom, ModelIndex.of(m, geom.n_limbs))
+    d = mujoco.MjData(m)
+    d.qpos[:] = m.key_qpos[0] if qpos is None else qpos
+    mujoco.mj_forward(m, d)
+    cam = mujoco.MjvCamera()
+    cam.azimuth, cam.elevation, cam.distance = azimuth, elevation, distance
+    cam.lookat[:] = lookat
+    try:
+        renderer = mujoco.Renderer(m, height=height, width=width)
+    except Exception as exc:  # MuJoCo raises FatalError without a usable OpenGL context
+        raise RenderUnavailable(f"offscreen rendering is unavailable (MUJOCO_GL={os.environ.get('MUJOCO_GL')}): "
+                       f"{exc}; install EGL (libegl1) or OSMesa and set MUJOCO_GL=egl|osmesa") from None
+    try:
+        renderer.update_scene(d, camera=cam)
+        pixels = renderer.render()
+    finally:
+        renderer.close()
+    return _to_png(pixels)
+
+
+def _to_png(pixels: np.ndarray) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.image
+
+    buf = io.BytesIO()
+    matplotlib.image.imsave(buf, pixels, format="png")
+    return buf.getvalue()
