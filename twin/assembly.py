@@ -19,7 +19,6 @@ a Gauss-Newton step on the free degrees of freedom (all but the held motor joint
 
 from __future__ import annotations
 
-import copy
 import os
 from dataclasses import dataclass
 
@@ -44,6 +43,24 @@ class Stiffness:
         for j in actuated:
             k[j - 1] = passive * ratio
         return cls(closure=k, ss_axial=passive * ratio)
+
+
+@dataclass
+class Linearization:
+    """Kinematics and the weighted closure residual at configurations (SI), for sensitivities.
+
+    site_xpos (N, nsite, 3), xpos (N, nbody, 3), xmat (N, nbody, 3, 3), xanchor/xaxis (N, njnt, 3),
+    res (N, 3 n + 1) weighted residual, J (N, 3 n + 1, nv) its Jacobian, free: free dof indices.
+    """
+
+    site_xpos: np.ndarray
+    xpos: np.ndarray
+    xmat: np.ndarray
+    xanchor: np.ndarray
+    xaxis: np.ndarray
+    res: np.ndarray
+    J: np.ndarray
+    free: np.ndarray
 
 
 @dataclass
@@ -109,6 +126,14 @@ class _ChainJacobian:
         J[:, self.site % half, self.dof] = col * sign[None, :, None]
         return np.swapaxes(J, 2, 3).reshape(N, 3 * half, self.nv)
 
+    def sites(self, site_pos: np.ndarray, xanchor: np.ndarray, xaxis: np.ndarray,
+              xmat: np.ndarray) -> np.ndarray:
+        """Jacobians (N, n_sites, 3, nv) of the sites' positions."""
+        N = site_pos.shape[0]
+        J = np.zeros((N, self.n_sites, self.nv, 3))
+        J[:, self.site, self.dof] = self._columns(site_pos, xanchor, xaxis, xmat)
+        return np.swapaxes(J, 2, 3)
+
     def _columns(self, site_pos, xanchor, xaxis, xmat) -> np.ndarray:
         N = site_pos.shape[0]
         axis = xaxis[:, self.jnt]                                         # (N, C, 3)
@@ -158,11 +183,10 @@ class BatchAssembler:
         from mujoco import batch as mjbatch
 
         self.m, self.idx = m, index
-        # The batch only needs kinematics (and gravity forces): a copy of the model that skips
-        # building constraint rows and limits keeps each position stage cheap.
-        self._m_kin = copy.copy(m)
-        self._m_kin.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
-                                            | mujoco.mjtDisableBit.mjDSBL_LIMIT)
+        # The batch only needs kinematics (and gravity forces): the model skips building constraint
+        # rows and limits. The batch reads the model live (set_models), so in-place edits of ``m``
+        # (new errors) are seen by the next solve. Simulation uses its own copy (twin.dynamics).
+        m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT | mujoco.mjtDisableBit.mjDSBL_LIMIT)
         self.gravity = gravity
         self.tol, self.max_iter = tol, max_iter
         held = index.dadr_base[:2] if held_dofs is None else np.asarray(held_dofs)
@@ -181,7 +205,8 @@ class BatchAssembler:
 
     def _ensure_batch(self, n: int):
         if self._batch is None or self._batch.nsim < n:
-            self._batch = self._mjbatch.Batch(self._m_kin, nsim=max(n, 64), nthread=self._nthread)
+            self._batch = self._mjbatch.Batch(self.m, nsim=max(n, 64), nthread=self._nthread)
+            self._batch.set_models(self.m)
             self._b_qpos = self._batch.bind("qpos")
             self._b_site = self._batch.bind("site_xpos")
             self._b_anchor = self._batch.bind("xanchor")
@@ -200,6 +225,17 @@ class BatchAssembler:
     def sites(self, n: int, sites: np.ndarray) -> np.ndarray:
         """Positions (n, len(sites), 3) m of ``sites`` after the last :meth:`solve`."""
         return self._b_site[:n][:, sites].copy()
+
+    def linearize(self, qpos: np.ndarray) -> Linearization:
+        """Kinematics, weighted residual and Jacobian at every row of ``qpos`` (N, nq)."""
+        qpos = np.atleast_2d(qpos)
+        N = len(qpos)
+        ids = np.arange(N)
+        site, anchor, axis, xmat, _ = self._kinematics(qpos, ids)
+        res, Jw, _ = self._residual(site, anchor, axis, xmat, qpos)
+        return Linearization(site_xpos=self._b_site[:N].copy(), xpos=self._b_xpos[:N].copy(),
+                             xmat=self._b_xmat[:N].reshape(N, -1, 3, 3).copy(), xanchor=anchor,
+                             xaxis=axis, res=res, J=Jw, free=self.free)
 
     def _kinematics(self, qpos: np.ndarray, ids: np.ndarray):
         batch = self._ensure_batch(len(qpos))

@@ -40,6 +40,7 @@ class DynamicTwin:
                  damping_ratio: float = 0.7, payload_kg: float = 0.0):
         self.twin = twin
         m = copy.copy(twin.model)
+        m.opt.disableflags = 0               # the twin's own model is set up for kinematics only
         m.opt.timestep = timestep
         # Euler (implicit joint damping) is stable with stiff servos and hard equalities; implicitfast
         # oscillates or diverges with that combination (MUJOCO_NOTES.md).

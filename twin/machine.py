@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import mujoco
 import numpy as np
 
 from calib.ocpm.config import Geometry, default_geometry
@@ -19,7 +20,7 @@ from calib.ocpm.kinematics import limb_frames, limb_ik, nominal_fk, nominal_pose
 from calib.ocpm.params import ErrorSet
 from calib.rotations import rot_x, rot_y
 from twin.assembly import AssemblyResult, BatchAssembler, Stiffness
-from twin.model import MM, build_model
+from twin.model import MM, apply_errors, build_model
 
 
 @dataclass
@@ -71,10 +72,24 @@ class Twin:
             errors = ErrorSet.from_dict(errors, self.geom.n_limbs, self.geom.actuated)
         self.errors = errors if errors is not None else ErrorSet()
         self.model, self.index = build_model(self.errors, self.geom)
+        self._scratch = mujoco.MjData(self.model)
         ratio = self.geom.stiffness_ratio if stiffness_ratio is None else float(stiffness_ratio)
         k_p = (self.geom.passive_closure_stiffness if passive_stiffness is None else passive_stiffness) / MM
         self.stiffness = Stiffness.reference(k_p, ratio, self.geom.n_limbs, self.geom.actuated)
         self.assembler = BatchAssembler(self.model, self.index, self.stiffness, gravity=gravity)
+
+    def set_errors(self, errors: ErrorSet | dict) -> None:
+        """Replace the machine's geometric errors (a fast in-place model edit, ~0.2 ms)."""
+        if isinstance(errors, dict):
+            errors = ErrorSet.from_dict(errors, self.geom.n_limbs, self.geom.actuated)
+        self.errors = errors
+        apply_errors(self.model, errors, self.geom, self.index, self._scratch)
+
+    def set_stiffness_ratio(self, ratio: float) -> None:
+        """Change the actuated-closure/SS over passive-closure stiffness ratio."""
+        k_p = float(np.min(self.stiffness.closure))
+        self.stiffness = Stiffness.reference(k_p, float(ratio), self.geom.n_limbs, self.geom.actuated)
+        self.assembler.set_stiffness(self.stiffness)
 
     # ------------------------------------------------------------------ configuration guesses
     def initial_qpos(self, joint: np.ndarray) -> np.ndarray:
@@ -136,8 +151,6 @@ class Twin:
 
 
 def mj_joint(m, name: str) -> int:
-    import mujoco
-
     return mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
 
 

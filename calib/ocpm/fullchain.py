@@ -1,0 +1,225 @@
+"""Whole-closed-chain calibration of the over-constrained PM (issue: get past the seed's accuracy limit).
+
+Forward model: the pose the machine reaches for motor commands, given the full parameter set (all four
+limbs, SS, motor zero offsets, closure stiffness ratio) and the same closure-compliance physics as the
+twin: it *is* the twin's quasi-static solve (:class:`twin.machine.Twin`) with the candidate parameters,
+differentiated analytically (:mod:`twin.sensitivity`).
+
+Identification: maximum a posteriori least squares on the raw target coordinates,
+
+    min_x  sum |(y_meas - y(x)) / sigma|^2 + sum (x_i / s_i)^2
+
+with ``s_i`` the manufacturing tolerance of each parameter (the prior regularises the directions the
+data cannot see, instead of a hard truncation). Solved with ``scipy.optimize.least_squares`` (trust
+region, analytic Jacobian). Covariance: ``(J^T J / sigma^2 + diag(1/s^2))^-1``.
+
+Compensation: Newton on the forward model for the motor commands that make the identified machine point
+at each target orientation.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from calib.ocpm.config import Geometry, default_geometry
+from calib.ocpm.data import Measurements
+from calib.ocpm.kinematics import nominal_ik
+from calib.ocpm.params import ErrorSet, all_keys, is_angular
+from calib.rotations import tilt_torsion
+from calib.solvers.result import IdentResult
+
+LOG_RATIO = "log_stiffness_ratio"
+
+
+@dataclass
+class Priors:
+    """Manufacturing tolerances (1 sigma) used as priors: positions/lengths mm, angles deg."""
+
+    position_mm: float = 1.0
+    angle_deg: float = 0.3
+    zero_offset_deg: float = 2.0
+    log_ratio: float = 2.0          # the stiffness ratio is known within a factor e^2 ~ 7
+
+    def std(self, key: str) -> float:
+        """Prior std of ``key`` in internal units (mm, rad)."""
+        if key == LOG_RATIO:
+            return self.log_ratio
+        if key.endswith("dtheta"):
+            return np.deg2rad(self.zero_offset_deg)
+        return np.deg2rad(self.angle_deg) if is_angular(key) else self.position_mm
+
+
+@dataclass
+class FullChainOptions:
+    keys: list[str] | None = None           # parameters to identify (default: every key)
+    fit_stiffness_ratio: bool = False
+    stiffness_ratio: float | None = None    # initial / fixed ratio (default machine.toml)
+    priors: Priors = field(default_factory=Priors)
+    sigma_mm: float | None = None           # tracker noise (default machine.toml)
+    max_nfev: int = 50
+
+
+class FullChainModel:
+    """Forward model of the whole closed chain: commands (deg) + parameters → targets (mm)."""
+
+    def __init__(self, geom: Geometry | None = None, stiffness_ratio: float | None = None):
+        from twin.machine import Twin   # the twin's physics is the model
+
+        self.geom = geom or default_geometry()
+        self.twin = Twin(None, self.geom, stiffness_ratio=stiffness_ratio)
+        self._qpos: np.ndarray | None = None
+        self._cmd_key: bytes | None = None
+
+    @property
+    def stiffness_ratio(self) -> float:
+        k = self.twin.stiffness.closure
+        return float(k.max() / k.min())
+
+    def set(self, errors: ErrorSet, stiffness_ratio: float | None = None) -> None:
+        self.twin.set_errors(errors)
+        if stiffness_ratio is not None:
+            self.twin.set_stiffness_ratio(stiffness_ratio)
+
+    def solve(self, m_cmd_deg: np.ndarray):
+        """Equilibria for commands (N, 2) deg, warm-started from the previous solve of the same commands."""
+        m_cmd_deg = np.atleast_2d(np.asarray(m_cmd_deg, float))
+        key = m_cmd_deg.tobytes()
+        joint = np.deg2rad(m_cmd_deg) + self.twin.errors.dtheta[:2]
+        warm = self._qpos if key == self._cmd_key else None
+        state = self.twin.reach_joint(joint, qpos=warm)
+        if not state.converged.all():              # a poor warm start: start from the closed form
+            state = self.twin.reach_joint(joint)
+        self._qpos, self._cmd_key = state.qpos.copy(), key
+        return state
+
+    def predict(self, m_cmd_deg: np.ndarray, keys: list[str] | None = None):
+        """Targets (N, k, 3) mm and, with ``keys``, their derivatives (N, k, 3, len(keys))."""
+        from twin.sensitivity import target_sensitivity
+
+        state = self.solve(m_cmd_deg)
+        if keys is None:
+            return state.targets, None
+        sens = target_sensitivity(self.twin, state.qpos, keys)
+        return sens.targets, sens.d_targets
+
+
+def errors_from_vector(keys: list[str], x: np.ndarray) -> tuple[ErrorSet, float | None]:
+    """ErrorSet (internal units) and log stiffness ratio (or None) from a parameter vector."""
+    e = ErrorSet()
+    log_ratio = None
+    for k, v in zip(keys, x):
+        if k == LOG_RATIO:
+            log_ratio = float(v)
+        else:
+            e.set(k, float(v))
+    return e, log_ratio
+
+
+def to_interface(keys: list[str], x: np.ndarray) -> dict[str, float]:
+    """Parameter dict in interface units (mm, deg); the stiffness ratio is left out."""
+    return {k: float(np.rad2deg(v)) if is_angular(k) else float(v) for k, v in zip(keys, x) if k != LOG_RATIO}
+
+
+def identify_full(meas: Measurements, options: FullChainOptions | None = None,
+                  model: FullChainModel | None = None) -> IdentResult:
+    """Identify the whole-chain parameters from measured targets (see module docstring)."""
+    opt = options or FullChainOptions()
+    geom = model.geom if model is not None else default_geometry()
+    model = model or FullChainModel(geom, opt.stiffness_ratio)
+    sigma = opt.sigma_mm or geom.sigma_mm
+    keys = list(opt.keys or all_keys(geom.n_limbs, geom.actuated))
+    ratio0 = model.stiffness_ratio if opt.stiffness_ratio is None else opt.stiffness_ratio
+    if opt.fit_stiffness_ratio:
+        keys = keys + [LOG_RATIO]
+    s = np.array([opt.priors.std(k) for k in keys])
+    x_prior = np.array([np.log(ratio0) if k == LOG_RATIO else 0.0 for k in keys])
+    y = meas.targets.reshape(-1)
+    n_eval = 0
+    cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+    def evaluate(z: np.ndarray):
+        nonlocal n_eval
+        key = z.tobytes()
+        if key not in cache:
+            x = x_prior + z * s
+            e, log_ratio = errors_from_vector(keys, x)
+            model.set(e, np.exp(log_ratio) if log_ratio is not None else ratio0)
+            T, dT = model.predict(meas.m_cmd_deg, keys)
+            n_eval += 1
+            cache.clear()
+            cache[key] = (T.reshape(-1), dT.reshape(len(y), len(keys)))
+        return cache[key]
+
+    def fun(z):
+        T, _ = evaluate(z)
+        return np.concatenate([(y - T) / sigma, z])
+
+    def jac(z):
+        _, dT = evaluate(z)
+        return np.vstack([-dT * (s / sigma), np.eye(len(z))])
+
+    t0 = time.perf_counter()
+    sol = least_squares(fun, np.zeros(len(keys)), jac=jac, method="trf", x_scale=1.0,
+                        xtol=1e-10, ftol=1e-12, gtol=1e-10, max_nfev=opt.max_nfev)
+    wall = time.perf_counter() - t0
+    x = x_prior + sol.x * s
+    T, dT = evaluate(sol.x)
+    resid = y - T
+    A = dT / sigma
+    AtA = A.T @ A
+    cov = np.linalg.inv(AtA + np.diag(1.0 / s**2))
+    p_eff = float(np.trace(cov @ AtA))                 # effective number of fitted parameters
+    dof = len(y) - p_eff
+    units = ["log" if k == LOG_RATIO else ("rad" if is_angular(k) else "mm") for k in keys]
+    return IdentResult(
+        method="full-chain-map", names=keys, x=x, residuals=resid, covariance=cov, n_eval=n_eval,
+        n_iter=int(sol.nfev), wall_time=wall, success=bool(sol.success), message=str(sol.message),
+        units=units,
+        info={"sigma_mm": sigma,
+              "stiffness_ratio": float(np.exp(x[keys.index(LOG_RATIO)])) if LOG_RATIO in keys else ratio0,
+              "singular_values": np.linalg.svd(A, compute_uv=False), "prior_std": s,
+              "effective_parameters": p_eff, "chi2_per_dof": float(resid @ resid / sigma**2 / dof),
+              "dof": dof})
+
+
+def platform_normals(targets: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Platform normals (N, 3) of rigid fits of targets (N, k, 3) to platform coordinates X."""
+    from calib.rigid import fit_pose
+
+    _, R, _ = fit_pose(targets, X)
+    return R[:, :, 2]
+
+
+def setpoints(model: FullChainModel, errors: ErrorSet, phi_deg, theta_deg, stiffness_ratio: float | None = None,
+              tol_deg: float = 1e-7, max_iter: int = 20) -> np.ndarray:
+    """Motor commands (N, 2) deg that make the machine described by ``errors`` point at (phi, theta).
+
+    Newton on the forward model: the residual is the platform normal's offset from the target normal in
+    the target's tangent plane (2 equations, 2 motors); derivatives from the implicit function theorem.
+    Starts from the nominal IK. Poses that do not converge come back as NaN.
+    """
+    model.set(errors, stiffness_ratio)
+    phi, theta = np.deg2rad(np.atleast_1d(phi_deg)), np.deg2rad(np.atleast_1d(theta_deg))
+    Rt = tilt_torsion(phi, theta)                          # target frames: normal = third column
+    cmd = np.rad2deg(nominal_ik(phi, theta, model.geom)) - np.rad2deg(errors.dtheta[:2])
+    X = model.geom.targets
+    keys = ["L1.dtheta", "L2.dtheta"]
+    done = np.zeros(len(phi), bool)
+    for _ in range(max_iter):
+        T, dT = model.predict(cmd, keys)
+        w = platform_normals(T, X)
+        e = np.stack([np.einsum("ni,ni->n", Rt[:, :, 0], w), np.einsum("ni,ni->n", Rt[:, :, 1], w)], 1)
+        done = np.abs(e).max(axis=1) < np.deg2rad(tol_deg)
+        if done.all():
+            break
+        h = 1e-6                                           # d normal / d targets by a small rigid fit step
+        dw = np.stack([(platform_normals(T + h * dT[..., c], X) - w) / h for c in range(2)], axis=-1)
+        Je = np.stack([np.einsum("ni,nic->nc", Rt[:, :, 0], dw), np.einsum("ni,nic->nc", Rt[:, :, 1], dw)], 1)
+        step = -np.linalg.solve(Je, e[..., None])[..., 0]  # rad
+        cmd = cmd + np.where(done[:, None], 0.0, np.rad2deg(step))
+    cmd[~done] = np.nan
+    return cmd
