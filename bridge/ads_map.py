@@ -1,0 +1,78 @@
+"""ADS protocol details in one place: where GVL_CompTable lives, its symbols' ADS types, link errors.
+
+Configuration as data: :class:`AdsMap` names the GVL and the AMS port; the symbols (names, PLC types,
+sizes) and the write allow-lists come from the GVL declaration in :mod:`bridge.plc_types`.
+Each symbol is transferred with an explicit ctypes type of exactly the symbol's size
+(``ARRAY [..] OF LREAL`` as ``c_double * 20000``, structs as their packed byte image), never with
+pyads' type guessing (which silently writes nothing for 2-D arrays).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import re
+from dataclasses import dataclass
+
+import pyads
+
+from bridge.plc_types import SYMBOL, SYMBOLS, Symbol
+
+#: ADS router TCP port of a TwinCAT system
+ADS_TCP_PORT = 48898
+#: AMS port of the first TwinCAT 3 PLC runtime
+PLC_AMS_PORT = 851
+
+#: ADS/AMS/socket errors after which the link is closed, reopened and the transfer restarted
+#: (no route, port not connected, time-out, invalid response, handles invalid after online change)
+LINK_ERRORS = frozenset({6, 7, 10, 13, 18, 1809, 1812, 1826, 1861, 1864, 1876})
+
+_SCALAR = {"UINT": ctypes.c_uint16, "UDINT": ctypes.c_uint32}
+
+
+@dataclass(frozen=True)
+class AdsMap:
+    """Where the compensation-table interface lives on the PLC."""
+
+    gvl: str = "GVL_CompTable"
+    ams_port: int = PLC_AMS_PORT
+
+    def name(self, key: str) -> str:
+        """Full ADS symbol name of a GVL variable, e.g. ``GVL_CompTable.aShadow``."""
+        return f"{self.gvl}.{SYMBOL[key].st_name}"
+
+    @property
+    def symbols(self) -> tuple[Symbol, ...]:
+        return SYMBOLS
+
+
+def ctype_of(sym: Symbol) -> type:
+    """The ctypes type that carries ``sym`` exactly (size checked against the declaration)."""
+    if sym.st_type in _SCALAR:
+        t = _SCALAR[sym.st_type]
+    elif sym.st_type.endswith("OF LREAL"):
+        t = pyads.PLCTYPE_ARR_LREAL(sym.size // 8)
+    else:
+        t = ctypes.c_uint8 * sym.size
+    assert ctypes.sizeof(t) == sym.size, sym
+    return t
+
+
+@dataclass(frozen=True)
+class AdsTarget:
+    """An ADS endpoint: AMS NetID, host, ADS router TCP port."""
+
+    netid: str
+    host: str
+    tcp_port: int = ADS_TCP_PORT
+
+    def __str__(self) -> str:
+        return f"{self.netid}@{self.host}:{self.tcp_port}"
+
+    @classmethod
+    def parse(cls, text: str) -> "AdsTarget":
+        """``NETID@HOST[:PORT]``, e.g. ``5.80.201.232.1.1@192.168.1.10`` (ValueError if malformed)."""
+        m = re.fullmatch(r"((?:\d{1,3}\.){5}\d{1,3})@([A-Za-z0-9_.\-]+)(?::(\d{1,5}))?", text.strip())
+        if not m or any(int(x) > 255 for x in m[1].split(".")) or (m[3] and not 0 < int(m[3]) < 65536):
+            raise ValueError(f"ADS target {text!r}: expected NETID@HOST[:PORT] with a six-byte AMS NetID "
+                             "like 5.80.201.232.1.1")
+        return cls(m[1], m[2], int(m[3]) if m[3] else ADS_TCP_PORT)

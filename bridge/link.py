@@ -1,0 +1,91 @@
+"""What a transport offers the hand-over (:class:`PlcLink`) and the part both transports share.
+
+A transport implements its primitives on PLC memory images (bytes, little-endian, the layouts of
+:mod:`bridge.plc_types`): ``open``, ``close``, ``check_interface``, ``read_symbol``/``write_symbol``
+for the small GVL_CompTable variables, and ``stage``/``read_back`` (and, if it pads, ``payload``)
+for the table itself.
+:class:`LinkBase` builds the rest on them (state, commit, motor-target lookup).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Protocol
+
+from bridge.errors import AckTimeout
+from bridge.plc_types import LookupIn, LookupOut, PlcState
+
+
+class PlcLink(Protocol):
+    """What :func:`bridge.transfer.push` and the twin loop need from a transport."""
+
+    transport: str          # "ads" or "modbus"
+    target: str             # where, for messages and the audit
+
+    def open(self) -> None: ...
+    def close(self) -> None: ...
+    def check_interface(self) -> None: ...
+    def payload(self, header: bytes, rows: bytes) -> tuple[bytes, bytes]: ...
+    def read_state(self) -> PlcState: ...
+    def read_active_header(self) -> bytes: ...
+    def write_commit(self, version: int) -> None: ...
+    def stage(self, header: bytes, rows: bytes) -> tuple[bytes, bytes]: ...
+    def read_back(self, data_size: int) -> tuple[bytes, bytes]: ...
+    def lookup(self, phi_deg: float, theta_deg: float, timeout_s: float = 1.0) -> LookupOut: ...
+
+
+class LinkBase:
+    """State, commit and lookup on top of a transport's ``read_symbol``/``write_symbol``."""
+
+    transport = ""
+    target = ""
+    _lookup_seq: int | None = None
+
+    def read_symbol(self, key: str) -> bytes:
+        raise NotImplementedError
+
+    def write_symbol(self, key: str, data: bytes) -> None:
+        raise NotImplementedError
+
+    def open(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def payload(self, header: bytes, rows: bytes) -> tuple[bytes, bytes]:
+        """The exact bytes :meth:`stage` sends for a header and the table rows (default: as they are)."""
+        return header, rows
+
+    def read_state(self) -> PlcState:
+        """ST_CompTableState: ack/active version, status, active CRC, manager state, cycle counter."""
+        return PlcState.unpack(self.read_symbol("state"))
+
+    def read_active_header(self) -> bytes:
+        return self.read_symbol("active_header")
+
+    def write_commit(self, version: int) -> None:
+        """``nCommitVersion := version`` (0 withdraws a pending commit)."""
+        self.write_symbol("commit_version", int(version).to_bytes(4, "little"))
+
+    def lookup(self, phi_deg: float, theta_deg: float, timeout_s: float = 1.0) -> LookupOut:
+        """Motor targets (deg) for (phi, theta) in deg from FB_CompTableLookup; waits for the answer."""
+        if self._lookup_seq is None:
+            self._lookup_seq = LookupOut.unpack(self.read_symbol("lookup_out")).seq
+        self._lookup_seq = (self._lookup_seq + 1) & 0xFFFFFFFF or 1
+        self.write_symbol("lookup_in", LookupIn(float(phi_deg), float(theta_deg), self._lookup_seq).pack())
+        deadline = time.monotonic() + timeout_s
+        while True:
+            out = LookupOut.unpack(self.read_symbol("lookup_out"))
+            if out.seq == self._lookup_seq:
+                return out
+            if time.monotonic() >= deadline:
+                raise AckTimeout(f"PLC did not answer lookup request {self._lookup_seq} within {timeout_s:g} s")
+            time.sleep(0.0002)
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,232 @@
+"""Twin in the loop: the digital twin plays the machine behind a mock PLC, before and after a push.
+
+The mock PLC starts with the nominal table (version 1: the controller as commissioned, no
+calibration). For each test orientation the twin asks the PLC for motor targets through
+FB_CompTableLookup (over ADS or Modbus), drives to them, and the virtual laser tracker measures the
+platform; the pointing error is the angle between the measured and the wanted platform normal. Then
+the compensation table is pushed through the bridge and the same orientations are measured again.
+
+Units: deg for orientations, commands and pointing errors; mm inside the tracker and the twin.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from calib.comptable import CompTable
+from calib.ocpm.config import Geometry, default_geometry
+from calib.ocpm.params import ErrorSet
+from bridge.errors import BridgeError
+from bridge.link import PlcLink
+from bridge.plc_types import LOOKUP_WRITES, LookupResult
+from bridge.transfer import PushReport, push
+
+NOMINAL_VERSION = 1
+#: 5 deg in phi, 2 deg in theta (as ``pmcal compensate --table``)
+DEFAULT_GRID = (73, 31)
+
+
+@dataclass
+class Pointing:
+    """Pointing errors (deg) at the test orientations: as the tracker measures them, and true."""
+
+    measured_deg: np.ndarray
+    true_deg: np.ndarray
+    commands_deg: np.ndarray
+
+    def summary(self) -> dict:
+        return {"rms_deg": _rms(self.measured_deg), "max_deg": float(self.measured_deg.max()),
+                "true_rms_deg": _rms(self.true_deg), "true_max_deg": float(self.true_deg.max())}
+
+
+@dataclass
+class LoopResult:
+    """Before/after the push, plus the compensation evaluated directly at the targets (no table)."""
+
+    transport: str
+    phi_deg: np.ndarray
+    theta_deg: np.ndarray
+    before: Pointing
+    after: Pointing
+    direct: Pointing
+    push: PushReport
+    table_version: int
+    grid: tuple[int, int]
+    extra: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        return {"transport": self.transport, "targets": int(len(self.phi_deg)), "grid": list(self.grid),
+                "table_version": self.table_version, "before": self.before.summary(),
+                "after": self.after.summary(), "direct_no_table": self.direct.summary(),
+                "push": {k: v for k, v in asdict(self.push).items() if k in ("result", "message", "timings_s")},
+                **self.extra}
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x))))
+
+
+def nominal_table(grid: tuple[int, int], geom: Geometry | None = None, version: int = NOMINAL_VERSION,
+                  max_step_deg: float = 15.0) -> CompTable:
+    """The uncalibrated controller as a table: nominal inverse kinematics on the grid (deg)."""
+    from calib.ocpm.kinematics import nominal_ik
+
+    geom = geom or default_geometry()
+    return _table(lambda p, t: np.rad2deg(nominal_ik(np.deg2rad(p), np.deg2rad(t), geom)), grid, geom,
+                  version, max_step_deg)
+
+
+def compensation_table(errors: ErrorSet, grid: tuple[int, int], version: int, geom: Geometry | None = None,
+                       max_step_deg: float = 15.0) -> CompTable:
+    """Whole-closed-chain compensation of the machine with ``errors`` on the grid (deg), validated."""
+    from calib.ocpm.fullchain import FullChainModel, setpoints
+
+    geom = geom or default_geometry()
+    model = FullChainModel(geom)
+    return _table(lambda p, t: setpoints(model, errors, p, t), grid, geom, version, max_step_deg)
+
+
+def _table(fill, grid, geom: Geometry, version: int, max_step_deg: float) -> CompTable:
+    return CompTable.from_setpoints(fill, machine="ocpm_2dof", version=version, n_phi=grid[0], n_theta=grid[1],
+                                    theta_range_deg=(0.0, float(np.rad2deg(geom.theta_max))),
+                                    motor_limits_deg=(float(np.rad2deg(geom.motor_min)),
+                                                      float(np.rad2deg(geom.motor_max))),
+                                    max_step_deg=max_step_deg).validate()
+
+
+def plc_commands(link: PlcLink, phi_deg: np.ndarray, theta_deg: np.ndarray) -> tuple[np.ndarray, int]:
+    """Motor targets (N, 2) deg that FB_CompTableLookup gives for the orientations, and the table version."""
+    out = np.empty((len(phi_deg), 2))
+    versions = set()
+    for k, (p, t) in enumerate(zip(phi_deg, theta_deg)):
+        res = link.lookup(float(p), float(t))
+        if res.result != LookupResult.OK:
+            what = getattr(res.result, "name", res.result)
+            raise BridgeError(f"PLC lookup of (phi {p:g}, theta {t:g}) deg failed: {what}")
+        out[k] = res.m1_deg, res.m2_deg
+        versions.add(res.table_version)
+    if len(versions) != 1:
+        raise BridgeError(f"PLC switched tables during the lookups: versions {sorted(versions)}")
+    return out, versions.pop()
+
+
+def measure(twin, tracker, commands_deg: np.ndarray, phi_deg: np.ndarray, theta_deg: np.ndarray) -> Pointing:
+    """Drive the twin to the commands, measure with the tracker, pointing errors (deg) vs the targets."""
+    from calib.rigid import fit_pose
+    from calib.rotations import pointing_error, tilt_torsion
+
+    state = twin.reach(commands_deg)
+    if not np.all(state.converged):
+        raise BridgeError("the twin did not assemble at every commanded pose")
+    wanted = tilt_torsion(np.deg2rad(phi_deg), np.deg2rad(theta_deg))
+    _, R_meas, _ = fit_pose(tracker.measure(state.targets), twin.geom.targets)
+    return Pointing(np.rad2deg(pointing_error(R_meas, wanted)), np.rad2deg(pointing_error(state.R, wanted)),
+                    np.asarray(commands_deg, float))
+
+
+def run_loop(mock, errors: dict | ErrorSet, table: CompTable | None = None, *, n_targets: int = 24,
+             grid: tuple[int, int] = DEFAULT_GRID, seed: int = 1, sigma_mm: float | None = None,
+             link_factory=None) -> LoopResult:
+    """Run the loop against a started mock PLC (:class:`bridge.ads_mock.AdsMockPlc` or Modbus).
+
+    ``errors``: the twin's real geometric errors (interface keys, mm and deg, or an ErrorSet);
+    ``table``: what to push (default: the whole-chain compensation of ``errors`` on ``grid``).
+    ``link_factory(mock, writes)`` makes the client links (default: the mock's own transport).
+    """
+    from calib.ocpm.fullchain import FullChainModel, setpoints
+    from twin.campaign import plan_orientations
+    from twin.machine import Twin
+    from twin.tracker import LaserTracker
+
+    geom = default_geometry()
+    if not isinstance(errors, ErrorSet):
+        errors = ErrorSet.from_dict(errors, geom.n_limbs, geom.actuated)
+    rng = np.random.default_rng(seed)
+    phi, theta = plan_orientations(n_targets, float(np.rad2deg(geom.theta_max)), rng)
+    twin = Twin(errors, geom)
+    tracker = LaserTracker(geom.sigma_mm if sigma_mm is None else sigma_mm, rng)
+    if table is None:
+        table = compensation_table(errors, grid, NOMINAL_VERSION + 1, geom)
+    link_factory = link_factory or _default_links
+    mock.twin.seed(nominal_table((table.n_phi, table.n_theta), geom))
+
+    with link_factory(mock, LOOKUP_WRITES) as link:
+        cmd, version = plc_commands(link, phi, theta)
+    assert version == NOMINAL_VERSION
+    before = measure(twin, tracker, cmd, phi, theta)
+    report = push(link_factory(mock, None), table)
+    with link_factory(mock, LOOKUP_WRITES) as link:
+        cmd, version = plc_commands(link, phi, theta)
+    after = measure(twin, tracker, cmd, phi, theta)
+    exact = table.interpolate(phi, theta)
+    direct = measure(twin, tracker, setpoints(FullChainModel(geom), errors, phi, theta), phi, theta)
+    return LoopResult(mock.transport, phi, theta, before, after, direct, report, version,
+                      (table.n_phi, table.n_theta),
+                      extra={"plc_equals_table_interpolation": bool(np.array_equal(cmd, exact))})
+
+
+def _default_links(mock, writes):
+    from bridge.plc_types import PUSH_WRITES
+
+    writes = PUSH_WRITES if writes is None else writes
+    if mock.transport == "ads":
+        from bridge.ads import AdsLink
+
+        return AdsLink(mock.address, writes=writes)
+    from bridge.modbus import ModbusLink
+
+    return ModbusLink(mock.host, mock.port, rmap=mock.rmap, writes=writes)
+
+
+def run_loop_cli(args) -> int:
+    """``pmcal loop``: start a mock PLC, run the loop, print (and optionally write) the result."""
+    import json
+
+    from pmcal.apps.ocpm_twin import machine_errors
+    from pmcal.apps.ocpm_calib import parse_grid
+    from pmcal.errors import InputError
+    from pmcal.fileio import atomic_write
+
+    if getattr(args, "machine", "ocpm_2dof") != "ocpm_2dof":
+        raise InputError(f"the twin loop exists for ocpm_2dof only, not '{args.machine}'", field="--machine")
+    if not 1 <= args.targets <= 10000:
+        raise InputError(f"targets must be 1..10000, got {args.targets}", field="--targets")
+    errors = machine_errors(args)
+    grid = parse_grid(args.grid)
+    table = None
+    if args.table:
+        table = CompTable.load(args.table).validate(active_version=NOMINAL_VERSION)
+        grid = (table.n_phi, table.n_theta)
+    from bridge.ads import set_adslib_log_level
+
+    set_adslib_log_level(4)
+    import logging
+
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    if args.transport == "ads":
+        from bridge.ads_mock import AdsMockPlc as Mock
+    else:
+        from bridge.modbus_mock import ModbusMockPlc as Mock
+    with Mock(lifetime_s=600.0) as mock:
+        try:
+            res = run_loop(mock, errors, table, n_targets=args.targets, grid=grid, seed=args.seed)
+        except BridgeError as exc:
+            print(f"pmcal: failed: twin loop over {args.transport}: {exc}")
+            return exc.exit_status
+    s = res.summary()
+    print(f"twin in the loop over {res.transport} (mock PLC at {mock.target}), {s['targets']} orientations, "
+          f"table {grid[0]}x{grid[1]} v{res.table_version}:")
+    for name, key in (("before push (nominal table)", "before"), ("after push", "after"),
+                      ("compensation without table", "direct_no_table")):
+        v = s[key]
+        print(f"  {name:30s} pointing error rms {v['rms_deg']:.4f} deg, max {v['max_deg']:.4f} deg "
+              f"(true rms {v['true_rms_deg']:.4f} deg)")
+    print(f"  push: {s['push']['message']}; PLC targets equal the table's interpolation: "
+          f"{s['plc_equals_table_interpolation']}")
+    if args.json:
+        with atomic_write(args.json) as fh:
+            json.dump(s, fh, indent=1)
+            fh.write("\n")
+    return 0

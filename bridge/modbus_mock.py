@@ -1,0 +1,217 @@
+"""A mock TwinCAT PLC over Modbus TCP: a pymodbus server (SimDevice) in front of the PLC twin.
+
+The SimDevice's holding registers stand for the TF6250 mapping of ``stMbArea AT %MB0``; the register
+image lives in :class:`ModbusArea`, which also plays FB_CompTableModbus (plc/): before each PLC cycle
+it copies the bridge's inputs (header, commit, lookup request) into GVL_CompTable and serves a page
+request, after the cycle it copies the PLC's outputs (state, active header, lookup answer) back.
+Information and answer registers are read-only (a write answers ILLEGAL_ADDRESS).
+
+The server runs inside its own asyncio loop in a thread (pymodbus builds servers in a running loop),
+on 127.0.0.1, ephemeral port by default, and shuts down at the mock's deadline.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import numpy as np
+from pymodbus.constants import ExcCodes
+from pymodbus.server import ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from bridge.faults import Kind, Point
+from bridge.mock import MockPlc
+from bridge.modbus_map import MAGIC, PAGE_BAD, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap
+from bridge.plc_types import INTERFACE_VERSION, NPHI_MAX, NTHETA_MAX, SHADOW_SIZE
+from bridge.plc_twin import PlcTwin
+
+_FC_READ = (3, 4, 23)
+
+
+class ModbusArea:
+    """ST_CompTableModbusArea (the register image) and FB_CompTableModbus (its mapping to the GVL)."""
+
+    def __init__(self, rmap: ModbusMap, twin: PlcTwin) -> None:
+        self.rmap, self.twin = rmap, twin
+        self.image = np.zeros(rmap.area_size, dtype="<u2")
+        self.image[rmap.MAGIC:rmap.MAGIC + 5] = [MAGIC, INTERFACE_VERSION, NPHI_MAX, NTHETA_MAX,
+                                                 rmap.window_lreals]
+        self.window_writes = 0          # window writes since the last header write (fault points)
+        self.dirty = True               # the client wrote since the last task cycle
+
+    def get(self, key: str) -> bytes:
+        off = self.rmap.offset(key)
+        return self.image[off:off + self.rmap.size(key)].tobytes()
+
+    def put(self, key: str, data: bytes) -> None:
+        off = self.rmap.offset(key)
+        self.image[off:off + self.rmap.size(key)] = np.frombuffer(data, dtype="<u2")
+
+    def copy_in(self) -> None:
+        """Task start: bridge inputs -> GVL_CompTable, then one page request (if anything was written)."""
+        if not self.dirty:
+            return
+        self.dirty = False
+        for key in ("shadow_header", "commit_version", "lookup_in"):
+            self.twin.write_symbol(key, self.get(key))
+        r = self.rmap
+        index, count, cmd, seq = (int(x) for x in self.image[r.PAGE_CONTROL:r.PAGE_CONTROL + 4])
+        if seq == self.image[r.PAGE_ACK]:
+            return
+        offset, size = index * r.window_lreals * 8, count * 8
+        win = r.WINDOW
+        status = PAGE_OK
+        if not (0 < count <= r.window_lreals and offset + size <= SHADOW_SIZE):
+            status = PAGE_BAD
+        elif cmd == PAGE_STORE:
+            self.twin.write_shadow_bytes(offset, self.image[win:win + 4 * count].tobytes())
+        elif cmd == PAGE_LOAD:
+            self.image[win:win + 4 * count] = np.frombuffer(self.twin.read_shadow_bytes(offset, size), dtype="<u2")
+        else:
+            status = PAGE_BAD
+        self.image[r.PAGE_ACK + 1] = status
+        self.image[r.PAGE_ACK] = seq                     # the echo goes last
+
+    def copy_out(self) -> None:
+        """Task end: PLC outputs -> registers."""
+        for key in ("state", "active_header", "lookup_out"):
+            self.put(key, self.twin.read_symbol(key))
+
+    def point(self, fc: int, off: int, count: int, values) -> Point | None:
+        """Where in the transfer a request belongs (for fault injection)."""
+        r = self.rmap
+        if fc in _FC_READ:
+            if off >= r.WINDOW or r.SHADOW_HEADER <= off < r.COMMIT_VERSION:
+                return Point.AFTER_STAGE
+            if r.STATE <= off < r.ACTIVE_HEADER:
+                committed = self.image[r.COMMIT_VERSION:r.COMMIT_VERSION + 2].any()
+                return Point.ACK_WAIT if committed else Point.BEFORE_STAGE
+            return Point.BEFORE_STAGE if off < r.SHADOW_HEADER else None
+        if off == r.SHADOW_HEADER:
+            self.window_writes = 0
+            return None
+        if off >= r.WINDOW:
+            self.window_writes += 1
+            return Point.MID_STAGE if self.window_writes > 1 else None
+        if off == r.COMMIT_VERSION:
+            return Point.COMMIT if any(values or ()) else Point.BEFORE_STAGE
+        return None
+
+
+class ModbusMockPlc(MockPlc):
+    """A mock PLC serving ST_CompTableModbusArea over Modbus TCP on 127.0.0.1.
+
+    ``with ModbusMockPlc() as plc: push(ModbusLink(plc.host, plc.port), table)``
+    """
+
+    transport = "modbus"
+
+    def __init__(self, *args, rmap: ModbusMap = ModbusMap(), **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.rmap = rmap
+        self.area = ModbusArea(rmap, self.twin)
+        self._mute = 0
+        self._server: ModbusTcpServer | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+
+    @property
+    def target(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    def _task_hooks(self) -> tuple[tuple, tuple]:
+        return (self.area.copy_in,), (self.area.copy_out,)
+
+    def _device(self) -> SimDevice:
+        """Holding registers of the area; information and PLC answers read-only."""
+        r = self.rmap
+        blocks = [(r.MAGIC, r.SHADOW_HEADER, True), (r.SHADOW_HEADER, r.PAGE_ACK, False),
+                  (r.PAGE_ACK, r.LOOKUP_IN, True), (r.LOOKUP_IN, r.LOOKUP_OUT, False),
+                  (r.LOOKUP_OUT, r.WINDOW, True), (r.WINDOW, r.WINDOW + 4 * r.window_lreals, False)]
+        simdata = [SimData(address=r.base + a, count=b - a, values=0, datatype=DataType.REGISTERS, readonly=ro)
+                   for a, b, ro in blocks]
+        return SimDevice(id=r.device_id, simdata=simdata, action=self._action)
+
+    async def _action(self, fc: int, start: int, address: int, count: int, registers: list[int], values):
+        """SimDevice hook for every access: faults, then the register image of the area."""
+        off = address - self.rmap.base
+        at = address - start
+        self.count(write=values is not None)
+        with self.twin.lock:
+            point = self.area.point(fc, off, count, values)
+        fault = self.faults.trigger(point) if point is not None else None
+        corrupt = False
+        if fault is not None:
+            await asyncio.sleep(fault.wait_s)
+            if fault.kind == Kind.NO_REPLY:
+                self._mute += 1
+                return ExcCodes.DEVICE_FAILURE
+            elif fault.kind == Kind.DROP:
+                for conn in list(self._server.active_connections.values()):
+                    conn.close()
+                return ExcCodes.DEVICE_FAILURE
+            elif fault.kind == Kind.ERROR:
+                return ExcCodes(fault.code or ExcCodes.DEVICE_FAILURE)
+            elif fault.kind == Kind.CORRUPT and point == Point.COMMIT:
+                self.twin.corrupt_shadow()
+            else:
+                corrupt = fault.kind == Kind.CORRUPT
+        with self.twin.lock:
+            if values is None:
+                registers[at:at + count] = self.area.image[off:off + count].tolist()
+                if corrupt:
+                    registers[at] ^= 0x0001
+            else:
+                if corrupt:
+                    values[0] ^= 0x0001
+                self.area.image[off:off + count] = values
+                self.area.dirty = True
+        return None
+
+    def _trace(self, sending: bool, data: bytes) -> bytes:
+        """Swallow the reply of a request that hit a no_reply fault."""
+        if sending and self._mute:
+            self._mute -= 1
+            return b""
+        return data
+
+    def _start_server(self) -> None:
+        ready = threading.Event()
+        failure: list[BaseException] = []
+
+        async def serve() -> None:
+            self._loop = asyncio.get_running_loop()
+            self._server = ModbusTcpServer(self._device(), address=(self.host, self.port), trace_packet=self._trace)
+            await self._server.serve_forever(background=True)
+            self.port = self._server.transport.sockets[0].getsockname()[1]
+            ready.set()
+            try:
+                await asyncio.wait_for(asyncio.shield(self._server.serving),
+                                       timeout=max(0.0, self.deadline - time.monotonic()))
+            except asyncio.TimeoutError:
+                pass
+            await self._server.shutdown()
+
+        def run() -> None:
+            try:
+                asyncio.run(serve())
+            except BaseException as exc:   # reported to the starting thread
+                failure.append(exc)
+                ready.set()
+
+        self._thread = threading.Thread(target=run, name="modbus-mock", daemon=True)
+        self._thread.start()
+        if not ready.wait(10.0) or failure:
+            raise RuntimeError(f"Modbus mock PLC did not start: {failure[0] if failure else 'time-out'}")
+
+    def _stop_server(self) -> None:
+        if self._server is not None and self._loop is not None and self._loop.is_running():
+            try:
+                asyncio.run_coroutine_threadsafe(self._server.shutdown(), self._loop).result(5.0)
+            except (RuntimeError, TimeoutError, asyncio.CancelledError):
+                pass
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self._server = self._loop = self._thread = None

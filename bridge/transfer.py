@@ -1,0 +1,306 @@
+"""The table hand-over, independent of the transport: validate, check, stage, read back, commit, ack.
+
+:func:`push` drives any :class:`PlcLink` (ADS in :mod:`bridge.ads`, Modbus in :mod:`bridge.modbus`):
+
+1. validate the table locally (before connecting);
+2. open the link, check the PLC interface, read the PLC state;
+3. refuse a version that is not newer than the active one (before anything is written);
+4. withdraw any pending commit (``nCommitVersion := 0``) and wait for the PLC to be idle;
+5. stage header and table into the shadow buffer, read both back and compare bit for bit;
+6. commit by writing the version; wait for the PLC's acknowledgement (time-out ``ack_timeout_s``);
+   on time-out withdraw the commit and report the version that stays active.
+
+Link errors (and read-back mismatches) close the link and restart from step 2, at most ``attempts``
+times; if a commit was sent before the link broke and the PLC meanwhile activated exactly this table,
+the restart reports success instead of committing twice. A PLC rejection is never retried.
+Every call ends with one audit line (JSON) carrying the SHA-256 of the bytes sent.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from calib.comptable import NTHETA_MAX, CompTable
+from bridge.errors import AckTimeout, BridgeError, LinkError, ReadbackMismatch, Rejected
+from bridge.link import PlcLink
+from bridge.plc_types import HEADER_SIZE, LREAL_SIZE, Header, PlcState, State, Status, shadow_rows
+from pmcal.errors import InputError
+
+
+@dataclass(frozen=True)
+class PushOptions:
+    """Retry and timing policy of :func:`push` (seconds)."""
+
+    attempts: int = 3
+    ack_timeout_s: float = 5.0
+    idle_timeout_s: float = 2.0
+    poll_s: float = 0.0005
+    retry_pause_s: float = 0.05
+    dry_run: bool = False
+
+
+@dataclass
+class PushReport:
+    """Outcome of one :func:`push`; ``audit_line()`` is what goes to the audit log."""
+
+    transport: str
+    target: str
+    machine: str
+    version: int
+    crc16: str
+    result: str = "failed"           # ok | already_active | dry_run | rejected | refused | failed
+    status: str = ""                 # PLC status after the ack
+    previous_version: int | None = None
+    active_version: int | None = None
+    attempts: int = 0
+    bytes_sent: int = 0
+    sha256_sent: str = ""
+    dry_run: bool = False
+    message: str = ""
+    timings_s: dict = field(default_factory=dict)
+
+    def audit_line(self) -> str:
+        doc = {"time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds"),
+               "event": "push", **asdict(self)}
+        doc["timings_s"] = {k: round(v, 6) for k, v in self.timings_s.items()}
+        return json.dumps(doc, sort_keys=False)
+
+
+def push(link: PlcLink, table: CompTable, options: PushOptions = PushOptions(),
+         audit_path: str | os.PathLike | None = None) -> PushReport:
+    """Send ``table`` to the PLC behind ``link`` and make it active; see the module docstring.
+
+    Raises :class:`InputError` for a bad or stale table (nothing written), :class:`BridgeError`
+    subclasses for transfer failures (with ``exc.report``). Returns the report on success.
+    """
+    table.validate()
+    run = _Run(link, table, options, PushReport(link.transport, link.target, table.machine, int(table.version),
+                                                f"0x{table.crc16():04X}", dry_run=options.dry_run))
+    t0 = time.perf_counter()
+    try:
+        for attempt in range(1, max(1, options.attempts) + 1):
+            run.rep.attempts = attempt
+            try:
+                run.attempt()
+                return run.rep
+            except LinkError as exc:
+                link.close()
+                if attempt >= options.attempts:
+                    raise type(exc)(f"{exc} (gave up after {attempt} attempt{'s' * (attempt > 1)})") from exc
+                time.sleep(options.retry_pause_s)
+        raise AssertionError("unreachable")
+    except InputError as exc:
+        run.rep.result, run.rep.message = "refused", str(exc)
+        raise
+    except BridgeError as exc:
+        rep = run.rep
+        if not run.commit_sent:
+            note = "; nothing committed, the active table is unchanged"
+        else:
+            note = run.abandon() if not run.acknowledged else ""
+        if rep.result in ("ok", "already_active"):          # a late commit made it after all
+            return rep
+        rep.result = "rejected" if isinstance(exc, Rejected) else "failed"
+        rep.message = f"{exc}{note}"
+        failure = type(exc)(rep.message)
+        failure.report = rep
+        raise failure from exc
+    finally:
+        link.close()
+        run.rep.timings_s["total"] = time.perf_counter() - t0
+        if audit_path is not None:
+            append_audit(audit_path, run.rep.audit_line())
+
+
+@dataclass
+class _Run:
+    """One :func:`push`: the images to send and whether a commit may already have reached the PLC."""
+
+    link: PlcLink
+    table: CompTable
+    opt: PushOptions
+    rep: PushReport
+    commit_sent: bool = False
+    acknowledged: bool = False
+
+    def __post_init__(self) -> None:
+        self.header = Header.of(self.table).pack()
+        self.rows = shadow_rows(self.table)
+
+    def abandon(self) -> str:
+        """After a failure with a commit possibly pending: withdraw it and say what is active.
+
+        Best effort on a fresh connection. If the PLC activated exactly this table meanwhile, the
+        report turns into success ("already_active").
+        """
+        link, version = self.link, int(self.table.version)
+        try:
+            link.close()
+            link.open()
+            link.write_commit(0)
+        except BridgeError:
+            return f"; could not withdraw the commit of version {version} (link down): the PLC drops it " \
+                   "unless it passes its checks and motion allows the swap before its commit time-out"
+        try:
+            st = _settle(link, self.opt)
+        except BridgeError:
+            return f"; commit of version {version} withdrawn, PLC state unreadable"
+        self.rep.active_version, self.rep.status = st.active_version, _name(st.status)
+        if st.active_version == version and st.active_crc == self.table.crc16() \
+                and link.read_active_header() == self.header:
+            self.rep.result = "already_active"
+            self.rep.message = f"version {version} active (the acknowledgement was lost, the table was not)"
+            return ""
+        return f"; commit withdrawn, active version stays {st.active_version}"
+
+    def attempt(self) -> None:
+        link, opt, rep = self.link, self.opt, self.rep
+        version, crc = int(self.table.version), self.table.crc16()
+        t = time.perf_counter()
+        link.open()
+        link.check_interface()
+        st = link.read_state()
+        rep.timings_s["connect_check"] = time.perf_counter() - t
+        if rep.previous_version is None:
+            rep.previous_version = st.active_version
+        rep.active_version = st.active_version
+        if st.active_version == version and st.active_crc == crc and link.read_active_header() == self.header:
+            rep.result, rep.status = "already_active", Status.OK.name
+            rep.message = (f"version {version} became active before the link was lost; not committed twice"
+                           if self.commit_sent else f"version {version} with this content is already active")
+            return
+        self.table.validate(active_version=st.active_version)
+        if opt.dry_run:
+            would = b"".join(link.payload(self.header, self.rows))
+            rep.result, rep.sha256_sent = "dry_run", hashlib.sha256(would).hexdigest()
+            rep.message = (f"dry run: would stage {len(would)} bytes (sha256 {rep.sha256_sent[:16]}) and commit "
+                           f"version {version} (active version {st.active_version}); nothing written")
+            return
+        # withdraw whatever is pending, wait for an idle manager
+        link.write_commit(0)
+        _wait(link, lambda s: s.ack_version == 0 and s.state == State.IDLE, opt.idle_timeout_s, opt.poll_s,
+              "PLC manager did not become idle after clearing nCommitVersion")
+        # stage and read back
+        t = time.perf_counter()
+        sent_header, sent_rows = link.stage(self.header, self.rows)
+        rep.timings_s["stage"] = time.perf_counter() - t
+        rep.bytes_sent = len(sent_header) + len(sent_rows)
+        rep.sha256_sent = hashlib.sha256(sent_header + sent_rows).hexdigest()
+        t = time.perf_counter()
+        back_header, back_rows = link.read_back(len(sent_rows))
+        rep.timings_s["readback"] = time.perf_counter() - t
+        _compare(sent_header, sent_rows, back_header, back_rows)
+        # commit and wait for the acknowledgement
+        t = time.perf_counter()
+        self.commit_sent = True
+        link.write_commit(version)
+        try:
+            st = _wait(link, lambda s: s.ack_version == version and s.state == State.IDLE, opt.ack_timeout_s,
+                       opt.poll_s, "")
+        except AckTimeout:
+            st = _withdraw(link, opt)
+            self.acknowledged = True                    # settled: withdrawn (or swapped just before)
+            rep.active_version, rep.status = st.active_version, _name(st.status)
+            if not (st.active_version == version and st.active_crc == crc):
+                raise AckTimeout(f"PLC did not acknowledge version {version} within {opt.ack_timeout_s:g} s "
+                                 f"(state {_name(st.state)}); commit withdrawn, active version stays "
+                                 f"{st.active_version}") from None
+        rep.timings_s["commit_ack"] = time.perf_counter() - t
+        self.acknowledged = True
+        rep.active_version, rep.status = st.active_version, _name(st.status)
+        _release(link)
+        if st.status == Status.OK and st.active_version == version and st.active_crc == crc:
+            rep.result = "ok"
+            rep.message = f"version {version} active (was {rep.previous_version})"
+            return
+        reason = _REASONS.get(st.status, "see plc/README.md")
+        raise Rejected(f"PLC rejected version {version}: {_name(st.status)} ({reason}); "
+                       f"active version stays {st.active_version}")
+
+
+_REASONS = {
+    Status.FORMAT_VERSION: "unknown table format version",
+    Status.VERSION_MISMATCH: "commit version differs from the staged header",
+    Status.STALE_VERSION: "not newer than the active table",
+    Status.GRID_SIZE: "grid size outside the PLC arrays",
+    Status.GRID_LIMITS: "grid limits not finite or not increasing",
+    Status.LIMITS: "motor limits or max step invalid",
+    Status.CRC_MISMATCH: "CRC of the staged data differs from the header: data damaged after staging",
+    Status.NOT_FINITE: "NaN or infinite value",
+    Status.OUT_OF_RANGE: "value outside the motor limits",
+    Status.STEP_TOO_LARGE: "step between neighbouring nodes too large",
+    Status.CRC_SELFTEST: "the PLC's CRC function fails its self-test",
+    Status.WITHDRAWN: "commit withdrawn by another client",
+    Status.SWAP_TIMEOUT: "motion did not allow the buffer swap within the PLC's commit time-out",
+}
+
+
+def _name(v) -> str:
+    return v.name if hasattr(v, "name") else str(v)
+
+
+def _wait(link: PlcLink, ready: Callable[[PlcState], bool], timeout_s: float, poll_s: float,
+          what: str) -> PlcState:
+    """Poll the PLC state until ``ready`` or the time-out (bounded loop)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        st = link.read_state()
+        if ready(st):
+            return st
+        if time.monotonic() >= deadline:
+            raise AckTimeout(what or "time-out")
+        time.sleep(poll_s)
+
+
+def _withdraw(link: PlcLink, opt: PushOptions) -> PlcState:
+    """Clear the commit request after an ack time-out and return the settled PLC state."""
+    link.write_commit(0)
+    return _settle(link, opt)
+
+
+def _settle(link: PlcLink, opt: PushOptions) -> PlcState:
+    """The PLC state once the manager is idle again (or as it is after ``idle_timeout_s``)."""
+    try:
+        return _wait(link, lambda s: s.state == State.IDLE, opt.idle_timeout_s, opt.poll_s, "")
+    except AckTimeout:
+        return link.read_state()
+
+
+def _release(link: PlcLink) -> None:
+    """After the acknowledgement: ``nCommitVersion := 0`` returns the manager to idle (best effort)."""
+    try:
+        link.write_commit(0)
+    except BridgeError:
+        pass
+
+
+def _compare(sent_header: bytes, sent_rows: bytes, back_header: bytes, back_rows: bytes) -> None:
+    """Raise :class:`ReadbackMismatch` naming the first differing header byte or table node."""
+    if back_header != sent_header:
+        pos = next(i for i in range(HEADER_SIZE) if i >= len(back_header) or back_header[i] != sent_header[i])
+        raise ReadbackMismatch(f"read-back of the staged header differs at byte {pos}")
+    if back_rows != sent_rows:
+        n = min(len(back_rows), len(sent_rows))
+        pos = next((i for i in range(0, n, LREAL_SIZE)
+                    if back_rows[i:i + LREAL_SIZE] != sent_rows[i:i + LREAL_SIZE]), n)
+        k = pos // LREAL_SIZE
+        i, rest = divmod(k, NTHETA_MAX * 2)
+        j, m = divmod(rest, 2)
+        raise ReadbackMismatch(f"read-back of the staged table differs at node ({i}, {j}) m{m + 1}_deg")
+
+
+def append_audit(path: str | os.PathLike, line: str) -> None:
+    """Append one line to the audit log (created if missing), flushed to disk."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    with open(p, "a", encoding="utf-8") as fh:
+        fh.write(line.rstrip("\n") + "\n")
+        fh.flush()
+        os.fsync(fh.fileno())

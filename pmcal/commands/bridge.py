@@ -1,0 +1,210 @@
+"""``pmcal push``, ``pmcal mock-plc`` and ``pmcal loop``: the compensation table to the PLC and back.
+
+- ``pmcal push TABLE --ads NETID@HOST[:PORT] | --modbus HOST[:PORT] [--dry-run]`` sends a table
+  (JSON or CSV, docs/compensation_table.md) and makes it active; exit 0 on success, 2 for a bad or
+  stale table (nothing written), 1 for a transfer failure, 3 when the PLC rejects the table.
+- ``pmcal mock-plc --ads|--modbus`` runs a mock PLC on 127.0.0.1 for manual trials.
+- ``pmcal loop`` puts the digital twin in the loop (see :mod:`bridge.loop`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+from pmcal.errors import InputError
+from pmcal.fileio import atomic_write
+
+MAX_MOCK_SECONDS = 24 * 3600.0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("push", help="send a compensation table to the PLC (ADS or Modbus TCP)")
+    p.add_argument("table", metavar="TABLE", help="compensation table, .json or .csv")
+    _target_args(p)
+    p.add_argument("--dry-run", action="store_true",
+                   help="connect, check the interface and the table, write nothing")
+    p.add_argument("--attempts", type=int, default=3, help="transfer attempts on link errors (default 3)")
+    p.add_argument("--ack-timeout", type=float, default=5.0, metavar="S",
+                   help="wait this long for the PLC's acknowledgement (default 5 s)")
+    p.add_argument("--audit", default=None, metavar="FILE",
+                   help="audit log to append to (default: bridge_audit.log beside TABLE)")
+    p.add_argument("--no-audit", action="store_true", help="write no audit line")
+    p.add_argument("--json", default=None, metavar="REPORT.json", help="also write the push report as JSON")
+    p.set_defaults(func=cmd_push)
+
+    m = sub.add_parser("mock-plc", help="run a mock TwinCAT PLC on 127.0.0.1 for manual trials")
+    g = m.add_mutually_exclusive_group(required=True)
+    g.add_argument("--ads", action="store_true", help="serve GVL_CompTable over ADS")
+    g.add_argument("--modbus", action="store_true", help="serve the Modbus TCP area")
+    m.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
+    m.add_argument("--seconds", type=float, default=600.0, help="stop after this long (default 600 s)")
+    m.add_argument("--table", default=None, metavar="TABLE", help="make this table active at start")
+    m.add_argument("--fault", action="append", default=[], metavar="KIND@POINT[*N]",
+                   help="inject a fault, e.g. drop@mid_stage or delay@ack_wait*1 (repeatable)")
+    m.add_argument("--motion-busy", action="store_true", help="the machine never stands still (no swap)")
+    m.add_argument("--cycle-ms", type=float, default=1.0, help="PLC task cycle, ms (default 1)")
+    m.set_defaults(func=cmd_mock_plc)
+
+    lp = sub.add_parser("loop", help="twin in the loop: pointing error before and after a push")
+    lp.add_argument("--table", default=None, metavar="TABLE",
+                    help="table to push (default: built from the twin's own error set, see --errors)")
+    lp.add_argument("--transport", choices=("ads", "modbus"), default="ads",
+                    help="mock PLC transport (default ads)")
+    lp.add_argument("--preset", default="paper-table2",
+                    help="error set of the virtual machine (default paper-table2)")
+    lp.add_argument("--errors", default=None, metavar="PARAMS.json", help="error set of the virtual machine")
+    lp.add_argument("--targets", type=int, default=24, help="number of test orientations (default 24)")
+    lp.add_argument("--grid", default="73,31", metavar="NPHI,NTHETA", help="table grid (default 73,31)")
+    lp.add_argument("--seed", type=int, default=1, help="random seed of orientations and tracker noise")
+    lp.add_argument("--json", default=None, metavar="OUT.json", help="write the result as JSON")
+    lp.set_defaults(func=cmd_loop)
+
+
+def _target_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--ads", default=None, metavar="NETID@HOST[:PORT]", help="TwinCAT ADS target")
+    g.add_argument("--modbus", default=None, metavar="HOST[:PORT]", help="Modbus TCP target (TF6250)")
+    p.add_argument("--ams-port", type=int, default=851, help="AMS port of the PLC runtime (default 851)")
+    p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="per-request time-out (default 2 s)")
+
+
+def _quiet_libraries() -> None:
+    """One clear line per failure: silence AdsLib's and pymodbus' own logging (CLI process only)."""
+    from bridge.ads import set_adslib_log_level
+
+    set_adslib_log_level(4)
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+
+def make_link(args, writes=None):
+    """The link named by ``--ads`` / ``--modbus`` (InputError for a malformed target)."""
+    from bridge.plc_types import PUSH_WRITES
+
+    writes = PUSH_WRITES if writes is None else writes
+    if not (args.timeout > 0):
+        raise InputError(f"time-out must be positive, got {args.timeout}", field="--timeout")
+    if args.ads:
+        from bridge.ads import AdsLink
+        from bridge.ads_map import AdsMap, AdsTarget
+
+        try:
+            target = AdsTarget.parse(args.ads)
+        except ValueError as exc:
+            raise InputError(str(exc), field="--ads") from None
+        return AdsLink(target, amap=AdsMap(ams_port=args.ams_port), writes=writes, timeout_s=args.timeout)
+    from bridge.modbus import ModbusLink, parse_host_port
+
+    try:
+        host, port = parse_host_port(args.modbus)
+    except ValueError as exc:
+        raise InputError(str(exc), field="--modbus") from None
+    return ModbusLink(host, port, writes=writes, timeout_s=args.timeout)
+
+
+def cmd_push(args) -> int:
+    from calib.comptable import CompTable
+    from bridge.errors import BridgeError
+    from bridge.transfer import PushOptions, push
+
+    if args.attempts < 1:
+        raise InputError(f"attempts must be at least 1, got {args.attempts}", field="--attempts")
+    if not (args.ack_timeout > 0):
+        raise InputError(f"acknowledgement time-out must be positive, got {args.ack_timeout}",
+                         field="--ack-timeout")
+    table = CompTable.load(args.table).validate()
+    link = make_link(args, writes=frozenset() if args.dry_run else None)
+    _quiet_libraries()
+    audit = None if args.no_audit else (args.audit or Path(args.table).with_name("bridge_audit.log"))
+    options = PushOptions(attempts=args.attempts, ack_timeout_s=args.ack_timeout, dry_run=args.dry_run)
+    try:
+        rep = push(link, table, options, audit_path=audit)
+    except BridgeError as exc:
+        print(f"pmcal: failed: push of {args.table} to {link.transport} {link.target}: {exc}", file=sys.stderr)
+        _write_json(args.json, getattr(exc, "report", None))
+        return exc.exit_status
+    _write_json(args.json, rep)
+    total_ms = 1000.0 * rep.timings_s.get("total", 0.0)
+    sent = f", {rep.bytes_sent} bytes, sha256 {rep.sha256_sent[:16]}" if rep.bytes_sent else ""
+    print(f"{rep.result}: {args.table} v{rep.version} -> {link.transport} {link.target}: {rep.message} "
+          f"(crc {rep.crc16}{sent}, {total_ms:.1f} ms)")
+    return 0
+
+
+def _write_json(path, report) -> None:
+    if path and report is not None:
+        from dataclasses import asdict
+
+        with atomic_write(path) as fh:
+            json.dump(asdict(report), fh, indent=1)
+            fh.write("\n")
+
+
+def cmd_mock_plc(args) -> int:
+    from calib.comptable import CompTable
+    from bridge.faults import Fault
+
+    if not 0 < args.seconds <= MAX_MOCK_SECONDS:
+        raise InputError(f"seconds must be in (0, {MAX_MOCK_SECONDS:g}]", field="--seconds")
+    if not 0.1 <= args.cycle_ms <= 1000.0:
+        raise InputError("cycle must be 0.1 .. 1000 ms", field="--cycle-ms")
+    if not 0 <= args.port < 65536:
+        raise InputError(f"port {args.port} outside 0..65535", field="--port")
+    faults = []
+    for text in args.fault:
+        try:
+            faults.append(Fault.parse(text))
+        except ValueError as exc:
+            raise InputError(str(exc), field="--fault") from None
+    seed = CompTable.load(args.table).validate() if args.table else None
+    _quiet_libraries()
+    if args.ads:
+        from bridge.ads_mock import AdsMockPlc as Mock
+    else:
+        from bridge.modbus_mock import ModbusMockPlc as Mock
+    mock = Mock(port=args.port, cycle_s=args.cycle_ms / 1000.0, lifetime_s=args.seconds)
+    mock.faults.arm(*faults)
+    mock.twin.motion_idle = not args.motion_busy
+    if seed is not None:
+        mock.twin.seed(seed)
+    try:
+        mock.start()
+    except OSError as exc:
+        raise InputError(f"cannot listen on 127.0.0.1:{args.port}: {exc.strerror}", field="--port") from None
+    flag = "--ads" if args.ads else "--modbus"
+    print(f"mock PLC ({mock.transport}) at {mock.target} for {args.seconds:g} s; "
+          f"try: pmcal push TABLE {flag} {mock.target}", flush=True)
+    stop = _stop_on_sigterm()
+    try:
+        while not mock.expired() and not stop:
+            time.sleep(0.1)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        mock.stop()
+    st = mock.twin.state
+    status = getattr(st.status, "name", st.status)
+    print(f"mock PLC stopped: active version {st.active_version}, last status {status}, "
+          f"{mock.faults.fired} fault(s) fired")
+    return 0
+
+
+def _stop_on_sigterm() -> list:
+    """A list that becomes non-empty on SIGTERM (main thread only), so the mock stops cleanly."""
+    import signal
+    import threading
+
+    flag: list = []
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda *_: flag.append(True))
+    return flag
+
+
+def cmd_loop(args) -> int:
+    from bridge.loop import run_loop_cli
+
+    return run_loop_cli(args)

@@ -1,0 +1,81 @@
+"""Shared set-up of the bridge tests: realistic tables and mock PLCs on loopback ephemeral ports.
+
+Tables come from the nominal inverse kinematics of the over-constrained PM (calib.ocpm.kinematics),
+deg in and out. Every mock runs on 127.0.0.1 with a port the OS picks and its own AMS NetID, so the
+tests run in parallel (pytest -n) without sharing anything.
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import contextmanager
+
+import numpy as np
+import pytest
+
+from calib.comptable import CompTable
+from calib.ocpm.kinematics import nominal_ik
+
+MOTOR_LIMITS_DEG = (-120.0, 60.0)
+MAX_STEP_DEG = 12.0
+#: short client time-outs so that time-out faults cost little (requests on loopback take < 1 ms)
+TIMEOUT_S = 0.25
+
+logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+
+def nominal_setpoints(phi_deg: np.ndarray, theta_deg: np.ndarray) -> np.ndarray:
+    """Motor commands (deg) of the nominal machine at (phi, theta) in deg."""
+    return np.rad2deg(nominal_ik(np.deg2rad(phi_deg), np.deg2rad(theta_deg)))
+
+
+def make_table(version: int = 1, n_phi: int = 37, n_theta: int = 13, offset_deg: float = 0.0) -> CompTable:
+    """A valid table from the nominal IK (plus ``offset_deg`` on both motors, to tell tables apart)."""
+    return CompTable.from_setpoints(lambda p, t: nominal_setpoints(p, t) + offset_deg, machine="ocpm_2dof",
+                                    version=version, n_phi=n_phi, n_theta=n_theta,
+                                    motor_limits_deg=MOTOR_LIMITS_DEG, max_step_deg=MAX_STEP_DEG)
+
+
+@contextmanager
+def running(mock):
+    """Start a mock PLC, yield it, always stop it."""
+    mock.start()
+    try:
+        yield mock
+    finally:
+        mock.stop()
+
+
+def ads_link(mock, **kwargs):
+    from bridge.ads import AdsLink
+
+    return AdsLink(mock.address, timeout_s=kwargs.pop("timeout_s", TIMEOUT_S), **kwargs)
+
+
+def modbus_link(mock, **kwargs):
+    from bridge.modbus import ModbusLink
+
+    return ModbusLink(mock.host, mock.port, rmap=mock.rmap, timeout_s=kwargs.pop("timeout_s", TIMEOUT_S),
+                      **kwargs)
+
+
+@pytest.fixture
+def ads_plc():
+    from bridge.ads import set_adslib_log_level
+    from bridge.ads_mock import AdsMockPlc
+
+    set_adslib_log_level(4)
+    with running(AdsMockPlc(lifetime_s=120.0)) as plc:
+        yield plc
+
+
+@pytest.fixture
+def modbus_plc():
+    from bridge.modbus_mock import ModbusMockPlc
+
+    with running(ModbusMockPlc(lifetime_s=120.0)) as plc:
+        yield plc
+
+
+#: repository root (for subprocesses running ``python -m pmcal.cli``)
+ROOT_DIR = str(__import__("pathlib").Path(__file__).resolve().parent.parent)

@@ -1,0 +1,110 @@
+"""``pmcal push`` and ``pmcal mock-plc``: exit statuses, one-line errors, audit log, nothing half-done."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from bridge.ads_mock import AdsMockPlc
+from bridge.faults import Fault, Kind, Point
+from bridge.modbus_mock import ModbusMockPlc
+from pmcal.cli import main
+from tests.bridge_fixtures import ROOT_DIR, make_table, running
+
+
+def _target_args(plc) -> list[str]:
+    return ["--ads", plc.target] if plc.transport == "ads" else ["--modbus", plc.target]
+
+
+@pytest.mark.parametrize("mock", [AdsMockPlc, ModbusMockPlc], ids=["ads", "modbus"])
+def test_push_succeeds_writes_audit_and_report(mock, tmp_path, capsys):
+    table = make_table(version=3)
+    jp, _ = table.save(tmp_path / "comp.json")
+    with running(mock(lifetime_s=60.0)) as plc:
+        code = main(["push", str(jp), *_target_args(plc), "--timeout", "0.5", "--json", str(tmp_path / "r.json")])
+        out = capsys.readouterr()
+        assert code == 0, out.err
+        assert out.out.startswith("ok: ") and "version 3 active (was 0)" in out.out
+        assert plc.twin.active_table()[1].tobytes() == table.values.tobytes()
+    audit = [json.loads(l) for l in (tmp_path / "bridge_audit.log").read_text().splitlines()]
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert len(audit) == 1 and audit[0]["sha256_sent"] == report["sha256_sent"] and report["result"] == "ok"
+
+
+def test_dry_run_and_csv_input(tmp_path, capsys):
+    _, cp = make_table(version=1).save(tmp_path / "comp.json")
+    with running(AdsMockPlc(lifetime_s=60.0)) as plc:
+        assert main(["push", str(cp), "--ads", plc.target, "--dry-run", "--no-audit"]) == 0
+        assert plc.writes == 0
+    assert "dry run: would stage" in capsys.readouterr().out
+    assert not (tmp_path / "bridge_audit.log").exists()
+
+
+def test_bad_table_exits_2_with_file_row_field_and_writes_nothing(tmp_path, capsys):
+    table = make_table(version=2, n_phi=5, n_theta=4)
+    table.values[2, 1, 1] = np.nan
+    cp = tmp_path / "comp.csv"
+    table.to_csv(cp)
+    with running(ModbusMockPlc(lifetime_s=60.0)) as plc:
+        assert main(["push", str(cp), "--modbus", plc.target]) == 2
+        assert plc.requests == 0
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and f"{cp}, row 10, field 'm2_deg'" in err and "not a finite number" in err
+
+
+def test_stale_version_exits_2(tmp_path, capsys):
+    jp, _ = make_table(version=4).save(tmp_path / "comp.json")
+    with running(AdsMockPlc(lifetime_s=60.0)) as plc:
+        plc.twin.seed(make_table(version=4, offset_deg=1.0))
+        assert main(["push", str(jp), "--ads", plc.target]) == 2
+        assert plc.writes == 0
+    assert "not newer than the active version 4" in capsys.readouterr().err
+    assert json.loads((tmp_path / "bridge_audit.log").read_text())["result"] == "refused"
+
+
+def test_rejection_exits_3_and_link_failure_exits_1(tmp_path, capsys):
+    jp, _ = make_table(version=1).save(tmp_path / "comp.json")
+    with running(AdsMockPlc(lifetime_s=60.0)) as plc:
+        plc.faults.arm(Fault(Kind.CORRUPT, Point.COMMIT))
+        assert main(["push", str(jp), "--ads", plc.target]) == 3
+        target = plc.target
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "PLC rejected version 1: CRC_MISMATCH" in err
+    assert main(["push", str(jp), "--ads", target, "--attempts", "1", "--timeout", "0.3"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("pmcal: failed: push of") and "nothing committed" in err
+
+
+@pytest.mark.parametrize("args, field", [(["--ads", "1.2.3@x"], "--ads"), (["--modbus", "h:99999"], "--modbus"),
+                                         (["--modbus", "h", "--attempts", "0"], "--attempts")])
+def test_bad_arguments_exit_2(tmp_path, capsys, args, field):
+    jp, _ = make_table(version=1).save(tmp_path / "comp.json")
+    assert main(["push", str(jp), *args]) == 2
+    assert f"field '{field}'" in capsys.readouterr().err
+
+
+def test_mock_plc_command_serves_a_push(tmp_path):
+    good, new = make_table(version=1), make_table(version=2, offset_deg=0.1)
+    gp, _ = good.save(tmp_path / "good.json")
+    np_, _ = new.save(tmp_path / "new.json")
+    proc = subprocess.Popen([sys.executable, "-m", "pmcal.cli", "mock-plc", "--modbus", "--seconds", "20",
+                             "--table", str(gp)], cwd=ROOT_DIR, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        first = proc.stdout.readline()
+        assert first.startswith("mock PLC (modbus) at 127.0.0.1:"), proc.stderr.read() if proc.poll() else first
+        target = first.split(" at ")[1].split()[0]
+        assert main(["push", str(np_), "--modbus", target, "--no-audit"]) == 0
+        assert main(["push", str(gp), "--modbus", target, "--no-audit"]) == 2        # stale now
+    finally:
+        proc.terminate()
+        try:
+            out, _ = proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, _ = proc.communicate()
+    assert "active version 2" in out

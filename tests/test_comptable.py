@@ -1,0 +1,218 @@
+"""The compensation table: CRC variant, validation, JSON/CSV files, interpolation (calib.comptable)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.interpolate import RegularGridInterpolator
+
+from calib.comptable import CompTable, bilinear, crc16_ccitt
+from pmcal.errors import InputError
+from tests.bridge_fixtures import MAX_STEP_DEG, make_table, nominal_setpoints
+
+
+LIMITS = dict(phi_min_deg=0, phi_max_deg=360, theta_min_deg=0, theta_max_deg=60, m_min_deg=-180, m_max_deg=180,
+              max_step_deg=10)
+
+
+def crc16_ccitt_bitwise(data: bytes, crc: int = 0xFFFF) -> int:
+    """Independent CRC: polynomial 0x1021 fed MSB first, as Beckhoff documents F_BYTE_TO_CRC16_CCITT."""
+    for byte in data:
+        crc ^= byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else (crc << 1)
+            crc &= 0xFFFF
+    return crc
+
+
+# ---- CRC ----------------------------------------------------------------------------------
+
+def test_crc_pinned_vector_matches_ccitt_false():
+    # the check value of CRC-16/CCITT-FALSE; FB_CompTableCheck refuses every table if the PLC library differs
+    assert crc16_ccitt(b"123456789") == 0x29B1
+    assert crc16_ccitt_bitwise(b"123456789") == 0x29B1
+    assert crc16_ccitt(b"") == 0xFFFF
+
+
+def test_crc_chains_like_the_plc_row_by_row_call():
+    table = make_table(n_phi=9, n_theta=5)
+    crc = 0xFFFF
+    for i in range(table.n_phi):          # FB_CompTableCheck: one F_DATA_TO_CRC16_CCITT call per row
+        crc = crc16_ccitt(table.values[i].tobytes(), crc)
+    assert crc == table.crc16() == crc16_ccitt_bitwise(table.data_bytes())
+
+
+def test_crc_covers_the_little_endian_lreal_layout():
+    values = np.zeros((2, 2, 2))
+    values[0, 0, 0] = 1.0
+    table = CompTable(machine="m", version=1, values=values, **LIMITS)
+    expected = bytes.fromhex("000000000000f03f") + bytes(7 * 8)      # LREAL 1.0, then seven zeros
+    assert table.data_bytes() == expected
+    assert table.crc16() == crc16_ccitt_bitwise(expected)
+
+
+# ---- validation ---------------------------------------------------------------------------
+
+def test_valid_nominal_table_passes_and_covers_the_workspace():
+    table = make_table(version=3, n_phi=37, n_theta=13).validate(active_version=2)
+    assert table.values.shape == (37, 13, 2)
+    # home pose (theta = 0): both motors at the nominal home angle -39.351 deg (spec/MECHANISM.md)
+    np.testing.assert_allclose(table.values[:, 0, :], -39.351, atol=5e-4)
+
+
+@pytest.mark.parametrize("what, field, kind", [
+    ("nan", "m1_deg", "not a finite number"),
+    ("inf", "m2_deg", "not a finite number"),
+    ("range", "m1_deg", "outside the motor limits"),
+    ("step", "m2_deg", "exceeds max_step"),
+])
+def test_bad_values_are_refused_naming_row_and_field(what, field, kind):
+    table = make_table(n_phi=37, n_theta=13)          # nominal steps up to 9.8 deg < MAX_STEP_DEG
+    i, j = 4, 2
+    k = 0 if field == "m1_deg" else 1
+    table.values[i, j, k] = {"nan": np.nan, "inf": np.inf, "range": 75.0,
+                             "step": table.values[i, j, k] + MAX_STEP_DEG + 1.0}[what]
+    with pytest.raises(InputError) as exc:
+        table.validate()
+    if what == "step":      # the first offending pair is the spike's neighbour before it along phi
+        i -= 1
+    assert exc.value.row == i * table.n_theta + j + 1
+    assert exc.value.field == field
+    assert kind in str(exc.value)
+
+
+@pytest.mark.parametrize("n_phi, n_theta", [(1, 10), (10, 1), (101, 10), (10, 101)])
+def test_wrong_grid_size_is_refused(n_phi, n_theta):
+    table = CompTable(machine="m", version=1, values=np.zeros((n_phi, n_theta, 2)), **LIMITS)
+    assert table.defect().kind == "grid_size"
+    with pytest.raises(InputError, match="grid"):
+        table.validate()
+
+
+def test_stale_and_equal_versions_are_refused():
+    table = make_table(version=7)
+    table.validate(active_version=6)
+    for active in (7, 8):
+        with pytest.raises(InputError, match="not newer"):
+            table.validate(active_version=active)
+    with pytest.raises(InputError, match="outside 1"):
+        make_table(version=0).validate()
+
+
+def test_limits_and_grid_limits_are_checked():
+    t = make_table()
+    t.phi_max_deg = t.phi_min_deg
+    assert t.defect().kind == "grid_limits"
+    t = make_table()
+    t.phi_max_deg = 400.0
+    assert t.defect().kind == "grid_limits"
+    t = make_table()
+    t.m_min_deg, t.m_max_deg = 10.0, -10.0
+    assert t.defect().kind == "limits"
+
+
+# ---- files ----------------------------------------------------------------------------------
+
+def test_json_and_csv_round_trip_bit_exact(tmp_path):
+    table = make_table(version=5, n_phi=100, n_theta=100)
+    table.values[3, 4, 1] = -0.0                    # signs of zero survive too
+    jp, cp = table.save(tmp_path / "comp.json")
+    for back in (CompTable.load(jp), CompTable.load(cp)):
+        assert back.values.tobytes() == table.values.tobytes()
+        assert back.crc16() == table.crc16() and back.sha256() == table.sha256()
+        assert (back.version, back.machine, back.n_phi, back.n_theta) == (5, "ocpm_2dof", 100, 100)
+    doc = json.loads(jp.read_text())
+    assert doc["format"] == "pmcal-comptable" and doc["format_version"] == 1
+    assert doc["crc16_ccitt"] == f"0x{table.crc16():04X}" and doc["sha256"] == table.sha256()
+    lines = cp.read_text().splitlines()
+    assert lines[0].startswith("# pmcal-comptable") and "phi_deg,theta_deg,m1_deg,m2_deg" in lines
+
+
+def test_edited_file_fails_its_checksum(tmp_path):
+    jp, cp = make_table().save(tmp_path / "comp.json")
+    doc = json.loads(jp.read_text())
+    doc["values"][2][3][0] += 1e-9
+    jp.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="CRC mismatch") as exc:
+        CompTable.load(jp)
+    assert exc.value.file == str(jp) and exc.value.field == "crc16_ccitt"
+
+
+def test_csv_errors_name_file_row_and_field(tmp_path):
+    _, cp = make_table(n_phi=4, n_theta=3).save(tmp_path / "comp.json")
+    lines = cp.read_text().splitlines()
+    first = next(i for i, l in enumerate(lines) if l.startswith("phi_deg")) + 1
+    bad = lines.copy()
+    bad[first + 4] = bad[first + 4].rsplit(",", 1)[0] + ",abc"       # data row 5, m2
+    cp.write_text("\n".join(bad) + "\n")
+    with pytest.raises(InputError) as exc:
+        CompTable.load(cp)
+    assert (exc.value.file, exc.value.row, exc.value.field) == (str(cp), 5, "m2_deg")
+    bad = lines.copy()
+    bad[first + 1] = "5," + bad[first + 1].split(",", 1)[1]           # row 2: phi is not the node
+    cp.write_text("\n".join(bad) + "\n")
+    with pytest.raises(InputError) as exc:
+        CompTable.load(cp)
+    assert (exc.value.row, exc.value.field) == (2, "phi_deg")
+
+
+def test_nan_in_csv_reads_and_is_refused_by_validate(tmp_path):
+    table = make_table(n_phi=4, n_theta=3)
+    table.values[1, 2, 0] = np.nan
+    cp = tmp_path / "comp.csv"
+    table.to_csv(cp)
+    back = CompTable.load(cp)
+    with pytest.raises(InputError) as exc:
+        back.validate()
+    assert (exc.value.file, exc.value.row, exc.value.field) == (str(cp), 1 * 3 + 2 + 1, "m1_deg")
+
+
+def test_invalid_table_is_not_written_as_json(tmp_path):
+    table = make_table()
+    table.values[0, 0, 0] = np.nan
+    with pytest.raises(InputError):
+        table.to_json(tmp_path / "comp.json")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_missing_and_foreign_files(tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        CompTable.load(tmp_path / "nope.json")
+    p = tmp_path / "other.json"
+    p.write_text('{"format": "something-else"}')
+    with pytest.raises(InputError, match="not a compensation table"):
+        CompTable.load(p)
+
+
+# ---- interpolation ------------------------------------------------------------------------
+
+def test_interpolation_hits_the_nodes_and_matches_scipy_between():
+    table = make_table(n_phi=37, n_theta=13)
+    pp, tt = np.meshgrid(table.phi_nodes_deg(), table.theta_nodes_deg(), indexing="ij")
+    # a + (b - a) * t is exact at t = 0 and within an ulp-sized rounding at t = 1
+    np.testing.assert_allclose(table.interpolate(pp, tt), table.values, rtol=0, atol=1e-12)
+    rng = np.random.default_rng(0)
+    phi, theta = rng.uniform(0, 360, 500), rng.uniform(0, 60, 500)
+    ref = RegularGridInterpolator((table.phi_nodes_deg(), table.theta_nodes_deg()), table.values)(
+        np.c_[phi, theta])
+    np.testing.assert_allclose(table.interpolate(phi, theta), ref, rtol=0, atol=1e-12)
+
+
+def test_fine_table_reproduces_the_inverse_kinematics_within_the_bilinear_bound():
+    table = make_table(n_phi=100, n_theta=100)
+    rng = np.random.default_rng(1)
+    phi, theta = rng.uniform(0, 360, 300), rng.uniform(0, 60, 300)
+    err = np.abs(table.interpolate(phi, theta) - nominal_setpoints(phi, theta))
+    # bilinear error <= (h^2 |f_phiphi| + k^2 |f_thetatheta|) / 8; h^2 f'' is the table's 2nd difference
+    bound = (np.abs(np.diff(table.values, 2, axis=0)).max() + np.abs(np.diff(table.values, 2, axis=1)).max()) / 8
+    assert 0.005 < err.max() <= 1.2 * bound < 0.05        # deg
+
+
+def test_interpolation_refuses_targets_outside_the_grid():
+    table = make_table()
+    with pytest.raises(InputError, match="outside the table grid"):
+        table.interpolate([10.0, 370.0], [5.0, 5.0])
+    m, inside = bilinear(table.values, (0, 360), (0, 60), [10.0, np.nan, 10.0], [5.0, 5.0, 61.0])
+    assert inside.tolist() == [True, False, False] and np.isnan(m[1:]).all()
