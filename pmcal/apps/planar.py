@@ -1,0 +1,206 @@
+"""Application of the planar 2-DOF robot with its measuring mechanism (``--machine planar_2dof``, seed 003).
+
+Commands: ``identify`` (zero offsets and MAEMM from a measurement CSV), ``compensate`` (motor commands for
+target positions), ``evaluate`` (a parameter set against a measurement CSV), ``twin_measure`` and
+``twin_render`` (the MuJoCo twin), ``demo`` (:mod:`pmcal.apps.planar_demo`). Files: mm and degrees
+(docs/planar_measurement_format.md); parameter keys: :mod:`calib.planar.geometry`.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+
+from pmcal.errors import InputError, RunError
+
+MODEL_CHOICES = {None: "simplified", "paper": "simplified", "simplified": "simplified", "full": "full"}
+
+
+def _machine():
+    from twin.planar.config import default_machine
+    return default_machine()
+
+
+def _noise(machine, sigma: float | None):
+    from calib.planar.noise import Noise
+    if sigma is None:
+        return machine.noise
+    if not (math.isfinite(sigma) and sigma > 0):
+        raise InputError(f"scale noise must be a positive number of mm, got {sigma}", field="--sigma")
+    return Noise(scale=float(sigma), servo=machine.noise.servo)
+
+
+def identify(args) -> int:
+    """``pmcal --machine planar_2dof identify MEAS.csv -o PARAMS.json [--model full] [--method tsvd|ls|gls]``."""
+    from calib.planar.identification import METHODS, identify as run
+    from pmcal.io_planar import params_document, read_measurements, write_json
+
+    machine = _machine()
+    model = MODEL_CHOICES.get(getattr(args, "model", None))
+    if model is None:
+        raise InputError(f"unknown model '{args.model}' (simplified/paper or full)", field="--model")
+    method = getattr(args, "method", None) or machine.calibration.method
+    if method not in METHODS:
+        raise InputError(f"unknown method '{method}' for planar_2dof ({', '.join(METHODS)})", field="--method")
+    meas = read_measurements(args.measurements, machine.geometry)
+    n_unknowns = 4 if model == "simplified" else 12
+    if len(meas.readings) < n_unknowns:
+        raise InputError(f"{len(meas.readings)} readings for {n_unknowns} unknowns of the {model} model",
+                         file=meas.path, field="scale_change_mm")
+    noise = _noise(machine, getattr(args, "sigma", None))
+    res = run(machine.geometry, meas.r, meas.readings, model=model, method=method, segments=meas.segments,
+              noise=noise)
+    doc = params_document(res, {"n_positions": len(meas.ids), "source": str(args.measurements),
+                                "noise": {"scale_sigma_mm": noise.scale,
+                                          "servo_sigma_deg": math.degrees(noise.servo)}})
+    write_json(args.output, doc)
+    p = doc["params"]
+    print(f"{model} model, {method}: dtheta1 = {p['dtheta1']:.4f} deg, dtheta2 = {p['dtheta2']:.4f} deg, "
+          f"drM = ({p['drMx']:.3f}, {p['drMy']:.3f}) mm; rank {doc['rank']}, "
+          f"cond {doc['condition_number']:.1f} -> {args.output}")
+    if not res.success:
+        print(f"warning: {res.message}", file=sys.stderr)
+    return 0
+
+
+def compensate(args) -> int:
+    """Motor commands (deg) that bring the identified machine to target positions (mm): the controller's
+    inverse kinematics with the identified parameters, minus the zero offsets (seed section 5)."""
+    from calib.planar.kinematics import inverse
+    from pmcal.io_planar import read_params, read_targets, write_setpoints
+
+    if getattr(args, "table", None) or getattr(args, "grid", None):
+        raise InputError("compensation tables are not available for planar_2dof", field="--table")
+    if not getattr(args, "targets", None) or not getattr(args, "output", None):
+        raise InputError("planar_2dof needs --targets TARGETS.csv and -o SETPOINTS.csv", field="--targets")
+    machine = _machine()
+    errors, _ = read_params(args.params)
+    real = machine.geometry.perturbed(errors)
+    r, rows, header = read_targets(args.targets, machine.geometry)
+    theta = inverse(real, r) - errors.dtheta
+    if not np.all(np.isfinite(theta)):
+        row = int(np.flatnonzero(~np.all(np.isfinite(theta), axis=1))[0]) + 1
+        raise InputError("out of reach of the identified machine", file=args.targets, row=row, field="y_mm")
+    write_setpoints(args.output, header, rows, theta, comments=[
+        f"pmcal compensate, machine planar_2dof, parameters {args.params}", "units: mm, deg"])
+    print(f"{len(r)} setpoints -> {args.output}")
+    return 0
+
+
+def evaluate(args) -> int:
+    """How well a parameter set explains a measurement file: RMS of the reading residuals (mm) with the
+    nominal machine and with the parameters (closed-form model, noise-free)."""
+    from calib.planar.identification import difference_operator
+    from calib.planar.kinematics import actual_position, mm_vector
+    from calib.planar.geometry import Errors
+    from pmcal.io_planar import read_measurements, read_params, write_json
+
+    machine = _machine()
+    errors, _ = read_params(args.params)
+    meas = read_measurements(args.measurements, machine.geometry)
+    D = difference_operator(len(meas.ids), meas.segments)
+
+    def residual(err: Errors) -> np.ndarray:
+        real = machine.geometry.perturbed(err)
+        length = np.linalg.norm(mm_vector(real, actual_position(machine.geometry, err, meas.theta_cmd)), axis=-1)
+        return meas.readings - D @ length
+
+    before, after = residual(Errors()), residual(errors)
+    rms = lambda v: float(np.sqrt(np.mean(v * v)))  # noqa: E731
+    out = {"mechanism": "planar_2dof", "unit": "mm", "n_readings": int(len(before)),
+           "rms_nominal": rms(before), "rms_params": rms(after), "max_abs_params": float(np.max(np.abs(after)))}
+    print(f"reading residual RMS: nominal {out['rms_nominal']:.4f} mm, with parameters {out['rms_params']:.4f} mm")
+    if getattr(args, "json", None):
+        write_json(args.json, out)
+    return 0
+
+
+def _errors_from_args(args, machine):
+    from pmcal.io_planar import read_params
+    if getattr(args, "errors", None):
+        errors, _ = read_params(args.errors, require_mechanism=False)
+        return errors, str(args.errors)
+    name = getattr(args, "preset", None) or "nominal"
+    return machine.preset(name), f"preset {name}"
+
+
+def twin_measure(args) -> int:
+    """A virtual campaign: ``--poses K`` positions (seed Fig. 7, K even) or ``--targets``; scale noise
+    ``--noise`` (mm, default eq. 34) and servo noise (eq. 35); readings as in the measurement CSV."""
+    from calib.planar.design import boundary_positions
+    from calib.planar.noise import Noise
+    from pmcal import progress
+    from pmcal.io_planar import read_targets, write_measurements
+    from twin.planar.campaign import commands_for, measure
+    from twin.planar.twin import PlanarTwin
+
+    machine = _machine()
+    errors, source = _errors_from_args(args, machine)
+    sigma = getattr(args, "noise", None)
+    noise = machine.noise if sigma is None else Noise(scale=float(sigma), servo=machine.noise.servo)
+    if not (math.isfinite(noise.scale) and noise.scale >= 0):
+        raise InputError(f"noise must be a non-negative number of mm, got {sigma}", field="--noise")
+    servo = getattr(args, "servo_noise", None)
+    if servo is not None:
+        if not (math.isfinite(servo) and servo >= 0):
+            raise InputError(f"servo noise must be a non-negative number of degrees, got {servo}",
+                             field="--servo-noise")
+        noise = Noise(scale=noise.scale, servo=math.radians(servo))
+    if getattr(args, "targets", None):
+        r, _, _ = read_targets(args.targets, machine.geometry)
+        if len(r) < 2:
+            raise InputError("a campaign needs at least two positions", file=args.targets, field="x_mm")
+    else:
+        K = int(getattr(args, "poses", 6))
+        if K < 6 or K % 2:
+            raise InputError(f"number of poses must be even and at least 6 (K = 2n > 5), got {K}",
+                             field="--poses")
+        r = boundary_positions(machine.workspace, K // 2)
+    twin = PlanarTwin(errors, machine)
+    rng = np.random.default_rng(int(getattr(args, "seed", 1)))
+    progress.status(f"measuring {len(r)} positions on the planar twin")
+    camp = measure(twin, commands_for(twin, r), noise, rng)
+    write_measurements(args.output, camp.theta_cmd[0], camp.readings[0], targets=r, comments=[
+        f"pmcal twin measure: machine planar_2dof, errors: {source}, positions {len(r)}, "
+        f"scale sigma {noise.scale:.4g} mm, servo sigma {math.degrees(noise.servo):.4g} deg, "
+        f"seed {getattr(args, 'seed', 1)}",
+        "units: mm, deg; seed frame O-xy (y up); scale_change_mm = change since the previous row"])
+    print(f"{len(r)} positions -> {args.output}")
+    return 0
+
+
+def twin_render(args) -> int:
+    """PNG of the twin; ``--pose X,Y`` is the position of P in mm (the default ``0,0`` means home P0)."""
+    from calib.planar.kinematics import inverse
+    from pmcal.fileio import atomic_write
+    from twin.planar.render import render_png
+    from twin.planar.twin import PlanarTwin
+    from twin.render import RenderUnavailable
+
+    machine = _machine()
+    errors, _ = _errors_from_args(args, machine)
+    text = getattr(args, "pose", None) or "0,0"
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"expected X,Y in mm, got '{text}'", field="--pose") from None
+    motor = machine.geometry.home if (x, y) == (0.0, 0.0) else inverse(machine.geometry, np.array([x, y]))
+    if not np.all(np.isfinite(motor)) or y > 0:
+        raise InputError(f"position ({x:g}, {y:g}) mm is out of the robot's reach (y < 0 below the base)",
+                         field="--pose")
+    try:
+        png = render_png(PlanarTwin(errors, machine), motor, width=getattr(args, "width", 800),
+                         height=getattr(args, "height", 600))
+    except RenderUnavailable as exc:
+        raise RunError(str(exc)) from None
+    with atomic_write(args.output, "wb") as fh:
+        fh.write(png)
+    print(f"picture -> {args.output}")
+    return 0
+
+
+def demo(args) -> int:
+    from pmcal.apps.planar_demo import demo as run
+    return run(args)
