@@ -19,7 +19,7 @@ from calib.rigid import fit_pose
 from calib.rotations import pointing_error, tilt_torsion
 from pmcal.csvio import read_csv, write_csv
 from pmcal.errors import InputError
-from pmcal.fileio import atomic_write
+from pmcal.fileio import write_json
 
 MECHANISM = "ocpm_2dof"
 TARGET_AXES = ("x", "y", "z")
@@ -152,19 +152,7 @@ def write_params(path: str | Path, params: dict[str, float], **extra) -> None:
     doc = {"mechanism": MECHANISM, "units": {"length": "mm", "angle": "deg"},
            "params": {k: float(v) for k, v in params.items()}}
     doc.update(extra)
-    with atomic_write(path) as fh:
-        json.dump(doc, fh, indent=2, default=_json_default)
-        fh.write("\n")
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.bool_):
-        return bool(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+    write_json(path, doc)
 
 
 def read_targets(path: str | Path, theta_max_deg: float = 90.0) -> tuple[np.ndarray, np.ndarray]:

@@ -17,7 +17,6 @@ from calib.planar.kinematics import forward, inverse
 from calib.solvers.result import IdentResult
 from pmcal.csvio import read_csv, write_csv
 from pmcal.errors import InputError
-from pmcal.fileio import atomic_write
 
 MECHANISM = "planar_2dof"
 MEAS_COLUMNS = ("pose_id", "theta1_cmd_deg", "theta2_cmd_deg", "scale_change_mm")
@@ -210,15 +209,3 @@ def params_document(result: IdentResult, extra: dict | None = None) -> dict:
     return doc
 
 
-def write_json(path: str | Path, doc: dict) -> None:
-    """Write a JSON document atomically (numpy values converted)."""
-    def default(o):
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        if isinstance(o, np.generic):
-            return o.item()
-        raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-    with atomic_write(path) as fh:
-        json.dump(doc, fh, indent=2, default=default)
-        fh.write("\n")

@@ -40,3 +40,34 @@ def test_top_level_layout():
         folder = ROOT / "mjcf" / machine
         for f in (f"{machine}.xml", "scene.xml", "README.md", "machine.toml"):
             assert (folder / f).exists(), f
+
+
+def test_atomic_write_leaves_readable_files(tmp_path):
+    """Outputs get the permissions of an ordinary new file (mkstemp alone would give 0600)."""
+    import os
+
+    from pmcal.fileio import atomic_directory, atomic_write
+
+    mask = os.umask(0o022)
+    try:
+        with atomic_write(tmp_path / "a.csv") as fh:
+            fh.write("x\n")
+        with atomic_directory(tmp_path / "report") as d:
+            (d / "index.html").write_text("<html></html>")
+    finally:
+        os.umask(mask)
+    assert (tmp_path / "a.csv").stat().st_mode & 0o777 == 0o644
+    assert (tmp_path / "report").stat().st_mode & 0o777 == 0o755
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    from pmcal.fileio import atomic_write
+
+    target = tmp_path / "out.csv"
+    try:
+        with atomic_write(target) as fh:
+            fh.write("half")
+            raise RuntimeError("boom")
+    except RuntimeError:
+        pass
+    assert list(tmp_path.iterdir()) == []

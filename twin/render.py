@@ -38,17 +38,21 @@ def render_png(qpos: np.ndarray | None = None, errors=None, width: int = 800, he
     cam = mujoco.MjvCamera()
     cam.azimuth, cam.elevation, cam.distance = azimuth, elevation, distance
     cam.lookat[:] = lookat
+    return render_model_png(m, d, width, height, cam)
+
+
+def render_model_png(m: mujoco.MjModel, d: mujoco.MjData, width: int, height: int, camera=None) -> bytes:
+    """PNG of any model in state ``d`` (forward already run), seen from ``camera`` (name, id or MjvCamera)."""
     try:
         renderer = mujoco.Renderer(m, height=height, width=width)
     except Exception as exc:  # MuJoCo raises FatalError without a usable OpenGL context
         raise RenderUnavailable(f"offscreen rendering is unavailable (MUJOCO_GL={os.environ.get('MUJOCO_GL')}): "
-                       f"{exc}; install EGL (libegl1) or OSMesa and set MUJOCO_GL=egl|osmesa") from None
+                                f"{exc}; install EGL (libegl1) or OSMesa and set MUJOCO_GL=egl|osmesa") from None
     try:
-        renderer.update_scene(d, camera=cam)
-        pixels = renderer.render()
+        renderer.update_scene(d, camera=camera if camera is not None else -1)
+        return _to_png(renderer.render())
     finally:
         renderer.close()
-    return _to_png(pixels)
 
 
 def _to_png(pixels: np.ndarray) -> bytes:

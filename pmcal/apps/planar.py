@@ -35,7 +35,8 @@ def _noise(machine, sigma: float | None):
 def identify(args) -> int:
     """``pmcal --machine planar_2dof identify MEAS.csv -o PARAMS.json [--model full] [--method tsvd|ls|gls]``."""
     from calib.planar.identification import METHODS, identify as run
-    from pmcal.io_planar import params_document, read_measurements, write_json
+    from pmcal.fileio import write_json
+    from pmcal.io_planar import params_document, read_measurements
 
     machine = _machine()
     model = MODEL_CHOICES.get(getattr(args, "model", None))
@@ -95,7 +96,8 @@ def evaluate(args) -> int:
     from calib.planar.identification import difference_operator
     from calib.planar.kinematics import actual_position, mm_vector
     from calib.planar.geometry import Errors
-    from pmcal.io_planar import read_measurements, read_params, write_json
+    from pmcal.fileio import write_json
+    from pmcal.io_planar import read_measurements, read_params
 
     machine = _machine()
     errors, _ = read_params(args.params)

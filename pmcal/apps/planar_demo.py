@@ -105,7 +105,8 @@ def demo(args) -> int:
     from calib.planar.identification import identification_matrix, identify
     from calib.planar.kinematics import actual_position
     from pmcal.fileio import atomic_directory
-    from pmcal.io_planar import params_document, write_json, write_measurements
+    from pmcal.fileio import write_json
+    from pmcal.io_planar import params_document, write_measurements
     from pmcal.report import matplotlib_agg
     from twin.planar.campaign import commands_for, measure
     from twin.planar.config import default_machine

@@ -5,7 +5,6 @@ Headless: ``MUJOCO_GL=egl`` (the default set by :mod:`twin`) or ``osmesa``.
 
 from __future__ import annotations
 
-import contextlib
 import os
 
 import numpy as np
@@ -17,7 +16,7 @@ import mujoco  # noqa: E402
 from twin.planar.config import SCENE_XML  # noqa: E402
 from twin.planar.model import build_spec  # noqa: E402
 from twin.planar.twin import PlanarTwin  # noqa: E402
-from twin.render import RenderUnavailable, _to_png  # noqa: E402
+from twin.render import render_model_png  # noqa: E402
 
 
 def render_png(twin: PlanarTwin, motor: np.ndarray | None = None, width: int = 800, height: int = 600,
@@ -30,11 +29,4 @@ def render_png(twin: PlanarTwin, motor: np.ndarray | None = None, width: int = 8
     d = mujoco.MjData(m)
     d.qpos[:] = twin.assemble(motor[None]).qpos[0]
     mujoco.mj_forward(m, d)
-    try:
-        renderer = mujoco.Renderer(m, height=height, width=width)
-    except Exception as exc:  # MuJoCo raises FatalError without a usable OpenGL context
-        raise RenderUnavailable(f"offscreen rendering is unavailable (MUJOCO_GL={os.environ.get('MUJOCO_GL')}):"
-                                f" {exc}; install EGL (libegl1) or OSMesa and set MUJOCO_GL=egl|osmesa") from None
-    with contextlib.closing(renderer):
-        renderer.update_scene(d, camera=camera)
-        return _to_png(renderer.render())
+    return render_model_png(m, d, width, height, camera)
