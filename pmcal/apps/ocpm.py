@@ -1,42 +1,26 @@
 """Application of the over-constrained 2-DoF PM (``--machine ocpm_2dof``, the default).
 
-Each command lives in the module that owns its subject; this module only routes (lazily, so a command
-imports only what it needs).
+Each command lives in the module that owns its subject; this module only routes, lazily, so a command
+imports only what it needs (:func:`pmcal.machines.dispatch` looks the command up by name).
 """
 
 from __future__ import annotations
 
+import importlib
 
-def twin_measure(args) -> int:
-    from pmcal.apps.ocpm_twin import twin_measure as run
-    return run(args)
-
-
-def twin_render(args) -> int:
-    from pmcal.apps.ocpm_twin import twin_render as run
-    return run(args)
-
-
-def identify(args) -> int:
-    from pmcal.apps.ocpm_calib import identify as run
-    return run(args)
+#: command -> module that implements it (a function of the same name taking the parsed arguments)
+ROUTES = {
+    "twin_measure": "pmcal.apps.ocpm_twin",
+    "twin_render": "pmcal.apps.ocpm_twin",
+    "identify": "pmcal.apps.ocpm_calib",
+    "compensate": "pmcal.apps.ocpm_calib",
+    "evaluate": "pmcal.apps.ocpm_calib",
+    "demo": "pmcal.apps.ocpm_calib",
+    "diagnose": "pmcal.apps.ocpm_diagnose",
+}
 
 
-def compensate(args) -> int:
-    from pmcal.apps.ocpm_calib import compensate as run
-    return run(args)
-
-
-def evaluate(args) -> int:
-    from pmcal.apps.ocpm_calib import evaluate as run
-    return run(args)
-
-
-def demo(args) -> int:
-    from pmcal.apps.ocpm_calib import demo as run
-    return run(args)
-
-
-def diagnose(args) -> int:
-    from pmcal.apps.ocpm_diagnose import diagnose as run
-    return run(args)
+def __getattr__(name: str):
+    if name not in ROUTES:
+        raise AttributeError(name)
+    return getattr(importlib.import_module(ROUTES[name]), name)
