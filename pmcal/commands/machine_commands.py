@@ -37,6 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--table", default=None, metavar="TABLE.json",
                    help="also write the 2-D compensation table (JSON; CSV beside it)")
     p.add_argument("--grid", default=None, metavar="NPHI,NTHETA", help="table grid size")
+    p.add_argument("--table-version", type=int, default=None, metavar="N",
+                   help="table version (1..2**32-1, must increase on the PLC); default: Unix time")
     p.set_defaults(func=_cmd("compensate"))
 
     p = sub.add_parser("evaluate", help="pointing error of a parameter set against a measurement file")
