@@ -15,6 +15,16 @@ over-constrained machine does.
 Residuals and Jacobians come from MuJoCo (``mj_kinematics``, ``mj_comPos``, ``mj_jacSite``); the step is
 a Gauss-Newton step on the free degrees of freedom (all but the held motor joints), integrated with
 ``mj_integratePos`` (ball quaternion). Units inside: SI.
+
+Options used by the drive and thermal effects (:mod:`twin.effects`):
+
+- **motor springs** (``motor_stiffness``, N m/rad per motor): the motor joints are no longer held; a
+  torsional spring in series behind each motor ties the joint to its commanded angle, adding
+  ``1/2 K (q_m - q_cmd)^2`` to the energy (residual rows ``sqrt(K) (q_m - q_cmd)`` after the SS row). The
+  commanded angles are the motor values of the ``qpos`` given to :meth:`BatchAssembler.solve`. The
+  sensitivities of :mod:`twin.sensitivity` assume held motors; do not use them with springs.
+- **per-pose models** (:meth:`BatchAssembler.set_models`): simulation i runs on its own compiled model
+  (same structure, other numbers: a payload mass, a thermally scaled geometry).
 """
 
 from __future__ import annotations
@@ -50,7 +60,9 @@ class Linearization:
     """Kinematics and the weighted closure residual at configurations (SI), for sensitivities.
 
     site_xpos (N, nsite, 3), xpos (N, nbody, 3), xmat (N, nbody, 3, 3), xanchor/xaxis (N, njnt, 3),
-    res (N, 3 n + 1) weighted residual, J (N, 3 n + 1, nv) its Jacobian, free: free dof indices.
+    res (N, 3 n + 1) weighted residual, J (N, 3 n + 1, nv) its Jacobian, free: free dof indices;
+    bias (N, nv) gravity generalised force ``dU/dq`` (N m or N), zero when gravity is off. The
+    generalised force a joint must supply to stay put is ``J^T res + bias`` (the energy gradient).
     """
 
     site_xpos: np.ndarray
@@ -61,6 +73,7 @@ class Linearization:
     res: np.ndarray
     J: np.ndarray
     free: np.ndarray
+    bias: np.ndarray | None = None
 
 
 @dataclass
@@ -179,7 +192,8 @@ class BatchAssembler:
 
     def __init__(self, m: mujoco.MjModel, index: ModelIndex, stiffness: Stiffness,
                  gravity: bool = False, held_dofs: np.ndarray | None = None,
-                 tol: float = 1e-13, max_iter: int = 40, nthread: int | None = None):
+                 tol: float = 1e-13, max_iter: int = 40, nthread: int | None = None,
+                 motor_stiffness: np.ndarray | None = None):
         from mujoco import batch as mjbatch
 
         self.m, self.idx = m, index
@@ -189,8 +203,11 @@ class BatchAssembler:
         m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT | mujoco.mjtDisableBit.mjDSBL_LIMIT)
         self.gravity = gravity
         self.tol, self.max_iter = tol, max_iter
-        held = index.dadr_base[:2] if held_dofs is None else np.asarray(held_dofs)
-        self.free = np.setdiff1d(np.arange(m.nv), held)
+        self._held = index.dadr_base[:2] if held_dofs is None else np.asarray(held_dofs)
+        self.free = np.setdiff1d(np.arange(m.nv), self._held)
+        self._models: list | None = None
+        self._rest = np.zeros((0, 2))
+        self.set_motor_stiffness(motor_stiffness)
         self.set_stiffness(stiffness)
         self._sites = np.concatenate([index.site_s1, index.site_s2])
         self._jac = _ChainJacobian(m, self._sites)
@@ -203,10 +220,40 @@ class BatchAssembler:
         self._w = np.sqrt(np.repeat(np.asarray(stiffness.closure, float), 3))
         self._w_ss = float(np.sqrt(stiffness.ss_axial))
 
+    def set_motor_stiffness(self, stiffness: np.ndarray | None) -> None:
+        """Series springs behind the motors, N m/rad (one per motor, or None: motors held exactly)."""
+        if stiffness is None:
+            self.motor_stiffness = None
+            self.free = np.setdiff1d(np.arange(self.m.nv), self._held)
+            return
+        k = np.broadcast_to(np.asarray(stiffness, float), (2,)).copy()
+        if not np.all(np.isfinite(k) & (k > 0)):
+            raise ValueError(f"motor stiffness must be positive N m/rad, got {k}")
+        self.motor_stiffness = k
+        self.free = np.arange(self.m.nv)
+
+    def set_models(self, models: list[mujoco.MjModel] | None) -> None:
+        """Run pose i of the next solves on ``models[i]`` (None: every pose on the assembler's model).
+
+        The models must share the structure of the assembler's model (copies with other masses,
+        positions, ...). Poses beyond ``len(models)`` use the assembler's model.
+        """
+        self._models = None if models is None else list(models)
+        if self._batch is not None:
+            self._bind_models()
+
+    def _bind_models(self) -> None:
+        if self._models is None:
+            self._batch.set_models(self.m)
+            return
+        n = self._batch.nsim
+        models = self._models[:n] + [self.m] * max(0, n - len(self._models))
+        self._batch.set_models(models)
+
     def _ensure_batch(self, n: int):
         if self._batch is None or self._batch.nsim < n:
             self._batch = self._mjbatch.Batch(self.m, nsim=max(n, 64), nthread=self._nthread)
-            self._batch.set_models(self.m)
+            self._bind_models()
             self._b_qpos = self._batch.bind("qpos")
             self._b_site = self._batch.bind("site_xpos")
             self._b_anchor = self._batch.bind("xanchor")
@@ -231,11 +278,12 @@ class BatchAssembler:
         qpos = np.atleast_2d(qpos)
         N = len(qpos)
         ids = np.arange(N)
-        site, anchor, axis, xmat, _ = self._kinematics(qpos, ids)
-        res, Jw, _ = self._residual(site, anchor, axis, xmat, qpos)
+        site, anchor, axis, xmat, bias = self._kinematics(qpos, ids)
+        res, Jw, _ = self._residual(site, anchor, axis, xmat, qpos, self._rest_of(qpos))
         return Linearization(site_xpos=self._b_site[:N].copy(), xpos=self._b_xpos[:N].copy(),
                              xmat=self._b_xmat[:N].reshape(N, -1, 3, 3).copy(), xanchor=anchor,
-                             xaxis=axis, res=res, J=Jw, free=self.free)
+                             xaxis=axis, res=res, J=Jw, free=self.free,
+                             bias=bias.copy() if self.gravity else np.zeros((N, self.m.nv)))
 
     def _kinematics(self, qpos: np.ndarray, ids: np.ndarray):
         batch = self._ensure_batch(len(qpos))
@@ -245,7 +293,13 @@ class BatchAssembler:
         return (self._b_site[ids][:, self._sites], self._b_anchor[ids], self._b_axis[ids],
                 self._b_xmat[ids], self._b_bias[ids])
 
-    def _residual(self, site, anchor, axis, xmat, qpos_ids):
+    def _rest_of(self, qpos: np.ndarray) -> np.ndarray:
+        """Commanded motor angles of the rows of ``qpos``: those of the last solve if it had as many rows."""
+        if len(self._rest) == len(qpos):
+            return self._rest
+        return qpos[:, self.idx.qadr_base[:2]]
+
+    def _residual(self, site, anchor, axis, xmat, qpos_ids, rest=None):
         n = len(self.idx.site_s1)
         Jg = self._jac.gap(site, anchor, axis, xmat)                  # (M, 3n, nv)
         gap = site[:, :n] - site[:, n:]                               # (M, n, 3)
@@ -254,6 +308,12 @@ class BatchAssembler:
         Jss = np.zeros((len(site), 1, self.m.nv))
         Jss[:, 0, self.idx.dadr_slide] = self._w_ss
         Jw = np.concatenate([Jg * self._w[None, :, None], Jss], axis=1)
+        if self.motor_stiffness is not None:
+            wk = np.sqrt(self.motor_stiffness)
+            res = np.concatenate([res, wk * (qpos_ids[:, self.idx.qadr_base[:2]] - rest)], axis=1)
+            Jk = np.zeros((len(site), 2, self.m.nv))
+            Jk[:, [0, 1], self.idx.dadr_base[:2]] = wk
+            Jw = np.concatenate([Jw, Jk], axis=1)
         return res, Jw, gap
 
     def solve(self, qpos: np.ndarray) -> AssemblyResult:
@@ -264,9 +324,10 @@ class BatchAssembler:
         converged = np.zeros(N, bool)
         active = np.arange(N)
         free = self.free
+        self._rest = qpos[:, self.idx.qadr_base[:2]].copy()
         for it in range(1, self.max_iter + 1):
             site, anchor, axis, xmat, bias = self._kinematics(qpos, active)
-            res, Jw, _ = self._residual(site, anchor, axis, xmat, qpos[active])
+            res, Jw, _ = self._residual(site, anchor, axis, xmat, qpos[active], self._rest[active])
             Jf = Jw[:, :, free]
             JfT = np.swapaxes(Jf, 1, 2)
             g = (JfT @ res[..., None])[..., 0]
@@ -286,7 +347,7 @@ class BatchAssembler:
                 break
         all_ids = np.arange(N)
         site, anchor, axis, xmat, _ = self._kinematics(qpos, all_ids)
-        res, _, gap = self._residual(site, anchor, axis, xmat, qpos)
+        res, _, gap = self._residual(site, anchor, axis, xmat, qpos, self._rest)
         return AssemblyResult(qpos=qpos, converged=converged, iterations=iters, gaps=gap,
                               ss_axial=qpos[:, self.idx.qadr_slide].copy(),
                               energy=0.5 * np.sum(res * res, axis=1))

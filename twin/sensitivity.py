@@ -64,7 +64,7 @@ def target_sensitivity(twin, qpos: np.ndarray, keys: list[str]) -> Sensitivity:
             mask = np.zeros(n_res)
             for j in geom.actuated:
                 mask[3 * (j - 1):3 * j] = 1.0
-            mask[-1] = 1.0
+            mask[3 * n_limbs] = 1.0                       # the SS row (motor-spring rows may follow)
             DR[:, :, col] = lin.res * mask
             continue
         group, name = key.split(".", 1)
@@ -97,7 +97,10 @@ def target_sensitivity(twin, qpos: np.ndarray, keys: list[str]) -> Sensitivity:
             u = S2[:, j] - A[:, j]
             gap(col, j, -u / np.linalg.norm(u, axis=1, keepdims=True) * MM)
         elif name == "dtheta":
-            DR[:, :, col] = lin.J[:, :, idx.dadr_base[j]]
+            if getattr(asm, "motor_stiffness", None) is None:
+                DR[:, :, col] = lin.J[:, :, idx.dadr_base[j]]
+            else:                                         # series spring: its rest angle moves
+                DR[:, 3 * n_limbs + 1 + j, col] = -np.sqrt(asm.motor_stiffness[j])
         else:
             raise KeyError(f"no sensitivity for '{key}'")
     free = lin.free

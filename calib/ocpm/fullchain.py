@@ -61,6 +61,11 @@ class FullChainOptions:
     priors: Priors = field(default_factory=Priors)
     sigma_mm: float | None = None           # tracker noise (default machine.toml)
     max_nfev: int = 50
+    #: Prior std (internal units) of keys outside the geometric vocabulary, e.g. the effect parameters
+    #: of :class:`calib.ocpm.effect_signatures.EffectChainModel`; their prior mean is 0.
+    extra_prior_std: dict[str, float] = field(default_factory=dict)
+    #: Start values (internal units) instead of the prior mean, e.g. a previous fit (warm start).
+    x0: dict[str, float] | None = None
 
 
 class FullChainModel:
@@ -95,6 +100,16 @@ class FullChainModel:
             state = self.twin.reach_joint(joint)
         self._qpos, self._cmd_key = state.qpos.copy(), key
         return state
+
+    def set_vector(self, keys: list[str], x: np.ndarray, ratio0: float) -> None:
+        """Set the model from a parameter vector (internal units); ``ratio0`` if the ratio is not in it."""
+        e, log_ratio = errors_from_vector(keys, x)
+        self.set(e, np.exp(log_ratio) if log_ratio is not None else ratio0)
+
+    def predict_meas(self, meas: Measurements, keys: list[str]):
+        """Targets of a campaign and their derivatives w.r.t. ``keys`` (the hook :func:`identify_full` calls;
+        subclasses with context-dependent terms override it together with :meth:`set_vector`)."""
+        return self.predict(meas.m_cmd_deg, keys)
 
     def predict(self, m_cmd_deg: np.ndarray, keys: list[str] | None = None):
         """Targets (N, k, 3) mm and, with ``keys``, their derivatives (N, k, 3, len(keys))."""
@@ -135,8 +150,10 @@ def identify_full(meas: Measurements, options: FullChainOptions | None = None,
     ratio0 = model.stiffness_ratio if opt.stiffness_ratio is None else opt.stiffness_ratio
     if opt.fit_stiffness_ratio:
         keys = keys + [LOG_RATIO]
-    s = np.array([opt.priors.std(k) for k in keys])
+    s = np.array([opt.extra_prior_std[k] if k in opt.extra_prior_std else opt.priors.std(k) for k in keys])
     x_prior = np.array([np.log(ratio0) if k == LOG_RATIO else 0.0 for k in keys])
+    z_start = np.zeros(len(keys)) if not opt.x0 else \
+        np.array([(opt.x0[k] - xp) / sk if k in opt.x0 else 0.0 for k, xp, sk in zip(keys, x_prior, s)])
     y = meas.targets.reshape(-1)
     n_eval = 0
     cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
@@ -145,10 +162,8 @@ def identify_full(meas: Measurements, options: FullChainOptions | None = None,
         nonlocal n_eval
         key = z.tobytes()
         if key not in cache:
-            x = x_prior + z * s
-            e, log_ratio = errors_from_vector(keys, x)
-            model.set(e, np.exp(log_ratio) if log_ratio is not None else ratio0)
-            T, dT = model.predict(meas.m_cmd_deg, keys)
+            model.set_vector(keys, x_prior + z * s, ratio0)
+            T, dT = model.predict_meas(meas, keys)
             n_eval += 1
             cache.clear()
             cache[key] = (T.reshape(-1), dT.reshape(len(y), len(keys)))
@@ -163,7 +178,7 @@ def identify_full(meas: Measurements, options: FullChainOptions | None = None,
         return np.vstack([-dT * (s / sigma), np.eye(len(z))])
 
     t0 = time.perf_counter()
-    sol = least_squares(fun, np.zeros(len(keys)), jac=jac, method="trf", x_scale=1.0,
+    sol = least_squares(fun, z_start, jac=jac, method="trf", x_scale=1.0,
                         xtol=1e-10, ftol=1e-12, gtol=1e-10, max_nfev=opt.max_nfev)
     wall = time.perf_counter() - t0
     x = x_prior + sol.x * s
@@ -181,7 +196,8 @@ def identify_full(meas: Measurements, options: FullChainOptions | None = None,
         units=units,
         info={"sigma_mm": sigma,
               "stiffness_ratio": float(np.exp(x[keys.index(LOG_RATIO)])) if LOG_RATIO in keys else ratio0,
-              "singular_values": np.linalg.svd(A, compute_uv=False), "prior_std": s,
+              "singular_values": np.linalg.svd(A, compute_uv=False), "prior_std": s, "prior_mean": x_prior,
+              "jacobian": dT,     # d targets / d x at the solution, (9 N, len(keys)) mm per internal unit
               "effective_parameters": p_eff, "chi2_per_dof": float(resid @ resid / sigma**2 / dof),
               "dof": dof})
 

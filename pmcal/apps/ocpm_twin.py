@@ -28,10 +28,15 @@ def machine_errors(args) -> dict[str, float]:
 def build_twin(args, errors: dict[str, float]):
     from twin.machine import Twin
 
+    return Twin(errors, stiffness_ratio=stiffness_ratio(args))
+
+
+def stiffness_ratio(args) -> float | None:
+    """``--stiffness-ratio`` checked (None: the machine's default)."""
     ratio = getattr(args, "stiffness_ratio", None)
     if ratio is not None and not (np.isfinite(ratio) and ratio > 0):
         raise InputError(f"stiffness ratio must be a positive number, got {ratio}", field="--stiffness-ratio")
-    return Twin(errors, stiffness_ratio=ratio)
+    return ratio
 
 
 def twin_measure(args) -> int:
@@ -49,9 +54,9 @@ def twin_measure(args) -> int:
         raise InputError(f"tilt limit {theta_max:g} deg is outside the workspace 0..{THETA_LIMIT_DEG:g} deg "
                          "(the RSR limbs reach their stretched-link singularity near 87.5 deg)",
                          field="--theta-max")
-    if args.effect:
-        raise InputError("physical effects are not available yet in this version", field="--effect")
     errors = machine_errors(args)
+    if effect_campaign_requested(args):
+        return measure_with_effects(args, errors, sigma, theta_max)
     plan = plan_campaign(args.poses, theta_max, args.seed, randomize_approach=not args.no_random_approach)
     if args.targets:
         phi, theta = read_targets(args.targets, theta_max_deg=THETA_LIMIT_DEG)
@@ -74,6 +79,76 @@ def twin_measure(args) -> int:
         f"pmcal twin measure: machine {geom_name()}, errors: {source}, poses {len(meas)}, "
         f"tracker sigma {sigma:g} mm, seed {args.seed}",
         "units: mm, deg; targets in the base frame O-xyz"])
+    return 0
+
+
+def effect_campaign_requested(args) -> bool:
+    """Effects or context (payload, temperature, order) asked for: the effect-aware twin measures."""
+    return bool(getattr(args, "effect", None) or getattr(args, "payload", None) or getattr(args, "temperature", None)
+                or getattr(args, "shuffle", False))
+
+
+def parse_levels(text: str | None, field: str, lo: float, hi: float, unit: str, most: int | None = None):
+    """Comma-separated numbers within [lo, hi] (None when not given)."""
+    if text is None:
+        return None
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"expected comma-separated numbers ({unit}), got '{text}'", field=field) from None
+    if not vals or (most is not None and len(vals) > most):
+        raise InputError(f"expected 1{'..' + str(most) if most else ' or more'} values, got '{text}'", field=field)
+    bad = [v for v in vals if not (np.isfinite(v) and lo <= v <= hi)]
+    if bad:
+        raise InputError(f"{bad[0]:g} {unit} is outside {lo:g}..{hi:g} {unit}", field=field)
+    return vals
+
+
+def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max: float) -> int:
+    """``twin measure`` with effects: the effect-aware twin (gravity, payload, temperature, drive effects)."""
+    from twin.effects import EffectTwin, Effects, plan_effect_campaign
+    from twin.tracker import LaserTracker
+
+    try:
+        effects = Effects.parse(args.effect)
+    except ValueError as exc:
+        raise InputError(str(exc), field="--effect") from None
+    payloads = parse_levels(args.payload, "--payload", 0.0, 100.0, "kg") or (0.0,)
+    temps = parse_levels(args.temperature, "--temperature", -20.0, 80.0, "degC", most=2)
+    if effects.thermal_expansion is not None and temps is None:
+        raise InputError("thermal_expansion needs the machine temperature: give --temperature (e.g. 18,28)",
+                         field="--effect")
+    if not (np.isfinite(args.seconds_per_pose) and args.seconds_per_pose > 0):
+        raise InputError(f"seconds per pose must be positive, got {args.seconds_per_pose}", field="--seconds-per-pose")
+    n = args.poses
+    phi = theta = None
+    if args.targets:
+        from twin.campaign import THETA_LIMIT_DEG
+        phi, theta = read_targets(args.targets, theta_max_deg=THETA_LIMIT_DEG)
+        n = len(phi)
+    plan = plan_effect_campaign(n, theta_max, args.seed, payloads=payloads, temp_c=temps,
+                                shuffle=args.shuffle, randomize_approach=not args.no_random_approach,
+                                seconds_per_pose=args.seconds_per_pose)
+    if phi is not None:
+        order = np.random.default_rng([args.seed, 8]).permutation(n) if args.shuffle else np.arange(n)
+        plan.phi_deg, plan.theta_deg = phi[order], theta[order]
+    try:
+        twin = EffectTwin(errors, effects, stiffness_ratio=stiffness_ratio(args), seed=args.seed)
+    except ValueError as exc:
+        raise InputError(str(exc), file=args.errors, field="params") from None
+    progress.status(f"measuring {len(plan)} poses on the twin with {', '.join(effects.active()) or 'no effects'}")
+    try:
+        meas = twin.measure(plan, LaserTracker(sigma, np.random.default_rng(args.seed)))
+    except ValueError as exc:
+        raise InputError(str(exc), file=args.targets, field="theta_deg" if args.targets else "--poses") from None
+    except RuntimeError as exc:
+        raise RunError(f"{exc}: the machine cannot reach that pose (lower --theta-max)") from None
+    source = args.errors or f"preset {args.preset or 'nominal'}"
+    active = ", ".join(f"{k}={v}" for k, v in effects.values().items()) or "none"
+    write_measurements(args.output, meas, comments=[
+        f"pmcal twin measure: machine {geom_name()}, errors: {source}, poses {len(meas)}, tracker sigma "
+        f"{sigma:g} mm, seed {args.seed}, gravity on, effects: {active}",
+        "units: mm, deg, degC, kg, s; targets in the base frame O-xyz"])
     return 0
 
 

@@ -24,7 +24,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--no-random-approach", action="store_true",
                    help="approach every pose from the same side (default: random per motor)")
     m.add_argument("--effect", action="append", default=[], metavar="NAME=VALUE",
-                   help="switch on a physical effect (repeatable), see docs/effects.md")
+                   help="switch on a physical effect (repeatable; NAME=V1,V2 per motor), see docs/effects.md")
+    m.add_argument("--payload", default=None, metavar="KG[,KG...]",
+                   help="payload levels on the platform, kg, spread over the poses (e.g. 0,10)")
+    m.add_argument("--temperature", default=None, metavar="DEGC[,DEGC]",
+                   help="machine temperature: constant, or a ramp from the first to the second value")
+    m.add_argument("--shuffle", action="store_true",
+                   help="measure the planned poses in random order (default: in order of tilt)")
+    m.add_argument("--seconds-per-pose", type=float, default=30.0, metavar="S",
+                   help="time between poses, s (time_s column; default 30)")
     m.add_argument("-o", "--output", required=True, metavar="MEAS.csv")
     m.set_defaults(func=lambda a: dispatch("twin_measure", a))
 

@@ -1,0 +1,576 @@
+"""Discrepancy diagnosis: where the twin and the measurements disagree, and which effect is missing.
+
+Steps (docs/diagnose.md):
+
+a. Fit the baseline (default: the whole-chain geometric model of limbs 1-2 + SS + stiffness ratio, the
+   passive limbs nominal) and compare its twin prediction with the measured targets.
+b. Noise: sigma given, or estimated without any machine model from how far each pose's targets are
+   from a similarity transform of their platform coordinates (2 dof a pose). An omnibus test says
+   whether anything is left beyond the noise.
+c. Every candidate effect's *signature* (d targets / d effect parameter) keeps only what the baseline
+   cannot absorb (conditional information, :mod:`calib.ocpm.linear_tests`); its power at a typical size
+   says whether this campaign can see it at all, and if not, which measurement would.
+d. Forward selection: the most significant candidate (F test, Bonferroni over the candidates in play)
+   whose fitted value is physically plausible and large enough is added, the whole model is refitted
+   (nonlinear, the effect's physics in the forward model), the others are re-tested there, named ones
+   are re-checked.
+e. Cross-validation: the same selection runs inside each fold (training poses only); a name is kept if
+   a majority of folds select it.
+f. The named effects with value ± 95 % interval are written into the model; ``gap_before`` and
+   ``gap_after`` are RMS held-out disagreements (folds refitted, linearised at the full-data fits).
+g. Structure left after that (omnibus test, also robust to heavy-tailed noise) is flagged unexplained.
+
+Units: mm, rad inside (interface values of effects in :data:`VOCABULARY` units).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from calib.ocpm.config import Geometry, default_geometry
+from calib.ocpm.data import Measurements
+from calib.ocpm.effect_signatures import (EFFECT_NAMES, VOCABULARY, EffectChainModel, effect_of_key,
+                                          thermal_delta, with_context)
+from calib.ocpm.diagnosis_result import Candidate, Diagnosis, Omnibus
+from calib.ocpm.effect_values import EffectValue, effect_prior_std, effect_value
+from calib.ocpm.fullchain import FullChainOptions, Priors, identify_full
+from calib.ocpm.linear_tests import (Linearization, SubFit, conditional_information, fit, huber_weighted,
+                                     nested_test, power, predict)
+from calib.ocpm.noise_estimate import NoiseEstimate, estimate_noise
+from calib.ocpm.params import LIMB_FIELDS, SEED_LIMB_FIELDS, SS_FIELDS, is_angular
+from calib.solvers.result import IdentResult
+
+#: Baseline key sets. "full": limbs 1-2 (12 geometric keys + dtheta each) and SS; "paper": the seed's 11
+#: parameters of limbs 1-2 (evaluated with the whole-chain forward model).
+BASELINES: dict[str, list[str]] = {
+    "full": [f"L{j}.{f}" for j in (1, 2) for f in LIMB_FIELDS] + [f"SS.{f}" for f in SS_FIELDS],
+    "paper": [f"L{j}.{f}" for j in (1, 2) for f in SEED_LIMB_FIELDS],
+}
+
+
+@dataclass
+class DiagnoseOptions:
+    """Settings of :func:`diagnose`.
+
+    baseline_keys : geometric keys of the baseline (default ``BASELINES["full"]``); the stiffness ratio
+        is fitted too when ``fit_stiffness_ratio``. Passive-limb keys in it remove ``overconstraint``.
+    sigma_mm : tracker noise if known (else estimated from the data, model-free).
+    alpha : family-wise level of a naming round (Bonferroni over the candidates in play).
+    folds : cross-validation folds (stratified by tilt, :func:`stratified_folds`).
+    min_folds : share of the folds whose own selection must pick a named effect.
+    min_rms_sigma : smallest RMS change of the measurements (in sigma) an effect must make to be named.
+    min_explained : smallest share of the structure left beyond the noise an effect must explain to be
+        named (a significant effect that explains a sliver of a larger structure is not forced onto it).
+    gate_alpha, gate_excess : the omnibus test: structure if p < gate_alpha and the RMS excess over
+        the noise is at least gate_excess sigma (also by the robust, median-based measure).
+    """
+
+    baseline_keys: list[str] | None = None
+    fit_stiffness_ratio: bool = True
+    candidates: tuple[str, ...] = EFFECT_NAMES
+    sigma_mm: float | None = None
+    alpha: float = 0.01
+    folds: int = 10
+    min_folds: float = 0.3
+    min_rms_sigma: float = 0.03
+    min_explained: float = 0.25
+    max_effects: int = 3
+    gate_alpha: float = 1e-3
+    gate_excess: float = 0.25
+    priors: Priors = field(default_factory=Priors)
+    initial: dict[str, float] | None = None      # start of the baseline fit (interface units), e.g. P.json
+    max_nfev: int = 60
+
+
+def limit_blas_threads(n: int = 1) -> None:
+    """Cap the OpenBLAS threads of numpy and scipy at ``n`` for this process.
+
+    The diagnosis does many small dense factorisations (a few hundred rows, tens of columns); with
+    OpenBLAS threads competing with MuJoCo's thread pool and other processes, one SVD took 0.4 s
+    instead of 2 ms on the 2-core reference machine. One thread is the right choice at these sizes.
+    """
+    import ctypes
+    from pathlib import Path
+
+    import scipy
+
+    for pkg in (np, scipy):
+        libdir = Path(pkg.__file__).resolve().parent.parent / f"{pkg.__name__}.libs"
+        for lib in sorted(libdir.glob("libscipy_openblas*.so*")):
+            try:
+                handle = ctypes.CDLL(str(lib))
+            except OSError:
+                continue
+            for sym in ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads"):
+                fn = getattr(handle, sym, None)
+                if fn is not None:
+                    fn(ctypes.c_int(n))
+                    break
+
+
+# ======================================================================================== linearisation
+def linearize(model: EffectChainModel, meas: Measurements, res: IdentResult, extra_keys: list[str],
+              sigma: float, prior_std: dict[str, float]) -> Linearization:
+    """Whitened linear model at the fit ``res`` with the columns of ``extra_keys`` (candidates) added."""
+    keys = list(res.names) + [k for k in extra_keys if k not in res.names]
+    n_fit = len(res.names)
+    scale = np.concatenate([np.asarray(res.info["prior_std"], float), [prior_std[k] for k in keys[n_fit:]]])
+    mean = np.concatenate([np.asarray(res.info["prior_mean"], float), np.zeros(len(keys) - n_fit)])
+    model.set_vector(list(res.names), res.x, res.info["stiffness_ratio"])
+    T, dT = model.predict_meas(meas, keys)
+    n = T.size
+    z0 = np.zeros(len(keys))
+    z0[:n_fit] = (res.x - mean[:n_fit]) / scale[:n_fit]
+    pose = np.repeat(np.arange(len(meas)), n // len(meas))
+    return Linearization(r=(meas.targets.reshape(-1) - T.reshape(-1)) / sigma,
+                         J=dT.reshape(n, len(keys)) * scale / sigma, keys=keys, z0=z0, pose=pose,
+                         sigma=sigma, scale=scale, mean=mean)
+
+
+def stratified_folds(meas: Measurements, k: int, geom: Geometry) -> np.ndarray:
+    """Cross-validation fold of every pose (N,): poses ranked by measured tilt go to folds 0, 1, .., k-1 in
+    turn, so each fold spans the whole tilt range and no region of the workspace is held out at once
+    (a held-out hole would measure extrapolation, not the model)."""
+    _, R, _ = meas.poses(geom)
+    rank = np.argsort(np.argsort(R[:, 2, 2], kind="stable"), kind="stable")
+    return rank % max(2, min(k, len(meas)))
+
+
+# ======================================================================================== the steps
+class _Problem:
+    """Everything one diagnosis shares: data with context, noise, model, options, candidate keys."""
+
+    def __init__(self, meas: Measurements, opt: DiagnoseOptions, geom: Geometry):
+        self.geom, self.opt = geom, opt
+        self.meas, self.time_unit = with_context(meas)
+        self.noise = estimate_noise(meas, geom, opt.sigma_mm)
+        self.sigma = self.noise.sigma_mm
+        self.base_keys = list(opt.baseline_keys or BASELINES["full"])
+        self.model = EffectChainModel(geom)
+        self.model_keys0: list[str] = []              # the baseline fit's keys (with the ratio)
+        self.baseline: IdentResult | None = None
+        self.candidates: dict[str, list[str]] = {}
+        self.missing: dict[str, str] = {}
+        for name in opt.candidates:
+            keys = [k for k in VOCABULARY[name].keys if k not in self.base_keys]
+            reason = self._missing_context(name)
+            if reason or not keys:
+                self.missing[name] = reason or "its parameters are already in the baseline model"
+            else:
+                self.candidates[name] = keys
+        self.prior_std = {k: effect_prior_std(k, opt.priors, self.time_unit)
+                          for keys in self.candidates.values() for k in keys}
+
+        self.folds = stratified_folds(self.meas, opt.folds, geom)
+
+    def _missing_context(self, name: str) -> str:
+        m = self.meas
+        if name == "thermal_expansion" and thermal_delta(m.temp_c) is None:
+            return "no temperature per pose (temp_c column)"
+        if name == "backlash" and m.approach is None:
+            return "no direction of approach per pose (m1_approach, m2_approach columns)"
+        return ""
+
+    def identify(self, names: list[str], x0: dict[str, float] | None) -> IdentResult:
+        """Nonlinear MAP fit of the baseline plus the effects ``names``."""
+        opt = self.opt
+        keys = self.base_keys + [k for n in names for k in self.candidates[n]]
+        return identify_full(self.meas, FullChainOptions(
+            keys=keys, fit_stiffness_ratio=opt.fit_stiffness_ratio, priors=opt.priors, sigma_mm=self.sigma,
+            max_nfev=opt.max_nfev, extra_prior_std=self.prior_std, x0=x0), model=self.model)
+
+    def linearize(self, res: IdentResult, named: list[str]) -> Linearization:
+        """Linear model at ``res`` with the columns of every candidate not in ``named``."""
+        extra = [k for n in self.candidates if n not in named for k in self.candidates[n]]
+        return linearize(self.model, self.meas, res, extra, self.sigma, self.prior_std)
+
+    def value_from(self, lin: Linearization, sub: SubFit, name: str) -> EffectValue:
+        """Effect value from a linear fit."""
+        keys = self.candidates[name]
+        cols = lin.cols(keys)
+        pos = np.array([list(sub.cols).index(c) for c in cols])
+        vals = lin.values(sub)
+        x = np.array([vals[k] for k in keys])
+        cov_z = np.linalg.inv(sub.info + np.eye(len(sub.cols)))[np.ix_(pos, pos)] * max(sub.rss / sub.dof, 1.0)
+        return effect_value(name, keys, x, cov_z * np.outer(lin.scale[cols], lin.scale[cols]), self.time_unit)
+
+    def value_final(self, res: IdentResult, name: str) -> EffectValue:
+        """Effect value from a nonlinear fit (covariance inflated by the residual variance if above 1)."""
+        keys = self.candidates[name]
+        idx = [res.names.index(k) for k in keys]
+        cov = res.covariance[np.ix_(idx, idx)] * max(res.info["chi2_per_dof"], 1.0)
+        return effect_value(name, keys, res.x[idx], cov, self.time_unit)
+
+    def polish(self, res: IdentResult, max_steps: int = 4) -> IdentResult:
+        """Gauss-Newton steps with a forward-difference Jacobian after a fit with compliance in the model,
+        and the covariance from it. The analytic sensitivities of the preloaded spring model are 5-15 %
+        off: the trust-region fit stopped short (steps of ~0.4 sigma left) and its covariance made the
+        intervals of K ~35 % too narrow."""
+        names, ratio = list(res.names), res.info["stiffness_ratio"]
+        s, mean = np.asarray(res.info["prior_std"]), np.asarray(res.info["prior_mean"])
+        y = self.meas.targets.ravel()
+
+        def cost(x):
+            self.model.set_vector(names, x, ratio)
+            T = self.model.targets(self.meas).ravel()
+            return float(np.sum(((y - T) / self.sigma) ** 2) + np.sum(((x - mean) / s) ** 2)), T
+
+        x = res.x.copy()
+        c0, T0 = cost(x)
+        for _ in range(max_steps):
+            J = np.empty((T0.size, len(names)))
+            for i in range(len(names)):
+                xi = x.copy()
+                h = 1e-3 * max(abs(x[i] - mean[i]), 1e-2 * s[i])
+                xi[i] += h
+                J[:, i] = (cost(xi)[1] - T0) / h
+            A = J / self.sigma
+            M = A.T @ A + np.diag(1.0 / s**2)
+            step = np.linalg.solve(M, A.T @ ((y - T0) / self.sigma) - (x - mean) / s**2)
+            c1, T1 = cost(x + step)
+            if c1 >= c0:
+                break
+            x, c0, T0 = x + step, c1, T1
+            if np.max(np.abs(step) * np.sqrt(np.diag(M))) < 0.01:     # below 1 % of a std
+                break
+        A = J / self.sigma
+        cov = np.linalg.inv(A.T @ A + np.diag(1.0 / s**2))
+        resid = y - T0
+        p_eff = float(np.trace(cov @ (A.T @ A)))
+        info = dict(res.info, chi2_per_dof=float(resid @ resid / self.sigma**2 / (len(y) - p_eff)),
+                    effective_parameters=p_eff, jacobian=J)
+        return dataclasses.replace(res, x=x, residuals=resid, covariance=cov, info=info,
+                                   method=res.method + "+fd-polish")
+
+    def refit(self, res: IdentResult, names: list[str], lin: Linearization | None = None,
+              sub: SubFit | None = None) -> IdentResult:
+        """Nonlinear refit of baseline + ``names``, warm-started from ``res`` and a linear step ``sub``."""
+        x0 = {k: float(v) for k, v in zip(res.names, res.x)}
+        if sub is not None:
+            x0.update(lin.values(sub))
+        new = self.identify(names, x0)
+        return self.polish(new) if "joint_compliance" in names else new
+
+
+def _test_round(pb: _Problem, lin: Linearization, model_keys: list[str], names: list[str],
+                rows: np.ndarray | None = None, n_tests: int | None = None) -> dict[str, tuple]:
+    """Test every candidate in ``names`` against the model ``model_keys`` (Bonferroni over ``n_tests``,
+    default ``len(names)``). Returns name -> (NestedTest, EffectValue, passes, explained share)."""
+    mcols = lin.cols(model_keys)
+    m = max(n_tests or len(names), 1)
+    out = {}
+    for name in names:
+        t = nested_test(lin, mcols, lin.cols(pb.candidates[name]), rows)
+        v = pb.value_from(lin, t.fit, name)
+        n_rows = t.fit.n
+        excess = t.base.rss - t.base.dof                      # structure beyond the noise, whitened
+        share = t.delta_chi2 / max(excess, t.delta_chi2, 1e-12)
+        ok = (t.p_value < pb.opt.alpha / m and v.plausible and v.big_enough
+              and np.sqrt(t.delta_chi2 / n_rows) >= pb.opt.min_rms_sigma and share >= pb.opt.min_explained)
+        out[name] = (t, v, ok, share)
+    return out
+
+
+def _best(tests: dict[str, tuple]) -> str | None:
+    ok = [n for n, t in tests.items() if t[2]]
+    return min(ok, key=lambda n: (tests[n][0].p_value, -tests[n][0].F)) if ok else None
+
+
+def _linear_selection(pb: _Problem, lin: Linearization, rows: np.ndarray) -> list[str]:
+    """Greedy forward selection with backward re-checks, linearised at the baseline (inside a fold)."""
+    chosen: list[str] = []
+    while len(chosen) < pb.opt.max_effects:
+        model = pb.model_keys0 + [k for n in chosen for k in pb.candidates[n]]
+        rest = [n for n in pb.candidates if n not in chosen]
+        best = _best(_test_round(pb, lin, model, rest, rows)) if rest else None
+        if best is None:
+            break
+        chosen.append(best)
+        for name in chosen[:-1]:
+            others = pb.model_keys0 + [k for n in chosen if n != name for k in pb.candidates[n]]
+            if not _test_round(pb, lin, others, [name], rows, len(rest))[name][2]:
+                chosen.remove(name)
+    return chosen
+
+
+def omnibus(lin: Linearization, sub: SubFit, noise: NoiseEstimate, opt: DiagnoseOptions) -> Omnibus:
+    """Residual against the noise: chi-square (sigma given) or F against the model-free estimate, and a
+    median-based ratio of per-pose sums that heavy-tailed noise does not inflate."""
+    r = predict(lin, sub, np.ones(len(lin.r), bool))
+    n = len(r)
+    dof = max(n - sub.p_eff, 1.0)
+    ratio = float(r @ r / dof)
+    if noise.source == "given":
+        p = float(stats.chi2.sf(ratio * dof, dof))
+        scale2 = 1.0
+    else:
+        p = float(stats.f.sf(ratio, dof, noise.dof))
+        scale2 = (noise.free_robust_mm / noise.sigma_mm) ** 2
+    per_pose = np.bincount(lin.pose, weights=r * r)
+    nu = dof / per_pose.size                         # dof a pose, on average
+    robust = float(np.median(per_pose) / stats.chi2.median(nu) / scale2)
+    excess = float(noise.sigma_mm * np.sqrt(max(min(ratio, robust) - 1.0, 0.0)))
+    structure = p < opt.gate_alpha and excess >= opt.gate_excess * noise.sigma_mm
+    return Omnibus(ratio=ratio, robust_ratio=robust, p_value=p, excess_mm=excess, structure=bool(structure))
+
+
+def _cv(lin: Linearization, cols: np.ndarray, folds: np.ndarray) -> np.ndarray:
+    """Held-out whitened residuals (n,) of the model ``cols``, each fold refitted on the others."""
+    out = np.zeros(len(lin.r))
+    for f in np.unique(folds):
+        test = lin.rows(np.flatnonzero(folds == f))
+        out[test] = predict(lin, fit(lin, cols, ~test), test)
+    return out
+
+
+def _typical_draws(pb: _Problem, name: str, n: int = 64) -> np.ndarray:
+    """Parameters (n, k) of typical-size instances of an effect, prior units: random phases for the
+    eccentricity, random +-size passive errors for overconstraint, the typical value on both motors for
+    the other effects."""
+    info, keys = VOCABULARY[name], pb.candidates[name]
+    s = np.array([pb.prior_std[k] for k in keys])
+    rng = np.random.default_rng(0)
+    if name == "overconstraint":
+        size = info.typical * np.array([np.deg2rad(0.2) if is_angular(k) else 1.0 for k in keys])
+        return rng.uniform(-1.0, 1.0, (n, len(keys))) * size / s
+    if name == "encoder_eccentricity":
+        ph = rng.uniform(0.0, 2 * np.pi, (n, 2))
+        x = np.deg2rad(info.typical) * np.stack([np.cos(ph[:, 0]), np.sin(ph[:, 0]), np.cos(ph[:, 1]),
+                                                 np.sin(ph[:, 1])], 1)
+        return x / s
+    if name == "joint_compliance":
+        t = np.full(2, 1.0 / info.typical)
+    elif name == "thermal_expansion":
+        t = np.array([info.typical])
+    elif name == "zero_offset_drift" and pb.time_unit == "pose":
+        t = np.full(2, np.deg2rad(info.typical) / 120.0)  # 30 s a pose
+    else:
+        t = np.full(len(keys), np.deg2rad(info.typical))
+    return (t / s)[None]
+
+
+def _scoreboard(pb: _Problem, lin: Linearization) -> dict[str, Candidate]:
+    """Identifiability of every candidate against the baseline: the share of a typical signature the
+    baseline cannot absorb (survival) and the chance to detect a typical size (power, averaged over
+    typical instances) with a test of the directions the data determine."""
+    out = {}
+    mcols = lin.cols(pb.model_keys0)
+    m = max(len(pb.candidates), 1)
+    for name in pb.opt.candidates:
+        info = VOCABULARY[name]
+        if name in pb.missing:
+            out[name] = Candidate(name, False, pb.missing[name], verdict="not identifiable with this campaign",
+                                  fix=info.fix)
+            continue
+        ecols = lin.cols(pb.candidates[name])
+        Z = _typical_draws(pb, name)
+        S = lin.J[:, ecols]
+        I_c = conditional_information(lin, mcols, ecols)
+        raw = np.einsum("ni,ij,nj->n", Z, S.T @ S, Z)
+        nc = np.einsum("ni,ij,nj->n", Z, I_c, Z)
+        k = max(int(np.sum(np.linalg.eigvalsh(I_c) > 1.0)), 1)
+        pw = float(np.mean([power(c, k, pb.opt.alpha / m) for c in nc]))
+        out[name] = Candidate(name, True, survival=float(nc.mean() / raw.mean()) if raw.mean() > 0 else 0.0,
+                              power_typical=pw, fix=info.fix)
+    return out
+
+
+def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[str, Candidate]):
+    """Forward selection on all poses (steps c, d). Each round tests the candidates at the current fit
+    (linearised, Huber-weighted rows); the most significant one that passes, or, when structure is left
+    and none passes, the two that explain most of it (a strongly nonlinear effect can look weak in a
+    linear test) are refitted nonlinearly and tested again at the refit, against the model without
+    them. Earlier names are re-tested once a new one is in."""
+    named: list[str] = []
+    res, lin = base, lin0
+    history: dict[str, tuple] = {}
+    rejected: set[str] = set()
+    while len(named) < pb.opt.max_effects:
+        rest = [n for n in pb.candidates if n not in named and n not in rejected]
+        if not rest:
+            break
+        m = len(pb.candidates) - len(named)
+        cols = lin.cols(list(res.names))
+        tests = _test_round(pb, huber_weighted(lin, cols), list(res.names), rest, n_tests=m)
+        for n, t in tests.items():
+            history[n] = t[:3] + (m, t[3])
+        order = sorted((n for n in rest if tests[n][2]), key=lambda n: (tests[n][0].p_value, -tests[n][0].F))
+        if not order and omnibus(lin, fit(lin, cols), pb.noise, pb.opt).structure:
+            order = sorted(rest, key=lambda n: -tests[n][0].delta_chi2)[:2]
+        accepted = None
+        for best in order[:2]:
+            trial = pb.refit(res, named + [best], lin, tests[best][0].fit)
+            lin_t = pb.linearize(trial, named + [best])
+            model_t = [k for k in trial.names if effect_of_key(k) != best]
+            t = _test_round(pb, huber_weighted(lin_t, lin_t.cols(list(trial.names))), model_t, [best], n_tests=m)[best]
+            v = pb.value_final(trial, best)
+            history[best] = (t[0], v, t[2] and v.plausible and v.big_enough, m, t[3])
+            if history[best][2]:
+                accepted = (best, trial, lin_t)
+                break
+            rejected.add(best)
+            if not (v.plausible and v.big_enough):
+                board[best].reason = f"after the nonlinear refit: {v.why}"
+        if accepted is None:
+            break
+        best, res, lin = accepted
+        named.append(best)
+        for n in named[:-1]:                         # re-test the earlier names with the new one in
+            model_n = [k for k in res.names if effect_of_key(k) != n]
+            t = _test_round(pb, huber_weighted(lin, lin.cols(list(res.names))), model_n, [n], n_tests=m)[n]
+            if not t[2]:
+                named.remove(n)
+                board[n].reason = f"absorbed once {best} was added"
+                res = pb.refit(res, named)
+                lin = pb.linearize(res, named)
+    return named, res, lin, history
+
+
+def _verdicts(pb: _Problem, board: dict[str, Candidate], history: dict, named: list[str],
+              values: list[EffectValue], counts: dict[str, int], n_folds: int, cv_ran: bool) -> None:
+    """The scoreboard's verdict and reason for every candidate."""
+    need = int(np.ceil(pb.opt.min_folds * n_folds))
+    for n, c in board.items():
+        c.cv_folds = counts.get(n, 0)
+        if n in history:
+            t, v, ok, m, share = history[n]
+            c.delta_chi2, c.nu, c.F, c.p_value, c.value, c.share = t.delta_chi2, t.k, t.F, t.p_value, v, share
+            c.threshold = pb.opt.alpha / max(m, 1)
+        if n in named:
+            c.verdict, c.value = "named", values[named.index(n)]
+            c.reason = c.reason or f"selected in {counts[n]} of {n_folds} cross-validation folds"
+        elif not c.available:
+            continue
+        elif n in history and c.p_value < c.threshold:
+            v, rms = c.value, np.sqrt(c.delta_chi2 / max(history[n][0].fit.n, 1))
+            if not v.plausible:
+                c.verdict, c.reason = "implausible value", c.reason or v.why
+            elif not v.big_enough or rms < pb.opt.min_rms_sigma:
+                c.verdict = "too small"
+                c.reason = c.reason or v.why or (f"changes the measurements by {rms:.2g} sigma RMS "
+                                                 f"(less than {pb.opt.min_rms_sigma:g})")
+            elif c.share < pb.opt.min_explained:
+                c.verdict = "explains only part of the structure"
+                c.reason = (f"significant, but explains {100 * c.share:.2g} % of the structure left beyond the "
+                            "noise: not forced onto this name")
+            elif cv_ran and (counts.get(n, 0) < need or c.reason.startswith("does not predict")):
+                c.verdict = "not confirmed on held-out poses"
+                c.reason = c.reason or f"selected in {counts.get(n, 0)} of {n_folds} cross-validation folds"
+            else:
+                c.verdict = "not significant once the named effects are in"
+        elif c.power_typical < 0.1:
+            info = VOCABULARY[n]
+            c.verdict = "not identifiable with this campaign"
+            c.reason = c.reason or (f"at a typical size ({info.typical:g} {info.unit}) it would be detected "
+                                    f"with probability {c.power_typical:.2f}: the baseline absorbs "
+                                    f"{100 * (1 - c.survival):.3g} % of its signature")
+        else:
+            c.verdict = "not significant"
+
+
+def _confirm(pb: _Problem, lin0: Linearization, named: list[str], res: IdentResult, lin: Linearization,
+             board: dict[str, Candidate], cv_before: np.ndarray):
+    """Step e: the selection runs again inside every cross-validation fold (training poses only); a name
+    stays if at least ``min_folds`` of the folds select it and the named model predicts the held-out
+    poses better than the baseline. Returns the fold counts and the (re)fitted model."""
+    n_folds = len(np.unique(pb.folds))
+    counts = {n: 0 for n in pb.candidates}
+    if not named:                                    # nothing named: nothing to confirm
+        return counts, named, res, lin
+    lin0w = huber_weighted(lin0, lin0.cols(pb.model_keys0))
+    for f in range(n_folds):
+        for n in _linear_selection(pb, lin0w, ~lin0.rows(np.flatnonzero(pb.folds == f))):
+            counts[n] += 1
+    need = int(np.ceil(pb.opt.min_folds * n_folds))
+    confirmed = [n for n in named if counts[n] >= need]
+    if confirmed == named:
+        cv_named = _cv(lin, lin.cols(list(res.names)), pb.folds)
+        if cv_named @ cv_named >= cv_before @ cv_before:
+            confirmed = []
+            for n in named:
+                board[n].reason = "does not predict held-out poses better than the baseline"
+    if confirmed != named:
+        res = pb.refit(res, confirmed) if confirmed else pb.baseline
+        lin = pb.linearize(res, confirmed)
+    return counts, confirmed, res, lin
+
+
+def _notes(board: dict[str, Candidate], named: list[str], om: Omnibus, opt: DiagnoseOptions) -> list[str]:
+    notes = []
+    if om.structure:
+        rejected = [n for n, c in board.items() if c.verdict in (
+            "implausible value", "too small", "not confirmed on held-out poses", "explains only part of the structure")]
+        notes.append(f"structure left beyond the noise: {om.excess_mm:.3g} mm RMS (p = {om.p_value:.2g}) "
+                     "that no candidate explains" + (f"; rejected candidates: {', '.join(rejected)}" if rejected else ""))
+    elif om.p_value < opt.gate_alpha:
+        notes.append(f"the residual exceeds the noise a little ({om.excess_mm:.2g} mm RMS by the robust "
+                     "measure): heavy-tailed noise or a mismatch too small to matter")
+    return notes + [f"{n}: {board[n].reason}" for n in named]
+
+
+def diagnose(meas: Measurements, options: DiagnoseOptions | None = None, geom: Geometry | None = None,
+             on_step=None) -> Diagnosis:
+    """Run the diagnosis (module docstring). ``on_step(text)`` reports progress."""
+    t_start = time.perf_counter()
+    limit_blas_threads(1)
+    opt = options or DiagnoseOptions()
+    geom = geom or default_geometry()
+    step = on_step or (lambda text: None)
+    pb = _Problem(meas, opt, geom)
+
+    step("fitting the baseline model")                               # a
+    x0 = None
+    if opt.initial:
+        x0 = {k: (np.deg2rad(v) if is_angular(k) else v) for k, v in opt.initial.items() if k in pb.base_keys}
+    base = pb.baseline = pb.identify([], x0)
+    pb.model_keys0 = list(base.names)
+    lin0 = pb.linearize(base, [])
+    board = _scoreboard(pb, lin0)                                    # b, c
+    om0 = omnibus(lin0, fit(lin0, lin0.cols(pb.model_keys0)), pb.noise, opt)
+
+    step("testing candidate effects")                                # d
+    named, res, lin, history = _select(pb, base, lin0, board)
+
+    step("cross-validating")                                         # e
+    cv_before = _cv(lin0, lin0.cols(pb.model_keys0), pb.folds)
+    cv_ran = bool(named)
+    counts, named, res, lin = _confirm(pb, lin0, named, res, lin, board, cv_before)
+
+    cv_after = _cv(lin, lin.cols(list(res.names)), pb.folds)       # f
+    om1 = omnibus(lin, fit(lin, lin.cols(list(res.names))), pb.noise, opt)
+    values = [pb.value_final(res, n) for n in named]
+    _verdicts(pb, board, history, named, values, counts, len(np.unique(pb.folds)), cv_ran)
+
+    unexplained = om1.structure                                      # g
+    verdict = ("named+unexplained" if named else "unexplained") if unexplained else ("named" if named else "noise")
+    shape = meas.targets.shape
+    return Diagnosis(
+        effect=named[0] if named else None, effects=named, gap_before=float(np.sqrt(np.mean(cv_before**2)) * pb.sigma),
+        gap_after=float(np.sqrt(np.mean(cv_after**2)) * pb.sigma), noise=pb.noise, verdict=verdict,
+        unexplained=unexplained, notes=_notes(board, named, om1, opt), candidates=board, named=values,
+        baseline=base, final=res, omnibus_before=om0, omnibus_after=om1, time_unit=pb.time_unit, meas=pb.meas,
+        lin_before=lin0, lin_after=lin, cv_before=(cv_before * pb.sigma).reshape(shape),
+        cv_after=(cv_after * pb.sigma).reshape(shape), folds=pb.folds, runtime_s=time.perf_counter() - t_start,
+        added_variable=_added_variable(pb, lin, res))
+
+
+def _added_variable(pb: _Problem, lin: Linearization, res: IdentResult) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Added-variable data per available candidate at the final fit, per row (mm): x the candidate's
+    signature in the direction of its fitted parameters with the rest of the model projected out, y the
+    residual of the model without it. A slope of 1 through the cloud: it explains that part."""
+    out = {}
+    every = np.ones(len(lin.r), bool)
+    for name, keys in pb.candidates.items():
+        ecols = lin.cols(keys)
+        mcols = lin.cols([k for k in res.names if effect_of_key(k) != name])
+        t = nested_test(lin, mcols, ecols)
+        J = lin.J[:, mcols]
+        S = lin.J[:, ecols] @ (lin.z0[ecols] + t.fit.dz[len(mcols):])
+        x = S - J @ np.linalg.solve(J.T @ J + np.eye(len(mcols)), J.T @ S)
+        out[name] = (x * pb.sigma, predict(lin, t.base, every, drop=ecols) * pb.sigma)
+    return out

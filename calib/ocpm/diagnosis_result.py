@@ -1,0 +1,131 @@
+"""The result of a discrepancy diagnosis (:func:`calib.ocpm.diagnose.diagnose`) and its JSON form
+(INTERFACES.md ``pmcal diagnose`` document, extended). Units: mm, effect values as in the vocabulary."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calib.ocpm.data import Measurements
+from calib.ocpm.effect_signatures import VOCABULARY, effect_of_key
+from calib.ocpm.effect_values import EffectValue
+from calib.ocpm.fullchain import LOG_RATIO
+from calib.ocpm.linear_tests import Linearization
+from calib.ocpm.noise_estimate import NoiseEstimate
+from calib.ocpm.params import is_angular
+from calib.solvers.result import IdentResult
+
+
+@dataclass
+class Candidate:
+    """One row of the scoreboard (the state when the diagnosis ended, or when the effect was named)."""
+
+    name: str
+    available: bool
+    reason: str = ""                      # why not available / verdict explanation
+    survival: float = float("nan")        # fraction of a typical signature the baseline cannot absorb
+    power_typical: float = float("nan")   # chance to detect it at a typical size with this campaign
+    delta_chi2: float = float("nan")
+    nu: float = float("nan")              # directions tested
+    share: float = float("nan")           # share of the structure beyond the noise it explains
+    F: float = float("nan")
+    p_value: float = float("nan")
+    threshold: float = float("nan")
+    value: EffectValue | None = None
+    cv_folds: int = 0
+    verdict: str = "not tested"
+    fix: str = ""
+
+
+@dataclass
+class Omnibus:
+    """Is anything left beyond the noise? ratio: residual variance / sigma^2; robust_ratio: the same
+    from medians of per-pose sums; excess_mm: RMS of what is left beyond the noise."""
+
+    ratio: float
+    robust_ratio: float
+    p_value: float
+    excess_mm: float
+    structure: bool
+
+
+@dataclass
+class Diagnosis:
+    effect: str | None
+    effects: list[str]
+    gap_before: float
+    gap_after: float
+    noise: NoiseEstimate
+    verdict: str                          # "noise", "named", "unexplained", "named+unexplained"
+    unexplained: bool
+    notes: list[str]
+    candidates: dict[str, Candidate]
+    named: list[EffectValue]
+    baseline: IdentResult
+    final: IdentResult
+    omnibus_before: Omnibus
+    omnibus_after: Omnibus
+    time_unit: str
+    meas: Measurements
+    lin_before: Linearization
+    lin_after: Linearization
+    cv_before: np.ndarray                 # (N, k, 3) held-out residuals, mm
+    cv_after: np.ndarray
+    folds: np.ndarray
+    runtime_s: float = 0.0
+    added_variable: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    @property
+    def noise_floor(self) -> float:
+        return self.noise.sigma_mm
+
+    def params(self) -> dict[str, float]:
+        """Geometric parameters of the final model, interface units (mm, deg)."""
+        return {k: float(np.rad2deg(v)) if is_angular(k) else float(v)
+                for k, v in zip(self.final.names, self.final.x) if effect_of_key(k) in (None, "overconstraint")
+                and k != LOG_RATIO}
+
+    def to_json(self) -> dict:
+        """The INTERFACES.md document (plus details)."""
+        def val(e: EffectValue) -> dict:
+            return {"name": e.name, "value": _num(e.value), "interval": [_num(v) for v in e.interval],
+                    "unit": e.unit, "layer": VOCABULARY[e.name].layer,
+                    "params": {k: {"value": _num(v), "std": _num(s)} for k, (v, s) in e.params.items()}}
+
+        cands = []
+        for c in self.candidates.values():
+            cands.append({"name": c.name, "verdict": c.verdict, "reason": c.reason, "available": c.available,
+                          "survival": _num(c.survival), "power_at_typical_size": _num(c.power_typical),
+                          "delta_chi2": _num(c.delta_chi2), "directions": _num(c.nu), "F": _num(c.F),
+                          "share_of_structure": _num(c.share),
+                          "p_value": _num(c.p_value), "threshold": _num(c.threshold),
+                          "value": val(c.value) if c.value else None, "cv_folds_selected": c.cv_folds,
+                          "folds": int(self.folds.max() + 1) if self.folds.size else 0,
+                          "fix": c.fix})
+        return {
+            "effect": self.effect, "effects": self.effects, "gap_before": self.gap_before,
+            "gap_after": self.gap_after, "unit": "mm", "noise_floor": self.noise_floor,
+            "verdict": self.verdict, "unexplained": self.unexplained, "notes": self.notes,
+            "named": [val(e) for e in self.named],
+            "noise": {"sigma_mm": self.noise.sigma_mm, "source": self.noise.source,
+                      "model_free_mm": self.noise.free_mm, "model_free_robust_mm": self.noise.free_robust_mm,
+                      "model_free_dof": self.noise.dof, "repeat_mm": self.noise.repeat_mm},
+            "omnibus": {"before": vars(self.omnibus_before), "after": vars(self.omnibus_after)},
+            "candidates": cands,
+            "baseline": {"keys": [k for k in self.baseline.names], "chi2_per_dof": self.baseline.info["chi2_per_dof"],
+                         "stiffness_ratio": self.baseline.info["stiffness_ratio"], "n_poses": len(self.meas)},
+            "model": {"params": self.params(), "stiffness_ratio": self.final.info["stiffness_ratio"],
+                      "effects": {e.name: _num(e.value) for e in self.named},
+                      "chi2_per_dof": self.final.info["chi2_per_dof"]},
+            "time_unit": self.time_unit, "runtime_s": self.runtime_s,
+        }
+
+
+def _num(v):
+    if v is None:
+        return None
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
