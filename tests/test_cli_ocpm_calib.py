@@ -34,7 +34,7 @@ def files(tmp_path_factory, twin):
         w = csv.writer(fh)
         w.writerow(["phi_deg", "theta_deg"])
         w.writerows(zip(plan.phi_deg, plan.theta_deg))
-    assert main(["identify", str(d / "meas.csv"), "-o", str(d / "params.json")]) == 0
+    assert main(["identify", str(d / "meas.csv"), "-o", str(d / "params.json"), "--model", "paper"]) == 0
     (d / "nominal.json").write_text(json.dumps({"mechanism": "ocpm_2dof", "params": {}}))
     return d
 
@@ -190,7 +190,7 @@ def test_identify_bad_measurements(files, tmp_path, capsys, name, fn, needle, ro
 
 @pytest.mark.parametrize("argv, needle", [
     (["--method", "simplex"], "--method"),
-    (["--model", "full"], "--model"),
+    (["--model", "full", "--method", "pso"], "--method"),
     (["--sigma", "-1"], "--sigma"),
 ])
 def test_identify_bad_options(files, tmp_path, capsys, argv, needle):
@@ -202,7 +202,7 @@ def test_identify_bad_options(files, tmp_path, capsys, argv, needle):
 def test_identify_too_few_poses(files, tmp_path, capsys):
     few = edit(files / "meas.csv", tmp_path / "few.csv", lambda h, rows: (h, rows[:8]))
     out = tmp_path / "p.json"
-    assert main(["identify", str(few), "-o", str(out)]) == 2
+    assert main(["identify", str(few), "-o", str(out), "--model", "paper"]) == 2
     assert "cannot determine" in capsys.readouterr().err and not out.exists()
 
 
@@ -217,7 +217,7 @@ def test_compensate_bad_input(files, tmp_path, capsys):
     bad_p.write_text(json.dumps({"mechanism": "ocpm_2dof", "params": {"L1.dfoo": 1.0}}))
     assert main(["compensate", str(bad_p), "--targets", str(files / "targets.csv"), "-o", str(out)]) == 2
     assert "L1.dfoo" in capsys.readouterr().err and not out.exists()
-    bad_p.write_text(json.dumps({"mechanism": "ocpm_2dof", "model": "full", "params": {}}))
+    bad_p.write_text(json.dumps({"mechanism": "ocpm_2dof", "model": "banana", "params": {}}))
     assert main(["compensate", str(bad_p), "--targets", str(files / "targets.csv"), "-o", str(out)]) == 2
     assert "field 'model'" in capsys.readouterr().err and not out.exists()
     assert main(["compensate", str(files / "params.json"), "--targets", str(files / "targets.csv")]) == 2
