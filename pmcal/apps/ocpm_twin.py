@@ -74,6 +74,8 @@ def twin_measure(args) -> int:
         meas = run_campaign(twin, plan, LaserTracker(sigma, rng))
     except ValueError as exc:
         raise InputError(str(exc), file=args.targets, field="theta_deg" if args.targets else "--poses") from None
+    except RuntimeError as exc:          # the closed chain of this machine cannot close at a pose
+        raise RunError(f"{exc}: the machine cannot reach that pose (lower --theta-max)") from None
     source = args.errors or f"preset {args.preset or 'nominal'}"
     write_measurements(args.output, meas, comments=[
         f"pmcal twin measure: machine {geom_name()}, errors: {source}, poses {len(meas)}, "
