@@ -7,7 +7,8 @@ both from the true pose and as the tracker measures it (noise floor ~0.006 deg w
 
 Methods: uncompensated (nominal IK); seed method = real IK of limbs 1-2 at the nominal platform position
 of eq. 7, with limb 1-2 parameters identified by the seed's HGA (`paper-hga`) and, as an upper bound
-of what that model can do, with the true limb 1-2 parameters (`paper-oracle`); whole chain (`full`).
+of what that model can do, with the true limb 1-2 parameters (`paper-oracle`); the seed's identification
+with pmcal's fitted position map instead of eq. 7 (`paper-hga + position map`); whole chain (`full`).
 
 Run: python benchmarks/fullchain_bench.py [--draws 10] [--poses 48] [--quick]
 """
@@ -47,16 +48,12 @@ def limbs12(params: dict) -> dict:
 
 
 def paper_identify(meas):
-    """The seed's identification (HGA on eq. 14), if the identification package provides it."""
-    try:
-        from calib.ocpm.paper_model import from_measurements
-        from calib.solvers import identify
-    except ImportError:
-        return None
-    problem = from_measurements(meas)
-    res = identify(problem, "hga", seed=0)
-    return ErrorSet.from_dict({k: (np.rad2deg(v) if u == "rad" else v)
-                               for k, v, u in zip(res.names, res.x, res.units)})
+    """The seed's identification (HGA on eq. 14, both limbs) and the fitted position map."""
+    from calib.ocpm import compensation as comp
+    from calib.ocpm import paper_model as pm
+
+    cal = pm.calibrate(meas, "hga", (1, 2), seed=0)
+    return cal.errors(), comp.fit_position_map(cal.model.r, cal.model.R)
 
 
 def pointing(twin: Twin, cmd, phi, theta, rng):
@@ -84,11 +81,16 @@ def run_case(name, draws, n_train, where, ratio_truth, fit_ratio, with_paper, ro
         results["paper-oracle"] = pointing(twin, seed_commands(ErrorSet.from_dict(limbs12(params)), test.phi_deg,
                                                                test.theta_deg), test.phi_deg, test.theta_deg, ev)
         if with_paper:
+            from calib.ocpm import compensation as comp
+
             t = time.perf_counter()
-            e_paper = paper_identify(meas)
-            if e_paper is not None:
-                results["paper-hga"] = pointing(twin, seed_commands(e_paper, test.phi_deg, test.theta_deg),
-                                                test.phi_deg, test.theta_deg, ev) + (time.perf_counter() - t,)
+            e_paper, pmap = paper_identify(meas)
+            t = time.perf_counter() - t
+            results["paper-hga"] = pointing(twin, seed_commands(e_paper, test.phi_deg, test.theta_deg),
+                                            test.phi_deg, test.theta_deg, ev) + (t,)
+            m_map = np.rad2deg(comp.setpoints(np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg), e_paper,
+                                              position_map=pmap))
+            results["paper-hga + position map"] = pointing(twin, m_map, test.phi_deg, test.theta_deg, ev) + (t,)
         res = identify_full(meas, FullChainOptions(fit_stiffness_ratio=fit_ratio), model=model)
         e, _ = errors_from_vector(res.names, res.x)
         cmd = setpoints(model, e, test.phi_deg, test.theta_deg, stiffness_ratio=res.info["stiffness_ratio"])
