@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.kinematics import (from_pointing_coords, nominal_fk, nominal_pose, pointing_coords,
+from calib.ocpm.kinematics import (invert_in_pointing_coords, nominal_fk, nominal_pose, pointing_coords,
                                    real_ik_commands)
 from calib.ocpm.paper_model import param_names, pose_sensitivity
 from calib.ocpm.params import ErrorSet
@@ -140,20 +140,9 @@ def predict_orientation(m_cmd: np.ndarray, errors: ErrorSet, geom: Geometry | No
     coordinates from the nominal forward kinematics). NaN where it does not converge."""
     geom = geom or default_geometry()
     m_cmd = np.atleast_2d(np.asarray(m_cmd, float))
-    p = pointing_coords(*nominal_fk(m_cmd, geom))
-    f = lambda q: setpoints(*from_pointing_coords(q), errors, geom, position_map)  # noqa: E731
-    h = 1e-7
-    done = np.zeros(len(p), bool)
-    for _ in range(max_iter):
-        g = f(p) - m_cmd
-        done = np.max(np.abs(g), axis=1) < tol
-        if done.all():
-            break
-        J = np.stack([(f(p + d) - f(p - d)) / (2 * h) for d in np.eye(2) * h], axis=-1)
-        with np.errstate(invalid="ignore"):
-            p = p - np.where(done[:, None], 0.0, np.linalg.solve(J, g[..., None])[..., 0])
-    p[~done] = np.nan
-    return from_pointing_coords(p)
+    start = pointing_coords(*nominal_fk(m_cmd, geom))
+    return invert_in_pointing_coords(lambda phi, theta: setpoints(phi, theta, errors, geom, position_map),
+                                     m_cmd, start, tol=tol, max_iter=max_iter)
 
 
 def position_map_blocks(phi: np.ndarray, theta: np.ndarray, degree: int = 3) -> np.ndarray:

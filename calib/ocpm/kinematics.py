@@ -140,33 +140,45 @@ def from_pointing_coords(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.mod(np.arctan2(p[..., 1], p[..., 0]), 2 * np.pi), np.hypot(p[..., 0], p[..., 1])
 
 
+def invert_in_pointing_coords(ik, target: np.ndarray, p0: np.ndarray | None = None, tol: float = 1e-13,
+                              max_iter: int = 50, max_step: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """Orientations (phi, theta) rad at which ``ik(phi, theta)`` (N, 2) equals ``target`` (N, 2).
+
+    Newton's method in the singularity-free coordinates ``theta (cos phi, sin phi)`` with a
+    forward-difference Jacobian and steps limited to ``max_step`` rad, started at ``p0`` (default home);
+    vectorised, converged rows leave the active set. Rows that do not converge come back as NaN.
+    """
+    target = np.atleast_2d(np.asarray(target, float)).reshape(-1, 2)
+    p = np.zeros((target.shape[0], 2)) if p0 is None else np.array(p0, dtype=float).reshape(-1, 2)
+    active = np.flatnonzero(np.isfinite(p).all(axis=1))
+    p[np.setdiff1d(np.arange(len(p)), active)] = np.nan
+    h = 1e-7
+    f = lambda q: ik(*from_pointing_coords(q))  # noqa: E731
+    for _ in range(max_iter):
+        pa = p[active]
+        g = f(pa) - target[active]
+        conv = np.max(np.abs(g), axis=-1) < tol
+        bad = ~np.isfinite(g).all(-1)
+        p[active[bad]] = np.nan
+        keep = ~(conv | bad)
+        active, pa, g = active[keep], pa[keep], g[keep]
+        if active.size == 0:
+            break
+        J = np.stack([(f(pa + dp) - g - target[active]) / h for dp in np.eye(2) * h], axis=-1)
+        step = -np.linalg.solve(J, g[..., None])[..., 0]
+        norm = np.linalg.norm(step, axis=-1, keepdims=True)
+        p[active] = pa + np.where(norm > max_step, step * max_step / np.maximum(norm, 1e-300), step)
+    p[active] = np.nan
+    return from_pointing_coords(p)
+
+
 def nominal_fk(beta: np.ndarray, geom: Geometry | None = None, tol: float = 1e-13,
                max_iter: int = 50) -> tuple[np.ndarray, np.ndarray]:
     """Forward kinematics of the nominal machine: motor angles (N, 2) rad → (phi, theta) rad.
 
-    Newton's method on the nominal IK in the singularity-free coordinates ``theta (cos phi, sin phi)``,
-    started at home, with the step limited to 0.3 rad; vectorised over poses. Poses that do not
-    converge (out of the workspace) come back as NaN.
+    :func:`invert_in_pointing_coords` on the nominal IK, started at home. Poses that do not converge
+    (out of the workspace) come back as NaN.
     """
     geom = geom or default_geometry()
-    beta = np.atleast_2d(np.asarray(beta, float)).reshape(-1, 2)
-    p = np.zeros((beta.shape[0], 2))
-    active = np.arange(beta.shape[0])
-    h = 1e-7
-    ik = lambda q: nominal_ik(*from_pointing_coords(q), geom)  # noqa: E731
-    for _ in range(max_iter):
-        pa = p[active]
-        f = ik(pa) - beta[active]
-        conv = np.max(np.abs(f), axis=-1) < tol
-        bad = ~np.isfinite(f).all(-1)
-        p[active[bad]] = np.nan
-        keep = ~(conv | bad)
-        active, pa, f = active[keep], pa[keep], f[keep]
-        if active.size == 0:
-            break
-        J = np.stack([(ik(pa + dp) - f - beta[active]) / h for dp in np.eye(2) * h], axis=-1)
-        step = -np.linalg.solve(J, f[..., None])[..., 0]
-        norm = np.linalg.norm(step, axis=-1, keepdims=True)
-        p[active] = pa + np.where(norm > 0.3, step * 0.3 / np.maximum(norm, 1e-300), step)
-    p[active] = np.nan
-    return from_pointing_coords(p)
+    return invert_in_pointing_coords(lambda phi, theta: nominal_ik(phi, theta, geom), beta, tol=tol,
+                                     max_iter=max_iter)
