@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import json
 import platform
 import time
 from pathlib import Path
+
+from pmcal.fileio import write_json as write_json_file
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -20,18 +21,11 @@ def print_table(title: str, header: list[str], rows: list[list]) -> None:
         print("  ".join(c.ljust(w) for c, w in zip(r, widths)))
 
 
-def _plain(o):
-    """numpy scalars and arrays as plain JSON values."""
-    if hasattr(o, "tolist"):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
 def write_json(name: str, data: dict, path: str | Path | None = None) -> Path:
     out = Path(path) if path else RESULTS / f"{name}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     data = {"benchmark": name, "machine": platform.machine(), "python": platform.python_version(),
             "when": time.strftime("%Y-%m-%d %H:%M:%S"), **data}
-    out.write_text(json.dumps(data, indent=2, default=_plain) + "\n")
+    write_json_file(out, data)
     print(f"\nwrote {out}")
     return out

@@ -6,7 +6,6 @@ and validates input, runs the calibration, writes outputs atomically and builds 
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -21,7 +20,7 @@ from calib.rotations import pointing_error, tilt_torsion, tilt_torsion_angles
 from calib.solvers import METHODS
 from pmcal import progress
 from pmcal.errors import InputError
-from pmcal.fileio import atomic_write
+from pmcal.fileio import write_json
 from pmcal.io_ocpm import MECHANISM, read_measurements, read_params, read_targets, write_params, write_setpoints
 
 DEFAULT_METHOD = "hga"
@@ -292,9 +291,7 @@ def evaluate(args) -> int:
     pe = out["pointing_error_deg"]
     print(f"pointing error over {out['n_poses']} poses: rms {pe['rms']:.4f} deg, max {pe['max']:.4f} deg")
     if args.json:
-        with atomic_write(args.json) as fh:
-            json.dump(out, fh, indent=2)
-            fh.write("\n")
+        write_json(args.json, out)
     return 0
 
 
@@ -776,9 +773,7 @@ def run_demo(out: Path, seed: int) -> int:
             study.timings["total"] = time.perf_counter() - t0
             summary = study.summary()
             demo_report(study).write(tmp / "report.html")
-            with atomic_write(tmp / "summary.json") as fh:
-                json.dump(summary, fh, indent=2)
-                fh.write("\n")
+            write_json(tmp / "summary.json", summary)
             bar.update(1)
     print(f"pmcal demo: wrote {out}/report.html in {time.perf_counter() - t0:.0f} s; mean pointing error on "
           f"{DemoStudy.N_TEST} test poses {summary['before_mean_deg']:.4f} -> {summary['after_mean_deg']:.4f} deg "
