@@ -117,3 +117,23 @@ def test_on_consistent_data_both_methods_compensate_exactly():
         after = np.rad2deg(pointing_error(twin.reach(m).R, Rt))
         # exact up to the parameter noise: well under the single-pose tracker floor (~0.006 deg)
         assert after.mean() < 0.004 and after.mean() < 0.02 * before.mean()
+
+
+def test_a_model_that_cannot_assemble_a_pose_predicts_nan_and_a_fit_says_so():
+    """Poses the closure solve does not converge on (here: one Gauss-Newton iteration allowed) predict NaN,
+    so a fit's trust region rejects such a step; a fit that cannot even start says how many rows."""
+    from calib.ocpm.fullchain import UnassembledError
+
+    params = random_errors(np.random.default_rng(2), 0.5, 0.1)
+    meas = campaign(params, n=24)[1]
+    model = FullChainModel()
+    model.set(params)                              # strained passive loops: no exact closed-form start
+    T, _ = model.predict(meas.m_cmd_deg)
+    assert np.isfinite(T).all()
+    model.twin.assembler.max_iter = 1
+    model._cmd_key = None
+    T, _ = model.predict(meas.m_cmd_deg)
+    assert np.isnan(T).all(axis=(1, 2)).sum() >= 20
+    model.twin.assembler.max_iter = 0                # not even the nominal start assembles
+    with pytest.raises(UnassembledError, match="cannot assemble 24 measured pose"):
+        identify_full(meas, FullChainOptions(keys=["L3.dbx"]), model=model)

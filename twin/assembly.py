@@ -183,12 +183,37 @@ def integrate_pos(m: mujoco.MjModel, qpos: np.ndarray, dv: np.ndarray) -> None:
             raise ValueError("free joints are not expected inside the closed chain")
 
 
+def solve_stacked(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A^-1 B`` for a stack of square matrices ``A`` (M, k, k) and right-hand sides ``B`` (M, k) or
+    (M, k, m). Rows whose ``A`` is singular (a configuration at the singularity, a pose the solve gave
+    up) come back as NaN; numpy's batched solve fails as a whole, so those rows are redone one by one."""
+    vec = B.ndim == A.ndim - 1
+    Bm = B[..., None] if vec else B
+    try:
+        out = np.linalg.solve(A, Bm)
+    except np.linalg.LinAlgError:
+        out = np.full(Bm.shape, np.nan)
+        for i in range(len(A)):
+            try:
+                out[i] = np.linalg.solve(A[i], Bm[i])
+            except np.linalg.LinAlgError:
+                pass
+    return out[..., 0] if vec else out
+
+
 class BatchAssembler:
     """Quasi-static assembly of many configurations at once.
 
     MuJoCo computes the kinematics of every configuration (``mujoco.batch.Batch``, position stage, on a
     thread pool); the Gauss-Newton steps run vectorised in numpy. Reuse one assembler for one model.
+
+    Near the limbs' stretched-link singularity a full Gauss-Newton step can leave the basin (a strained
+    machine at 80 deg tilt, or a fit trying large parameters): steps are capped at ``MAX_STEP`` (rad, or
+    m for the SS slide) per coordinate, and a pose whose normal equations are singular stops, not
+    converged, instead of filling its state with NaN.
     """
+
+    MAX_STEP = 0.2
 
     def __init__(self, m: mujoco.MjModel, index: ModelIndex, stiffness: Stiffness,
                  gravity: bool = False, held_dofs: np.ndarray | None = None,
@@ -333,16 +358,20 @@ class BatchAssembler:
             g = (JfT @ res[..., None])[..., 0]
             if self.gravity:
                 g += bias[:, free]
-            step = -np.linalg.solve(JfT @ Jf, g[..., None])[..., 0]
+            step = -solve_stacked(JfT @ Jf, g)
+            size = np.max(np.abs(step), axis=1)
+            bad = ~np.isfinite(size)                      # a singular configuration: give the pose up
+            step[bad] = 0.0
+            step *= np.minimum(1.0, self.MAX_STEP / np.where(bad, 1.0, np.maximum(size, 1e-300)))[:, None]
             dv = np.zeros((len(active), self.m.nv))
             dv[:, free] = step
             q = qpos[active]
             integrate_pos(self.m, q, dv)
             qpos[active] = q
             iters[active] = it
-            done = np.max(np.abs(step), axis=1) < self.tol
+            done = size < self.tol
             converged[active[done]] = True
-            active = active[~done]
+            active = active[~(done | bad)]
             if active.size == 0:
                 break
         all_ids = np.arange(N)

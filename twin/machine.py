@@ -75,6 +75,7 @@ class Twin:
         self._scratch = mujoco.MjData(self.model)
         ratio = self.geom.stiffness_ratio if stiffness_ratio is None else float(stiffness_ratio)
         k_p = (self.geom.passive_closure_stiffness if passive_stiffness is None else passive_stiffness) / MM
+        self.passive_stiffness = k_p                 # N/m, kept: the ratio scales the other closures
         self.stiffness = Stiffness.reference(k_p, ratio, self.geom.n_limbs, self.geom.actuated)
         self.assembler = BatchAssembler(self.model, self.index, self.stiffness, gravity=gravity)
 
@@ -86,9 +87,9 @@ class Twin:
         apply_errors(self.model, errors, self.geom, self.index, self._scratch)
 
     def set_stiffness_ratio(self, ratio: float) -> None:
-        """Change the actuated-closure/SS over passive-closure stiffness ratio."""
-        k_p = float(np.min(self.stiffness.closure))
-        self.stiffness = Stiffness.reference(k_p, float(ratio), self.geom.n_limbs, self.geom.actuated)
+        """Change the actuated-closure/SS over passive-closure stiffness ratio (the passive closures keep
+        their stiffness; any ratio > 0, also below 1, where a fit may pass on its way)."""
+        self.stiffness = Stiffness.reference(self.passive_stiffness, float(ratio), self.geom.n_limbs, self.geom.actuated)
         self.assembler.set_stiffness(self.stiffness)
 
     # ------------------------------------------------------------------ configuration guesses

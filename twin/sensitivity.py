@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.ocpm.kinematics import limb_frames
-from twin.assembly import _ChainJacobian
+from twin.assembly import _ChainJacobian, solve_stacked
 from twin.model import MM
 
 #: Key of the log stiffness ratio (actuated closures and SS over passive closures).
@@ -106,7 +106,7 @@ def target_sensitivity(twin, qpos: np.ndarray, keys: list[str]) -> Sensitivity:
     free = lin.free
     JF = lin.J[:, :, free]
     JFt = np.swapaxes(JF, 1, 2)
-    dq = -np.linalg.solve(JFt @ JF, JFt @ DR)                         # (N, n_free, n_keys)
+    dq = -solve_stacked(JFt @ JF, JFt @ DR)                           # (N, n_free, n_keys)
     if not hasattr(twin, "_target_jac"):
         twin._target_jac = _ChainJacobian(twin.model, idx.site_targets)
     JT = twin._target_jac.sites(lin.site_xpos[:, idx.site_targets], lin.xanchor, lin.xaxis,

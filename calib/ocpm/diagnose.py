@@ -38,7 +38,7 @@ from calib.ocpm.effect_signatures import (EFFECT_NAMES, VOCABULARY, EffectChainM
                                           thermal_delta, with_context)
 from calib.ocpm.diagnosis_result import Candidate, Diagnosis, Omnibus
 from calib.ocpm.effect_values import EffectValue, effect_prior_std, effect_value
-from calib.ocpm.fullchain import FullChainOptions, Priors, identify_full
+from calib.ocpm.fullchain import LOG_RATIO, FullChainOptions, Priors, identify_full
 from calib.ocpm.linear_tests import (Linearization, SubFit, conditional_information, fit, huber_weighted,
                                      nested_test, power, predict)
 from calib.ocpm.noise_estimate import NoiseEstimate, estimate_noise
@@ -218,26 +218,35 @@ class _Problem:
         def cost(x):
             self.model.set_vector(names, x, ratio)
             T = self.model.targets(self.meas).ravel()
+            if not np.all(np.isfinite(T)):                 # a pose the model cannot assemble there
+                return np.inf, T
             return float(np.sum(((y - T) / self.sigma) ** 2) + np.sum(((x - mean) / s) ** 2)), T
 
         x = res.x.copy()
         c0, T0 = cost(x)
+        J = None
         for _ in range(max_steps):
-            J = np.empty((T0.size, len(names)))
+            Jx = np.empty((T0.size, len(names)))
             for i in range(len(names)):
                 xi = x.copy()
                 h = 1e-3 * max(abs(x[i] - mean[i]), 1e-2 * s[i])
                 xi[i] += h
-                J[:, i] = (cost(xi)[1] - T0) / h
+                Jx[:, i] = (cost(xi)[1] - T0) / h
+            if not np.all(np.isfinite(Jx)):
+                break
+            J = Jx
             A = J / self.sigma
             M = A.T @ A + np.diag(1.0 / s**2)
             step = np.linalg.solve(M, A.T @ ((y - T0) / self.sigma) - (x - mean) / s**2)
             c1, T1 = cost(x + step)
-            if c1 >= c0:
+            if not c1 < c0:
                 break
             x, c0, T0 = x + step, c1, T1
             if np.max(np.abs(step) * np.sqrt(np.diag(M))) < 0.01:     # below 1 % of a std
                 break
+        self.model.set_vector(names, x, ratio)
+        if J is None:                                       # no finite difference Jacobian: keep the fit
+            return res
         A = J / self.sigma
         cov = np.linalg.inv(A.T @ A + np.diag(1.0 / s**2))
         resid = y - T0
@@ -249,12 +258,36 @@ class _Problem:
 
     def refit(self, res: IdentResult, names: list[str], lin: Linearization | None = None,
               sub: SubFit | None = None) -> IdentResult:
-        """Nonlinear refit of baseline + ``names``, warm-started from ``res`` and a linear step ``sub``."""
+        """Nonlinear refit of baseline + ``names``, warm-started from ``res`` and, for the parameters new to
+        the fit, the linear step ``sub``. The fitted parameters keep their values: a linear step can move a
+        weakly determined one (the stiffness ratio deep in its stiff limit, where the targets barely depend
+        on it) by many prior stds, to where the model no longer assembles the measured poses."""
         x0 = {k: float(v) for k, v in zip(res.names, res.x)}
         if sub is not None:
-            x0.update(lin.values(sub))
+            x0.update({k: v for k, v in lin.values(sub).items() if k not in x0})
         new = self.identify(names, x0)
+        if new.info["chi2_per_dof"] > 1.0 + 3.0 * np.sqrt(2.0 / new.info["dof"]) and self._ratio_far(new):
+            # Left well above the noise with the stiffness ratio far out: the warm start may sit in the
+            # baseline's basin (the ratio pushed deep into its flat stiff limit to absorb the effect). A
+            # fit from the prior mean with the effect in finds the other basin when there is one; the
+            # lower MAP cost wins.
+            fresh = self.identify(names, None)
+            if self._map_cost(fresh) < self._map_cost(new):
+                new = fresh
         return self.polish(new) if "joint_compliance" in names else new
+
+    @staticmethod
+    def _ratio_far(res: IdentResult, n_std: float = 2.0) -> bool:
+        """The fitted stiffness ratio lies more than ``n_std`` prior stds from its prior mean."""
+        if LOG_RATIO not in res.names:
+            return False
+        i = res.names.index(LOG_RATIO)
+        return abs(res.x[i] - res.info["prior_mean"][i]) > n_std * res.info["prior_std"][i]
+
+    def _map_cost(self, res: IdentResult) -> float:
+        """The MAP objective of a fit: whitened residuals plus prior terms."""
+        z = (res.x - np.asarray(res.info["prior_mean"])) / np.asarray(res.info["prior_std"])
+        return float(np.sum((res.residuals / self.sigma) ** 2) + z @ z)
 
 
 def _test_round(pb: _Problem, lin: Linearization, model_keys: list[str], names: list[str],
@@ -406,6 +439,10 @@ def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[st
         for best in order[:2]:
             trial = pb.refit(res, named + [best], lin, tests[best][0].fit)
             lin_t = pb.linearize(trial, named + [best])
+            if not (np.all(np.isfinite(lin_t.r)) and np.all(np.isfinite(lin_t.J))):
+                rejected.add(best)                   # the refit left the model's workspace
+                board[best].reason = "the nonlinear refit could not assemble every measured pose"
+                continue
             model_t = [k for k in trial.names if effect_of_key(k) != best]
             t = _test_round(pb, huber_weighted(lin_t, lin_t.cols(list(trial.names))), model_t, [best], n_tests=m)[best]
             v = pb.value_final(trial, best)

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.ocpm.data import Measurements
-from calib.ocpm.fullchain import FullChainModel
+from calib.ocpm.fullchain import FullChainModel, unassembled_as_nan
 from calib.ocpm.params import LIMB_FIELDS
 
 REFERENCE_TEMP_C = 20.0
@@ -307,4 +307,4 @@ class EffectChainModel(FullChainModel):
             state = self.twin.reach_joint(joint)
         if warm:
             self._warm = (key, state.qpos.copy())
-        return state
+        return unassembled_as_nan(state)

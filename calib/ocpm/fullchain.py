@@ -99,7 +99,7 @@ class FullChainModel:
         if not state.converged.all():              # a poor warm start: start from the closed form
             state = self.twin.reach_joint(joint)
         self._qpos, self._cmd_key = state.qpos.copy(), key
-        return state
+        return unassembled_as_nan(state)
 
     def set_vector(self, keys: list[str], x: np.ndarray, ratio0: float) -> None:
         """Set the model from a parameter vector (internal units); ``ratio0`` if the ratio is not in it."""
@@ -119,7 +119,16 @@ class FullChainModel:
         if keys is None:
             return state.targets, None
         sens = target_sensitivity(self.twin, state.qpos, keys)
-        return sens.targets, sens.d_targets
+        return np.where(state.converged[:, None, None], sens.targets, np.nan), sens.d_targets
+
+
+def unassembled_as_nan(state):
+    """The state with NaN targets where the closure solve did not converge: a parameter set under which the
+    model cannot assemble a measured pose predicts nothing there, so a fit rejects that step (scipy's
+    trust region shrinks on non-finite residuals) instead of taking a half-solved pose at face value."""
+    if not state.converged.all():
+        state.targets[~state.converged] = np.nan
+    return state
 
 
 def errors_from_vector(keys: list[str], x: np.ndarray) -> tuple[ErrorSet, float | None]:
@@ -137,6 +146,10 @@ def errors_from_vector(keys: list[str], x: np.ndarray) -> tuple[ErrorSet, float 
 def to_interface(keys: list[str], x: np.ndarray) -> dict[str, float]:
     """Parameter dict in interface units (mm, deg); the stiffness ratio is left out."""
     return {k: float(np.rad2deg(v)) if is_angular(k) else float(v) for k, v in zip(keys, x) if k != LOG_RATIO}
+
+
+class UnassembledError(ValueError):
+    """Measured poses the model cannot assemble at the start of a fit (outside its workspace)."""
 
 
 def identify_full(meas: Measurements, options: FullChainOptions | None = None,
@@ -157,6 +170,7 @@ def identify_full(meas: Measurements, options: FullChainOptions | None = None,
     y = meas.targets.reshape(-1)
     n_eval = 0
     cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+    accepted: list[bytes | None] = [None]
 
     def evaluate(z: np.ndarray):
         nonlocal n_eval
@@ -165,19 +179,28 @@ def identify_full(meas: Measurements, options: FullChainOptions | None = None,
             model.set_vector(keys, x_prior + z * s, ratio0)
             T, dT = model.predict_meas(meas, keys)
             n_eval += 1
-            cache.clear()
-            cache[key] = (T.reshape(-1), dT.reshape(len(y), len(keys)))
+            for k in [k for k in cache if k != accepted[0]]:    # keep the last accepted point: re-solving
+                del cache[k]                   # it from another warm start near the workspace edge need
+            cache[key] = (T.reshape(-1), dT.reshape(len(y), len(keys)))    # not give the same poses
         return cache[key]
 
     def fun(z):
         T, _ = evaluate(z)
         return np.concatenate([(y - T) / sigma, z])
 
-    def jac(z):
+    def jac(z):                                       # scipy asks for it at accepted points only
         _, dT = evaluate(z)
+        accepted[0] = z.tobytes()
         return np.vstack([-dT * (s / sigma), np.eye(len(z))])
 
     t0 = time.perf_counter()
+    if opt.x0 and not np.all(np.isfinite(fun(z_start))):
+        z_start = np.zeros(len(keys))                 # the model cannot assemble every pose there
+    if not np.all(np.isfinite(fun(z_start))):
+        bad = np.flatnonzero(~np.isfinite(evaluate(z_start)[0].reshape(len(meas), -1)).any(axis=1))
+        raise UnassembledError(f"the model cannot assemble {len(bad)} measured pose(s) at its starting "
+                               f"parameters (rows {', '.join(str(i + 1) for i in bad[:5])}"
+                               f"{', ...' if len(bad) > 5 else ''}): are they inside the workspace?")
     sol = least_squares(fun, z_start, jac=jac, method="trf", x_scale=1.0,
                         xtol=1e-10, ftol=1e-12, gtol=1e-10, max_nfev=opt.max_nfev)
     wall = time.perf_counter() - t0
