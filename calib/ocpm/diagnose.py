@@ -244,7 +244,6 @@ class _Problem:
             x, c0, T0 = x + step, c1, T1
             if np.max(np.abs(step) * np.sqrt(np.diag(M))) < 0.01:     # below 1 % of a std
                 break
-        self.model.set_vector(names, x, ratio)
         if J is None:                                       # no finite difference Jacobian: keep the fit
             return res
         A = J / self.sigma

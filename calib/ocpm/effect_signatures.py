@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.ocpm.data import Measurements
-from calib.ocpm.fullchain import FullChainModel, unassembled_as_nan
+from calib.ocpm.fullchain import FullChainModel
 from calib.ocpm.params import LIMB_FIELDS
 
 REFERENCE_TEMP_C = 20.0
@@ -302,9 +302,7 @@ class EffectChainModel(FullChainModel):
         warm = qpos is None and key is not None
         if warm and self._warm is not None and self._warm[0] == key:
             qpos = self._warm[1]
-        state = self.twin.reach_joint(joint, qpos=qpos)
-        if not state.converged.all():
-            state = self.twin.reach_joint(joint)
+        state = self._reach(joint, qpos)
         if warm:
             self._warm = (key, state.qpos.copy())
-        return unassembled_as_nan(state)
+        return state

@@ -94,12 +94,21 @@ class FullChainModel:
         m_cmd_deg = np.atleast_2d(np.asarray(m_cmd_deg, float))
         key = m_cmd_deg.tobytes()
         joint = np.deg2rad(m_cmd_deg) + self.twin.errors.dtheta[:2]
-        warm = self._qpos if key == self._cmd_key else None
-        state = self.twin.reach_joint(joint, qpos=warm)
-        if not state.converged.all():              # a poor warm start: start from the closed form
-            state = self.twin.reach_joint(joint)
+        state = self._reach(joint, self._qpos if key == self._cmd_key else None)
         self._qpos, self._cmd_key = state.qpos.copy(), key
-        return unassembled_as_nan(state)
+        return state
+
+    def _reach(self, joint: np.ndarray, warm: np.ndarray | None):
+        """Equilibria at true joint angles (N, 2) rad from the configurations ``warm`` (or the closed-form
+        start); a warm start that leaves poses unconverged is redone from the closed form. Poses that still
+        do not converge get NaN targets: a parameter set under which the model cannot assemble a measured
+        pose predicts nothing there, so a fit rejects that step (scipy's trust region shrinks on non-finite
+        residuals) instead of taking a half-solved pose at face value."""
+        state = self.twin.reach_joint(joint, qpos=warm)
+        if warm is not None and not state.converged.all():
+            state = self.twin.reach_joint(joint)
+        state.targets[~state.converged] = np.nan
+        return state
 
     def set_vector(self, keys: list[str], x: np.ndarray, ratio0: float) -> None:
         """Set the model from a parameter vector (internal units); ``ratio0`` if the ratio is not in it."""
@@ -118,17 +127,7 @@ class FullChainModel:
         state = self.solve(m_cmd_deg)
         if keys is None:
             return state.targets, None
-        sens = target_sensitivity(self.twin, state.qpos, keys)
-        return np.where(state.converged[:, None, None], sens.targets, np.nan), sens.d_targets
-
-
-def unassembled_as_nan(state):
-    """The state with NaN targets where the closure solve did not converge: a parameter set under which the
-    model cannot assemble a measured pose predicts nothing there, so a fit rejects that step (scipy's
-    trust region shrinks on non-finite residuals) instead of taking a half-solved pose at face value."""
-    if not state.converged.all():
-        state.targets[~state.converged] = np.nan
-    return state
+        return state.targets, target_sensitivity(self.twin, state.qpos, keys).d_targets
 
 
 def errors_from_vector(keys: list[str], x: np.ndarray) -> tuple[ErrorSet, float | None]:
@@ -179,9 +178,11 @@ def identify_full(meas: Measurements, options: FullChainOptions | None = None,
             model.set_vector(keys, x_prior + z * s, ratio0)
             T, dT = model.predict_meas(meas, keys)
             n_eval += 1
-            for k in [k for k in cache if k != accepted[0]]:    # keep the last accepted point: re-solving
-                del cache[k]                   # it from another warm start near the workspace edge need
-            cache[key] = (T.reshape(-1), dT.reshape(len(y), len(keys)))    # not give the same poses
+            # Keep the last accepted point: re-solving it from another warm start near the workspace
+            # edge need not give the same poses.
+            for k in [k for k in cache if k != accepted[0]]:
+                del cache[k]
+            cache[key] = (T.reshape(-1), dT.reshape(len(y), len(keys)))
         return cache[key]
 
     def fun(z):
@@ -193,11 +194,15 @@ def identify_full(meas: Measurements, options: FullChainOptions | None = None,
         accepted[0] = z.tobytes()
         return np.vstack([-dT * (s / sigma), np.eye(len(z))])
 
+    def unassembled(z):
+        """Rows (0-based) of the poses the model cannot assemble at ``z``."""
+        return np.flatnonzero(~np.isfinite(evaluate(z)[0].reshape(len(meas), -1)).any(axis=1))
+
     t0 = time.perf_counter()
-    if opt.x0 and not np.all(np.isfinite(fun(z_start))):
+    if opt.x0 and unassembled(z_start).size:
         z_start = np.zeros(len(keys))                 # the model cannot assemble every pose there
-    if not np.all(np.isfinite(fun(z_start))):
-        bad = np.flatnonzero(~np.isfinite(evaluate(z_start)[0].reshape(len(meas), -1)).any(axis=1))
+    bad = unassembled(z_start)
+    if bad.size:
         raise UnassembledError(f"the model cannot assemble {len(bad)} measured pose(s) at its starting "
                                f"parameters (rows {', '.join(str(i + 1) for i in bad[:5])}"
                                f"{', ...' if len(bad) > 5 else ''}): are they inside the workspace?")
