@@ -19,15 +19,15 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
-from bridge.ads import AdsLink, set_adslib_log_level  # noqa: E402
-from bridge.ads_mock import AdsMockPlc  # noqa: E402
-from bridge.loop import DEFAULT_GRID, run_loop  # noqa: E402
-from bridge.modbus import ModbusLink  # noqa: E402
-from bridge.modbus_mock import ModbusMockPlc  # noqa: E402
-from bridge.transfer import push  # noqa: E402
-from calib.comptable import CompTable  # noqa: E402
-from calib.ocpm.kinematics import nominal_ik  # noqa: E402
-from calib.ocpm.params import PAPER_TABLE2  # noqa: E402
+from pmcal.bridge.ads import AdsLink, set_adslib_log_level  # noqa: E402
+from pmcal.bridge.ads_mock import AdsMockPlc  # noqa: E402
+from pmcal.apps.plc_loop import DEFAULT_GRID, run_loop  # noqa: E402
+from pmcal.bridge.modbus import ModbusLink  # noqa: E402
+from pmcal.bridge.modbus_mock import ModbusMockPlc  # noqa: E402
+from pmcal.bridge.transfer import push  # noqa: E402
+from pmcal.bridge.comptable import CompTable  # noqa: E402
+from pmcal.mechanism.ocpm.kinematics import nominal_ik  # noqa: E402
+from pmcal.mechanism.ocpm.params import PAPER_TABLE2  # noqa: E402
 
 TARGET_S = {"ads": 0.050, "modbus": 1.0}
 PHASES = ("connect_check", "stage", "readback", "commit_ack", "total")

@@ -3,7 +3,7 @@
 For each case (every effect of the vocabulary at a realistic size, no effect with Gaussian and with
 heavy-tailed noise, two effects at once, an effect outside the vocabulary) and each seed: a campaign on
 the twin with random geometric errors (limbs 1-2, SS) and the hidden effect(s)
-(:func:`twin.effects.hidden_effect_campaign`, 128 poses up to 80 deg, payloads 0/10 kg, 18 -> 28 degC,
+(:func:`pmcal.twin.effects.hidden_effect_campaign`, 128 poses up to 80 deg, payloads 0/10 kg, 18 -> 28 degC,
 random order and approach, sigma 0.01 mm), diagnosed without being told (sigma given).
 
 Run: python benchmarks/diagnose_bench.py [--seeds 20] [--null-seeds 100] [--poses 128] [--jobs 2]
@@ -51,8 +51,8 @@ def within_interval(d, twin, name: str) -> bool:
     99.9 %)."""
     from scipy.stats import chi2
 
-    from calib.ocpm.effect_signatures import PASSIVE_KEYS
-    from calib.ocpm.params import is_angular
+    from pmcal.mechanism.ocpm.effects import PASSIVE_KEYS
+    from pmcal.mechanism.ocpm.params import is_angular
 
     if name == "overconstraint":
         idx = [d.final.names.index(k) for k in PASSIVE_KEYS]
@@ -68,8 +68,9 @@ def within_interval(d, twin, name: str) -> bool:
 
 
 def run_one(job: tuple[str, int, int]) -> dict:
-    from calib.ocpm.diagnose import DiagnoseOptions, diagnose, limit_blas_threads
-    from twin import effects
+    from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose, limit_blas_threads
+    from pmcal.twin.effect_model import EffectChainModel
+    from pmcal.twin import effects
 
     limit_blas_threads(1)
     case, seed, n = job
@@ -81,7 +82,7 @@ def run_one(job: tuple[str, int, int]) -> dict:
                                                 plan=plan, joint_jitter_deg=0.004 if "jitter" in case else 0.0)
     effects.REALISTIC["encoder_eccentricity"] = 0.01
     t0 = time.perf_counter()
-    d = diagnose(meas, DiagnoseOptions(sigma_mm=SIGMA))
+    d = diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA))
     wall = time.perf_counter() - t0
     inside = {v.name: within_interval(d, twin, v.name) for v in d.named if v.name in names}
     return {"case": case, "seed": seed, "poses": len(meas), "named": d.effects, "verdict": d.verdict,

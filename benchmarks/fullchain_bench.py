@@ -25,14 +25,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
-from calib.ocpm.fullchain import FullChainModel, FullChainOptions, errors_from_vector, identify_full, setpoints  # noqa: E402
-from calib.ocpm.kinematics import nominal_pose, real_ik_commands  # noqa: E402
-from calib.ocpm.params import ErrorSet, random_errors  # noqa: E402
-from calib.rigid import fit_pose  # noqa: E402
-from calib.rotations import pointing_error, tilt_torsion  # noqa: E402
-from twin.campaign import nominal_commands, plan_campaign, run_campaign  # noqa: E402
-from twin.machine import Twin  # noqa: E402
-from twin.tracker import LaserTracker  # noqa: E402
+from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full, setpoints  # noqa: E402
+from pmcal.mechanism.ocpm.params import errors_and_ratio  # noqa: E402
+from pmcal.twin.forward import FullChainModel  # noqa: E402
+from pmcal.mechanism.ocpm.kinematics import nominal_pose, real_ik_commands  # noqa: E402
+from pmcal.mechanism.ocpm.params import ErrorSet, random_errors  # noqa: E402
+from pmcal.mechanism.rigid import fit_pose  # noqa: E402
+from pmcal.mechanism.rotations import pointing_error, tilt_torsion  # noqa: E402
+from pmcal.twin.campaign import nominal_commands, plan_campaign, run_campaign  # noqa: E402
+from pmcal.twin.machine import Twin  # noqa: E402
+from pmcal.twin.tracker import LaserTracker  # noqa: E402
 
 SIGMA = 0.01
 
@@ -49,8 +51,8 @@ def limbs12(params: dict) -> dict:
 
 def paper_identify(meas):
     """The seed's identification (HGA on eq. 14, both limbs) and the fitted position map."""
-    from calib.ocpm import compensation as comp
-    from calib.ocpm import paper_model as pm
+    from pmcal.calib.ocpm import compensation as comp
+    from pmcal.calib.ocpm import paper_model as pm
 
     cal = pm.calibrate(meas, "hga", (1, 2), seed=0)
     return cal.errors(), comp.fit_position_map(cal.model.r, cal.model.R)
@@ -81,7 +83,7 @@ def run_case(name, draws, n_train, where, ratio_truth, fit_ratio, with_paper, ro
         results["paper-oracle"] = pointing(twin, seed_commands(ErrorSet.from_dict(limbs12(params)), test.phi_deg,
                                                                test.theta_deg), test.phi_deg, test.theta_deg, ev)
         if with_paper:
-            from calib.ocpm import compensation as comp
+            from pmcal.calib.ocpm import compensation as comp
 
             t = time.perf_counter()
             e_paper, pmap = paper_identify(meas)
@@ -91,8 +93,8 @@ def run_case(name, draws, n_train, where, ratio_truth, fit_ratio, with_paper, ro
             m_map = np.rad2deg(comp.setpoints(np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg), e_paper,
                                               position_map=pmap))
             results["paper-hga + position map"] = pointing(twin, m_map, test.phi_deg, test.theta_deg, ev) + (t,)
-        res = identify_full(meas, FullChainOptions(fit_stiffness_ratio=fit_ratio), model=model)
-        e, _ = errors_from_vector(res.names, res.x)
+        res = identify_full(meas, model, FullChainOptions(fit_stiffness_ratio=fit_ratio))
+        e, _ = errors_and_ratio(res.names, res.x)
         cmd = setpoints(model, e, test.phi_deg, test.theta_deg, stiffness_ratio=res.info["stiffness_ratio"])
         results["full"] = pointing(twin, cmd, test.phi_deg, test.theta_deg, ev) + (res.wall_time,)
         for k, v in results.items():

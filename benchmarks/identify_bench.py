@@ -35,14 +35,14 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from calib.identifiability import analyse  # noqa: E402
-from calib.ocpm import compensation as comp  # noqa: E402
-from calib.ocpm import paper_model as pm  # noqa: E402
-from calib.ocpm.params import ErrorSet, random_errors  # noqa: E402
-from calib.rotations import pointing_error, tilt_torsion  # noqa: E402
-from calib.solvers import identify, reorder  # noqa: E402
-from calib.solvers.base import Counter, finalize  # noqa: E402
-from calib.solvers.local import lsq_polish  # noqa: E402
+from pmcal.calib.identifiability import analyse  # noqa: E402
+from pmcal.calib.ocpm import compensation as comp  # noqa: E402
+from pmcal.calib.ocpm import paper_model as pm  # noqa: E402
+from pmcal.mechanism.ocpm.params import ErrorSet, random_errors  # noqa: E402
+from pmcal.mechanism.rotations import pointing_error, tilt_torsion  # noqa: E402
+from pmcal.calib.solvers import identify, reorder  # noqa: E402
+from pmcal.calib.solvers.base import Counter, finalize  # noqa: E402
+from pmcal.calib.solvers.local import lsq_polish  # noqa: E402
 
 SIGMA = 0.01
 N_CAL = N_TEST = 24
@@ -83,7 +83,7 @@ def pymoo_ga(problem, seed: int, polish: bool):
 
 def solve(problem, method: str, seed: int):
     if method.startswith("pymoo"):
-        from calib.solvers import reference_point
+        from pmcal.calib.solvers import reference_point
 
         unid = analyse(*reference_point(problem)).unidentifiable
         res = pymoo_ga(problem.fix(unid), seed, polish=method.endswith("polish"))
@@ -102,9 +102,9 @@ def campaign_for(scenario: str, d: int):
     """Twin, errors, calibration campaign and rng of draw ``d``. A draw whose twin does not assemble at
     one of the poses (closure solve not converged: a twin limitation, reported) is replaced by the draw
     with seed + 100 (up to 5 times); the replacements are counted in the results."""
-    from twin.campaign import plan_campaign, run_campaign
-    from twin.machine import Twin
-    from twin.tracker import LaserTracker
+    from pmcal.twin.campaign import plan_campaign, run_campaign
+    from pmcal.twin.machine import Twin
+    from pmcal.twin.tracker import LaserTracker
 
     for attempt in range(5):
         rng = np.random.default_rng(1000 * (scenario == "all") + d + 100 * attempt)
@@ -120,7 +120,7 @@ def campaign_for(scenario: str, d: int):
 
 def one_draw(args) -> dict:
     scenario, d, methods = args
-    from twin.campaign import nominal_commands, plan_campaign
+    from pmcal.twin.campaign import nominal_commands, plan_campaign
 
     twin, truth, meas, rng, redrawn = campaign_for(scenario, d)
     test = plan_campaign(N_TEST, THETA_MAX, seed=5000 + d)
@@ -152,7 +152,7 @@ def one_draw(args) -> dict:
         wall = time.perf_counter() - t0
         x = np.concatenate([res[j].x for j in (1, 2)])
         names = problems[1].names + problems[2].names
-        e_hat = pm.errors_from_vector(x, names)
+        e_hat = pm.errors_from_vector(names, x)
         ok, z, mm = True, [], []
         for j in (1, 2):
             chi2 = float(problems[j].cost(res[j].x))
@@ -173,8 +173,8 @@ def one_draw(args) -> dict:
 
 # ---------------------------------------------------------------------- pose selection study
 def designs(rng_seed: int = 3000) -> dict[str, tuple[np.ndarray, np.ndarray] | None]:
-    from calib.pose_selection import join_blocks, select_poses
-    from twin.campaign import plan_orientations
+    from pmcal.calib.pose_selection import join_blocks, select_poses
+    from pmcal.twin.campaign import plan_orientations
 
     ph, th = plan_orientations(600, THETA_MAX, np.random.default_rng(rng_seed))
     names = [k for k in pm.param_names() if k not in ("L1.day", "L2.dax")]
@@ -189,8 +189,8 @@ def designs(rng_seed: int = 3000) -> dict[str, tuple[np.ndarray, np.ndarray] | N
 
 def pose_draw(args) -> dict:
     d, design_set = args
-    from twin.campaign import CampaignPlan, plan_campaign, run_campaign
-    from twin.tracker import LaserTracker
+    from pmcal.twin.campaign import CampaignPlan, plan_campaign, run_campaign
+    from pmcal.twin.tracker import LaserTracker
 
     twin, truth, _, rng, _ = campaign_for("limbs12", d)
     E_true = ErrorSet.from_dict(truth)

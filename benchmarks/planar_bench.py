@@ -21,13 +21,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
-from calib.planar.design import (Region, boundary_positions, condition_study, optimal_positions,  # noqa: E402
+from pmcal.mechanism.planar.region import Region  # noqa: E402
+from pmcal.calib.planar.design import (boundary_positions, condition_study, optimal_positions,  # noqa: E402
                                  zero_offset_covariance)
-from calib.planar.identification import identify  # noqa: E402
-from calib.planar.kinematics import inverse  # noqa: E402
-from twin.planar.config import default_machine  # noqa: E402
-from twin.planar.study import GROUPS, SEED, evaluate_at, run_study, settings  # noqa: E402
-from twin.planar.twin import PlanarTwin  # noqa: E402
+from pmcal.calib.planar.identification import identify  # noqa: E402
+from pmcal.mechanism.planar.kinematics import inverse  # noqa: E402
+from pmcal.twin.planar.config import default_machine  # noqa: E402
+from pmcal.apps.planar_study import GROUPS, SEED, evaluate_at, run_study, settings  # noqa: E402
+from pmcal.twin.planar.twin import PlanarTwin  # noqa: E402
 
 
 def reproduction(machine, runs: int, seed: int) -> dict:

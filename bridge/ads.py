@@ -1,8 +1,8 @@
-"""ADS client (pyads) for the compensation-table interface: a thin typed :class:`bridge.transfer.PlcLink`.
+"""ADS client (pyads) for the compensation-table interface: a thin typed :class:`pmcal.bridge.transfer.PlcLink`.
 
 Every access goes through a symbol handle with an explicit ctypes type of the symbol's exact size.
 Writes are limited to an allow-list (default: the three symbols a push needs). pyads does not
-reconnect by itself: on a link error the caller closes and reopens (:func:`bridge.transfer.push`).
+reconnect by itself: on a link error the caller closes and reopens (:func:`pmcal.bridge.transfer.push`).
 
 Example::
 
@@ -17,10 +17,10 @@ import ctypes
 import pyads
 from pyads import constants
 
-from bridge.ads_map import LINK_ERRORS, AdsMap, AdsTarget, ctype_of
-from bridge.errors import DeviceError, InterfaceError, LinkError, WriteNotAllowed
-from bridge.link import LinkBase
-from bridge.plc_types import INTERFACE_VERSION, PUSH_WRITES, SHADOW_SIZE, SYMBOL
+from pmcal.bridge.ads_map import LINK_ERRORS, AdsMap, AdsTarget, ctype_of
+from pmcal.bridge.errors import DeviceError, InterfaceError, LinkError, WriteNotAllowed
+from pmcal.bridge.link import LinkBase
+from pmcal.bridge.plc_types import INTERFACE_VERSION, PUSH_WRITES, SHADOW_SIZE, SYMBOL
 
 
 class AdsLink(LinkBase):

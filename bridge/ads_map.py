@@ -1,7 +1,7 @@
 """ADS protocol details in one place: where GVL_CompTable lives, its symbols' ADS types, link errors.
 
 Configuration as data: :class:`AdsMap` names the GVL and the AMS port; the symbols (names, PLC types,
-sizes) and the write allow-lists come from the GVL declaration in :mod:`bridge.plc_types`.
+sizes) and the write allow-lists come from the GVL declaration in :mod:`pmcal.bridge.plc_types`.
 Each symbol is transferred with an explicit ctypes type of exactly the symbol's size
 (``ARRAY [..] OF LREAL`` as ``c_double * 20000``, structs as their packed byte image), never with
 pyads' type guessing (which silently writes nothing for 2-D arrays).
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import pyads
 
-from bridge.plc_types import SYMBOL, SYMBOLS, Symbol
+from pmcal.bridge.plc_types import SYMBOL, SYMBOLS, Symbol
 
 #: ADS router TCP port of a TwinCAT system
 ADS_TCP_PORT = 48898

@@ -7,8 +7,8 @@ Differences from the stock test server, all as a real PLC behaves:
 - reads and writes of a symbol must have the symbol's exact size, else ADS error 1797; unknown
   symbol names and handles answer 1808; sum commands answer 1793 (not used by the bridge); writes
   to PLC-owned symbols answer 1796;
-- the symbols are GVL_CompTable's, backed by a :class:`bridge.plc_twin.PlcTwin` running its task;
-- fault injection per :mod:`bridge.faults`; ``ads_state`` can be set to STOP.
+- the symbols are GVL_CompTable's, backed by a :class:`pmcal.bridge.plc_twin.PlcTwin` running its task;
+- fault injection per :mod:`pmcal.bridge.faults`; ``ads_state`` can be set to STOP.
 
 Each mock has its own AMS NetID (two endpoints with one NetID in one process fail with error 1286).
 """
@@ -27,10 +27,10 @@ from pyads.testserver import AdsTestServer, AdvancedHandler, PLCVariable
 from pyads.testserver.handler import AmsPacket, AmsResponseData
 from pyads.testserver.testserver import AdsClientConnection
 
-from bridge.ads_map import AdsMap, AdsTarget
-from bridge.faults import Kind, Point
-from bridge.mock import LOOPBACK, MockPlc
-from bridge.plc_types import SYMBOLS, Symbol
+from pmcal.bridge.ads_map import AdsMap, AdsTarget
+from pmcal.bridge.faults import Kind, Point
+from pmcal.bridge.mock import LOOPBACK, MockPlc
+from pmcal.bridge.plc_types import SYMBOLS, Symbol
 
 _NO_REPLY = "no-reply"
 _DROP = "drop"

@@ -1,7 +1,7 @@
 """What a transport offers the hand-over (:class:`PlcLink`) and the part both transports share.
 
 A transport implements its primitives on PLC memory images (bytes, little-endian, the layouts of
-:mod:`bridge.plc_types`): ``open``, ``close``, ``check_interface``, ``read_symbol``/``write_symbol``
+:mod:`pmcal.bridge.plc_types`): ``open``, ``close``, ``check_interface``, ``read_symbol``/``write_symbol``
 for the small GVL_CompTable variables, and ``stage``/``read_back`` (and, if it pads, ``payload``)
 for the table itself.
 :class:`LinkBase` builds the rest on them (state, commit, motor-target lookup).
@@ -12,12 +12,12 @@ from __future__ import annotations
 import time
 from typing import Protocol
 
-from bridge.errors import AckTimeout
-from bridge.plc_types import LookupIn, LookupOut, PlcState
+from pmcal.bridge.errors import AckTimeout
+from pmcal.bridge.plc_types import LookupIn, LookupOut, PlcState
 
 
 class PlcLink(Protocol):
-    """What :func:`bridge.transfer.push` and the twin loop need from a transport."""
+    """What :func:`pmcal.bridge.transfer.push` and the twin loop need from a transport."""
 
     transport: str          # "ads" or "modbus"
     target: str             # where, for messages and the audit

@@ -9,14 +9,14 @@ from __future__ import annotations
 import threading
 import time
 
-from bridge.faults import FaultPlan
-from bridge.plc_twin import PlcTwin
+from pmcal.bridge.faults import FaultPlan
+from pmcal.bridge.plc_twin import PlcTwin
 
 LOOPBACK = "127.0.0.1"
 
 
 class MockPlc:
-    """Base of :class:`bridge.ads_mock.AdsMockPlc` and :class:`bridge.modbus_mock.ModbusMockPlc`."""
+    """Base of :class:`pmcal.bridge.ads_mock.AdsMockPlc` and :class:`pmcal.bridge.modbus_mock.ModbusMockPlc`."""
 
     transport = ""
 

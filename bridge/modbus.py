@@ -1,10 +1,10 @@
 """Modbus TCP client (pymodbus) for the compensation-table area: a thin typed PlcLink.
 
-The register map and the paged window are described in :mod:`bridge.modbus_map`. Writes are limited
+The register map and the paged window are described in :mod:`pmcal.bridge.modbus_map`. Writes are limited
 to the register ranges of an allow-list (default: header, commit, page control and window). The sync
 client is used without its own retries: a time-out or a dropped connection is a
-:class:`bridge.errors.LinkError` and :func:`bridge.transfer.push` reopens and restarts the transfer;
-a Modbus exception response is the PLC refusing a request (:class:`bridge.errors.DeviceError`).
+:class:`pmcal.bridge.errors.LinkError` and :func:`pmcal.bridge.transfer.push` reopens and restarts the transfer;
+a Modbus exception response is the PLC refusing a request (:class:`pmcal.bridge.errors.DeviceError`).
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ import time
 from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
-from bridge.errors import AckTimeout, DeviceError, InterfaceError, LinkError, WriteNotAllowed
-from bridge.link import LinkBase
-from bridge.modbus_map import (MAGIC, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap, from_registers,
+from pmcal.bridge.errors import AckTimeout, DeviceError, InterfaceError, LinkError, WriteNotAllowed
+from pmcal.bridge.link import LinkBase
+from pmcal.bridge.modbus_map import (MAGIC, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap, from_registers,
                                to_registers)
-from bridge.plc_types import INTERFACE_VERSION, LREAL_SIZE, NPHI_MAX, NTHETA_MAX, PUSH_WRITES
+from pmcal.bridge.plc_types import INTERFACE_VERSION, LREAL_SIZE, NPHI_MAX, NTHETA_MAX, PUSH_WRITES
 
 MODBUS_TCP_PORT = 502
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bridge.plc_types import HEADER_SIZE, LOOKUP_IN_SIZE, LOOKUP_OUT_SIZE, STATE_SIZE
+from pmcal.bridge.plc_types import HEADER_SIZE, LOOKUP_IN_SIZE, LOOKUP_OUT_SIZE, STATE_SIZE
 
 MAGIC = 0x504D                 # "PM"
 PAGE_STORE = 1                 # window -> aShadow

@@ -21,11 +21,11 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from bridge.faults import Kind, Point
-from bridge.mock import MockPlc
-from bridge.modbus_map import MAGIC, PAGE_BAD, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap
-from bridge.plc_types import INTERFACE_VERSION, NPHI_MAX, NTHETA_MAX, SHADOW_SIZE
-from bridge.plc_twin import PlcTwin
+from pmcal.bridge.faults import Kind, Point
+from pmcal.bridge.mock import MockPlc
+from pmcal.bridge.modbus_map import MAGIC, PAGE_BAD, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap
+from pmcal.bridge.plc_types import INTERFACE_VERSION, NPHI_MAX, NTHETA_MAX, SHADOW_SIZE
+from pmcal.bridge.plc_twin import PlcTwin
 
 _FC_READ = (3, 4, 23)
 

@@ -1,6 +1,6 @@
 """Python twin of the PLC logic in ``plc/``: GVL_CompTable, FB_CompTableManager, FB_CompTableLookup.
 
-The mock PLCs (:mod:`bridge.ads_mock`, :mod:`bridge.modbus_mock`) expose one :class:`PlcTwin` through
+The mock PLCs (:mod:`pmcal.bridge.ads_mock`, :mod:`pmcal.bridge.modbus_mock`) expose one :class:`PlcTwin` through
 their transport; a cycle thread calls :meth:`PlcTwin.cycle` like a TwinCAT task. The handshake:
 
 1. the bridge writes ``stShadowHeader`` and ``aShadow`` (staging, never used for motion),
@@ -23,8 +23,8 @@ import time
 
 import numpy as np
 
-from calib.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, CompTable, bilinear, crc16_ccitt
-from bridge.plc_types import (HEADER_SIZE, INTERFACE_VERSION, Header, LookupIn, LookupOut,
+from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, CompTable, bilinear, crc16_ccitt
+from pmcal.bridge.plc_types import (HEADER_SIZE, INTERFACE_VERSION, Header, LookupIn, LookupOut,
                               LookupResult, PlcState, State, Status, used_values)
 
 #: Defect.kind of calib.comptable -> the PLC's status code
@@ -43,7 +43,7 @@ class PlcTwin:
     """The PLC side of the table hand-over and the motor-target lookup, as in ``plc/``.
 
     Symbols (GVL_CompTable) are exchanged as bytes with :meth:`read_symbol` / :meth:`write_symbol`
-    under the keys of :data:`bridge.plc_types.SYMBOLS`. ``motion_idle`` is the PLC input that allows the buffer swap.
+    under the keys of :data:`pmcal.bridge.plc_types.SYMBOLS`. ``motion_idle`` is the PLC input that allows the buffer swap.
     """
 
     def __init__(self, crc=crc16_ccitt, commit_timeout_s: float = 10.0) -> None:

@@ -15,7 +15,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from calib.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, CompTable, GridLimits
+from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, CompTable, GridLimits
 
 #: interface version of GVL_CompTable (bumped when any layout below changes)
 INTERFACE_VERSION = 1

@@ -1,6 +1,6 @@
 """The table hand-over, independent of the transport: validate, check, stage, read back, commit, ack.
 
-:func:`push` drives any :class:`PlcLink` (ADS in :mod:`bridge.ads`, Modbus in :mod:`bridge.modbus`):
+:func:`push` drives any :class:`PlcLink` (ADS in :mod:`pmcal.bridge.ads`, Modbus in :mod:`pmcal.bridge.modbus`):
 
 1. validate the table locally (before connecting);
 2. open the link, check the PLC interface, read the PLC state;
@@ -27,10 +27,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from calib.comptable import NTHETA_MAX, CompTable
-from bridge.errors import AckTimeout, BridgeError, LinkError, ReadbackMismatch, Rejected
-from bridge.link import PlcLink
-from bridge.plc_types import HEADER_SIZE, LREAL_SIZE, Header, PlcState, State, Status, shadow_rows
+from pmcal.bridge.comptable import NTHETA_MAX, CompTable
+from pmcal.bridge.errors import AckTimeout, BridgeError, LinkError, ReadbackMismatch, Rejected
+from pmcal.bridge.link import PlcLink
+from pmcal.bridge.plc_types import HEADER_SIZE, LREAL_SIZE, Header, PlcState, State, Status, shadow_rows
 from pmcal.errors import InputError
 
 

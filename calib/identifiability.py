@@ -20,8 +20,8 @@ from typing import Callable
 
 import numpy as np
 
-from calib.solvers.base import crlb_covariance
-from calib.solvers.problem import Problem
+from pmcal.calib.solvers.base import crlb_covariance
+from pmcal.calib.solvers.problem import Problem
 
 
 @dataclass

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.data import Measurements
-from calib.ocpm.kinematics import nominal_fk
-from calib.ocpm.params import check_key
-from calib.rigid import fit_pose
-from calib.rotations import pointing_error, tilt_torsion
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.ocpm.data import Measurements
+from pmcal.mechanism.ocpm.kinematics import nominal_fk
+from pmcal.mechanism.ocpm.params import check_key
+from pmcal.mechanism.rigid import fit_pose
+from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.csvio import read_csv, write_csv
 from pmcal.errors import InputError
 from pmcal.fileio import write_json

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.planar.geometry import ERROR_KEYS, Errors, Geometry, interface_unit
-from calib.planar.kinematics import forward, inverse
-from calib.solvers.result import IdentResult
+from pmcal.mechanism.planar.geometry import ERROR_KEYS, Errors, Geometry, interface_unit
+from pmcal.mechanism.planar.kinematics import forward, inverse
+from pmcal.calib.solvers.result import IdentResult
 from pmcal.csvio import read_csv, write_csv
 from pmcal.errors import InputError
 
@@ -30,7 +30,7 @@ class PlanarMeasurements:
 
     ids : pose labels. theta_cmd : (K, 2) commanded motor angles, rad. readings : (rows,) scale changes
     between adjacent positions of the same chain, mm (one per row of
-    :func:`calib.planar.identification.difference_operator`). segments : (K,) chain label of each
+    :func:`pmcal.calib.planar.identification.difference_operator`). segments : (K,) chain label of each
     position (one chain unless the file has a ``campaign`` column). r : (K, 2) the positions the nominal
     controller believes it commanded, mm.
     """
@@ -187,7 +187,7 @@ def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Er
 
 def params_document(result: IdentResult, extra: dict | None = None) -> dict:
     """The parameters JSON of an identification (INTERFACES.md): values and 1-sigma uncertainties in
-    mm and degrees, keys as in :mod:`calib.planar.geometry`."""
+    mm and degrees, keys as in :mod:`pmcal.mechanism.planar.geometry`."""
     conv = [(180.0 / math.pi if u == "rad" else 1.0) for u in result.units]
     std = result.std
     doc = {

@@ -13,6 +13,7 @@ from pathlib import Path
 from types import ModuleType
 
 from pmcal.errors import InputError
+from pmcal.mjcf import ROOT as MJCF_ROOT_DIR
 
 #: machine name (folder under ``mjcf/``) -> application module
 MACHINES: dict[str, str] = {
@@ -20,7 +21,7 @@ MACHINES: dict[str, str] = {
     "planar_2dof": "pmcal.apps.planar",
 }
 
-MJCF_ROOT = Path(__file__).resolve().parent.parent / "mjcf"
+MJCF_ROOT = MJCF_ROOT_DIR
 
 
 def machine_dir(name: str) -> Path:

@@ -13,8 +13,8 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from calib.comptable import CompTable
-from calib.ocpm.kinematics import nominal_ik
+from pmcal.bridge.comptable import CompTable
+from pmcal.mechanism.ocpm.kinematics import nominal_ik
 
 MOTOR_LIMITS_DEG = (-120.0, 60.0)
 MAX_STEP_DEG = 12.0
@@ -47,13 +47,13 @@ def running(mock):
 
 
 def ads_link(mock, **kwargs):
-    from bridge.ads import AdsLink
+    from pmcal.bridge.ads import AdsLink
 
     return AdsLink(mock.address, timeout_s=kwargs.pop("timeout_s", TIMEOUT_S), **kwargs)
 
 
 def modbus_link(mock, **kwargs):
-    from bridge.modbus import ModbusLink
+    from pmcal.bridge.modbus import ModbusLink
 
     return ModbusLink(mock.host, mock.port, rmap=mock.rmap, timeout_s=kwargs.pop("timeout_s", TIMEOUT_S),
                       **kwargs)
@@ -61,8 +61,8 @@ def modbus_link(mock, **kwargs):
 
 @pytest.fixture
 def ads_plc():
-    from bridge.ads import set_adslib_log_level
-    from bridge.ads_mock import AdsMockPlc
+    from pmcal.bridge.ads import set_adslib_log_level
+    from pmcal.bridge.ads_mock import AdsMockPlc
 
     set_adslib_log_level(4)
     with running(AdsMockPlc(lifetime_s=120.0)) as plc:
@@ -71,7 +71,7 @@ def ads_plc():
 
 @pytest.fixture
 def modbus_plc():
-    from bridge.modbus_mock import ModbusMockPlc
+    from pmcal.bridge.modbus_mock import ModbusMockPlc
 
     with running(ModbusMockPlc(lifetime_s=120.0)) as plc:
         yield plc

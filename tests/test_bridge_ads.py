@@ -11,14 +11,14 @@ import pyads
 import pytest
 from pyads import constants
 
-from bridge.ads import AdsLink
-from bridge.ads_map import AdsMap, AdsTarget
-from bridge.ads_mock import AdsMockPlc
-from bridge.errors import AckTimeout, InterfaceError, LinkError, WriteNotAllowed
-from bridge.faults import Fault, Kind, Point
-from bridge.plc_types import (HEADER_SIZE, LOOKUP_WRITES, PUSH_WRITES, SHADOW_SIZE, SYMBOLS, Header,
+from pmcal.bridge.ads import AdsLink
+from pmcal.bridge.ads_map import AdsMap, AdsTarget
+from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.errors import AckTimeout, InterfaceError, LinkError, WriteNotAllowed
+from pmcal.bridge.faults import Fault, Kind, Point
+from pmcal.bridge.plc_types import (HEADER_SIZE, LOOKUP_WRITES, PUSH_WRITES, SHADOW_SIZE, SYMBOLS, Header,
                               LookupResult, State, Status, Symbol, shadow_rows)
-from bridge.transfer import PushOptions, push
+from pmcal.bridge.transfer import PushOptions, push
 from pmcal.errors import InputError
 from tests.bridge_fixtures import TIMEOUT_S, ads_link, ads_plc, make_table, running  # noqa: F401
 

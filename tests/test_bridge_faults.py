@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import pytest
 
-from bridge.ads_mock import AdsMockPlc
-from bridge.errors import BridgeError, DeviceError, InterfaceError, LinkError, Rejected
-from bridge.faults import Fault, Kind, Point
-from bridge.modbus_mock import ModbusMockPlc
-from bridge.plc_types import Status
-from bridge.transfer import PushOptions, push
+from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.errors import BridgeError, DeviceError, InterfaceError, LinkError, Rejected
+from pmcal.bridge.faults import Fault, Kind, Point
+from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.plc_types import Status
+from pmcal.bridge.transfer import PushOptions, push
 from tests.bridge_fixtures import TIMEOUT_S, ads_link, make_table, modbus_link, running
 
 OPTIONS = PushOptions(attempts=2, ack_timeout_s=0.3, idle_timeout_s=0.5, retry_pause_s=0.01)

@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from bridge.ads_mock import AdsMockPlc
-from bridge.loop import DEFAULT_GRID, compensation_table, run_loop
-from bridge.modbus_mock import ModbusMockPlc
-from calib.ocpm.config import default_geometry
-from calib.ocpm.params import PAPER_TABLE2, ErrorSet
+from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.apps.plc_loop import DEFAULT_GRID, compensation_table, run_loop
+from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.mechanism.ocpm.config import default_geometry
+from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet
 from pmcal.cli import main
 from tests.bridge_fixtures import running
 

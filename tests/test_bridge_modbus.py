@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from bridge.errors import DeviceError, InterfaceError, LinkError, WriteNotAllowed
-from bridge.faults import Fault, Kind, Point
-from bridge.modbus import ModbusLink, parse_host_port
-from bridge.modbus_map import FC16_MAX, ModbusMap, from_registers, to_registers
-from bridge.modbus_mock import ModbusMockPlc
-from bridge.plc_types import HEADER_SIZE, LOOKUP_WRITES, ROW_SIZE, Header, LookupResult, shadow_rows
-from bridge.transfer import PushOptions, push
+from pmcal.bridge.errors import DeviceError, InterfaceError, LinkError, WriteNotAllowed
+from pmcal.bridge.faults import Fault, Kind, Point
+from pmcal.bridge.modbus import ModbusLink, parse_host_port
+from pmcal.bridge.modbus_map import FC16_MAX, ModbusMap, from_registers, to_registers
+from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.plc_types import HEADER_SIZE, LOOKUP_WRITES, ROW_SIZE, Header, LookupResult, shadow_rows
+from pmcal.bridge.transfer import PushOptions, push
 from pmcal.errors import InputError
 from tests.bridge_fixtures import TIMEOUT_S, make_table, modbus_link, modbus_plc, running  # noqa: F401
 

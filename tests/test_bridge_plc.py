@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, crc16_ccitt
-from bridge import plc_types
-from bridge.modbus_map import MAGIC, PAGE_LOAD, PAGE_STORE, ModbusMap
-from bridge.plc_twin import PlcTwin
-from bridge.plc_types import (SYMBOLS, Header, LookupIn, LookupOut, LookupResult, State, Status,
+from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, crc16_ccitt
+from pmcal.bridge import plc_types
+from pmcal.bridge.modbus_map import MAGIC, PAGE_LOAD, PAGE_STORE, ModbusMap
+from pmcal.bridge.plc_twin import PlcTwin
+from pmcal.bridge.plc_types import (SYMBOLS, Header, LookupIn, LookupOut, LookupResult, State, Status,
                               shadow_rows)
 from tests.bridge_fixtures import make_table
 

@@ -6,15 +6,15 @@ import json
 import numpy as np
 import pytest
 
-from calib.comptable import CompTable
-from calib.ocpm.kinematics import nominal_ik
-from calib.ocpm.params import PAPER_TABLE2
-from calib.rotations import pointing_error, tilt_torsion
+from pmcal.bridge.comptable import CompTable
+from pmcal.mechanism.ocpm.kinematics import nominal_ik
+from pmcal.mechanism.ocpm.params import PAPER_TABLE2
+from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.cli import main
 from pmcal.io_ocpm import write_measurements
-from twin.campaign import plan_campaign, run_campaign
-from twin.machine import Twin
-from twin.tracker import LaserTracker
+from pmcal.twin.campaign import plan_campaign, run_campaign
+from pmcal.twin.machine import Twin
+from pmcal.twin.tracker import LaserTracker
 
 
 @pytest.fixture(scope="module")

@@ -6,13 +6,13 @@ import json
 import numpy as np
 import pytest
 
-from calib.ocpm.params import random_errors
-from calib.rotations import pointing_error, tilt_torsion
+from pmcal.mechanism.ocpm.params import random_errors
+from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.cli import main
 from pmcal.io_ocpm import write_measurements
-from twin.campaign import nominal_commands, plan_campaign, run_campaign
-from twin.machine import Twin
-from twin.tracker import LaserTracker
+from pmcal.twin.campaign import nominal_commands, plan_campaign, run_campaign
+from pmcal.twin.machine import Twin
+from pmcal.twin.tracker import LaserTracker
 
 
 @pytest.fixture(scope="module")

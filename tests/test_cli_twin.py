@@ -5,10 +5,10 @@ import json
 import numpy as np
 import pytest
 
-from calib.ocpm.params import PAPER_TABLE2
+from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 from pmcal.cli import main
 from pmcal.io_ocpm import read_measurements
-from twin.machine import Twin
+from pmcal.twin.machine import Twin
 
 
 def run(argv, capsys):

@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from calib.ocpm import compensation as comp
-from calib.ocpm import paper_model as pm
-from calib.ocpm.kinematics import nominal_ik, nominal_pose
-from calib.ocpm.params import PAPER_TABLE2, ErrorSet
-from calib.rotations import pointing_error, tilt_torsion
-from twin.campaign import nominal_commands, plan_campaign, run_campaign
-from twin.machine import Twin
-from twin.tracker import LaserTracker
+from pmcal.calib.ocpm import compensation as comp
+from pmcal.calib.ocpm import paper_model as pm
+from pmcal.mechanism.ocpm.kinematics import nominal_ik, nominal_pose
+from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet
+from pmcal.mechanism.rotations import pointing_error, tilt_torsion
+from pmcal.twin.campaign import nominal_commands, plan_campaign, run_campaign
+from pmcal.twin.machine import Twin
+from pmcal.twin.tracker import LaserTracker
 
 RNG = np.random.default_rng(0)
 PHI = RNG.uniform(0, 2 * np.pi, 30)
@@ -29,7 +29,7 @@ def test_linearised_eq15_is_first_order():
     x = np.array([TABLE2.get(k) for k in names])
 
     def gap(scale):
-        e = pm.errors_from_vector(scale * x, names)
+        e = pm.errors_from_vector(names, scale * x)
         return np.max(np.abs(comp.setpoints_linear(PHI, THETA, e) - comp.setpoints(PHI, THETA, e)))
 
     g1, g01 = gap(1.0), gap(0.1)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.interpolate import RegularGridInterpolator
 
-from calib.comptable import CompTable, bilinear, crc16_ccitt
+from pmcal.bridge.comptable import CompTable, bilinear, crc16_ccitt
 from pmcal.errors import InputError
 from tests.bridge_fixtures import MAX_STEP_DEG, make_table, nominal_setpoints
 

@@ -1,7 +1,7 @@
 """Discrepancy diagnosis: statistics, hidden effects, no-effect data, CLI and demo (docs/diagnose.md).
 
 Campaigns come from the twin with an effect switched on at a size a real machine has and hidden from the
-diagnosis (:func:`twin.effects.hidden_effect_campaign`). The default suite runs one seed per case on a
+diagnosis (:func:`pmcal.twin.effects.hidden_effect_campaign`). The default suite runs one seed per case on a
 96-pose campaign (128 for the eccentricity) and 50 + 30 no-effect seeds on 32-pose campaigns; the rates over many seeds are in
 ``benchmarks/diagnose_bench.py`` (and the slow test at the end).
 """
@@ -13,18 +13,19 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from calib.ocpm.config import default_geometry
-from calib.ocpm.diagnose import DiagnoseOptions, _Problem, diagnose, limit_blas_threads
-from calib.ocpm.noise_estimate import estimate_noise, similarity_residuals
-from calib.ocpm.effect_signatures import EFFECT_NAMES, PASSIVE_KEYS, EffectChainModel, with_context
-from calib.ocpm.fullchain import FullChainOptions, identify_full
-from calib.ocpm.linear_tests import Linearization, fit, nested_test, predict
-from calib.ocpm.params import is_angular, random_errors
+from pmcal.mechanism.ocpm.config import default_geometry
+from pmcal.calib.ocpm.diagnose import DiagnoseOptions, _Problem, diagnose, limit_blas_threads
+from pmcal.calib.ocpm.noise_estimate import estimate_noise, similarity_residuals
+from pmcal.mechanism.ocpm.effects import EFFECT_NAMES, PASSIVE_KEYS, with_context
+from pmcal.twin.effect_model import EffectChainModel
+from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full
+from pmcal.calib.ocpm.linear_tests import Linearization, fit, nested_test, predict
+from pmcal.mechanism.ocpm.params import is_angular, random_errors
 from pmcal.apps.ocpm_diagnose import hidden_effect_demo
 from pmcal.cli import main
 from pmcal.io_ocpm import write_measurements
-from twin.effects import EffectTwin, Effects, hidden_effect_campaign, plan_effect_campaign
-from twin.tracker import LaserTracker
+from pmcal.twin.effects import EffectTwin, Effects, hidden_effect_campaign, plan_effect_campaign
+from pmcal.twin.tracker import LaserTracker
 
 SIGMA = 0.01
 G = default_geometry()
@@ -33,7 +34,7 @@ limit_blas_threads(1)
 
 def run(names, seed=0, n=96, **kw):
     meas, twin = hidden_effect_campaign(names, seed, n, SIGMA, **kw)
-    return diagnose(meas, DiagnoseOptions(sigma_mm=SIGMA)), twin, meas
+    return diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA)), twin, meas
 
 
 # ---------------------------------------------------------------------------------------- statistics
@@ -174,7 +175,7 @@ def test_a_campaign_that_cannot_see_an_effect_says_what_would():
     tested. Neither is named, and the scoreboard says which measurement would fix it."""
     plan = plan_effect_campaign(48, 70, 2, randomize_approach=False)
     meas, twin = hidden_effect_campaign(["backlash"], 2, plan=plan)
-    d = diagnose(meas, DiagnoseOptions(sigma_mm=SIGMA))
+    d = diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA))
     assert d.effect is None and not d.unexplained
     bl, th = d.candidates["backlash"], d.candidates["thermal_expansion"]
     assert bl.verdict == "not identifiable with this campaign" and "approach" in bl.fix
@@ -183,14 +184,14 @@ def test_a_campaign_that_cannot_see_an_effect_says_what_would():
 
 
 def test_no_effect_data_gives_at_most_one_false_name_in_50_seeds():
-    named = [diagnose(hidden_effect_campaign([], s, 32, SIGMA)[0], DiagnoseOptions(sigma_mm=SIGMA)).effects
+    named = [diagnose(hidden_effect_campaign([], s, 32, SIGMA)[0], EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA)).effects
              for s in range(50)]
     assert sum(bool(n) for n in named) <= 1, named
 
 
 def test_no_effect_heavy_tailed_noise_gives_at_most_one_false_name_in_30_seeds():
     """Student-t (3 dof) tracker noise, sigma estimated from the data."""
-    named = [diagnose(hidden_effect_campaign([], s, 32, SIGMA, heavy_tails=True)[0], DiagnoseOptions()).effects
+    named = [diagnose(hidden_effect_campaign([], s, 32, SIGMA, heavy_tails=True)[0], EffectChainModel(), DiagnoseOptions()).effects
              for s in range(100, 130)]
     assert sum(bool(n) for n in named) <= 1, named
 
@@ -199,7 +200,7 @@ def test_linearised_cross_validation_agrees_with_a_nonlinear_refit():
     """Held-out predictions come from fold refits linearised at the full-data fit; a nonlinear refit of
     one fold predicts the same to well below the noise."""
     meas, _ = hidden_effect_campaign([], 4, 48, SIGMA)
-    pb = _Problem(meas, DiagnoseOptions(sigma_mm=SIGMA), G)
+    pb = _Problem(meas, DiagnoseOptions(sigma_mm=SIGMA), EffectChainModel(G))
     base = pb.identify([], None)
     lin = pb.linearize(base, [])
     cols = lin.cols(list(base.names))
@@ -207,8 +208,8 @@ def test_linearised_cross_validation_agrees_with_a_nonlinear_refit():
     lin_pred = predict(lin, fit(lin, cols, ~test), test) * SIGMA
     train = pb.meas.subset(np.flatnonzero(pb.folds != 0))
     x0 = dict(zip(base.names, base.x))
-    res = identify_full(train, FullChainOptions(keys=pb.base_keys, fit_stiffness_ratio=True, sigma_mm=SIGMA, x0=x0),
-                        model=pb.model)
+    res = identify_full(train, pb.model, FullChainOptions(keys=pb.base_keys, fit_stiffness_ratio=True, sigma_mm=SIGMA,
+                                                           x0=x0))
     pb.model.set_vector(list(res.names), res.x, res.info["stiffness_ratio"])
     held = pb.meas.subset(np.flatnonzero(pb.folds == 0))
     T, _ = pb.model.predict_meas(held, [])

@@ -5,18 +5,19 @@ import json
 import numpy as np
 import pytest
 
-from calib.ocpm.config import default_geometry
-from calib.ocpm.effect_signatures import EffectChainModel, with_context
-from calib.ocpm.kinematics import limb_ik, nominal_fk, nominal_ik, nominal_pose
-from calib.ocpm.params import PAPER_TABLE2, ErrorSet, is_angular, random_errors
+from pmcal.mechanism.ocpm.config import default_geometry
+from pmcal.mechanism.ocpm.effects import with_context
+from pmcal.twin.effect_model import EffectChainModel
+from pmcal.mechanism.ocpm.kinematics import limb_ik, nominal_fk, nominal_ik, nominal_pose
+from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet, is_angular, random_errors
 from pmcal.cli import main
 from pmcal.io_ocpm import read_measurements
-from twin.dynamics import DynamicTwin
-from twin.effects import (EffectTwin, Effects, HeavyTailedTracker, add_payload, motor_torques, nominal_commands,
+from pmcal.twin.dynamics import DynamicTwin
+from pmcal.twin.effects import (EffectTwin, Effects, HeavyTailedTracker, add_payload, motor_torques, nominal_commands,
                           passive_errors, plan_effect_campaign)
-from twin.machine import Twin
-from twin.model import MM
-from twin.tracker import LaserTracker
+from pmcal.twin.machine import Twin
+from pmcal.twin.model import MM
+from pmcal.twin.tracker import LaserTracker
 
 G = default_geometry()
 

@@ -3,14 +3,16 @@
 import numpy as np
 import pytest
 
-from calib.ocpm.fullchain import (LOG_RATIO, FullChainModel, FullChainOptions, errors_from_vector,
+from pmcal.mechanism.ocpm.params import LOG_RATIO, errors_and_ratio
+from pmcal.twin.forward import FullChainModel
+from pmcal.calib.ocpm.fullchain import (FullChainOptions,
                                   identify_full, setpoints)
-from calib.ocpm.params import ErrorSet, all_keys, is_angular, random_errors
-from calib.rotations import pointing_error, tilt_torsion
-from twin.campaign import nominal_commands, plan_campaign, run_campaign
-from twin.machine import Twin
-from twin.sensitivity import target_sensitivity
-from twin.tracker import LaserTracker
+from pmcal.mechanism.ocpm.params import ErrorSet, all_keys, is_angular, random_errors
+from pmcal.mechanism.rotations import pointing_error, tilt_torsion
+from pmcal.twin.campaign import nominal_commands, plan_campaign, run_campaign
+from pmcal.twin.machine import Twin
+from pmcal.twin.sensitivity import target_sensitivity
+from pmcal.twin.tracker import LaserTracker
 
 SIGMA = 0.01
 
@@ -47,7 +49,7 @@ def test_sensitivities_match_finite_differences():
 def test_consistent_data_zero_offsets_only_is_fitted_to_the_noise_and_recovered_within_crlb():
     params = {"L1.dtheta": 0.31, "L2.dtheta": -0.22}
     _, meas = campaign(params, n=24)
-    res = identify_full(meas)
+    res = identify_full(meas, FullChainModel())
     n = res.residuals.size
     # residuals at the noise level: chi^2 / (n - p_eff) = 1 within 3 of its standard deviations
     dof = res.info["dof"]
@@ -74,10 +76,10 @@ def test_whole_chain_calibration_reaches_the_noise_floor_on_held_out_poses():
     rng = np.random.default_rng(11)
     params = random_errors(rng, 0.5, 0.1)
     twin, meas = campaign(params)
-    res = identify_full(meas)
+    res = identify_full(meas, FullChainModel())
     assert res.success
     assert res.info["chi2_per_dof"] == pytest.approx(1.0, abs=3 * np.sqrt(2 / res.info["dof"]))
-    e, _ = errors_from_vector(res.names, res.x)
+    e, _ = errors_and_ratio(res.names, res.x)
     test = plan_campaign(24, 60, seed=99)
     Rt = tilt_torsion(np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg))
     before = np.rad2deg(pointing_error(twin.reach(nominal_commands(test.phi_deg, test.theta_deg)).R, Rt))
@@ -90,7 +92,7 @@ def test_a_different_stiffness_ratio_is_identified():
     rng = np.random.default_rng(21)
     params = random_errors(rng, 0.5, 0.1)
     _, meas = campaign(params, ratio=100.0)
-    res = identify_full(meas, FullChainOptions(fit_stiffness_ratio=True))
+    res = identify_full(meas, FullChainModel(), FullChainOptions(fit_stiffness_ratio=True))
     ratio = res.info["stiffness_ratio"]
     i = res.names.index(LOG_RATIO)
     assert abs(np.log(ratio) - np.log(100.0)) < 3 * res.std[i] + 0.05
@@ -99,8 +101,8 @@ def test_a_different_stiffness_ratio_is_identified():
 def test_on_consistent_data_both_methods_compensate_exactly():
     """Errors only in the motor zero offsets: the closures stay consistent, eq. 7 holds, and both the
     seed's method (HGA + real IK at the eq. 7 position) and the whole chain reach the noise floor."""
-    from calib.ocpm import compensation as comp
-    from calib.ocpm import paper_model as pm
+    from pmcal.calib.ocpm import compensation as comp
+    from pmcal.calib.ocpm import paper_model as pm
 
     params = {"L1.dtheta": -0.28, "L2.dtheta": -0.4}
     twin, meas = campaign(params, n=24, seed=8, noise_seed=9)
@@ -109,8 +111,8 @@ def test_on_consistent_data_both_methods_compensate_exactly():
     Rt = tilt_torsion(ph, th)
     cal = pm.calibrate(meas, "hga", (1, 2), seed=0)
     m_seed = np.rad2deg(comp.setpoints(ph, th, cal.errors()))
-    res = identify_full(meas)
-    e, _ = errors_from_vector(res.names, res.x)
+    res = identify_full(meas, FullChainModel())
+    e, _ = errors_and_ratio(res.names, res.x)
     m_full = setpoints(FullChainModel(), e, test.phi_deg, test.theta_deg)
     before = np.rad2deg(pointing_error(twin.reach(nominal_commands(test.phi_deg, test.theta_deg)).R, Rt))
     for m in (m_seed, m_full):
@@ -122,7 +124,7 @@ def test_on_consistent_data_both_methods_compensate_exactly():
 def test_a_model_that_cannot_assemble_a_pose_predicts_nan_and_a_fit_says_so():
     """Poses the closure solve does not converge on (here: one Gauss-Newton iteration allowed) predict NaN,
     so a fit's trust region rejects such a step; a fit that cannot even start says how many rows."""
-    from calib.ocpm.fullchain import UnassembledError
+    from pmcal.calib.ocpm.fullchain import UnassembledError
 
     params = random_errors(np.random.default_rng(2), 0.5, 0.1)
     meas = campaign(params, n=24)[1]
@@ -136,4 +138,4 @@ def test_a_model_that_cannot_assemble_a_pose_predicts_nan_and_a_fit_says_so():
     assert np.isnan(T).all(axis=(1, 2)).sum() >= 20
     model.twin.assembler.max_iter = 0                # not even the nominal start assembles
     with pytest.raises(UnassembledError, match="cannot assemble 24 measured pose"):
-        identify_full(meas, FullChainOptions(keys=["L3.dbx"]), model=model)
+        identify_full(meas, model, FullChainOptions(keys=["L3.dbx"]))

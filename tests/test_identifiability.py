@@ -2,9 +2,9 @@
 
 import numpy as np
 
-from calib.identifiability import analyse, analyse_jacobian
-from calib.ocpm import paper_model as pm
-from twin.campaign import plan_orientations
+from pmcal.calib.identifiability import analyse, analyse_jacobian
+from pmcal.calib.ocpm import paper_model as pm
+from pmcal.twin.campaign import plan_orientations
 
 
 def test_synthetic_jacobian():

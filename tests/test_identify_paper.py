@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from calib.ocpm import paper_model as pm
-from calib.ocpm.kinematics import nominal_pose
-from calib.ocpm.params import PAPER_TABLE2, ErrorSet
-from calib.rigid import fit_pose
-from calib.solvers import identify
-from twin.campaign import plan_campaign, run_campaign
-from twin.machine import Twin
-from twin.tracker import LaserTracker
+from pmcal.calib.ocpm import paper_model as pm
+from pmcal.mechanism.ocpm.kinematics import nominal_pose
+from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet
+from pmcal.mechanism.rigid import fit_pose
+from pmcal.calib.solvers import identify
+from pmcal.twin.campaign import plan_campaign, run_campaign
+from pmcal.twin.machine import Twin
+from pmcal.twin.tracker import LaserTracker
 
 SIGMA = 0.01
 TRUTH = ErrorSet.from_dict(PAPER_TABLE2)
@@ -112,7 +112,7 @@ def test_all_limb_errors_and_closure_stiffness(ratio, fits):
     (actuated closures 1000x stiffer than passive) the actuated closures still hold to a few um and the
     seed's per-limb model fits to the noise level; with a soft chain (ratio 10: actuated gaps ~0.4 mm)
     it cannot."""
-    from calib.ocpm.params import random_errors
+    from pmcal.mechanism.ocpm.params import random_errors
 
     rng = np.random.default_rng(21)
     errs = {**random_errors(rng, 0.5, 0.1), **PAPER_TABLE2}
@@ -129,7 +129,7 @@ def test_linear_pose_model_is_the_first_order_of_the_chain():
     """Seed eq. 18: on the nominal machine at nominal poses the pose error is zero; the error Jacobian
     predicts the constraint-consistent pose change for small errors (finite-difference check through
     the nonlinear constraints with the pose fitted by least squares)."""
-    from calib.ocpm.kinematics import nominal_ik
+    from pmcal.mechanism.ocpm.kinematics import nominal_ik
 
     geom = pm.default_geometry()
     phi, theta = np.deg2rad([30.0, 200.0]), np.deg2rad([20.0, 45.0])
@@ -140,9 +140,9 @@ def test_linear_pose_model_is_the_first_order_of_the_chain():
     assert np.allclose(pm.constraints(r0, R0, m, ErrorSet(), geom), 0.0, atol=1e-9)
     eps = 1e-3 * truth(names)                                 # tiny errors: first order holds
     dx = H @ eps
-    c_lin = pm.constraints(r0, R0, m, pm.errors_from_vector(eps, names), geom)
-    from calib.rotations import rot_x, rot_y, rot_z
+    c_lin = pm.constraints(r0, R0, m, pm.errors_from_vector(names, eps), geom)
+    from pmcal.mechanism.rotations import rot_x, rot_y, rot_z
     R1 = np.stack([rot_z(w[2]) @ rot_y(w[1]) @ rot_x(w[0]) for w in dx[:, 3:]]) @ R0
-    c_moved = pm.constraints(r0 + dx[:, :3], R1, m, pm.errors_from_vector(eps, names), geom)
+    c_moved = pm.constraints(r0 + dx[:, :3], R1, m, pm.errors_from_vector(names, eps), geom)
     # the pose change minimises the constraint violation: it is smaller after the move
     assert np.all(np.linalg.norm(c_moved, axis=-1) < 0.5 * np.linalg.norm(c_lin, axis=-1))

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from calib.ocpm.config import default_geometry
-from calib.ocpm.kinematics import (HOME_BETA, limb_ik, nominal_fk, nominal_ik, nominal_pose,
+from pmcal.mechanism.ocpm.config import default_geometry
+from pmcal.mechanism.ocpm.kinematics import (HOME_BETA, limb_ik, nominal_fk, nominal_ik, nominal_pose,
                                    real_ik_commands)
-from calib.ocpm.params import ErrorSet, random_errors
-from calib.rotations import rot_x, rot_y, rot_z, tilt_torsion, tilt_torsion_angles
+from pmcal.mechanism.ocpm.params import ErrorSet, random_errors
+from pmcal.mechanism.rotations import rot_x, rot_y, rot_z, tilt_torsion, tilt_torsion_angles
 
 G = default_geometry()
 

@@ -4,14 +4,14 @@ import mujoco
 import numpy as np
 import pytest
 
-from calib.ocpm.config import MACHINE_DIR, default_geometry
-from calib.ocpm.kinematics import limb_ik, nominal_ik, nominal_pose
-from calib.ocpm.params import PAPER_TABLE2, ErrorSet, random_errors
-from calib.rotations import tilt_torsion_angles
-from twin.assembly import _ChainJacobian
-from twin.dynamics import DynamicTwin
-from twin.machine import Twin
-from twin.model import MM, ModelIndex, build_model, load_model
+from pmcal.mechanism.ocpm.config import MACHINE_DIR, default_geometry
+from pmcal.mechanism.ocpm.kinematics import limb_ik, nominal_ik, nominal_pose
+from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet, random_errors
+from pmcal.mechanism.rotations import tilt_torsion_angles
+from pmcal.twin.assembly import _ChainJacobian
+from pmcal.twin.dynamics import DynamicTwin
+from pmcal.twin.machine import Twin
+from pmcal.twin.model import MM, build_model, load_model
 
 G = default_geometry()
 
@@ -110,7 +110,7 @@ def test_changing_the_stiffness_ratio_keeps_the_passive_closures():
 def test_assembly_steps_are_capped_and_singular_poses_give_up():
     """Far from the equilibrium (a joint 0.6 rad off) the capped Gauss-Newton steps still reach the
     closed-form pose; a stack with a singular normal matrix gives NaN for that row only."""
-    from twin.assembly import solve_stacked
+    from pmcal.twin.assembly import solve_stacked
 
     phi, theta, cmd = commands(10, 60, seed=8)
     tw = Twin()

@@ -4,14 +4,14 @@ covariance predicted from the noise model (eq. 34-35) and the bias predicted by 
 import numpy as np
 import pytest
 
-from calib.planar.calibration import calibrate
-from calib.planar.design import boundary_positions, optimal_positions, zero_offset_covariance
-from calib.planar.identification import identify
-from calib.planar.kinematics import actual_position, mm_vector
-from calib.planar.noise import Noise
-from twin.planar.config import default_machine
-from twin.planar.study import run_study
-from twin.planar.twin import PlanarTwin
+from pmcal.calib.planar.calibration import calibrate
+from pmcal.calib.planar.design import boundary_positions, optimal_positions, zero_offset_covariance
+from pmcal.calib.planar.identification import identify
+from pmcal.mechanism.planar.kinematics import actual_position, mm_vector
+from pmcal.mechanism.planar.noise import Noise
+from pmcal.twin.planar.config import default_machine
+from pmcal.apps.planar_study import run_study
+from pmcal.twin.planar.twin import PlanarTwin
 
 M = default_machine()
 G = M.geometry

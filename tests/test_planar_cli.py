@@ -6,13 +6,13 @@ from argparse import Namespace
 import numpy as np
 import pytest
 
-from calib.planar.identification import identify
-from calib.planar.kinematics import actual_position, forward, mm_vector
+from pmcal.calib.planar.identification import identify
+from pmcal.mechanism.planar.kinematics import actual_position, forward, mm_vector
 from pmcal.apps import planar as app
 from pmcal.cli import main
 from pmcal.io_planar import read_measurements
-from twin.planar.config import default_machine
-from twin.planar.twin import PlanarTwin
+from pmcal.twin.planar.config import default_machine
+from pmcal.twin.planar.twin import PlanarTwin
 
 M = default_machine()
 G = M.geometry
@@ -148,7 +148,7 @@ def test_demo_writes_report_and_json(tmp_path):
 
 def test_machine_configuration_is_validated(tmp_path):
     from pmcal.errors import InputError
-    from twin.planar.config import CONFIG_TOML, load_machine
+    from pmcal.twin.planar.config import CONFIG_TOML, load_machine
 
     text = CONFIG_TOML.read_text()
     bad = tmp_path / "machine.toml"

@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from calib.planar.calibration import calibrate
-from calib.planar.design import (boundary_positions, choose_n, condition_study, optimal_positions,
+from pmcal.calib.planar.calibration import calibrate
+from pmcal.calib.planar.design import (boundary_positions, choose_n, condition_study, optimal_positions,
                                  zero_offset_covariance, Region)
-from calib.planar.geometry import FULL_KEYS, Errors, Geometry, Workspace
-from calib.planar.identification import (difference_operator, identification_matrix, identify,
+from pmcal.mechanism.planar.geometry import FULL_KEYS, Errors, Geometry, Workspace
+from pmcal.calib.planar.identification import (difference_operator, identification_matrix, identify,
                                          reading_covariance)
-from calib.planar.kinematics import Q, actual_position, inverse, mm_vector
-from calib.planar.noise import Noise, scale_sigma, servo_sigma
+from pmcal.mechanism.planar.kinematics import Q, actual_position, inverse, mm_vector
+from pmcal.mechanism.planar.noise import Noise, scale_sigma, servo_sigma
 
 G = Geometry()
 W = Workspace()

@@ -4,12 +4,12 @@ independent computations: circle geometry, finite differences, and the seed's ow
 import numpy as np
 import pytest
 
-from calib.planar.design import boundary_positions
-from calib.planar.geometry import Errors, Geometry, Workspace
-from calib.planar.kinematics import actual_position, forward, inverse, jacobian
-from calib.planar.calibration import home_error, position_errors
-from twin.planar.config import default_machine
-from twin.planar.study import SEED
+from pmcal.calib.planar.design import boundary_positions
+from pmcal.mechanism.planar.geometry import Errors, Geometry, Workspace
+from pmcal.mechanism.planar.kinematics import actual_position, forward, inverse, jacobian
+from pmcal.calib.planar.calibration import home_error, position_errors
+from pmcal.twin.planar.config import default_machine
+from pmcal.apps.planar_study import SEED
 
 G = Geometry()
 W = Workspace()

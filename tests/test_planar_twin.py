@@ -4,12 +4,12 @@ import mujoco
 import numpy as np
 import pytest
 
-from calib.planar.design import boundary_positions
-from calib.planar.geometry import Errors
-from calib.planar.kinematics import actual_position, inverse, mm_vector
-from twin.planar.config import MODEL_XML, default_machine
-from twin.planar.model import build_model, scale_reference
-from twin.planar.twin import PlanarTwin
+from pmcal.calib.planar.design import boundary_positions
+from pmcal.mechanism.planar.geometry import Errors
+from pmcal.mechanism.planar.kinematics import actual_position, inverse, mm_vector
+from pmcal.twin.planar.config import MODEL_XML, default_machine
+from pmcal.twin.planar.model import build_model, scale_reference
+from pmcal.twin.planar.twin import PlanarTwin
 
 M = default_machine()
 G = M.geometry

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from calib.ocpm import paper_model as pm
-from calib.pose_selection import condition_number, crlb_std, select_poses
-from twin.campaign import plan_orientations
+from pmcal.calib.ocpm import paper_model as pm
+from pmcal.calib.pose_selection import condition_number, crlb_std, select_poses
+from pmcal.twin.campaign import plan_orientations
 
 
 def test_d_optimal_straight_line_puts_poses_at_the_ends():

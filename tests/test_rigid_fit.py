@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from calib.ocpm.config import default_geometry
-from calib.ocpm.kinematics import nominal_pose
-from calib.rigid import fit_pose, pose_from_three_points
-from calib.rotations import pointing_error
-from twin.tracker import LaserTracker
+from pmcal.mechanism.ocpm.config import default_geometry
+from pmcal.mechanism.ocpm.kinematics import nominal_pose
+from pmcal.mechanism.rigid import fit_pose, pose_from_three_points
+from pmcal.mechanism.rotations import pointing_error
+from pmcal.twin.tracker import LaserTracker
 
 X = default_geometry().targets
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from calib.solvers.linear import lcurve, lcurve_corner, tikhonov_solve, tsvd_solve
+from pmcal.calib.solvers.linear import lcurve, lcurve_corner, tikhonov_solve, tsvd_solve
 
 
 def ill_posed(rng, m=60, n=20, decay=6.0):

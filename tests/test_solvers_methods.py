@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from calib.solvers import METHODS, Problem, box_problem, identify
-from calib.solvers.base import crlb_covariance
+from pmcal.calib.solvers import METHODS, Problem, box_problem, identify
+from pmcal.calib.solvers.base import crlb_covariance
 
 SIGMA = 0.1
 

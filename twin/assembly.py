@@ -16,13 +16,13 @@ Residuals and Jacobians come from MuJoCo (``mj_kinematics``, ``mj_comPos``, ``mj
 a Gauss-Newton step on the free degrees of freedom (all but the held motor joints), integrated with
 ``mj_integratePos`` (ball quaternion). Units inside: SI.
 
-Options used by the drive and thermal effects (:mod:`twin.effects`):
+Options used by the drive and thermal effects (:mod:`pmcal.twin.effects`):
 
 - **motor springs** (``motor_stiffness``, N m/rad per motor): the motor joints are no longer held; a
   torsional spring in series behind each motor ties the joint to its commanded angle, adding
   ``1/2 K (q_m - q_cmd)^2`` to the energy (residual rows ``sqrt(K) (q_m - q_cmd)`` after the SS row). The
   commanded angles are the motor values of the ``qpos`` given to :meth:`BatchAssembler.solve`. The
-  sensitivities of :mod:`twin.sensitivity` assume held motors; do not use them with springs.
+  sensitivities of :mod:`pmcal.twin.sensitivity` assume held motors; do not use them with springs.
 - **per-pose models** (:meth:`BatchAssembler.set_models`): simulation i runs on its own compiled model
   (same structure, other numbers: a payload mass, a thermally scaled geometry).
 """
@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from twin.model import ModelIndex
+from pmcal.twin.model import ModelIndex
 
 
 @dataclass

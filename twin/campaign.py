@@ -11,11 +11,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.data import Measurements
-from calib.ocpm.kinematics import nominal_ik
-from twin.machine import Twin
-from twin.tracker import LaserTracker
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.ocpm.data import Measurements
+from pmcal.mechanism.ocpm.kinematics import nominal_ik
+from pmcal.twin.machine import Twin
+from pmcal.twin.tracker import LaserTracker
 
 #: Tilt beyond which the RSR limbs approach the stretched-link singularity (|K/rho| > 0.98 at 85 deg,
 #: 1.0 at about 87.5 deg on the nominal machine): campaigns are refused beyond it.

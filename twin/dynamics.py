@@ -1,6 +1,6 @@
 """Dynamic simulation of the twin: gravity, position servos on the motors, settling.
 
-The quasi-static twin (:mod:`twin.assembly`) puts explicit stiffness on every closure. The dynamic model
+The quasi-static twin (:mod:`pmcal.twin.assembly`) puts explicit stiffness on every closure. The dynamic model
 keeps the same physics where it matters and stays integrable with an ordinary time step:
 
 - passive closures (limbs 3, 4): explicit spring-dampers of the configured stiffness, applied at the
@@ -11,7 +11,7 @@ keeps the same physics where it matters and stays integrable with an ordinary ti
 - gravity from the inertia of machine.toml, plus an optional payload at the platform centre.
 
 Use it for settling behaviour and for effects that need dynamics; campaigns use the quasi-static twin.
-Units: SI inside, mm/deg at the interface (as :class:`twin.machine.TwinState`).
+Units: SI inside, mm/deg at the interface (as :class:`pmcal.twin.machine.TwinState`).
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from twin.machine import Twin, TwinState
-from twin.model import MM
+from pmcal.twin.machine import Twin, TwinState
+from pmcal.twin.model import MM
 
 
 @dataclass

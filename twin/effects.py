@@ -1,12 +1,12 @@
 """Physical effects in the twin: a "real" machine with drive, thermal and over-constraint effects.
 
-Each effect of the vocabulary (INTERFACES.md; models and units in :mod:`calib.ocpm.effect_signatures`
+Each effect of the vocabulary (INTERFACES.md; models and units in :mod:`pmcal.mechanism.ocpm.effects`
 and docs/effects.md) is switchable and lives in one of three places:
 
 - **physics** (MuJoCo): gravity always acts (qfrc_bias of the spec's inertia) with each pose's payload
   added to the platform at the centre of its top surface (per-pose models); ``joint_compliance`` frees
   the motor joints and ties each to its command with a torsional spring of stiffness K (N m/rad) in
-  series (:class:`twin.assembly.BatchAssembler` motor springs), loaded by gravity and by the internal
+  series (:class:`pmcal.twin.assembly.BatchAssembler` motor springs), loaded by gravity and by the internal
   over-constraint forces.
 - **geometry per pose** (MuJoCo): ``thermal_expansion`` scales every length of the compiled model (body,
   joint and site positions: links, radii, SS limb, target nests) by ``1 + alpha (temp_c - 20)``, one
@@ -28,15 +28,15 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.data import Measurements
-from calib.ocpm.effect_signatures import (EFFECT_NAMES, VOCABULARY, drive_basis, relative_time,
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.ocpm.data import Measurements
+from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, VOCABULARY, drive_basis, relative_time,
                                           thermal_delta)
-from calib.ocpm.params import ErrorSet, random_errors
-from twin.campaign import CampaignPlan, nominal_commands, plan_campaign
-from twin.machine import Twin, TwinState
-from twin.model import MM
-from twin.tracker import LaserTracker
+from pmcal.mechanism.ocpm.params import ErrorSet, random_errors
+from pmcal.twin.campaign import CampaignPlan, nominal_commands, plan_campaign
+from pmcal.twin.machine import Twin, TwinState
+from pmcal.twin.model import MM
+from pmcal.twin.tracker import LaserTracker
 
 #: Effects with one value per motor.
 PER_MOTOR = ("joint_compliance", "backlash", "encoder_eccentricity", "zero_offset_drift")
@@ -163,7 +163,7 @@ def add_payload(m: mujoco.MjModel, body: int, mass_kg: float, point_m: np.ndarra
 
 def pose_models(twin: Twin, n: int, scale: np.ndarray | None = None,
                 payload_kg: np.ndarray | None = None) -> list[mujoco.MjModel] | None:
-    """Per-pose copies of ``twin.model``: lengths scaled by ``scale`` (N,) about O and ``payload_kg`` (N,)
+    """Per-pose copies of ``pmcal.twin.model``: lengths scaled by ``scale`` (N,) about O and ``payload_kg`` (N,)
     added at the centre of the platform's top surface. None when every pose would get the twin's own
     model. Equal contexts share one copy."""
     scale = np.ones(n) if scale is None else np.broadcast_to(np.asarray(scale, float), (n,))
@@ -189,7 +189,7 @@ class EffectTwin:
 
     ``errors`` are interface keys (mm, deg) or an ErrorSet; the ``overconstraint`` effect adds random
     passive-limb errors drawn from ``seed`` (kept in :attr:`passive_errors`). ``gravity`` (default on, as
-    on a real machine; off only to compare with the geometric :class:`twin.machine.Twin`).
+    on a real machine; off only to compare with the geometric :class:`pmcal.twin.machine.Twin`).
     """
 
     def __init__(self, errors: ErrorSet | dict | None = None, effects: Effects | None = None,

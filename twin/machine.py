@@ -2,7 +2,7 @@
 
 A :class:`Twin` is the nominal MJCF model plus a set of geometric errors (all four limbs and SS) and the
 closure compliance. Driving it to motor commands solves the closed chain quasi-statically
-(:mod:`twin.assembly`) from an initial guess given by the closed-form nominal kinematics, and reads the
+(:mod:`pmcal.twin.assembly`) from an initial guess given by the closed-form nominal kinematics, and reads the
 platform pose and the tracker targets off the MuJoCo model.
 
 Interface units: mm and degrees for commands; the returned :class:`TwinState` is in mm and radians.
@@ -15,12 +15,12 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.kinematics import limb_frames, limb_ik, nominal_fk, nominal_pose
-from calib.ocpm.params import ErrorSet
-from calib.rotations import rot_x, rot_y
-from twin.assembly import AssemblyResult, BatchAssembler, Stiffness
-from twin.model import MM, apply_errors, build_model
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.ocpm.kinematics import limb_frames, limb_ik, nominal_fk, nominal_pose
+from pmcal.mechanism.ocpm.params import ErrorSet
+from pmcal.mechanism.rotations import rot_x, rot_y
+from pmcal.twin.assembly import AssemblyResult, BatchAssembler, Stiffness
+from pmcal.twin.model import MM, apply_errors, build_model
 
 
 @dataclass

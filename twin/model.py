@@ -4,8 +4,8 @@ Editing ``body_pos`` / ``body_quat`` / ``site_pos`` / ``jnt_pos`` of the compile
 ``mj_setConst`` gives the same model as an ``MjSpec`` edit and recompile, about 100 times faster
 (MUJOCO_NOTES.md): this is what identification loops and Monte Carlo studies use.
 
-The MuJoCo model is in SI units; :class:`calib.ocpm.params.ErrorSet` is in mm and radians. This module
-and :mod:`twin.assembly` are the only places that convert.
+The MuJoCo model is in SI units; :class:`pmcal.mechanism.ocpm.params.ErrorSet` is in mm and radians. This module
+and :mod:`pmcal.twin.assembly` are the only places that convert.
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from calib.ocpm.config import MACHINE_DIR, Geometry, default_geometry
-from calib.ocpm.kinematics import limb_frames
-from calib.ocpm.params import ErrorSet
+from pmcal.mechanism.ocpm.config import MACHINE_DIR, Geometry, default_geometry
+from pmcal.mechanism.ocpm.kinematics import limb_frames
+from pmcal.mechanism.ocpm.params import ErrorSet
 
 MM = 1e-3  # metres per millimetre
 

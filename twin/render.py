@@ -15,7 +15,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco  # noqa: E402
 
-from twin.model import SCENE_XML, ModelIndex, apply_errors, load_model  # noqa: E402
+from pmcal.twin.model import SCENE_XML, ModelIndex, apply_errors, load_model  # noqa: E402
 
 
 class RenderUnavailable(RuntimeError):
@@ -26,8 +26,8 @@ def render_png(qpos: np.ndarray | None = None, errors=None, width: int = 800, he
                azimuth: float = 135.0, elevation: float = -22.0, distance: float = 1.35,
                lookat=(0.0, 0.0, 0.22)) -> bytes:
     """PNG image of the machine (scene with floor and light) at configuration ``qpos`` (default home)."""
-    from calib.ocpm.config import default_geometry
-    from calib.ocpm.params import ErrorSet
+    from pmcal.mechanism.ocpm.config import default_geometry
+    from pmcal.mechanism.ocpm.params import ErrorSet
 
     m = load_model(SCENE_XML)
     geom = default_geometry()

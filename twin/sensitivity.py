@@ -10,7 +10,7 @@ over the link lengths, ~0.5 % with mm-size errors, and vanish on a consistent ma
 follow as ``dT/dp = J_T dq_F/dp + (dT/dp at fixed q)``. ``dr/dp`` at fixed joint angles is geometry:
 moving B_j moves S1_j, tilting an axis turns a link about its joint, and so on (see the code).
 
-Parameters are the interface keys of :mod:`calib.ocpm.params` in internal units (mm, rad), the motor
+Parameters are the interface keys of :mod:`pmcal.mechanism.ocpm.params` in internal units (mm, rad), the motor
 commands (``L1.dtheta``/``L2.dtheta`` act exactly like commands), and optionally the logarithm of the
 stiffness ratio (key :data:`LOG_RATIO`). Results are in mm per unit.
 """
@@ -21,12 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.ocpm.kinematics import limb_frames
-from twin.assembly import _ChainJacobian, solve_stacked
-from twin.model import MM
+from pmcal.mechanism.ocpm.kinematics import limb_frames
+from pmcal.mechanism.ocpm.params import LOG_RATIO
+from pmcal.twin.assembly import _ChainJacobian, solve_stacked
+from pmcal.twin.model import MM
 
-#: Key of the log stiffness ratio (actuated closures and SS over passive closures).
-LOG_RATIO = "log_stiffness_ratio"
 _E = np.eye(3)
 
 

@@ -2,7 +2,7 @@
 
 The identified real inverse kinematics (seed eq. 12-13) gives the motor commands that put the
 actuated limbs' closures exactly at a target pose: ``m = beta(r, R; errors) - dtheta``
-(:func:`calib.ocpm.kinematics.real_ik_commands`). It needs the platform *position* r at the target
+(:func:`pmcal.mechanism.ocpm.kinematics.real_ik_commands`). It needs the platform *position* r at the target
 orientation R, which the per-limb model does not determine (the SS and passive limbs do). Two options:
 
 - ``position_map=None``: the nominal position of seed eq. 7 (the seed's choice);
@@ -23,12 +23,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.kinematics import (invert_in_pointing_coords, nominal_fk, nominal_pose, pointing_coords,
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.ocpm.kinematics import (invert_in_pointing_coords, nominal_fk, nominal_pose, pointing_coords,
                                    real_ik_commands)
-from calib.ocpm.paper_model import param_names, pose_sensitivity
-from calib.ocpm.params import ErrorSet
-from calib.rotations import tilt_torsion, tilt_torsion_angles
+from pmcal.calib.ocpm.paper_model import param_names, pose_sensitivity
+from pmcal.mechanism.ocpm.params import ErrorSet
+from pmcal.mechanism.rotations import tilt_torsion, tilt_torsion_angles
 
 
 def poly_basis(p: np.ndarray, degree: int) -> np.ndarray:
@@ -147,6 +147,6 @@ def predict_orientation(m_cmd: np.ndarray, errors: ErrorSet, geom: Geometry | No
 
 def position_map_blocks(phi: np.ndarray, theta: np.ndarray, degree: int = 3) -> np.ndarray:
     """Design rows (N, 3, 3K) of the position map's coefficients at orientations (phi, theta) rad: for
-    pose selection jointly with the identification (:func:`calib.pose_selection.join_blocks`)."""
+    pose selection jointly with the identification (:func:`pmcal.calib.pose_selection.join_blocks`)."""
     B = poly_basis(pointing_coords(phi, theta), degree)                  # (N, K)
     return np.einsum("ab,nk->nakb", np.eye(3), B).reshape(len(B), 3, -1)

@@ -8,7 +8,7 @@ b. Noise: sigma given, or estimated without any machine model from how far each 
    from a similarity transform of their platform coordinates (2 dof a pose). An omnibus test says
    whether anything is left beyond the noise.
 c. Every candidate effect's *signature* (d targets / d effect parameter) keeps only what the baseline
-   cannot absorb (conditional information, :mod:`calib.ocpm.linear_tests`); its power at a typical size
+   cannot absorb (conditional information, :mod:`pmcal.calib.ocpm.linear_tests`); its power at a typical size
    says whether this campaign can see it at all, and if not, which measurement would.
 d. Forward selection: the most significant candidate (F test, Bonferroni over the candidates in play)
    whose fitted value is physically plausible and large enough is added, the whole model is refitted
@@ -32,18 +32,20 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.data import Measurements
-from calib.ocpm.effect_signatures import (EFFECT_NAMES, VOCABULARY, EffectChainModel, effect_of_key,
+from pmcal.calib.forward_model import EffectModel
+from pmcal.mechanism.ocpm.config import Geometry
+from pmcal.mechanism.ocpm.data import Measurements
+from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, VOCABULARY, effect_of_key,
                                           thermal_delta, with_context)
-from calib.ocpm.diagnosis_result import Candidate, Diagnosis, Omnibus
-from calib.ocpm.effect_values import EffectValue, effect_prior_std, effect_value
-from calib.ocpm.fullchain import LOG_RATIO, FullChainOptions, Priors, identify_full
-from calib.ocpm.linear_tests import (Linearization, SubFit, conditional_information, fit, huber_weighted,
+from pmcal.calib.ocpm.diagnosis_result import Candidate, Diagnosis, Omnibus
+from pmcal.calib.ocpm.effect_values import EffectValue, effect_prior_std, effect_value
+from pmcal.calib.ocpm.fullchain import FullChainOptions, Priors, identify_full
+from pmcal.mechanism.ocpm.params import LOG_RATIO
+from pmcal.calib.ocpm.linear_tests import (Linearization, SubFit, conditional_information, fit, huber_weighted,
                                      nested_test, power, predict)
-from calib.ocpm.noise_estimate import NoiseEstimate, estimate_noise
-from calib.ocpm.params import LIMB_FIELDS, SEED_LIMB_FIELDS, SS_FIELDS, is_angular
-from calib.solvers.result import IdentResult
+from pmcal.calib.ocpm.noise_estimate import NoiseEstimate, estimate_noise
+from pmcal.mechanism.ocpm.params import LIMB_FIELDS, SEED_LIMB_FIELDS, SS_FIELDS, is_angular
+from pmcal.calib.solvers.result import IdentResult
 
 #: Baseline key sets. "full": limbs 1-2 (12 geometric keys + dtheta each) and SS; "paper": the seed's 11
 #: parameters of limbs 1-2 (evaluated with the whole-chain forward model).
@@ -114,7 +116,7 @@ def limit_blas_threads(n: int = 1) -> None:
 
 
 # ======================================================================================== linearisation
-def linearize(model: EffectChainModel, meas: Measurements, res: IdentResult, extra_keys: list[str],
+def linearize(model: EffectModel, meas: Measurements, res: IdentResult, extra_keys: list[str],
               sigma: float, prior_std: dict[str, float]) -> Linearization:
     """Whitened linear model at the fit ``res`` with the columns of ``extra_keys`` (candidates) added."""
     keys = list(res.names) + [k for k in extra_keys if k not in res.names]
@@ -145,13 +147,14 @@ def stratified_folds(meas: Measurements, k: int, geom: Geometry) -> np.ndarray:
 class _Problem:
     """Everything one diagnosis shares: data with context, noise, model, options, candidate keys."""
 
-    def __init__(self, meas: Measurements, opt: DiagnoseOptions, geom: Geometry):
+    def __init__(self, meas: Measurements, opt: DiagnoseOptions, model: EffectModel):
+        geom = model.geom
         self.geom, self.opt = geom, opt
         self.meas, self.time_unit = with_context(meas)
         self.noise = estimate_noise(meas, geom, opt.sigma_mm)
         self.sigma = self.noise.sigma_mm
         self.base_keys = list(opt.baseline_keys or BASELINES["full"])
-        self.model = EffectChainModel(geom)
+        self.model = model
         self.model_keys0: list[str] = []              # the baseline fit's keys (with the ratio)
         self.baseline: IdentResult | None = None
         self.candidates: dict[str, list[str]] = {}
@@ -180,9 +183,9 @@ class _Problem:
         """Nonlinear MAP fit of the baseline plus the effects ``names``."""
         opt = self.opt
         keys = self.base_keys + [k for n in names for k in self.candidates[n]]
-        return identify_full(self.meas, FullChainOptions(
+        return identify_full(self.meas, self.model, FullChainOptions(
             keys=keys, fit_stiffness_ratio=opt.fit_stiffness_ratio, priors=opt.priors, sigma_mm=self.sigma,
-            max_nfev=opt.max_nfev, extra_prior_std=self.prior_std, x0=x0), model=self.model)
+            max_nfev=opt.max_nfev, extra_prior_std=self.prior_std, x0=x0))
 
     def linearize(self, res: IdentResult, named: list[str]) -> Linearization:
         """Linear model at ``res`` with the columns of every candidate not in ``named``."""
@@ -549,15 +552,15 @@ def _notes(board: dict[str, Candidate], named: list[str], om: Omnibus, opt: Diag
     return notes + [f"{n}: {board[n].reason}" for n in named]
 
 
-def diagnose(meas: Measurements, options: DiagnoseOptions | None = None, geom: Geometry | None = None,
+def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | None = None,
              on_step=None) -> Diagnosis:
-    """Run the diagnosis (module docstring). ``on_step(text)`` reports progress."""
+    """Run the diagnosis (module docstring) with the whole-chain ``model`` that carries the effect terms
+    (:class:`pmcal.twin.effect_model.EffectChainModel`). ``on_step(text)`` reports progress."""
     t_start = time.perf_counter()
     limit_blas_threads(1)
     opt = options or DiagnoseOptions()
-    geom = geom or default_geometry()
     step = on_step or (lambda text: None)
-    pb = _Problem(meas, opt, geom)
+    pb = _Problem(meas, opt, model)
 
     step("fitting the baseline model")                               # a
     x0 = None

@@ -1,4 +1,4 @@
-"""The result of a discrepancy diagnosis (:func:`calib.ocpm.diagnose.diagnose`) and its JSON form
+"""The result of a discrepancy diagnosis (:func:`pmcal.calib.ocpm.diagnose.diagnose`) and its JSON form
 (INTERFACES.md ``pmcal diagnose`` document, extended). Units: mm, effect values as in the vocabulary."""
 
 from __future__ import annotations
@@ -7,14 +7,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.ocpm.data import Measurements
-from calib.ocpm.effect_signatures import VOCABULARY, effect_of_key
-from calib.ocpm.effect_values import EffectValue
-from calib.ocpm.fullchain import LOG_RATIO
-from calib.ocpm.linear_tests import Linearization
-from calib.ocpm.noise_estimate import NoiseEstimate
-from calib.ocpm.params import is_angular
-from calib.solvers.result import IdentResult
+from pmcal.mechanism.ocpm.data import Measurements
+from pmcal.mechanism.ocpm.effects import VOCABULARY, effect_of_key
+from pmcal.calib.ocpm.effect_values import EffectValue
+from pmcal.mechanism.ocpm.params import LOG_RATIO
+from pmcal.calib.ocpm.linear_tests import Linearization
+from pmcal.calib.ocpm.noise_estimate import NoiseEstimate
+from pmcal.mechanism.ocpm.params import is_angular
+from pmcal.calib.solvers.result import IdentResult
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """An effect's fitted parameters as one value at the interface: value, 95 % interval, plausibility.
 
 Internal parameters (radians, 1/K, rad/(N m), rad/h) come from the diagnosis' fits with their
-covariance; the value is in the unit of :data:`calib.ocpm.effect_signatures.VOCABULARY` (compliance as a
+covariance; the value is in the unit of :data:`pmcal.mechanism.ocpm.effects.VOCABULARY` (compliance as a
 stiffness K = 1/c), the interval by the delta method. Also the effects' prior standard deviations.
 """
 
@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.ocpm.effect_signatures import VOCABULARY, effect_of_key
-from calib.ocpm.fullchain import Priors
-from calib.ocpm.params import is_angular
+from pmcal.mechanism.ocpm.effects import VOCABULARY, effect_of_key
+from pmcal.calib.ocpm.fullchain import Priors
+from pmcal.mechanism.ocpm.params import is_angular
 
 Z95 = 1.959963984540054
 

@@ -2,8 +2,8 @@
 
 Forward model: the pose the machine reaches for motor commands, given the full parameter set (all four
 limbs, SS, motor zero offsets, closure stiffness ratio) and the same closure-compliance physics as the
-twin: it *is* the twin's quasi-static solve (:class:`twin.machine.Twin`) with the candidate parameters,
-differentiated analytically (:mod:`twin.sensitivity`).
+twin: it *is* the twin's quasi-static solve (:class:`pmcal.twin.machine.Twin`) with the candidate parameters,
+differentiated analytically (:mod:`pmcal.twin.sensitivity`).
 
 Identification: maximum a posteriori least squares on the raw target coordinates,
 
@@ -25,14 +25,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.data import Measurements
-from calib.ocpm.kinematics import nominal_ik
-from calib.ocpm.params import ErrorSet, all_keys, is_angular
-from calib.rotations import tilt_torsion
-from calib.solvers.result import IdentResult
-
-LOG_RATIO = "log_stiffness_ratio"
+from pmcal.mechanism.ocpm.data import Measurements
+from pmcal.mechanism.ocpm.kinematics import nominal_ik
+from pmcal.mechanism.ocpm.params import LOG_RATIO, ErrorSet, all_keys, is_angular
+from pmcal.mechanism.rotations import tilt_torsion
+from pmcal.calib.forward_model import ForwardModel
+from pmcal.calib.solvers.result import IdentResult
 
 
 @dataclass
@@ -62,101 +60,23 @@ class FullChainOptions:
     sigma_mm: float | None = None           # tracker noise (default machine.toml)
     max_nfev: int = 50
     #: Prior std (internal units) of keys outside the geometric vocabulary, e.g. the effect parameters
-    #: of :class:`calib.ocpm.effect_signatures.EffectChainModel`; their prior mean is 0.
+    #: of :class:`pmcal.twin.effect_model.EffectChainModel`; their prior mean is 0.
     extra_prior_std: dict[str, float] = field(default_factory=dict)
     #: Start values (internal units) instead of the prior mean, e.g. a previous fit (warm start).
     x0: dict[str, float] | None = None
-
-
-class FullChainModel:
-    """Forward model of the whole closed chain: commands (deg) + parameters → targets (mm)."""
-
-    def __init__(self, geom: Geometry | None = None, stiffness_ratio: float | None = None):
-        from twin.machine import Twin   # the twin's physics is the model
-
-        self.geom = geom or default_geometry()
-        self.twin = Twin(None, self.geom, stiffness_ratio=stiffness_ratio)
-        self._qpos: np.ndarray | None = None
-        self._cmd_key: bytes | None = None
-
-    @property
-    def stiffness_ratio(self) -> float:
-        k = self.twin.stiffness.closure
-        return float(k.max() / k.min())
-
-    def set(self, errors: ErrorSet, stiffness_ratio: float | None = None) -> None:
-        self.twin.set_errors(errors)
-        if stiffness_ratio is not None:
-            self.twin.set_stiffness_ratio(stiffness_ratio)
-
-    def solve(self, m_cmd_deg: np.ndarray):
-        """Equilibria for commands (N, 2) deg, warm-started from the previous solve of the same commands."""
-        m_cmd_deg = np.atleast_2d(np.asarray(m_cmd_deg, float))
-        key = m_cmd_deg.tobytes()
-        joint = np.deg2rad(m_cmd_deg) + self.twin.errors.dtheta[:2]
-        state = self._reach(joint, self._qpos if key == self._cmd_key else None)
-        self._qpos, self._cmd_key = state.qpos.copy(), key
-        return state
-
-    def _reach(self, joint: np.ndarray, warm: np.ndarray | None):
-        """Equilibria at true joint angles (N, 2) rad from the configurations ``warm`` (or the closed-form
-        start); a warm start that leaves poses unconverged is redone from the closed form. Poses that still
-        do not converge get NaN targets: a parameter set under which the model cannot assemble a measured
-        pose predicts nothing there, so a fit rejects that step (scipy's trust region shrinks on non-finite
-        residuals) instead of taking a half-solved pose at face value."""
-        state = self.twin.reach_joint(joint, qpos=warm)
-        if warm is not None and not state.converged.all():
-            state = self.twin.reach_joint(joint)
-        state.targets[~state.converged] = np.nan
-        return state
-
-    def set_vector(self, keys: list[str], x: np.ndarray, ratio0: float) -> None:
-        """Set the model from a parameter vector (internal units); ``ratio0`` if the ratio is not in it."""
-        e, log_ratio = errors_from_vector(keys, x)
-        self.set(e, np.exp(log_ratio) if log_ratio is not None else ratio0)
-
-    def predict_meas(self, meas: Measurements, keys: list[str]):
-        """Targets of a campaign and their derivatives w.r.t. ``keys`` (the hook :func:`identify_full` calls;
-        subclasses with context-dependent terms override it together with :meth:`set_vector`)."""
-        return self.predict(meas.m_cmd_deg, keys)
-
-    def predict(self, m_cmd_deg: np.ndarray, keys: list[str] | None = None):
-        """Targets (N, k, 3) mm and, with ``keys``, their derivatives (N, k, 3, len(keys))."""
-        from twin.sensitivity import target_sensitivity
-
-        state = self.solve(m_cmd_deg)
-        if keys is None:
-            return state.targets, None
-        return state.targets, target_sensitivity(self.twin, state.qpos, keys).d_targets
-
-
-def errors_from_vector(keys: list[str], x: np.ndarray) -> tuple[ErrorSet, float | None]:
-    """ErrorSet (internal units) and log stiffness ratio (or None) from a parameter vector."""
-    e = ErrorSet()
-    log_ratio = None
-    for k, v in zip(keys, x):
-        if k == LOG_RATIO:
-            log_ratio = float(v)
-        else:
-            e.set(k, float(v))
-    return e, log_ratio
-
-
-def to_interface(keys: list[str], x: np.ndarray) -> dict[str, float]:
-    """Parameter dict in interface units (mm, deg); the stiffness ratio is left out."""
-    return {k: float(np.rad2deg(v)) if is_angular(k) else float(v) for k, v in zip(keys, x) if k != LOG_RATIO}
 
 
 class UnassembledError(ValueError):
     """Measured poses the model cannot assemble at the start of a fit (outside its workspace)."""
 
 
-def identify_full(meas: Measurements, options: FullChainOptions | None = None,
-                  model: FullChainModel | None = None) -> IdentResult:
+def identify_full(meas: Measurements, model: ForwardModel, options: FullChainOptions | None = None
+                  ) -> IdentResult:
     """Identify the whole-chain parameters from measured targets (see module docstring)."""
     opt = options or FullChainOptions()
-    geom = model.geom if model is not None else default_geometry()
-    model = model or FullChainModel(geom, opt.stiffness_ratio)
+    geom = model.geom
+    if opt.stiffness_ratio is not None:
+        model.set(ErrorSet(), opt.stiffness_ratio)
     sigma = opt.sigma_mm or geom.sigma_mm
     keys = list(opt.keys or all_keys(geom.n_limbs, geom.actuated))
     ratio0 = model.stiffness_ratio if opt.stiffness_ratio is None else opt.stiffness_ratio
@@ -232,13 +152,13 @@ def identify_full(meas: Measurements, options: FullChainOptions | None = None,
 
 def platform_normals(targets: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Platform normals (N, 3) of rigid fits of targets (N, k, 3) to platform coordinates X."""
-    from calib.rigid import fit_pose
+    from pmcal.mechanism.rigid import fit_pose
 
     _, R, _ = fit_pose(targets, X)
     return R[:, :, 2]
 
 
-def setpoints(model: FullChainModel, errors: ErrorSet, phi_deg, theta_deg, stiffness_ratio: float | None = None,
+def setpoints(model: ForwardModel, errors: ErrorSet, phi_deg, theta_deg, stiffness_ratio: float | None = None,
               tol_deg: float = 1e-7, max_iter: int = 20) -> np.ndarray:
     """Motor commands (N, 2) deg that make the machine described by ``errors`` point at (phi, theta).
 

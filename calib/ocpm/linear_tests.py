@@ -4,7 +4,7 @@ At a fit of the whole-chain model the measurements are, to first order,
 ``r = y - T(x)``, whitened by the tracker noise sigma, against the derivative columns ``J`` of every
 parameter: the fitted ones and the candidate effects' (their *signatures*). Columns are in units of each
 parameter's prior standard deviation, so a parameter in the model contributes a prior row ``z^2``
-(``z`` its value in those units; :func:`calib.ocpm.fullchain.identify_full`'s MAP form). Everything here
+(``z`` its value in those units; :func:`pmcal.calib.ocpm.fullchain.identify_full`'s MAP form). Everything here
 is linear algebra on ``(J, r)``: fits on any subset of rows (cross-validation folds) and any set of
 columns, the information an effect keeps once the model's parameters have absorbed what they can (the
 Schur complement), and nested-model F tests with the null distribution of a prior-weighted chi-square

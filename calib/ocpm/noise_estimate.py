@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from calib.ocpm.config import Geometry
-from calib.ocpm.data import Measurements
+from pmcal.mechanism.ocpm.config import Geometry
+from pmcal.mechanism.ocpm.data import Measurements
 
 
 @dataclass

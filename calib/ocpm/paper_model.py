@@ -1,5 +1,5 @@
 """The seed's error model of the over-constrained PM (seed 000 eq. 12-14) and its linearised
-pose-error model (eq. 18-20), as :class:`calib.solvers.problem.Problem` objects.
+pose-error model (eq. 18-20), as :class:`pmcal.calib.solvers.problem.Problem` objects.
 
 Per-limb model (eq. 14). At every measured pose (r, R) (rigid fit of the tracker targets) the real
 inverse kinematics of actuated limb j with candidate errors gives the joint angle ``beta_j``; the machine
@@ -34,12 +34,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.kinematics import from_pointing_coords, limb_ik, nominal_fk, nominal_pose
-from calib.ocpm.params import ANGULAR_FIELDS, SEED_LIMB_FIELDS, ErrorSet, describe
-from calib.rigid import fit_pose
-from calib.rotations import tilt_torsion_angles
-from calib.solvers.problem import Problem, box_problem
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.ocpm.kinematics import from_pointing_coords, limb_ik, nominal_fk, nominal_pose
+from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, SEED_LIMB_FIELDS, ErrorSet, describe
+from pmcal.mechanism.rigid import fit_pose
+from pmcal.mechanism.rotations import tilt_torsion_angles
+from pmcal.calib.solvers.problem import Problem, box_problem
 
 TILT_FIELDS: tuple[str, ...] = ("dmu", "dnu")
 #: Default search box half-widths (mm, rad): wider than the seed's Table 2 errors (max 2 mm, 0.4 deg).
@@ -88,7 +88,7 @@ _VEC = {"dbx": ("db", 0), "dby": ("db", 1), "dbz": ("db", 2), "dax": ("da", 0), 
 _FIELD_OF = {k: v[0] for k, v in _VEC.items()}
 
 
-def errors_from_vector(X: np.ndarray, names: list[str], base: ErrorSet | None = None) -> ErrorSet:
+def errors_from_vector(names: list[str], X: np.ndarray, base: ErrorSet | None = None) -> ErrorSet:
     """An :class:`ErrorSet` with leading population dims ``X.shape[:-1]`` from vectors ``X (..., n)``.
 
     ``X`` in internal units (mm, rad) for the keys ``names``; every other parameter comes from ``base``
@@ -196,7 +196,7 @@ class PaperModel:
         ``X`` (..., n) parameter vectors; ``r``, ``R`` poses (default: the measured ones).
         """
         X = np.asarray(X, float)
-        errors = errors_from_vector(X, self.names, self.base)
+        errors = errors_from_vector(self.names, X, self.base)
         ik = limb_ik(self.r if r is None else r, self.R if R is None else R, errors, self.geom, self.limbs)
         dtheta = np.asarray(errors.dtheta)[..., np.asarray(self.limbs) - 1]
         e = ik.beta - (self._cmd + dtheta[..., None, :])
@@ -223,7 +223,7 @@ class PaperModel:
 
     def design(self) -> "PaperModel":
         """The same model on the nominal machine at the measured orientations, noise-free: where
-        first-order identifiability is judged (see :class:`calib.solvers.problem.Problem`)."""
+        first-order identifiability is judged (see :class:`pmcal.calib.solvers.problem.Problem`)."""
         return nominal_design(*self.orientations(), self.geom, names=self.names, limbs=self.limbs,
                               planarity=self.planarity, weighting=self.weighting, sigma_mm=self.sigma_mm)
 
@@ -242,7 +242,7 @@ class PaperModel:
 def from_measurements(meas, limbs: tuple[int, ...] = (1, 2), tilts: bool = False, planarity: bool = False,
                       weighting: str = "noise", sigma_mm: float | None = None,
                       geom: Geometry | None = None) -> PaperModel:
-    """A :class:`PaperModel` for a :class:`calib.ocpm.data.Measurements` campaign."""
+    """A :class:`PaperModel` for a :class:`pmcal.mechanism.ocpm.data.Measurements` campaign."""
     geom = geom or default_geometry()
     return PaperModel(targets=meas.targets, m_cmd=np.deg2rad(meas.m_cmd_deg),
                       names=param_names(limbs, tilts), limbs=tuple(limbs), planarity=planarity,
@@ -343,12 +343,12 @@ class LinearPoseModel:
 def error_jacobian(r: np.ndarray, R: np.ndarray, m_cmd: np.ndarray, names: list[str], geom: Geometry,
                    h_pose: float = 1e-6) -> np.ndarray:
     """Seed eq. 18 error Jacobian ``J_e = -(J_x^T J_x)^{-1} J_x^T E_e`` (N, 6, n) at poses (r, R)."""
-    from calib.rotations import rot_x, rot_y, rot_z
+    from pmcal.mechanism.rotations import rot_x, rot_y, rot_z
 
     n = len(names)
     hx = 1e-4 * default_half_width(names)
     X = np.concatenate([np.diag(hx), -np.diag(hx)])
-    C = constraints(r, R, m_cmd, errors_from_vector(X, names), geom)          # (2n, N, 7)
+    C = constraints(r, R, m_cmd, errors_from_vector(names, X), geom)          # (2n, N, 7)
     E = np.moveaxis((C[:n] - C[n:]) / (2 * hx[:, None, None]), 0, -1)      # (N, 7, n)
     zero = ErrorSet()
     cols = []
@@ -377,7 +377,7 @@ def pose_sensitivity(p: np.ndarray, names: list[str], geom: Geometry | None = No
 
     def cmd(pp: np.ndarray, X: np.ndarray) -> np.ndarray:
         r, R = nominal_pose(*from_pointing_coords(pp), geom)
-        e = errors_from_vector(X, names)
+        e = errors_from_vector(names, X)
         return limb_ik(r, R, e, geom, (1, 2)).beta - np.asarray(e.dtheta)[..., None, :2]
 
     X = np.concatenate([np.diag(hx), -np.diag(hx)])
@@ -434,7 +434,7 @@ class PaperCalibration:
         return [k for a in self.design.values() for k in a.unidentifiable]
 
     def errors(self) -> ErrorSet:
-        return errors_from_vector(self.x, self.names)
+        return errors_from_vector(self.names, self.x)
 
     def params(self) -> dict[str, float]:
         """Identified values in interface units (mm, deg), unidentifiable ones left out (nominal)."""
@@ -457,8 +457,8 @@ def calibrate(meas, method: str = "hga", limbs: tuple[int, ...] = (1, 2), *, see
 
     ``on_limb_done(limb, result)`` is called after each limb (progress). ``options`` go to the solver.
     """
-    from calib.identifiability import analyse
-    from calib.solvers import identify
+    from pmcal.calib.identifiability import analyse
+    from pmcal.calib.solvers import identify
 
     t0 = time.perf_counter()
     geom = geom or default_geometry()

@@ -19,11 +19,11 @@ from typing import Callable
 
 import numpy as np
 
-from calib.planar.geometry import Errors, Geometry
-from calib.planar.identification import identify
-from calib.planar.kinematics import actual_position, forward, inverse
-from calib.planar.noise import Noise
-from calib.solvers.result import IdentResult
+from pmcal.mechanism.planar.geometry import Errors, Geometry
+from pmcal.calib.planar.identification import identify
+from pmcal.mechanism.planar.kinematics import actual_position, forward, inverse
+from pmcal.mechanism.planar.noise import Noise
+from pmcal.calib.solvers.result import IdentResult
 
 #: ``measure(theta_cmd)``: commands (K, 2) rad -> scale changes between adjacent positions (K-1,) mm
 Measure = Callable[[np.ndarray], np.ndarray]

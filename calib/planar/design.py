@@ -6,15 +6,15 @@ Positions are (K, 2) arrays in mm (seed frame, y up), in the order the platform 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
 
-from calib.planar.geometry import Geometry, Workspace
-from calib.planar.identification import (condition_number, covariance_from_sensitivity, difference_operator,
+from pmcal.mechanism.planar.geometry import Geometry, Workspace
+from pmcal.calib.planar.identification import (condition_number, covariance_from_sensitivity, difference_operator,
                                          identification_matrix, observation_rows, servo_sensitivity)
-from calib.planar.kinematics import Q, directions, inverse, mm_vector
-from calib.planar.noise import Noise
+from pmcal.mechanism.planar.kinematics import mm_vector
+from pmcal.mechanism.planar.noise import Noise
+from pmcal.mechanism.planar.region import Region
 
 
 def boundary_positions(ws: Workspace, n: int) -> np.ndarray:
@@ -58,36 +58,6 @@ def zero_offset_covariance(geom: Geometry, r: np.ndarray, noise: Noise) -> np.nd
     chain of readings at ``r`` under ``noise`` (the Cramér-Rao bound for Gaussian noise)."""
     g, sens_sq, _ = _candidate_terms(geom, r)
     return _batch_covariance(g, sens_sq, noise, geom)
-
-
-@dataclass(frozen=True)
-class Region:
-    """Where calibration positions may lie (mm, seed frame) and what the machine allows there.
-
-    x, y : (min, max) of a box; ``min_transmission``: smallest |sin| of the angle between proximal and
-    distal link of each limb (away from the workspace boundary singularity); ``min_platform``: smallest
-    |sin| of the angle between the two distal links (away from the platform singularity);
-    ``scale_range``: the linear scale's range l0 (mm), which the mechanism lengths must fit in.
-    """
-
-    x: tuple[float, float]
-    y: tuple[float, float]
-    min_transmission: float = 0.3
-    min_platform: float = 0.3
-    scale_range: float = 350.0
-
-    def candidates(self, geom: Geometry, step: float) -> np.ndarray:
-        """Grid points (N, 2) of the box that the robot reaches with the required transmission."""
-        xs = np.arange(self.x[0], self.x[1] + 1e-9, step)
-        ys = np.arange(self.y[0], self.y[1] + 1e-9, step)
-        r = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
-        theta = inverse(geom, r)
-        ok = np.all(np.isfinite(theta), axis=1)
-        r, theta = r[ok], theta[ok]
-        u, w = directions(geom, r, theta)
-        trans = np.abs(np.einsum("kij,jl,kil->ki", w, Q, u)).min(axis=1)
-        plat = np.abs(np.linalg.det(w))
-        return r[(trans >= self.min_transmission) & (plat >= self.min_platform)]
 
 
 def _candidate_terms(geom: Geometry, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

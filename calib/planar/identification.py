@@ -8,7 +8,7 @@ between adjacent positions, so each reading gives ``(ρ_{k+1} - ρ_k) - (λ_{k+1
 
 Unknowns, scaled as in the seed (all mm): simplified model ``Δp = (L1 Δθ1, L2 Δθ2, ΔrMx, ΔrMy)``; full
 model ``Δp' = (L1 Δθ1, Δe1x, Δe1y, ΔL1, Δl1, L2 Δθ2, ..., Δl2, ΔrMx, ΔrMy)``. Results are returned as
-:class:`calib.solvers.result.IdentResult` in calib units (rad for zero offsets, mm otherwise).
+:class:`pmcal.calib.solvers.result.IdentResult` in calib units (rad for zero offsets, mm otherwise).
 
 Positions ``r`` are the nominal positions the controller believes it commanded (mm, seed frame).
 """
@@ -19,11 +19,11 @@ import time
 
 import numpy as np
 
-from calib.planar.geometry import FULL_KEYS, SIMPLIFIED_KEYS, Geometry, internal_unit
-from calib.planar.kinematics import jacobian, mm_vector
-from calib.planar.noise import Noise
-from calib.solvers.linear import tsvd_solve
-from calib.solvers.result import IdentResult
+from pmcal.mechanism.planar.geometry import FULL_KEYS, SIMPLIFIED_KEYS, Geometry, internal_unit
+from pmcal.mechanism.planar.kinematics import jacobian, mm_vector
+from pmcal.mechanism.planar.noise import Noise
+from pmcal.calib.solvers.linear import tsvd_solve
+from pmcal.calib.solvers.result import IdentResult
 
 MODELS = {"simplified": SIMPLIFIED_KEYS, "full": FULL_KEYS}
 METHODS = ("tsvd", "ls", "gls")

@@ -1,7 +1,7 @@
 """Identification methods behind one call signature, returning :class:`IdentResult`.
 
 ``identify(problem, method="hga", seed=..., **options)`` solves any :class:`Problem` (population-vectorised
-least squares, see :mod:`calib.solvers.problem`) with one of :data:`METHODS`:
+least squares, see :mod:`pmcal.calib.solvers.problem`) with one of :data:`METHODS`:
 
 ==========  ==================================================================================
 hga         the seed's hybrid GA: GA to the basin, then a least-squares (or SQP) polish
@@ -13,7 +13,7 @@ tikhonov    linearised model with Tikhonov regularisation and the L-curve corner
 tsvd        linearised model with truncated SVD (seed 003 eq. 27-29)
 ==========  ==================================================================================
 
-Before solving, parameters with no first-order effect on the data (:mod:`calib.identifiability`,
+Before solving, parameters with no first-order effect on the data (:mod:`pmcal.calib.identifiability`,
 judged on the problem's noise-free ``design`` or at a quick regularised fit: :func:`reference_point`)
 are held at their prior and listed in ``IdentResult.fixed`` (``fix_unidentifiable=False`` keeps them);
 ``prior_std`` adds a Gaussian prior on every parameter (regularises weakly determined ones).
@@ -25,13 +25,13 @@ from typing import Callable
 
 import numpy as np
 
-from calib.solvers.ga import ga, hga
-from calib.solvers.local import lm
-from calib.solvers.problem import LeastSquaresProblem, Problem, box_problem
-from calib.solvers.pso import pso
-from calib.solvers.regularized import tikhonov, tsvd
-from calib.solvers.result import IdentResult
-from calib.solvers.sa import sa
+from pmcal.calib.solvers.ga import ga, hga
+from pmcal.calib.solvers.local import lm
+from pmcal.calib.solvers.problem import LeastSquaresProblem, Problem, box_problem
+from pmcal.calib.solvers.pso import pso
+from pmcal.calib.solvers.regularized import tikhonov, tsvd
+from pmcal.calib.solvers.result import IdentResult
+from pmcal.calib.solvers.sa import sa
 
 SOLVERS: dict[str, Callable[..., IdentResult]] = {
     "hga": hga, "ga": ga, "pso": pso, "sa": sa, "lm": lm, "tikhonov": tikhonov, "tsvd": tsvd,
@@ -49,7 +49,7 @@ def identify(problem: Problem, method: str = "hga", *, seed: int | None = None,
     """
     if method not in SOLVERS:
         raise ValueError(f"unknown identification method '{method}' (known: {', '.join(METHODS)})")
-    from calib.identifiability import analyse
+    from pmcal.calib.identifiability import analyse
 
     work = problem
     unidentifiable: list[str] = []

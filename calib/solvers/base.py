@@ -9,8 +9,8 @@ from typing import Callable
 
 import numpy as np
 
-from calib.solvers.problem import Problem
-from calib.solvers.result import IdentResult
+from pmcal.calib.solvers.problem import Problem
+from pmcal.calib.solvers.result import IdentResult
 
 #: ``callback(generation, best_cost)``; returning True stops the run (progress bars, time limits).
 Callback = Callable[[int, float], bool | None]

@@ -17,10 +17,10 @@ import time
 
 import numpy as np
 
-from calib.solvers.base import Callback, Counter, StallMonitor, finalize, from_unit, initial_population
-from calib.solvers.local import lsq_polish, sqp_polish
-from calib.solvers.problem import Problem
-from calib.solvers.result import IdentResult
+from pmcal.calib.solvers.base import Callback, Counter, StallMonitor, finalize, from_unit, initial_population
+from pmcal.calib.solvers.local import lsq_polish, sqp_polish
+from pmcal.calib.solvers.problem import Problem
+from pmcal.calib.solvers.result import IdentResult
 
 
 def _reflect(U: np.ndarray) -> np.ndarray:

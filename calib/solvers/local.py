@@ -11,9 +11,9 @@ import time
 import numpy as np
 from scipy.optimize import least_squares, minimize
 
-from calib.solvers.base import Counter, finalize
-from calib.solvers.problem import Problem
-from calib.solvers.result import IdentResult
+from pmcal.calib.solvers.base import Counter, finalize
+from pmcal.calib.solvers.problem import Problem
+from pmcal.calib.solvers.result import IdentResult
 
 
 def _funs(counter: Counter):

@@ -12,10 +12,10 @@ import time
 
 import numpy as np
 
-from calib.solvers.base import Callback, Counter, StallMonitor, finalize, from_unit, initial_population
-from calib.solvers.ga import _reflect
-from calib.solvers.problem import Problem
-from calib.solvers.result import IdentResult
+from pmcal.calib.solvers.base import Callback, Counter, StallMonitor, finalize, from_unit, initial_population
+from pmcal.calib.solvers.ga import _reflect
+from pmcal.calib.solvers.problem import Problem
+from pmcal.calib.solvers.result import IdentResult
 
 
 def pso(problem: Problem, *, seed: int | None = None, swarm: int = 100, inertia: float = 0.7298,

@@ -20,10 +20,10 @@ import time
 
 import numpy as np
 
-from calib.solvers.base import Counter, finalize
-from calib.solvers.linear import lcurve_corner, tikhonov_solve, tsvd_solve
-from calib.solvers.problem import Problem
-from calib.solvers.result import IdentResult
+from pmcal.calib.solvers.base import Counter, finalize
+from pmcal.calib.solvers.linear import lcurve_corner, tikhonov_solve, tsvd_solve
+from pmcal.calib.solvers.problem import Problem
+from pmcal.calib.solvers.result import IdentResult
 
 
 def gcv_rank(J: np.ndarray, b: np.ndarray) -> int:

@@ -12,9 +12,9 @@ import time
 import numpy as np
 from scipy.optimize import dual_annealing
 
-from calib.solvers.base import Callback, Counter, finalize, from_unit, to_unit
-from calib.solvers.problem import Problem
-from calib.solvers.result import IdentResult
+from pmcal.calib.solvers.base import Callback, Counter, finalize, from_unit, to_unit
+from pmcal.calib.solvers.problem import Problem
+from pmcal.calib.solvers.result import IdentResult
 
 
 def sa(problem: Problem, *, seed: int | None = None, maxfun: int = 20000, maxiter: int = 1000,

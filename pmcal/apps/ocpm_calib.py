@@ -11,13 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.ocpm import compensation as comp
-from calib.ocpm import paper_model as pm
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.kinematics import limb_ik, real_ik_commands
-from calib.ocpm.params import ErrorSet
-from calib.rotations import pointing_error, tilt_torsion, tilt_torsion_angles
-from calib.solvers import METHODS
+from pmcal.calib.ocpm import compensation as comp
+from pmcal.calib.ocpm import paper_model as pm
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.ocpm.kinematics import limb_ik, real_ik_commands
+from pmcal.mechanism.ocpm.params import ErrorSet
+from pmcal.mechanism.rotations import pointing_error, tilt_torsion, tilt_torsion_angles
+from pmcal.calib.solvers import METHODS
 from pmcal import progress
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
@@ -214,7 +214,7 @@ def _deg(rad: float) -> float:
 
 def build_table(errors, pmap, geom: Geometry, grid: tuple[int, int], version: int):
     """The 2-D compensation table over phi 0..360 and theta 0..theta_max (deg), validated."""
-    from calib.comptable import CompTable
+    from pmcal.bridge.comptable import CompTable
 
     def fill(phi_deg, theta_deg):
         return compensated_commands(phi_deg, theta_deg, errors, pmap, geom, field="grid")
@@ -226,7 +226,7 @@ def build_table(errors, pmap, geom: Geometry, grid: tuple[int, int], version: in
 
 
 def compensate(args) -> int:
-    from twin.campaign import THETA_LIMIT_DEG
+    from pmcal.twin.campaign import THETA_LIMIT_DEG
 
     geom = default_geometry()
     if not args.targets and not args.table:
@@ -337,8 +337,8 @@ class DemoStudy:
     METHODS_COMPARED: tuple[str, ...] = METHODS
 
     def __init__(self, seed: int):
-        from calib.ocpm.params import PAPER_TABLE2
-        from twin.machine import Twin
+        from pmcal.mechanism.ocpm.params import PAPER_TABLE2
+        from pmcal.twin.machine import Twin
 
         self.seed, self.geom = seed, default_geometry()
         self.truth = dict(PAPER_TABLE2)
@@ -351,18 +351,18 @@ class DemoStudy:
         self.timings[name] = time.perf_counter() - t0
 
     def campaign(self, n: int, seed: int, theta_max: float | None = None, plan=None):
-        from twin.campaign import plan_campaign, run_campaign
-        from twin.tracker import LaserTracker
+        from pmcal.twin.campaign import plan_campaign, run_campaign
+        from pmcal.twin.tracker import LaserTracker
 
         plan = plan or plan_campaign(n, theta_max or self.theta_max, seed)
         return run_campaign(self.twin, plan, LaserTracker(self.geom.sigma_mm, np.random.default_rng(seed)))
 
     # ------------------------------------------------------------------ steps
     def step_campaign(self, out: Path) -> None:
-        from twin.campaign import plan_campaign
+        from pmcal.twin.campaign import plan_campaign
 
         t0 = time.perf_counter()
-        from twin.campaign import plan_campaign as _plan
+        from pmcal.twin.campaign import plan_campaign as _plan
 
         self.meas_plan = _plan(self.N_CAL, self.theta_max, self.seed)
         self.meas = self.campaign(self.N_CAL, self.seed, plan=self.meas_plan)
@@ -381,7 +381,7 @@ class DemoStudy:
         self.params_doc = doc
 
     def step_compensate(self, out: Path) -> None:
-        from twin.campaign import nominal_commands
+        from pmcal.twin.campaign import nominal_commands
 
         t0 = time.perf_counter()
         ph, th = self.test.phi_deg, self.test.theta_deg
@@ -426,8 +426,8 @@ class DemoStudy:
         self._timed("algorithms", t0)
 
     def step_regularisation(self, out: Path) -> None:
-        from calib.solvers import identify
-        from calib.solvers.linear import lcurve, lcurve_corner
+        from pmcal.calib.solvers import identify
+        from pmcal.calib.solvers.linear import lcurve, lcurve_corner
 
         t0 = time.perf_counter()
         meas96 = self.campaign(self.N_REG, self.seed + 2000)
@@ -442,7 +442,7 @@ class DemoStudy:
         self.regular = {}
         for method in ("tikhonov", "tsvd"):
             res = identify(prob, method, fix_unidentifiable=False)
-            errors = pm.errors_from_vector(res.x, res.names)
+            errors = pm.errors_from_vector(res.names, res.x)
             self.regular[f"{method} (linear pose model, {self.N_REG} poses)"] = {
                 "res": res, "held_out": held_out(self.twin, errors, pmap96, self.test.phi_deg,
                                                  self.test.theta_deg, self.geom)}
@@ -454,8 +454,8 @@ class DemoStudy:
         self.ident = self.cal.identifiability
 
     def step_pose(self, out: Path) -> None:
-        from calib.pose_selection import condition_number, crlb_std, join_blocks, select_poses
-        from twin.campaign import CampaignPlan, plan_orientations
+        from pmcal.calib.pose_selection import condition_number, crlb_std, join_blocks, select_poses
+        from pmcal.twin.campaign import CampaignPlan, plan_orientations
 
         t0 = time.perf_counter()
         rng = np.random.default_rng(self.seed + 3000)
@@ -483,11 +483,11 @@ class DemoStudy:
     def step_fullchain(self, out: Path) -> None:
         """Seed method vs whole closed chain on the same data: Table 2 errors in limbs 1-2, and the same
         machine with 0.5 mm / 0.1 deg (1 sigma) errors added to the passive limbs and the SS limb."""
-        from calib.ocpm.params import random_errors
+        from pmcal.mechanism.ocpm.params import random_errors
         from pmcal.apps.ocpm_full import FullCompensation, identify_document
-        from twin.campaign import nominal_commands, run_campaign
-        from twin.machine import Twin
-        from twin.tracker import LaserTracker
+        from pmcal.twin.campaign import nominal_commands, run_campaign
+        from pmcal.twin.machine import Twin
+        from pmcal.twin.tracker import LaserTracker
 
         t0 = time.perf_counter()
         ph, th = self.test.phi_deg, self.test.theta_deg
@@ -514,11 +514,11 @@ class DemoStudy:
         self._timed("whole chain", t0)
 
     def step_render(self, out: Path) -> None:
-        from calib.ocpm.kinematics import nominal_ik
+        from pmcal.mechanism.ocpm.kinematics import nominal_ik
 
         self.render_png, self.render_note = None, ""
         try:
-            from twin.render import render_png
+            from pmcal.twin.render import render_png
 
             st = self.twin.reach(np.rad2deg(nominal_ik(np.deg2rad(45.0), np.deg2rad(30.0), self.geom)))
             self.render_png = render_png(st.qpos[0], self.twin.errors, width=640, height=480)
@@ -559,7 +559,7 @@ def demo_report(st: DemoStudy):
     matplotlib_agg()
     import matplotlib.pyplot as plt
 
-    from calib.ocpm.params import PAPER_TABLE2_IDENTIFIED, describe, unit
+    from pmcal.mechanism.ocpm.params import PAPER_TABLE2_IDENTIFIED, describe, unit
 
     rep = Report("pmcal demo: calibration of the over-constrained 2-DoF PM",
                  "Digital twin with the seed's Table 2 errors (limbs 1 and 2), closure compliance, tracker "

@@ -1,6 +1,6 @@
 """``pmcal diagnose`` and ``pmcal demo --hidden-effect`` for the over-constrained PM.
 
-Reads and validates the measurements, runs :func:`calib.ocpm.diagnose.diagnose`, writes the JSON of
+Reads and validates the measurements, runs :func:`pmcal.calib.ocpm.diagnose.diagnose`, writes the JSON of
 INTERFACES.md (atomically) and, with ``--report DIR``, a self-contained HTML report, the diagnosed model
 (``params.json``: geometry plus the named effects) and the JSON, as one directory that appears whole or
 not at all. The demo hides an effect in a twin campaign and diagnoses it without being told.
@@ -12,10 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.diagnose import BASELINES, DiagnoseOptions, diagnose as run_diagnosis
-from calib.ocpm.diagnosis_result import Diagnosis
-from calib.ocpm.effect_signatures import EFFECT_NAMES, VOCABULARY
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.calib.ocpm.diagnose import BASELINES, DiagnoseOptions, diagnose as run_diagnosis
+from pmcal.calib.ocpm.diagnosis_result import Diagnosis
+from pmcal.mechanism.ocpm.effects import EFFECT_NAMES, VOCABULARY
+from pmcal.mechanism.ocpm.params import errors_and_ratio
+from pmcal.twin.effect_model import EffectChainModel
 from pmcal import progress
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_directory, write_json
@@ -76,7 +78,7 @@ def run(meas, options: DiagnoseOptions, geom: Geometry) -> Diagnosis:
             if text in steps:
                 bar.update(1)
         try:
-            return run_diagnosis(meas, options, geom, on_step)
+            return run_diagnosis(meas, EffectChainModel(geom), options, on_step)
         except (RuntimeError, np.linalg.LinAlgError) as exc:
             raise RunError(f"the diagnosis failed: {exc}") from None
 
@@ -129,7 +131,7 @@ def diagnose(args) -> int:
 def hidden_effect_demo(args) -> int:
     """Hide an effect (a vocabulary name, ``none`` or ``random``) in a twin campaign, diagnose it blind,
     and write measurements, diagnosis, report and the answer into ``args.out``."""
-    from twin.effects import REALISTIC, hidden_effect_campaign
+    from pmcal.twin.effects import REALISTIC, hidden_effect_campaign
 
     name = args.hidden_effect
     choices = list(EFFECT_NAMES) + ["none", "random"]
@@ -277,12 +279,11 @@ def _apparent(d: Diagnosis, lin) -> tuple[np.ndarray, np.ndarray]:
 def _context_figures(rep, d: Diagnosis) -> None:
     import matplotlib.pyplot as plt
 
-    from calib.ocpm.fullchain import errors_from_vector
-    from twin.effects import motor_torques
+    from pmcal.twin.effects import motor_torques
 
     meas = d.meas
     N = len(meas)
-    e, log_ratio = errors_from_vector(list(d.baseline.names), d.baseline.x)
+    e, log_ratio = errors_and_ratio(list(d.baseline.names), d.baseline.x)
     try:
         tau = motor_torques(e, meas.m_cmd_deg, meas.payload_kg, d.baseline.info["stiffness_ratio"])
     except (RuntimeError, ValueError):

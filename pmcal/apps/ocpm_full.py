@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.ocpm.config import Geometry
-from calib.ocpm.data import Measurements
-from calib.ocpm.fullchain import (LOG_RATIO, FullChainModel, FullChainOptions, identify_full, setpoints,
-                                  to_interface)
-from calib.rigid import fit_pose
-from calib.ocpm.params import ErrorSet, describe, is_angular
-from calib.rotations import tilt_torsion_angles
+from pmcal.mechanism.ocpm.config import Geometry
+from pmcal.mechanism.ocpm.data import Measurements
+from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full, setpoints
+from pmcal.mechanism.ocpm.params import LOG_RATIO, to_interface
+from pmcal.twin.forward import FullChainModel
+from pmcal.mechanism.rigid import fit_pose
+from pmcal.mechanism.ocpm.params import ErrorSet, describe, is_angular
+from pmcal.mechanism.rotations import tilt_torsion_angles
 
 #: A parameter whose posterior std is above this fraction of its prior std is "not determined by the
 #: campaign": the data moved it little, the prior (manufacturing tolerance) holds it.
@@ -24,8 +25,8 @@ UNDETERMINED_FRACTION = 0.7
 def identify_document(meas: Measurements, sigma: float, source: str, geom: Geometry,
                       fit_stiffness_ratio: bool = True) -> tuple[dict[str, float], dict]:
     """Identify the whole chain; returns (params mm/deg, the rest of the params JSON)."""
-    res = identify_full(meas, FullChainOptions(fit_stiffness_ratio=fit_stiffness_ratio, sigma_mm=sigma),
-                        model=FullChainModel(geom))
+    res = identify_full(meas, FullChainModel(geom),
+                        FullChainOptions(fit_stiffness_ratio=fit_stiffness_ratio, sigma_mm=sigma))
     std = res.std
     prior = res.info["prior_std"]
     to_unit = lambda k, v: float(np.rad2deg(v)) if is_angular(k) else float(v)  # noqa: E731

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.ocpm.config import default_geometry
-from calib.ocpm.params import PAPER_TABLE2
+from pmcal.mechanism.ocpm.config import default_geometry
+from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 from pmcal import progress
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write
@@ -26,7 +26,7 @@ def machine_errors(args) -> dict[str, float]:
 
 
 def build_twin(args, errors: dict[str, float]):
-    from twin.machine import Twin
+    from pmcal.twin.machine import Twin
 
     return Twin(errors, stiffness_ratio=stiffness_ratio(args))
 
@@ -40,8 +40,8 @@ def stiffness_ratio(args) -> float | None:
 
 
 def twin_measure(args) -> int:
-    from twin.campaign import THETA_LIMIT_DEG, CampaignPlan, plan_campaign, run_campaign
-    from twin.tracker import LaserTracker
+    from pmcal.twin.campaign import THETA_LIMIT_DEG, CampaignPlan, plan_campaign, run_campaign
+    from pmcal.twin.tracker import LaserTracker
 
     geom = default_geometry()
     sigma = geom.sigma_mm if args.noise is None else args.noise
@@ -108,8 +108,8 @@ def parse_levels(text: str | None, field: str, lo: float, hi: float, unit: str, 
 
 def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max: float) -> int:
     """``twin measure`` with effects: the effect-aware twin (gravity, payload, temperature, drive effects)."""
-    from twin.effects import EffectTwin, Effects, plan_effect_campaign
-    from twin.tracker import LaserTracker
+    from pmcal.twin.effects import EffectTwin, Effects, plan_effect_campaign
+    from pmcal.twin.tracker import LaserTracker
 
     try:
         effects = Effects.parse(args.effect)
@@ -125,7 +125,7 @@ def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max
     n = args.poses
     phi = theta = None
     if args.targets:
-        from twin.campaign import THETA_LIMIT_DEG
+        from pmcal.twin.campaign import THETA_LIMIT_DEG
         phi, theta = read_targets(args.targets, theta_max_deg=THETA_LIMIT_DEG)
         n = len(phi)
     plan = plan_effect_campaign(n, theta_max, args.seed, payloads=payloads, temp_c=temps,
@@ -167,9 +167,9 @@ def parse_pose(text: str) -> tuple[float, float]:
 
 
 def twin_render(args) -> int:
-    from calib.ocpm.kinematics import nominal_ik
-    from twin.campaign import THETA_LIMIT_DEG
-    from twin.render import RenderUnavailable, render_png
+    from pmcal.mechanism.ocpm.kinematics import nominal_ik
+    from pmcal.twin.campaign import THETA_LIMIT_DEG
+    from pmcal.twin.render import RenderUnavailable, render_png
 
     phi, theta = parse_pose(args.pose)
     if not 0 <= theta <= THETA_LIMIT_DEG:

@@ -3,7 +3,7 @@
 Commands: ``identify`` (zero offsets and MAEMM from a measurement CSV), ``compensate`` (motor commands for
 target positions), ``evaluate`` (a parameter set against a measurement CSV), ``twin_measure`` and
 ``twin_render`` (the MuJoCo twin), ``demo`` (:mod:`pmcal.apps.planar_demo`). Files: mm and degrees
-(docs/planar_measurement_format.md); parameter keys: :mod:`calib.planar.geometry`.
+(docs/planar_measurement_format.md); parameter keys: :mod:`pmcal.mechanism.planar.geometry`.
 """
 
 from __future__ import annotations
@@ -19,12 +19,12 @@ MODEL_CHOICES = {None: "simplified", "paper": "simplified", "simplified": "simpl
 
 
 def _machine():
-    from twin.planar.config import default_machine
+    from pmcal.twin.planar.config import default_machine
     return default_machine()
 
 
 def _noise(machine, sigma: float | None):
-    from calib.planar.noise import Noise
+    from pmcal.mechanism.planar.noise import Noise
     if sigma is None:
         return machine.noise
     if not (math.isfinite(sigma) and sigma > 0):
@@ -34,7 +34,7 @@ def _noise(machine, sigma: float | None):
 
 def identify(args) -> int:
     """``pmcal --machine planar_2dof identify MEAS.csv -o PARAMS.json [--model full] [--method tsvd|ls|gls]``."""
-    from calib.planar.identification import METHODS, identify as run
+    from pmcal.calib.planar.identification import METHODS, identify as run
     from pmcal.fileio import write_json
     from pmcal.io_planar import params_document, read_measurements
 
@@ -69,7 +69,7 @@ def identify(args) -> int:
 def compensate(args) -> int:
     """Motor commands (deg) that bring the identified machine to target positions (mm): the controller's
     inverse kinematics with the identified parameters, minus the zero offsets (seed section 5)."""
-    from calib.planar.kinematics import inverse
+    from pmcal.mechanism.planar.kinematics import inverse
     from pmcal.io_planar import read_params, read_targets, write_setpoints
 
     if getattr(args, "table", None) or getattr(args, "grid", None):
@@ -93,9 +93,9 @@ def compensate(args) -> int:
 def evaluate(args) -> int:
     """How well a parameter set explains a measurement file: RMS of the reading residuals (mm) with the
     nominal machine and with the parameters (closed-form model, noise-free)."""
-    from calib.planar.identification import difference_operator
-    from calib.planar.kinematics import actual_position, mm_vector
-    from calib.planar.geometry import Errors
+    from pmcal.calib.planar.identification import difference_operator
+    from pmcal.mechanism.planar.kinematics import actual_position, mm_vector
+    from pmcal.mechanism.planar.geometry import Errors
     from pmcal.fileio import write_json
     from pmcal.io_planar import read_measurements, read_params
 
@@ -131,12 +131,12 @@ def _errors_from_args(args, machine):
 def twin_measure(args) -> int:
     """A virtual campaign: ``--poses K`` positions (seed Fig. 7, K even) or ``--targets``; scale noise
     ``--noise`` (mm, default eq. 34) and servo noise (eq. 35); readings as in the measurement CSV."""
-    from calib.planar.design import boundary_positions
-    from calib.planar.noise import Noise
+    from pmcal.calib.planar.design import boundary_positions
+    from pmcal.mechanism.planar.noise import Noise
     from pmcal import progress
     from pmcal.io_planar import read_targets, write_measurements
-    from twin.planar.campaign import commands_for, measure
-    from twin.planar.twin import PlanarTwin
+    from pmcal.twin.planar.campaign import commands_for, measure
+    from pmcal.twin.planar.twin import PlanarTwin
 
     machine = _machine()
     errors, source = _errors_from_args(args, machine)
@@ -175,11 +175,11 @@ def twin_measure(args) -> int:
 
 def twin_render(args) -> int:
     """PNG of the twin; ``--pose X,Y`` is the position of P in mm (the default ``0,0`` means home P0)."""
-    from calib.planar.kinematics import inverse
+    from pmcal.mechanism.planar.kinematics import inverse
     from pmcal.fileio import atomic_write
-    from twin.planar.render import render_png
-    from twin.planar.twin import PlanarTwin
-    from twin.render import RenderUnavailable
+    from pmcal.twin.planar.render import render_png
+    from pmcal.twin.planar.twin import PlanarTwin
+    from pmcal.twin.render import RenderUnavailable
 
     machine = _machine()
     errors, _ = _errors_from_args(args, machine)

@@ -101,17 +101,17 @@ def _fig_delta(studies, groups, names):
 
 
 def demo(args) -> int:
-    from calib.planar.design import boundary_positions, choose_n, condition_study, optimal_positions
-    from calib.planar.identification import identification_matrix, identify
-    from calib.planar.kinematics import actual_position
+    from pmcal.calib.planar.design import boundary_positions, choose_n, condition_study, optimal_positions
+    from pmcal.calib.planar.identification import identification_matrix, identify
+    from pmcal.mechanism.planar.kinematics import actual_position
     from pmcal.fileio import atomic_directory
     from pmcal.fileio import write_json
     from pmcal.io_planar import params_document, write_measurements
     from pmcal.report import matplotlib_agg
-    from twin.planar.campaign import commands_for, measure
-    from twin.planar.config import default_machine
-    from twin.planar.study import GROUPS, SEED, evaluate_at, run_study, settings
-    from twin.planar.twin import PlanarTwin
+    from pmcal.twin.planar.campaign import commands_for, measure
+    from pmcal.twin.planar.config import default_machine
+    from pmcal.apps.planar_study import GROUPS, SEED, evaluate_at, run_study, settings
+    from pmcal.twin.planar.twin import PlanarTwin
 
     if getattr(args, "hidden_effect", None):
         raise InputError("hidden effects are not available for planar_2dof", field="--hidden-effect")
@@ -193,7 +193,7 @@ def demo(args) -> int:
             picture = "not drawn"
             try:
                 if draw:
-                    from twin.planar.render import render_png
+                    from pmcal.twin.planar.render import render_png
                     picture = render_png(tw1, width=720, height=540)
             except Exception as exc:  # rendering is optional (no OpenGL): the report says so
                 picture = f"{exc.__class__.__name__}: {exc}"
@@ -247,7 +247,7 @@ def _results(machine, studies, dpmax_seedpos, dpmax_before, SEED, ns, k1, km, n,
 def _report(machine, results, studies, fig9, dpmax_seedpos, SEED, ns, k1, km, seed_pos, ours_pos, picture,
             sets, full_cmp):
     from pmcal.report import Report
-    from twin.planar.study import GROUPS
+    from pmcal.apps.planar_study import GROUPS
 
     R = Report("Planar 2-DOF robot: zero-offset calibration with the measuring mechanism",
                subtitle="Reproduction of Mei et al. 2017 (seed 003) on the MuJoCo twin, and an improvement. "

@@ -4,7 +4,7 @@
   (JSON or CSV, docs/compensation_table.md) and makes it active; exit 0 on success, 2 for a bad or
   stale table (nothing written), 1 for a transfer failure, 3 when the PLC rejects the table.
 - ``pmcal mock-plc --ads|--modbus`` runs a mock PLC on 127.0.0.1 for manual trials.
-- ``pmcal loop`` puts the digital twin in the loop (see :mod:`bridge.loop`).
+- ``pmcal loop`` puts the digital twin in the loop (see :mod:`pmcal.apps.plc_loop`).
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ def _target_args(p: argparse.ArgumentParser) -> None:
 
 def _quiet_libraries() -> None:
     """One clear line per failure: silence AdsLib's and pymodbus' own logging (CLI process only)."""
-    from bridge.ads import set_adslib_log_level
+    from pmcal.bridge.ads import set_adslib_log_level
 
     set_adslib_log_level(4)
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -83,21 +83,21 @@ def _quiet_libraries() -> None:
 
 def make_link(args, writes=None):
     """The link named by ``--ads`` / ``--modbus`` (InputError for a malformed target)."""
-    from bridge.plc_types import PUSH_WRITES
+    from pmcal.bridge.plc_types import PUSH_WRITES
 
     writes = PUSH_WRITES if writes is None else writes
     if not (args.timeout > 0):
         raise InputError(f"time-out must be positive, got {args.timeout}", field="--timeout")
     if args.ads:
-        from bridge.ads import AdsLink
-        from bridge.ads_map import AdsMap, AdsTarget
+        from pmcal.bridge.ads import AdsLink
+        from pmcal.bridge.ads_map import AdsMap, AdsTarget
 
         try:
             target = AdsTarget.parse(args.ads)
         except ValueError as exc:
             raise InputError(str(exc), field="--ads") from None
         return AdsLink(target, amap=AdsMap(ams_port=args.ams_port), writes=writes, timeout_s=args.timeout)
-    from bridge.modbus import ModbusLink, parse_host_port
+    from pmcal.bridge.modbus import ModbusLink, parse_host_port
 
     try:
         host, port = parse_host_port(args.modbus)
@@ -107,9 +107,9 @@ def make_link(args, writes=None):
 
 
 def cmd_push(args) -> int:
-    from calib.comptable import CompTable
-    from bridge.errors import BridgeError
-    from bridge.transfer import PushOptions, push
+    from pmcal.bridge.comptable import CompTable
+    from pmcal.bridge.errors import BridgeError
+    from pmcal.bridge.transfer import PushOptions, push
 
     if args.attempts < 1:
         raise InputError(f"attempts must be at least 1, got {args.attempts}", field="--attempts")
@@ -145,8 +145,8 @@ def _write_json(path, report) -> None:
 
 
 def cmd_mock_plc(args) -> int:
-    from calib.comptable import CompTable
-    from bridge.faults import Fault
+    from pmcal.bridge.comptable import CompTable
+    from pmcal.bridge.faults import Fault
 
     if not 0 < args.seconds <= MAX_MOCK_SECONDS:
         raise InputError(f"seconds must be in (0, {MAX_MOCK_SECONDS:g}]", field="--seconds")
@@ -163,9 +163,9 @@ def cmd_mock_plc(args) -> int:
     seed = CompTable.load(args.table).validate() if args.table else None
     _quiet_libraries()
     if args.ads:
-        from bridge.ads_mock import AdsMockPlc as Mock
+        from pmcal.bridge.ads_mock import AdsMockPlc as Mock
     else:
-        from bridge.modbus_mock import ModbusMockPlc as Mock
+        from pmcal.bridge.modbus_mock import ModbusMockPlc as Mock
     mock = Mock(port=args.port, cycle_s=args.cycle_ms / 1000.0, lifetime_s=args.seconds)
     mock.faults.arm(*faults)
     mock.twin.motion_idle = not args.motion_busy
@@ -205,6 +205,6 @@ def _stop_on_sigterm() -> list:
 
 
 def cmd_loop(args) -> int:
-    from bridge.loop import run_loop_cli
+    from pmcal.apps.plc_loop import run_loop_cli
 
     return run_loop_cli(args)

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.planar.kinematics import inverse
-from calib.planar.noise import Noise
+from pmcal.mechanism.planar.kinematics import inverse
+from pmcal.mechanism.planar.noise import Noise
 from pmcal.errors import RunError
-from twin.planar.twin import PlanarPoses, PlanarTwin
+from pmcal.twin.planar.twin import PlanarPoses, PlanarTwin
 
 
 @dataclass
@@ -49,7 +49,7 @@ def measure(twin: PlanarTwin, theta_cmd: np.ndarray, noise: Noise, rng: np.rando
 
 
 def batch_measure(twin: PlanarTwin, noise: Noise, rng: np.random.Generator):
-    """A ``measure(theta_cmd (S, K, 2), ids)`` callback for :func:`calib.planar.calibration.calibrate_many`."""
+    """A ``measure(theta_cmd (S, K, 2), ids)`` callback for :func:`pmcal.calib.planar.calibration.calibrate_many`."""
     def run(theta_cmd: np.ndarray, ids: np.ndarray) -> np.ndarray:
         return measure(twin, theta_cmd, noise, rng).readings
     return run

@@ -1,7 +1,7 @@
 """The planar machine's configuration (``mjcf/planar_2dof/machine.toml``), read and validated.
 
 Every problem raises :class:`pmcal.errors.InputError` naming the file and the ``[section] key``.
-Units in the file: mm and degrees; the returned objects follow :mod:`calib.planar` (mm, radians).
+Units in the file: mm and degrees; the returned objects follow :mod:`pmcal.calib.planar` (mm, radians).
 """
 
 from __future__ import annotations
@@ -14,12 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.planar.design import Region
-from calib.planar.geometry import ERROR_KEYS, Errors, Geometry, Workspace
-from calib.planar.noise import Noise, scale_sigma, servo_sigma
+from pmcal.mechanism.planar.region import Region
+from pmcal.mechanism.planar.geometry import ERROR_KEYS, Errors, Geometry, Workspace
+from pmcal.mechanism.planar.noise import Noise, scale_sigma, servo_sigma
 from pmcal.errors import InputError
+from pmcal.mjcf import machine_dir
 
-MACHINE_DIR = Path(__file__).resolve().parents[2] / "mjcf" / "planar_2dof"
+MACHINE_DIR = machine_dir("planar_2dof")
 MODEL_XML = MACHINE_DIR / "planar_2dof.xml"
 SCENE_XML = MACHINE_DIR / "scene.xml"
 CONFIG_TOML = MACHINE_DIR / "machine.toml"

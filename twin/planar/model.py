@@ -6,7 +6,7 @@ bars of a pair) and the platform stays translational, as in the seed's model. Ze
 active links' body frames about their joint axes: the motor joint reads the commanded angle while the
 link sits ``Δθ`` further on. The MAEMM ``ΔrM`` moves the mechanism's base joint O1.
 
-Frames and units: this module and :mod:`twin.planar.twin` are the only places that convert between the
+Frames and units: this module and :mod:`pmcal.twin.planar.twin` are the only places that convert between the
 seed plane (mm; x, y up) and MuJoCo's world (m; x, z up; y out of the plane).
 """
 
@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from calib.planar.geometry import Errors
-from calib.planar.kinematics import forward, mm_vector
-from twin.planar.config import MODEL_XML, PlanarMachine
+from pmcal.mechanism.planar.geometry import Errors
+from pmcal.mechanism.planar.kinematics import forward, mm_vector
+from pmcal.twin.planar.config import MODEL_XML, PlanarMachine
 
 MM = 1e-3  # metres per millimetre
 
@@ -80,7 +80,7 @@ def build_spec(machine: PlanarMachine, errors: Errors | None = None, path=MODEL_
 @dataclass(frozen=True)
 class PlanarIndex:
     """Ids and addresses the twin needs. ``site_s1``, ``site_s2``, ``qadr_base``, ``dadr_base``, ``qadr_slide``
-    and ``dadr_slide`` are the fields :class:`twin.assembly.BatchAssembler` reads (closure site pairs, the
+    and ``dadr_slide`` are the fields :class:`pmcal.twin.assembly.BatchAssembler` reads (closure site pairs, the
     motors it holds, and a slide it may load: here the scale's, with zero stiffness)."""
 
     site_s1: np.ndarray          # first site of each closure (CLOSURES order)

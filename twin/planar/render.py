@@ -13,10 +13,10 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco  # noqa: E402
 
-from twin.planar.config import SCENE_XML  # noqa: E402
-from twin.planar.model import build_spec  # noqa: E402
-from twin.planar.twin import PlanarTwin  # noqa: E402
-from twin.render import render_model_png  # noqa: E402
+from pmcal.twin.planar.config import SCENE_XML  # noqa: E402
+from pmcal.twin.planar.model import build_spec  # noqa: E402
+from pmcal.twin.planar.twin import PlanarTwin  # noqa: E402
+from pmcal.twin.render import render_model_png  # noqa: E402
 
 
 def render_png(twin: PlanarTwin, motor: np.ndarray | None = None, width: int = 800, height: int = 600,

@@ -1,7 +1,7 @@
 """The planar robot's digital twin: the MuJoCo model of the real machine placed at motor angles.
 
 With the motors held, the four loops are closed exactly by Gauss-Newton on the site-based connect
-residuals (:class:`twin.assembly.BatchAssembler`: MuJoCo kinematics and site Jacobians, all poses at
+residuals (:class:`pmcal.twin.assembly.BatchAssembler`: MuJoCo kinematics and site Jacobians, all poses at
 once). The platform's reference point P and the linear scale (the slide joint ``scale_slide``) are then
 read off the model. Interface units: mm and radians (seed plane, y up); SI inside MuJoCo.
 """
@@ -13,11 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.planar.geometry import Errors
-from calib.planar.kinematics import elbows, forward, mm_vector
-from twin.assembly import BatchAssembler, Stiffness
-from twin.planar.config import PlanarMachine, default_machine
-from twin.planar.model import CLOSURES, MM, build_model, scale_reference
+from pmcal.mechanism.planar.geometry import Errors
+from pmcal.mechanism.planar.kinematics import elbows, forward, mm_vector
+from pmcal.twin.assembly import BatchAssembler, Stiffness
+from pmcal.twin.planar.config import PlanarMachine, default_machine
+from pmcal.twin.planar.model import CLOSURES, MM, build_model, scale_reference
 
 #: largest closure gap (m) accepted as an assembled pose
 CLOSURE_TOL_M = 1e-10

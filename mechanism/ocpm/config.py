@@ -12,8 +12,9 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from pmcal.mjcf import machine_dir
 
-MACHINE_DIR = Path(__file__).resolve().parents[2] / "mjcf" / "ocpm_2dof"
+MACHINE_DIR = machine_dir("ocpm_2dof")
 
 
 class ConfigError(ValueError):

@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.ocpm.config import Geometry, default_geometry
-from calib.rigid import fit_pose
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.rigid import fit_pose
 
 
 @dataclass

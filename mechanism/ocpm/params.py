@@ -199,3 +199,24 @@ def random_errors(rng: np.random.Generator, pos_mm: float = 0.5, ang_deg: float 
         for f in SS_FIELDS:
             out[f"SS.{f}"] = float(draw(pos_mm))
     return out
+
+
+#: Key of the log closure-stiffness ratio in a whole-chain parameter vector.
+LOG_RATIO = "log_stiffness_ratio"
+
+
+def errors_and_ratio(keys: list[str], x: np.ndarray) -> tuple[ErrorSet, float | None]:
+    """ErrorSet (internal units) and log stiffness ratio (or None) from a parameter vector."""
+    e = ErrorSet()
+    log_ratio = None
+    for k, v in zip(keys, x):
+        if k == LOG_RATIO:
+            log_ratio = float(v)
+        else:
+            e.set(k, float(v))
+    return e, log_ratio
+
+
+def to_interface(keys: list[str], x: np.ndarray) -> dict[str, float]:
+    """Parameter dict in interface units (mm, deg); the stiffness ratio is left out."""
+    return {k: float(np.rad2deg(v)) if is_angular(k) else float(v) for k, v in zip(keys, x) if k != LOG_RATIO}

@@ -11,12 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.planar.calibration import CalibrationRun, calibrate_many
-from calib.planar.geometry import Errors
-from calib.planar.kinematics import forward
-from calib.planar.noise import Noise
-from twin.planar.campaign import batch_measure, commands_for
-from twin.planar.twin import PlanarTwin
+from pmcal.calib.planar.calibration import CalibrationRun, calibrate_many
+from pmcal.mechanism.planar.geometry import Errors
+from pmcal.mechanism.planar.kinematics import forward
+from pmcal.mechanism.planar.noise import Noise
+from pmcal.twin.planar.campaign import batch_measure, commands_for
+from pmcal.twin.planar.twin import PlanarTwin
 
 
 @dataclass

@@ -15,13 +15,13 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from calib.comptable import CompTable
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.params import ErrorSet
-from bridge.errors import BridgeError
-from bridge.link import PlcLink
-from bridge.plc_types import LOOKUP_WRITES, LookupResult
-from bridge.transfer import PushReport, push
+from pmcal.bridge.comptable import CompTable
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.ocpm.params import ErrorSet
+from pmcal.bridge.errors import BridgeError
+from pmcal.bridge.link import PlcLink
+from pmcal.bridge.plc_types import LOOKUP_WRITES, LookupResult
+from pmcal.bridge.transfer import PushReport, push
 
 NOMINAL_VERSION = 1
 #: 5 deg in phi, 2 deg in theta (as ``pmcal compensate --table``)
@@ -71,7 +71,7 @@ def _rms(x: np.ndarray) -> float:
 def nominal_table(grid: tuple[int, int], geom: Geometry | None = None, version: int = NOMINAL_VERSION,
                   max_step_deg: float = 15.0) -> CompTable:
     """The uncalibrated controller as a table: nominal inverse kinematics on the grid (deg)."""
-    from calib.ocpm.kinematics import nominal_ik
+    from pmcal.mechanism.ocpm.kinematics import nominal_ik
 
     geom = geom or default_geometry()
     return _table(lambda p, t: np.rad2deg(nominal_ik(np.deg2rad(p), np.deg2rad(t), geom)), grid, geom,
@@ -81,7 +81,8 @@ def nominal_table(grid: tuple[int, int], geom: Geometry | None = None, version: 
 def compensation_table(errors: ErrorSet, grid: tuple[int, int], version: int, geom: Geometry | None = None,
                        max_step_deg: float = 15.0) -> CompTable:
     """Whole-closed-chain compensation of the machine with ``errors`` on the grid (deg), validated."""
-    from calib.ocpm.fullchain import FullChainModel, setpoints
+    from pmcal.calib.ocpm.fullchain import setpoints
+    from pmcal.twin.forward import FullChainModel
 
     geom = geom or default_geometry()
     model = FullChainModel(geom)
@@ -114,8 +115,8 @@ def plc_commands(link: PlcLink, phi_deg: np.ndarray, theta_deg: np.ndarray) -> t
 
 def measure(twin, tracker, commands_deg: np.ndarray, phi_deg: np.ndarray, theta_deg: np.ndarray) -> Pointing:
     """Drive the twin to the commands, measure with the tracker, pointing errors (deg) vs the targets."""
-    from calib.rigid import fit_pose
-    from calib.rotations import pointing_error, tilt_torsion
+    from pmcal.mechanism.rigid import fit_pose
+    from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 
     state = twin.reach(commands_deg)
     if not np.all(state.converged):
@@ -129,16 +130,17 @@ def measure(twin, tracker, commands_deg: np.ndarray, phi_deg: np.ndarray, theta_
 def run_loop(mock, errors: dict | ErrorSet, table: CompTable | None = None, *, n_targets: int = 24,
              grid: tuple[int, int] = DEFAULT_GRID, seed: int = 1, sigma_mm: float | None = None,
              link_factory=None) -> LoopResult:
-    """Run the loop against a started mock PLC (:class:`bridge.ads_mock.AdsMockPlc` or Modbus).
+    """Run the loop against a started mock PLC (:class:`pmcal.bridge.ads_mock.AdsMockPlc` or Modbus).
 
     ``errors``: the twin's real geometric errors (interface keys, mm and deg, or an ErrorSet);
     ``table``: what to push (default: the whole-chain compensation of ``errors`` on ``grid``).
     ``link_factory(mock, writes)`` makes the client links (default: the mock's own transport).
     """
-    from calib.ocpm.fullchain import FullChainModel, setpoints
-    from twin.campaign import plan_orientations
-    from twin.machine import Twin
-    from twin.tracker import LaserTracker
+    from pmcal.calib.ocpm.fullchain import setpoints
+    from pmcal.twin.forward import FullChainModel
+    from pmcal.twin.campaign import plan_orientations
+    from pmcal.twin.machine import Twin
+    from pmcal.twin.tracker import LaserTracker
 
     geom = default_geometry()
     if not isinstance(errors, ErrorSet):
@@ -168,14 +170,14 @@ def run_loop(mock, errors: dict | ErrorSet, table: CompTable | None = None, *, n
 
 
 def _default_links(mock, writes):
-    from bridge.plc_types import PUSH_WRITES
+    from pmcal.bridge.plc_types import PUSH_WRITES
 
     writes = PUSH_WRITES if writes is None else writes
     if mock.transport == "ads":
-        from bridge.ads import AdsLink
+        from pmcal.bridge.ads import AdsLink
 
         return AdsLink(mock.address, writes=writes)
-    from bridge.modbus import ModbusLink
+    from pmcal.bridge.modbus import ModbusLink
 
     return ModbusLink(mock.host, mock.port, rmap=mock.rmap, writes=writes)
 
@@ -199,16 +201,16 @@ def run_loop_cli(args) -> int:
     if args.table:
         table = CompTable.load(args.table).validate(active_version=NOMINAL_VERSION)
         grid = (table.n_phi, table.n_theta)
-    from bridge.ads import set_adslib_log_level
+    from pmcal.bridge.ads import set_adslib_log_level
 
     set_adslib_log_level(4)
     import logging
 
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     if args.transport == "ads":
-        from bridge.ads_mock import AdsMockPlc as Mock
+        from pmcal.bridge.ads_mock import AdsMockPlc as Mock
     else:
-        from bridge.modbus_mock import ModbusMockPlc as Mock
+        from pmcal.bridge.modbus_mock import ModbusMockPlc as Mock
     with Mock(lifetime_s=600.0) as mock:
         try:
             res = run_loop(mock, errors, table, n_targets=args.targets, grid=grid, seed=args.seed)

@@ -1,7 +1,7 @@
 """Closed-form kinematics and first-order error model of the planar 2-DOF robot (seed eq. 1-13).
 
 All functions are vectorised over leading axes: positions ``r`` are ``(..., 2)`` in mm (seed frame O-xy,
-y up, see :mod:`calib.planar.geometry`), motor angles ``theta`` are ``(..., 2)`` in radians.
+y up, see :mod:`pmcal.mechanism.planar.geometry`), motor angles ``theta`` are ``(..., 2)`` in radians.
 
 Loop equation (eq. 1): ``r = e_i + L_i u_i + l_i w_i`` with ``u_i = (cos θ_i, sin θ_i)`` and ``w_i`` the
 unit vector of the distal link. These closed forms are the independent oracle of the MuJoCo twin.
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.planar.geometry import Errors, Geometry
+from pmcal.mechanism.planar.geometry import Errors, Geometry
 
 #: rotation by +90 degrees (eq. 10): ``Δu_i = Q u_i Δθ_i``
 Q = np.array([[0.0, -1.0], [1.0, 0.0]])

@@ -6,7 +6,7 @@ towards +y (counter-clockwise). Units: mm and radians. Limb 1 is the one at ``e1
 
 Parameter keys at the interfaces (files, reports) are in mm and degrees: ``dtheta1``, ``dtheta2`` (deg)
 and ``de1x``, ``de1y``, ``de2x``, ``de2y``, ``dL1``, ``dL2``, ``dl1``, ``dl2``, ``drMx``, ``drMy`` (mm).
-Inside :mod:`calib.planar` the zero offsets are radians.
+Inside :mod:`pmcal.calib.planar` the zero offsets are radians.
 """
 
 from __future__ import annotations

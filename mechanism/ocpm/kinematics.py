@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.ocpm.config import Geometry, default_geometry
-from calib.ocpm.params import ErrorSet
-from calib.rotations import rot_x, rot_z, tilt_torsion
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.ocpm.params import ErrorSet
+from pmcal.mechanism.rotations import rot_x, rot_z, tilt_torsion
 
 E_Y = np.array([0.0, 1.0, 0.0])
 
