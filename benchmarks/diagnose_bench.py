@@ -6,7 +6,15 @@ the twin with random geometric errors (limbs 1-2, SS) and the hidden effect(s)
 (:func:`pmcal.twin.effects.hidden_effect_campaign`, 128 poses up to 80 deg, payloads 0/10 kg, 18 -> 28 degC,
 random order and approach, sigma 0.01 mm), diagnosed without being told (sigma given).
 
+With ``--source xsim`` (or ``both``) the campaigns come from the independent simulator in
+``tests/crosssim`` instead (shares no code with pmcal; its own forms of every effect: thermal expansion of
+the links only, backlash from the move order, exponential drift creep, eccentricity with random phase),
+logged in time order as a CSV without approach columns (warm-up then cool-down 18 -> 28 -> 18 degC,
+payloads 0/10 kg in blocks of 32 rows) and read back with :func:`pmcal.io_ocpm.read_measurements`; those
+rows are labelled ``xsim``.
+
 Run: python benchmarks/diagnose_bench.py [--seeds 20] [--null-seeds 100] [--poses 128] [--jobs 2]
+     [--source twin|xsim|both]
 """
 
 from __future__ import annotations
@@ -73,7 +81,9 @@ def run_one(job: tuple[str, int, int]) -> dict:
     from pmcal.twin import effects
 
     limit_blas_threads(1)
-    case, seed, n = job
+    case, seed, n, source = job
+    if source == "xsim":
+        return run_xsim(case, seed, n)
     names, n_case, ecc, theta_max = CASES[case]
     if ecc is not None:
         effects.REALISTIC["encoder_eccentricity"] = ecc
@@ -93,9 +103,38 @@ def run_one(job: tuple[str, int, int]) -> dict:
             "unexplained": d.unexplained}
 
 
+#: cases the independent simulator makes (name -> hidden effects)
+XSIM_CASES = {n: [n] for n in ("joint_compliance", "backlash", "encoder_eccentricity", "thermal_expansion",
+                               "zero_offset_drift", "overconstraint")} | {"none": []}
+
+
+def run_xsim(case: str, seed: int, n: int) -> dict:
+    """One diagnosis of a campaign from the independent simulator, written and read back as a CSV."""
+    import tempfile
+
+    from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose
+    from pmcal.io_ocpm import read_measurements
+    from pmcal.twin.effect_model import EffectChainModel
+    from tests.crosssim.campaign import hidden_campaign, write_csv
+
+    camp, _, _ = hidden_campaign(XSIM_CASES[case], seed, n)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "xsim.csv"
+        write_csv(path, camp)
+        meas = read_measurements(path)
+    t0 = time.perf_counter()
+    d = diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA))
+    wall = time.perf_counter() - t0
+    return {"case": f"xsim {case}", "seed": seed, "poses": len(meas), "named": d.effects, "verdict": d.verdict,
+            "gap_before": d.gap_before, "gap_after": d.gap_after, "noise_floor": d.noise_floor, "runtime_s": wall,
+            "truth_in_interval": {}, "values": {v.name: v.value for v in d.named},
+            "intervals": {v.name: v.interval for v in d.named}, "truth": {}, "unexplained": d.unexplained}
+
+
 def summarise(rows: list[dict]) -> list[list]:
     table = []
-    for case, (names, *_) in CASES.items():
+    all_cases = [(c, v[0]) for c, v in CASES.items()] + [(f"xsim {c}", v) for c, v in XSIM_CASES.items()]
+    for case, names in all_cases:
         rs = [r for r in rows if r["case"] == case]
         if not rs:
             continue
@@ -119,10 +158,15 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--cases", default=None, help="comma-separated subset of the cases")
     ap.add_argument("--out", default=None, help="JSON output (default benchmarks/results/diagnose_bench.json)")
+    ap.add_argument("--source", choices=("twin", "xsim", "both"), default="twin",
+                    help="campaigns from the twin, the independent simulator tests/crosssim, or both")
     args = ap.parse_args(argv)
-    cases = args.cases.split(",") if args.cases else list(CASES)
-    jobs = [(c, s, args.poses) for c in cases
-            for s in range(1000, 1000 + (args.null_seeds if c.startswith("none") else args.seeds))]
+    jobs = []
+    for source in (("twin", "xsim") if args.source == "both" else (args.source,)):
+        table = CASES if source == "twin" else XSIM_CASES
+        cases = [c for c in args.cases.split(",") if c in table] if args.cases else list(table)
+        jobs += [(c, s, args.poses, source) for c in cases
+                 for s in range(1000, 1000 + (args.null_seeds if c.startswith("none") else args.seeds))]
     t0 = time.perf_counter()
     with Pool(args.jobs) as pool:
         rows = []

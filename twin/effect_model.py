@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.effects import (DRIVE_EFFECTS, VOCABULARY, effect_of_key, meas_basis,
-                                          thermal_delta)
+from pmcal.mechanism.ocpm.effects import (DRIVE_EFFECTS, LINK_LENGTH_KEYS, VOCABULARY, effect_of_key,
+                                          meas_basis, thermal_delta)
 from pmcal.twin.forward import FullChainModel
 
 
@@ -26,7 +26,9 @@ class EffectChainModel(FullChainModel):
     (d/dc by a forward difference; for c < 0 the tangent at c = 0 continued linearly);
     ``thermal_expansion`` scales the targets about O by ``1 + alpha dT`` (exact for a uniform expansion
     without gravity: a scaled machine reaches the same joint angles; with gravity the difference is
-    ~1e-4 of the gravity deflection). With ``gravity=False`` and no effect keys it is
+    ~1e-4 of the gravity deflection) and lengthens the links by a further ``links dT`` through the
+    targets' sensitivities to the link-length keys (first order: 23e-6/K over 10 K is 0.07 mm on a
+    317 mm link, the second-order term ~1e-6 mm). With ``gravity=False`` and no effect keys it is
     :class:`FullChainModel`. Measurements must carry their context (:func:`with_context`).
     """
 
@@ -70,17 +72,30 @@ class EffectChainModel(FullChainModel):
             offset += B @ np.array([self.effect_x.get(k, 0.0) for k in VOCABULARY[name].keys])
         base_keys = [k for k in keys if effect_of_key(k) in (None, "overconstraint")]
         motor = ["L1.dtheta", "L2.dtheta"]
+        links_on = self.uses("thermal_expansion", keys) and (
+            "thermal_expansion.links" in keys or self.effect_x.get("thermal_expansion.links", 0.0) != 0.0)
+        sens = base_keys + motor + (list(LINK_LENGTH_KEYS) if links_on else [])
+        want = derivatives or links_on
         cmd = meas.m_cmd_deg + np.rad2deg(offset)
         if self.gravity or self.uses("joint_compliance", keys):
-            T, dT, d_c = self._physical(meas, cmd, base_keys + motor, self.uses("joint_compliance", keys),
-                                        derivatives)
+            T, dT, d_c = self._physical(meas, cmd, sens, self.uses("joint_compliance", keys), want)
         else:
-            (T, dT), d_c = self.predict(cmd, base_keys + motor if derivatives else None), None
+            (T, dT), d_c = self.predict(cmd, sens if want else None), None
+        dtemp = None
+        if self.uses("thermal_expansion", keys):
+            dtemp = thermal_delta(meas.temp_c)
+            if dtemp is None:
+                raise ValueError(f"effect 'thermal_expansion' needs {VOCABULARY['thermal_expansion'].needs}")
+        d_links = None
+        if links_on:                          # the links' extra expansion, first order in the length keys
+            n0 = len(base_keys) + 2
+            length = np.array([self.geom.h if k == "SS.dh" else self.geom.l for k in LINK_LENGTH_KEYS])
+            d_links = np.einsum("nkil,l->nki", dT[..., n0:], length) * dtemp[:, None, None]
+            T = T + self.effect_x.get("thermal_expansion.links", 0.0) * d_links
+        scale = 1.0 if dtemp is None else (1.0 + self.effect_x.get("thermal_expansion.alpha", 0.0) * dtemp)[:, None, None]
         if not derivatives:
-            dtemp = thermal_delta(meas.temp_c) if self.uses("thermal_expansion", keys) else None
-            scale = 1.0 if dtemp is None else (1.0 + self.effect_x.get("thermal_expansion.alpha", 0.0) * dtemp)[:, None, None]
             return T * scale, None
-        d_motor = dT[..., len(base_keys):]
+        d_motor = dT[..., len(base_keys):len(base_keys) + 2]
         dT_all = np.zeros(T.shape + (len(keys),))
         for c, k in enumerate(keys):
             name = effect_of_key(k)
@@ -91,11 +106,9 @@ class EffectChainModel(FullChainModel):
                 dT_all[..., c] = np.einsum("nkij,nj->nki", d_motor, bases[name][:, :, p])
             elif name == "joint_compliance":
                 dT_all[..., c] = d_c[..., VOCABULARY[name].keys.index(k)]
-        if self.uses("thermal_expansion", keys):
-            dtemp = thermal_delta(meas.temp_c)
-            if dtemp is None:
-                raise ValueError(f"effect 'thermal_expansion' needs {VOCABULARY['thermal_expansion'].needs}")
-            scale = (1.0 + self.effect_x.get("thermal_expansion.alpha", 0.0) * dtemp)[:, None, None]
+            elif k == "thermal_expansion.links":
+                dT_all[..., c] = d_links
+        if dtemp is not None:
             dT_all = dT_all * scale[..., None]
             if "thermal_expansion.alpha" in keys:
                 dT_all[..., keys.index("thermal_expansion.alpha")] = dtemp[:, None, None] * T

@@ -35,7 +35,7 @@ from scipy import stats
 from pmcal.calib.forward_model import EffectModel
 from pmcal.mechanism.ocpm.config import Geometry
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, VOCABULARY, effect_of_key,
+from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, approach_from_order, VOCABULARY, effect_of_key,
                                           thermal_delta, with_context)
 from pmcal.calib.ocpm.diagnosis_result import Candidate, Diagnosis, Omnibus
 from pmcal.calib.ocpm.effect_values import EffectValue, effect_prior_std, effect_value
@@ -305,7 +305,7 @@ def _test_round(pb: _Problem, lin: Linearization, model_keys: list[str], names: 
         n_rows = t.fit.n
         excess = t.base.rss - t.base.dof                      # structure beyond the noise, whitened
         share = t.delta_chi2 / max(excess, t.delta_chi2, 1e-12)
-        ok = (t.p_value < pb.opt.alpha / m and v.plausible and v.big_enough
+        ok = (t.p_value < pb.opt.alpha / m and v.plausible
               and np.sqrt(t.delta_chi2 / n_rows) >= pb.opt.min_rms_sigma and share >= pb.opt.min_explained)
         out[name] = (t, v, ok, share)
     return out
@@ -448,12 +448,12 @@ def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[st
             model_t = [k for k in trial.names if effect_of_key(k) != best]
             t = _test_round(pb, huber_weighted(lin_t, lin_t.cols(list(trial.names))), model_t, [best], n_tests=m)[best]
             v = pb.value_final(trial, best)
-            history[best] = (t[0], v, t[2] and v.plausible and v.big_enough, m, t[3])
+            history[best] = (t[0], v, t[2] and v.plausible, m, t[3])
             if history[best][2]:
                 accepted = (best, trial, lin_t)
                 break
             rejected.add(best)
-            if not (v.plausible and v.big_enough):
+            if not v.plausible:
                 board[best].reason = f"after the nonlinear refit: {v.why}"
         if accepted is None:
             break
@@ -489,9 +489,9 @@ def _verdicts(pb: _Problem, board: dict[str, Candidate], history: dict, named: l
             v, rms = c.value, np.sqrt(c.delta_chi2 / max(history[n][0].fit.n, 1))
             if not v.plausible:
                 c.verdict, c.reason = "implausible value", c.reason or v.why
-            elif not v.big_enough or rms < pb.opt.min_rms_sigma:
+            elif rms < pb.opt.min_rms_sigma:
                 c.verdict = "too small"
-                c.reason = c.reason or v.why or (f"changes the measurements by {rms:.2g} sigma RMS "
+                c.reason = c.reason or (f"changes the measurements by {rms:.2g} sigma RMS "
                                                  f"(less than {pb.opt.min_rms_sigma:g})")
             elif c.share < pb.opt.min_explained:
                 c.verdict = "explains only part of the structure"
@@ -560,6 +560,11 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     limit_blas_threads(1)
     opt = options or DiagnoseOptions()
     step = on_step or (lambda text: None)
+    pre_notes = []
+    if meas.approach is None and len(meas) > 1:
+        meas = dataclasses.replace(meas, approach=approach_from_order(meas.m_cmd_deg)).subset(np.arange(1, len(meas)))
+        pre_notes.append("approach inferred from the row order (sign of each motor's last move); the first row, "
+                         "whose approach is unknown, is left out; m1_approach/m2_approach columns take precedence")
     pb = _Problem(meas, opt, model)
 
     step("fitting the baseline model")                               # a
@@ -591,7 +596,8 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     return Diagnosis(
         effect=named[0] if named else None, effects=named, gap_before=float(np.sqrt(np.mean(cv_before**2)) * pb.sigma),
         gap_after=float(np.sqrt(np.mean(cv_after**2)) * pb.sigma), noise=pb.noise, verdict=verdict,
-        unexplained=unexplained, notes=_notes(board, named, om1, opt), candidates=board, named=values,
+        unexplained=unexplained, notes=pre_notes + _notes(board, named, om1, opt)
+        + [v.note for v in values if v.note], candidates=board, named=values,
         baseline=base, final=res, omnibus_before=om0, omnibus_after=om1, time_unit=pb.time_unit, meas=pb.meas,
         lin_before=lin0, lin_after=lin, cv_before=(cv_before * pb.sigma).reshape(shape),
         cv_after=(cv_after * pb.sigma).reshape(shape), folds=pb.folds, runtime_s=time.perf_counter() - t_start,

@@ -90,7 +90,7 @@ class Diagnosis:
         """The INTERFACES.md document (plus details)."""
         def val(e: EffectValue) -> dict:
             return {"name": e.name, "value": _num(e.value), "interval": [_num(v) for v in e.interval],
-                    "unit": e.unit, "layer": VOCABULARY[e.name].layer,
+                    "unit": e.unit, "layer": VOCABULARY[e.name].layer, "member": e.member or None,
                     "params": {k: {"value": _num(v), "std": _num(s)} for k, (v, s) in e.params.items()}}
 
         cands = []

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pmcal.mechanism.ocpm.effects import VOCABULARY, effect_of_key
+from pmcal.mechanism.ocpm.effects import VOCABULARY, effect_of_key, thermal_member
 from pmcal.calib.ocpm.fullchain import Priors
 from pmcal.mechanism.ocpm.params import is_angular
 
@@ -28,8 +28,8 @@ def effect_prior_std(key: str, priors: Priors, time_unit: str = "h") -> float:
     hi = max(abs(info.plausible[0]), abs(info.plausible[1]))
     if name == "joint_compliance":
         return 3.0 / info.plausible[0]                      # c = 1/K up to 1/(1e3 N m/rad)
-    if name == "thermal_expansion":
-        return 3.0 * hi
+    if name == "thermal_expansion":   # the links' extra rate regularised to the plausible size
+        return hi if key.endswith(".links") else 3.0 * hi
     if name == "zero_offset_drift" and time_unit == "pose":
         return np.deg2rad(0.05)                            # deg per pose
     return np.deg2rad(3.0 * hi)
@@ -47,6 +47,8 @@ class EffectValue:
     plausible: bool
     big_enough: bool
     why: str = ""
+    note: str = ""                        # e.g. unexpected sign: check a convention
+    member: str = ""                      # the family member that fits (thermal: uniform / links only / two rates)
 
 
 def _interface(key: str, v: float) -> float:
@@ -67,8 +69,8 @@ def _summary(name: str, keys: list[str], x: np.ndarray) -> float:
         return float(np.rad2deg(np.mean(np.hypot(x[0::2], x[1::2]))))
     if name == "zero_offset_drift":
         return float(np.rad2deg(np.sqrt(np.mean(x * x))))
-    if name == "thermal_expansion":
-        return float(x[0])
+    if name == "thermal_expansion":                                 # the links' rate
+        return float(sum(v for k, v in zip(keys, x) if k in ("thermal_expansion.alpha", "thermal_expansion.links")))
     lengths = [i for i, k in enumerate(keys) if not is_angular(k)]
     return float(np.sqrt(np.mean(x[lengths] ** 2)))
 
@@ -104,15 +106,20 @@ def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, tim
     else:
         value, interval = f0, (f0 - Z95 * s_f, f0 + Z95 * s_f)
         plausible = lo_p - 3 * s_f <= f0 <= hi_p + 3 * s_f
-        if name == "backlash":
-            plausible &= bool(np.all(x > -3 * std))
         if name == "thermal_expansion":
             plausible &= f0 > -3 * s_f
-        big = abs(f0) >= info.minimum
+        big = abs(f0) >= info.minimum if unit == info.unit else True   # the minimum is in info.unit only
         if not plausible:
             why = f"value {f0:.3g} {unit} outside the plausible range {lo_p:g} .. {hi_p:g}"
-    if not big and not why:
-        why = f"smaller than {info.minimum:g} {unit}"
-    return EffectValue(name, float(value), interval, unit, params, bool(plausible), bool(big), why)
+    note = ""
+    if name == "backlash" and np.any(x < -3 * std):
+        note = ("backlash: negative lost motion fitted (the drive leads its command): check the approach sign "
+                "convention (+1 = last move upwards) and the encoder side")
+    if not big:
+        note = (note + "; " if note else "") + f"{name}: smaller than {info.minimum:g} {unit} (named all the same)"
+    member = ""
+    if name == "thermal_expansion" and len(keys) == 2:
+        member = thermal_member(x[0], std[0], x[1], std[1])
+    return EffectValue(name, float(value), interval, unit, params, bool(plausible), bool(big), why, note, member)
 
 

@@ -13,7 +13,11 @@ effect                   layer         model (per motor j = 1, 2; joint = comman
 ``joint_compliance``     physics       a series spring K_j = 1/c_j behind each motor, loaded by gravity (the
                                        spec's inertia + payload) and the internal over-constraint forces:
                                        to first order offset_j = -c_j tau_j (tau_j the motor torque)
-``thermal_expansion``    geometry      every length scales by 1 + alpha (temp_c - 20): targets scale about O
+``thermal_expansion``    geometry      lengths grow linearly with dT = temp_c - 20: the whole machine by alpha (targets
+                                       scale about O) and the links (l1, l2 of every RSR limb, SS
+                                       limb) by a further ``links`` (first order through the length
+                                       sensitivities): uniform (links = 0), links only (alpha = 0),
+                                       two materials (both) are members of one family
 ``overconstraint``       geometry      passive-limb (L3, L4) geometric errors, absent from the baseline
 =======================  ============  =================================================================
 
@@ -36,6 +40,8 @@ from pmcal.mechanism.ocpm.params import LIMB_FIELDS
 REFERENCE_TEMP_C = 20.0
 #: Passive-limb keys: the parameters of ``overconstraint`` (no motor on limbs 3, 4).
 PASSIVE_KEYS: tuple[str, ...] = tuple(f"L{j}.{f}" for j in (3, 4) for f in LIMB_FIELDS if f != "dtheta")
+#: Length keys of the links (RSR links of every limb, SS limb): the ``thermal_expansion.links`` member.
+LINK_LENGTH_KEYS: tuple[str, ...] = tuple(f"L{j}.{f}" for j in (1, 2, 3, 4) for f in ("dl1", "dl2")) + ("SS.dh",)
 #: Context column kept in ``Measurements.extra`` (see :func:`with_context`).
 T_REL = "effect_t_rel"
 
@@ -82,10 +88,12 @@ VOCABULARY: dict[str, EffectInfo] = {e.name: e for e in (
                "disconnected, or a second read head, separates it for certain",
                "first-harmonic error of the motor angle: a sin(theta + phi) per motor (encoder disc "
                "mounted off-centre)"),
-    EffectInfo("thermal_expansion", "geometry", "1/K", ("alpha",), 23e-6, (0.0, 5e-5), 1e-7,
+    EffectInfo("thermal_expansion", "geometry", "1/K", ("alpha", "links"), 23e-6, (0.0, 5e-5), 1e-7,
                "poses at different temperatures (temp_c), or a temperature far from 20 degC",
                "record temp_c and measure over a temperature change of several kelvin (warm-up)",
-               "every length of the machine (links, radii, SS limb, target nests) grows by alpha (T - 20 degC)"),
+               "lengths grow linearly with the temperature: the whole machine (links, radii, SS limb, target "
+               "nests) by alpha (T - 20 degC), the links by a further 'links' rate (value: the links' rate "
+               "alpha + links; member: uniform, links only or two rates)"),
     EffectInfo("zero_offset_drift", "joint angle", "deg/h", ("r1", "r2"), 0.0125, (-1.0, 1.0), 0.001,
                "poses measured in an order that does not follow the pose (time_s or row order)",
                "measure the poses in random order (or revisit a reference pose) and record time_s: in "
@@ -169,3 +177,25 @@ def thermal_delta(temp_c: np.ndarray | None) -> np.ndarray | None:
     if temp_c is None or not np.all(np.isfinite(temp_c)):
         return None
     return np.asarray(temp_c, float) - REFERENCE_TEMP_C
+
+
+def approach_from_order(cmd_deg: np.ndarray) -> np.ndarray:
+    """Approach signs (N, 2) from the row order: the sign of each motor's last change of command (a row
+    that does not move a motor keeps its previous sign; the first row, whose history is unknown, is 0).
+    Rows must be in measurement (time) order, as INTERFACES.md requires."""
+    cmd = np.atleast_2d(np.asarray(cmd_deg, float))
+    s = np.zeros_like(cmd)
+    s[1:] = np.sign(np.diff(cmd, axis=0))
+    for i in range(1, len(s)):
+        s[i] = np.where(s[i] == 0, s[i - 1], s[i])
+    return s
+
+
+def thermal_member(alpha: float, s_alpha: float, links: float, s_links: float) -> str:
+    """Which member of the thermal family a fit is: ``uniform`` (the links' extra rate within 2 sigma of 0),
+    ``links only`` (the uniform rate within 2 sigma of 0) or ``two rates``."""
+    if abs(links) <= 2 * s_links:
+        return "uniform"
+    if abs(alpha) <= 2 * s_alpha:
+        return "links only"
+    return "two rates"

@@ -1,0 +1,183 @@
+"""Campaigns on the independent simulator: effects, time-ordered logging, the measurement CSV.
+
+Effects are this simulator's own versions (not the twin's forms):
+- ``thermal``: alpha (1/K) of the links only (l1, l2 of every RSR limb and the SS link) about 20 degC; the
+  base and the platform (steel) do not expand;
+- ``backlash``: half-width b (deg) per motor; the drive lags its command by b against the direction of
+  the motor's last move, read from the move order (the machine starts at home, beta = -39.351 deg);
+- ``drift``: zero-offset creep with an initial rate (deg/h) per motor that relaxes exponentially with time
+  constant ``drift_tau_s`` (linear for tau = inf);
+- ``eccentricity``: amplitude (deg) and arbitrary phase (rad) per motor, a·sin(command + phase);
+- ``compliance``: torsional stiffness K (N·m/rad) per motor in the closed-chain solve;
+- passive-limb errors: any `L3.*`/`L4.*` keys in the geometric errors.
+Rows are written in time order without approach columns, as a user logs them.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .machine import HOME_DEG, ClosedChain, Geometry, nominal_ik
+
+KEYS_LIMB = ["dbx", "dby", "dbz", "dalpha", "dgamma", "dl1", "dl2", "dax", "day", "daz", "dtheta"]
+
+
+@dataclass
+class SimEffects:
+    thermal: float = 0.0
+    backlash: tuple = (0.0, 0.0)
+    drift: tuple = (0.0, 0.0)
+    drift_tau_s: float = 7200.0
+    eccentricity: tuple = (0.0, 0.0)
+    ecc_phase: tuple = (0.0, 0.0)
+    compliance: tuple | None = None
+
+
+@dataclass
+class Campaign:
+    """Poses in measurement (time) order: target orientation, commands (deg), context columns."""
+
+    phi_deg: np.ndarray
+    theta_deg: np.ndarray
+    cmd_deg: np.ndarray
+    time_s: np.ndarray
+    temp_c: np.ndarray
+    payload_kg: np.ndarray
+    targets: np.ndarray = field(default=None)  # (n, 3, 3) mm, base frame
+
+
+def random_errors(rng: np.random.Generator, size_mm: float = 0.5, limbs=(1, 2), ss: bool = True) -> dict:
+    """Uniform errors ±size mm / ±0.2·size deg on the listed limbs (dtheta on motors only) and the SS limb."""
+    e = {}
+    for j in limbs:
+        for k in KEYS_LIMB + ["dmu", "dnu"]:
+            if k == "dtheta" and j > 2:
+                continue
+            ang = k in ("dalpha", "dgamma", "dmu", "dnu", "dtheta")
+            e[f"L{j}.{k}"] = float(rng.uniform(-1, 1) * (0.2 * size_mm if ang else size_mm))
+    if ss:
+        for k in ("dh", "dcx", "dcy", "dcz"):
+            e[f"SS.{k}"] = float(rng.uniform(-1, 1) * size_mm)
+    return e
+
+
+def plan(n: int, theta_max_deg: float, rng: np.random.Generator, seconds_per_pose: float = 30.0,
+         temp_range=(18.0, 28.0), payloads=(0.0, 10.0), block: int = 32) -> Campaign:
+    """n orientations uniform on the spherical cap theta <= theta_max, in random time order; temperature
+    warms up from temp_range[0] to temp_range[1] and cools back (half sine over the campaign); payloads
+    change in blocks of ``block`` rows."""
+    phi = rng.uniform(0, 360, n)
+    theta = np.rad2deg(np.arccos(rng.uniform(np.cos(np.deg2rad(theta_max_deg)), 1.0, n)))
+    cmd = np.array([nominal_ik(p, t)[:2] for p, t in zip(phi, theta)])
+    t = np.arange(n) * seconds_per_pose
+    lo, hi = temp_range
+    temp = lo + (hi - lo) * np.sin(np.pi * t / max(t[-1], 1.0))
+    pay = np.array([payloads[(i // block) % len(payloads)] for i in range(n)], float)
+    return Campaign(phi, theta, cmd, t, temp, pay)
+
+
+def drive_angles(c: Campaign, geom: Geometry, fx: SimEffects) -> np.ndarray:
+    """Angles (n, 2) rad the motors deliver: command + zero offset + drift + eccentricity − backlash lag."""
+    cmd = np.deg2rad(c.cmd_deg)
+    prev = np.vstack([np.deg2rad([HOME_DEG, HOME_DEG]), cmd[:-1]])
+    move = np.sign(cmd - prev)
+    for i in range(1, len(move)):  # no move: the last approach stays
+        move[i] = np.where(move[i] == 0, move[i - 1], move[i])
+    dt = (c.time_s - c.time_s[0])
+    tau = fx.drift_tau_s
+    creep = dt if not np.isfinite(tau) else tau * (1 - np.exp(-dt / tau))
+    out = cmd + [geom.limb(1)["dtheta"], geom.limb(2)["dtheta"]]
+    for m in range(2):
+        out[:, m] += np.deg2rad(fx.drift[m] * creep / 3600.0
+                                + fx.eccentricity[m] * np.sin(cmd[:, m] + fx.ecc_phase[m])
+                                - fx.backlash[m] * move[:, m])
+    return out
+
+
+def simulate(c: Campaign, errors: dict, fx: SimEffects, sigma_mm: float = 0.01, rng=None,
+             gravity: bool = True, max_energy: float = 1.25e4) -> Campaign:
+    """Solve every pose, measure the targets (noise sigma per coordinate); poses whose chain does not
+    close (strain energy > ``max_energy`` N·mm, default 1.25e4: a 5 mm gap at a passive closure) are
+    skipped as an operator would (dropped from the plan, so the move order and the times are those of
+    the poses actually driven to). Returns the campaign of the measured poses."""
+    geom = Geometry(errors)
+    drive = drive_angles(c, geom, fx)
+    keep, tg = [], []
+    for i in range(len(c.phi_deg)):
+        chain = ClosedChain(geom, motor_stiffness=fx.compliance,
+                            link_scale=1 + fx.thermal * (c.temp_c[i] - 20.0), payload_kg=c.payload_kg[i],
+                            gravity=gravity)
+        try:
+            r, R, _, energy = chain.solve(drive[i], (c.phi_deg[i], c.theta_deg[i]))
+        except np.linalg.LinAlgError:
+            continue
+        if not np.isfinite(energy) or energy > max_energy:
+            continue
+        keep.append(i)
+        tg.append(r + TARGETS_ROT(R))
+    keep = np.array(keep, int)
+    if len(keep) < len(c.phi_deg):   # the operator drops those poses from the plan: the move order changes
+        sub = Campaign(c.phi_deg[keep], c.theta_deg[keep], c.cmd_deg[keep], c.time_s[keep], c.temp_c[keep],
+                       c.payload_kg[keep])
+        return simulate(sub, errors, fx, sigma_mm, rng, gravity, max_energy)
+    t = np.array(tg)
+    if rng is not None and sigma_mm > 0:
+        t = t + rng.normal(0, sigma_mm, t.shape)
+    return Campaign(c.phi_deg, c.theta_deg, c.cmd_deg, c.time_s, c.temp_c, c.payload_kg, t)
+
+
+def TARGETS_ROT(R: np.ndarray) -> np.ndarray:  # noqa: N802 - targets of the platform, (3, 3) mm
+    from .machine import TARGETS
+    return TARGETS @ R.T
+
+
+def write_csv(path, c: Campaign, context: bool = True) -> None:
+    """The measurement CSV (pose_id, m1_cmd_deg, m2_cmd_deg, t1_x..t3_z, [temp_c, time_s, payload_kg]),
+    rows in time order, no approach columns."""
+    head = ["pose_id", "m1_cmd_deg", "m2_cmd_deg"] + [f"t{k}_{a}" for k in (1, 2, 3) for a in "xyz"]
+    if context:
+        head += ["temp_c", "time_s", "payload_kg"]
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(head)
+        for i in range(len(c.cmd_deg)):
+            row = [f"X{i + 1:03d}", f"{c.cmd_deg[i, 0]:.6f}", f"{c.cmd_deg[i, 1]:.6f}"]
+            row += [f"{v:.5f}" for v in c.targets[i].ravel()]
+            if context:
+                row += [f"{c.temp_c[i]:.3f}", f"{c.time_s[i]:.1f}", f"{c.payload_kg[i]:g}"]
+            w.writerow(row)
+
+
+#: realistic sizes of this simulator's effects (per motor where there are two)
+REALISTIC = {"backlash": 0.02, "encoder_eccentricity": 0.01, "thermal_expansion": 23e-6,
+             "zero_offset_drift": 0.0094, "joint_compliance": 5e4, "overconstraint": 0.5}
+
+
+def hidden_campaign(names: list[str], seed: int, n: int = 128, theta_max_deg: float = 80.0,
+                    sigma_mm: float = 0.01, context: bool = True, sizes: dict | None = None
+                    ) -> tuple[Campaign, dict, SimEffects]:
+    """A campaign with random errors (0.5 mm / 0.1 deg in limbs 1-2 and SS) and the named effects (the
+    pmcal vocabulary names) at their realistic sizes (or ``sizes[name]``); returns (measured campaign, errors, effects)."""
+    rng = np.random.default_rng(seed)
+    err = random_errors(rng)
+    fx = SimEffects()
+    for name in names:
+        v = (sizes or {}).get(name, REALISTIC[name])
+        if name == "backlash":
+            fx.backlash = tuple(v * rng.uniform(0.8, 1.2, 2))
+        elif name == "encoder_eccentricity":
+            fx.eccentricity, fx.ecc_phase = (v, v), tuple(rng.uniform(0, 2 * np.pi, 2))
+        elif name == "thermal_expansion":
+            fx.thermal = v
+        elif name == "zero_offset_drift":
+            fx.drift = tuple(v * rng.choice([-1, 1], 2))
+        elif name == "joint_compliance":
+            fx.compliance = (v, v)
+        elif name == "overconstraint":
+            err.update(random_errors(rng, v, limbs=(3, 4), ss=False))
+    c = plan(n, theta_max_deg, rng) if context else plan(n, theta_max_deg, rng, temp_range=(20.0, 20.0),
+                                                          payloads=(0.0,))
+    return simulate(c, err, fx, sigma_mm, rng), err, fx
