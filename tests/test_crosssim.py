@@ -83,3 +83,56 @@ def test_diagnosis_names_crosssim_effect(tmp_path, name):
 def test_diagnosis_clean_crosssim(tmp_path):
     d = _diagnose(tmp_path, [])
     assert d.effects == [] and not d.unexplained
+
+
+def test_unexplained_structure_is_characterised(tmp_path):
+    """A tracker stand creeping 0.004 mm/K along x is no effect of the vocabulary: the diagnosis names
+    nothing, and says the residual follows the temperature (not the time: warm-up then cool-down)."""
+    from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose
+    from pmcal.io_ocpm import read_measurements
+    from pmcal.twin.effect_model import EffectChainModel
+
+    camp, _, _ = hidden_campaign([], 5)
+    camp.targets[:, :, 0] += 0.004 * (camp.temp_c - 18.0)[:, None]
+    write_csv(tmp_path / "m.csv", camp)
+    d = diagnose(read_measurements(tmp_path / "m.csv"), EffectChainModel(), DiagnoseOptions(sigma_mm=0.01))
+    assert d.effects == [] and d.unexplained
+    top = d.unexplained_context[0]
+    assert top.context == "temperature" and top.p_value < 1e-6 and top.direction.endswith("_x")
+    assert d.to_json()["unexplained_context"][0]["context"] == "temperature"
+
+
+def test_small_campaign_names_what_it_can_and_advises(tmp_path):
+    """48 poses to 60 deg (cross-sim, backlash): backlash is named; encoder eccentricity is honestly not
+    identifiable there, and the advice names the campaign that would make it so. `pmcal twin plan
+    --for-diagnosis --from DIAG.json` writes that campaign's command list with the advice."""
+    import csv
+    import json
+
+    from pmcal.cli import main
+
+    camp, _, _ = hidden_campaign(["backlash"], 1, n=48, theta_max_deg=60)
+    write_csv(tmp_path / "m.csv", camp)
+    assert main(["diagnose", str(tmp_path / "m.csv"), "--json", str(tmp_path / "d.json"), "--sigma", "0.01"]) == 0
+    doc = json.loads((tmp_path / "d.json").read_text())
+    assert doc["effects"] == ["backlash"]
+    ecc = next(c for c in doc["candidates"] if c["name"] == "encoder_eccentricity")
+    assert ecc["verdict"].startswith("not identifiable") and "theta up to 85" in ecc["fix"]
+    out = tmp_path / "plan.csv"
+    assert main(["twin", "plan", "--for-diagnosis", "--from", str(tmp_path / "d.json"), "-o", str(out)]) == 0
+    text = out.read_text()
+    assert "not identifiable in the last campaign: encoder_eccentricity" in text
+    rows = list(csv.DictReader(line for line in text.splitlines() if not line.startswith("#")))
+    assert len(rows) == 128 and max(float(r["theta_deg"]) for r in rows) <= 80.0
+    # the plan moves every motor both ways and its temperature is not monotone in time
+    for m in ("m1_approach", "m2_approach"):
+        assert {r[m] for r in rows} == {"1", "-1"}
+    temp = np.array([float(r["temp_c_planned"]) for r in rows])
+    assert np.argmax(temp) not in (0, len(temp) - 1)
+
+
+def test_plan_rejects_bad_input(tmp_path, capsys):
+    from pmcal.cli import main
+
+    assert main(["twin", "plan", "--for-diagnosis", "--poses", "5", "-o", str(tmp_path / "p.csv")]) == 2
+    assert "--poses" in capsys.readouterr().err and not (tmp_path / "p.csv").exists()

@@ -44,6 +44,7 @@ from pmcal.mechanism.ocpm.params import LOG_RATIO
 from pmcal.calib.ocpm.linear_tests import (Linearization, SubFit, conditional_information, fit, huber_weighted,
                                      nested_test, power, predict)
 from pmcal.calib.ocpm.noise_estimate import NoiseEstimate, estimate_noise
+from pmcal.calib.ocpm.residual_context import characterise, describe
 from pmcal.mechanism.ocpm.params import LIMB_FIELDS, SEED_LIMB_FIELDS, SS_FIELDS, is_angular
 from pmcal.calib.solvers.result import IdentResult
 
@@ -560,7 +561,7 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     limit_blas_threads(1)
     opt = options or DiagnoseOptions()
     step = on_step or (lambda text: None)
-    pre_notes = []
+    pre_notes = _confounding(meas)
     if meas.approach is None and len(meas) > 1:
         meas = dataclasses.replace(meas, approach=approach_from_order(meas.m_cmd_deg)).subset(np.arange(1, len(meas)))
         pre_notes.append("approach inferred from the row order (sign of each motor's last move); the first row, "
@@ -591,6 +592,9 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     _verdicts(pb, board, history, named, values, counts, len(np.unique(pb.folds)), cv_ran)
 
     unexplained = om1.structure                                      # g
+    context = characterise(pb.meas, (cv_after * pb.sigma).reshape(meas.targets.shape)) if unexplained else []
+    if unexplained:
+        pre_notes.append(describe(context))
     verdict = ("named+unexplained" if named else "unexplained") if unexplained else ("named" if named else "noise")
     shape = meas.targets.shape
     return Diagnosis(
@@ -601,7 +605,21 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
         baseline=base, final=res, omnibus_before=om0, omnibus_after=om1, time_unit=pb.time_unit, meas=pb.meas,
         lin_before=lin0, lin_after=lin, cv_before=(cv_before * pb.sigma).reshape(shape),
         cv_after=(cv_after * pb.sigma).reshape(shape), folds=pb.folds, runtime_s=time.perf_counter() - t_start,
-        added_variable=_added_variable(pb, lin, res))
+        added_variable=_added_variable(pb, lin, res), unexplained_context=context)
+
+
+def _confounding(meas: Measurements) -> list[str]:
+    """A note when temperature follows time monotonically: thermal expansion and zero-offset drift then
+    have near-identical context and are told apart only by their geometric form."""
+    if meas.temp_c is None or not np.all(np.isfinite(meas.temp_c)) or np.ptp(meas.temp_c) == 0:
+        return []
+    t = meas.time_s if meas.time_s is not None and np.all(np.isfinite(meas.time_s)) else np.arange(len(meas))
+    rho = stats.spearmanr(t, meas.temp_c).statistic
+    if abs(rho) < 0.9:
+        return []
+    return [f"temperature follows time monotonically (Spearman {rho:.2f}): thermal expansion and zero-offset "
+            "drift are confounded in this campaign; a warm-up then cool-down (or a constant-temperature run) "
+            "separates them"]
 
 
 def _added_variable(pb: _Problem, lin: Linearization, res: IdentResult) -> dict[str, tuple[np.ndarray, np.ndarray]]:

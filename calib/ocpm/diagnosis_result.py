@@ -75,6 +75,7 @@ class Diagnosis:
     folds: np.ndarray
     runtime_s: float = 0.0
     added_variable: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    unexplained_context: list = field(default_factory=list)   # residual_context.ContextLink, strongest first
 
     @property
     def noise_floor(self) -> float:
@@ -107,6 +108,8 @@ class Diagnosis:
             "effect": self.effect, "effects": self.effects, "gap_before": self.gap_before,
             "gap_after": self.gap_after, "unit": "mm", "noise_floor": self.noise_floor,
             "verdict": self.verdict, "unexplained": self.unexplained, "notes": self.notes,
+            "unexplained_context": [{"context": c.context, "share": _num(c.share), "p_value": _num(c.p_value),
+                                     "direction": c.direction} for c in self.unexplained_context],
             "named": [val(e) for e in self.named],
             "noise": {"sigma_mm": self.noise.sigma_mm, "source": self.noise.source,
                       "model_free_mm": self.noise.free_mm, "model_free_robust_mm": self.noise.free_robust_mm,

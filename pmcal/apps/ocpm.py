@@ -12,6 +12,7 @@ import importlib
 ROUTES = {
     "twin_measure": "pmcal.apps.ocpm_twin",
     "twin_render": "pmcal.apps.ocpm_twin",
+    "twin_plan": "pmcal.apps.ocpm_diagnosis_plan",
     "identify": "pmcal.apps.ocpm_calib",
     "compensate": "pmcal.apps.ocpm_calib",
     "evaluate": "pmcal.apps.ocpm_calib",

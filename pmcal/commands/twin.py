@@ -1,4 +1,4 @@
-"""``pmcal twin measure|render``: virtual measurement campaigns and pictures of the digital twin."""
+"""``pmcal twin measure|plan|render``: virtual measurement campaigns and pictures of the digital twin."""
 
 from __future__ import annotations
 
@@ -35,6 +35,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="time between poses, s (time_s column; default 30)")
     m.add_argument("-o", "--output", required=True, metavar="MEAS.csv")
     m.set_defaults(func=lambda a: dispatch("twin_measure", a))
+
+    pl = tsub.add_parser("plan", help="write the command list of a campaign (poses in measurement order)")
+    pl.add_argument("--for-diagnosis", action="store_true",
+                    help="the campaign pmcal diagnose needs (random order, payloads, warm-up/cool-down)")
+    pl.add_argument("--poses", type=int, default=128, help="number of poses (default 128)")
+    pl.add_argument("--theta-max", type=float, default=80.0, metavar="DEG", help="largest tilt, deg (default 80)")
+    pl.add_argument("--seed", type=int, default=1, help="random seed of the poses and their order")
+    pl.add_argument("--from", dest="from_diagnosis", default=None, metavar="DIAG.json",
+                    help="a diagnosis JSON: list what it could not identify and how to fix it")
+    pl.add_argument("-o", "--output", required=True, metavar="PLAN.csv")
+    pl.set_defaults(func=lambda a: dispatch("twin_plan", a))
 
     r = tsub.add_parser("render", help="write a PNG of the machine at a pose")
     _machine_errors(r)
