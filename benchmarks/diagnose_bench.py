@@ -3,7 +3,7 @@
 For each case (every effect of the vocabulary at a realistic size, no effect with Gaussian and with
 heavy-tailed noise, two effects at once, an effect outside the vocabulary) and each seed: a campaign on
 the twin with random geometric errors (limbs 1-2, SS) and the hidden effect(s)
-(:func:`pmcal.twin.effects.hidden_effect_campaign`, 128 poses up to 80 deg, payloads 0/10 kg, 18 -> 28 degC,
+(:func:`pmcal.apps.effect_scenarios.hidden_effect_campaign`, 128 poses up to 80 deg, payloads 0/10 kg, 18 -> 28 degC,
 random order and approach, sigma 0.01 mm), diagnosed without being told (sigma given).
 
 With ``--source xsim`` (or ``both``) the campaigns come from the independent simulator in
@@ -78,7 +78,7 @@ def within_interval(d, twin, name: str) -> bool:
 def run_one(job: tuple[str, int, int]) -> dict:
     from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose, limit_blas_threads
     from pmcal.twin.effect_model import EffectChainModel
-    from pmcal.twin import effects
+    from pmcal.apps import effect_scenarios as effects
 
     limit_blas_threads(1)
     case, seed, n, source = job

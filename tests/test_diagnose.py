@@ -1,7 +1,7 @@
 """Discrepancy diagnosis: statistics, hidden effects, no-effect data, CLI and demo (docs/diagnose.md).
 
 Campaigns come from the twin with an effect switched on at a size a real machine has and hidden from the
-diagnosis (:func:`pmcal.twin.effects.hidden_effect_campaign`). The default suite runs one seed per case on a
+diagnosis (:func:`pmcal.apps.effect_scenarios.hidden_effect_campaign`). The default suite runs one seed per case on a
 96-pose campaign (128 for the eccentricity) and 50 + 30 no-effect seeds on 32-pose campaigns; the rates over many seeds are in
 ``benchmarks/diagnose_bench.py`` (and the slow test at the end).
 """
@@ -24,7 +24,8 @@ from pmcal.mechanism.ocpm.params import is_angular, random_errors
 from pmcal.apps.ocpm_diagnose import hidden_effect_demo
 from pmcal.cli import main
 from pmcal.io_ocpm import write_measurements
-from pmcal.twin.effects import EffectTwin, Effects, hidden_effect_campaign, plan_effect_campaign
+from pmcal.apps.effect_scenarios import hidden_effect_campaign
+from pmcal.twin.effects import EffectTwin, Effects, plan_effect_campaign
 from pmcal.twin.tracker import LaserTracker
 
 SIGMA = 0.01

@@ -13,6 +13,7 @@ from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet, is_angular, rand
 from pmcal.cli import main
 from pmcal.io_ocpm import read_measurements
 from pmcal.twin.dynamics import DynamicTwin
+from pmcal.apps.effect_scenarios import parse_effects
 from pmcal.twin.effects import (EffectTwin, Effects, HeavyTailedTracker, add_payload, motor_torques, nominal_commands,
                           passive_errors, plan_effect_campaign)
 from pmcal.twin.machine import Twin
@@ -162,14 +163,14 @@ def test_payload_point_mass():
 
 
 def test_effects_parse_and_refuse():
-    e = Effects.parse(["backlash=0.0125", "joint_compliance=5e4,3e4", "thermal_expansion=23e-6"])
+    e = parse_effects(["backlash=0.0125", "joint_compliance=5e4,3e4", "thermal_expansion=23e-6"])
     assert e.backlash == (0.0125, 0.0125) and e.joint_compliance == (5e4, 3e4) and e.thermal_expansion == 23e-6
     assert e.active() == ["joint_compliance", "backlash", "thermal_expansion"]
     for bad, msg in [("bogus=1", "NAME one of"), ("backlash", "NAME=VALUE"), ("backlash=x", "must be a number"),
                      ("backlash=1", "plausible"), ("thermal_expansion=1e-5,2e-5", "one number"),
                      ("joint_compliance=-5", "plausible")]:
         with pytest.raises(ValueError, match=msg):
-            Effects.parse([bad])
+            parse_effects([bad])
 
 
 def test_effect_campaign_varies_payload_temperature_and_order():

@@ -131,7 +131,7 @@ def diagnose(args) -> int:
 def hidden_effect_demo(args) -> int:
     """Hide an effect (a vocabulary name, ``none`` or ``random``) in a twin campaign, diagnose it blind,
     and write measurements, diagnosis, report and the answer into ``args.out``."""
-    from pmcal.twin.effects import REALISTIC, hidden_effect_campaign
+    from pmcal.apps.effect_scenarios import REALISTIC, hidden_effect_campaign
 
     name = args.hidden_effect
     choices = list(EFFECT_NAMES) + ["none", "random"]

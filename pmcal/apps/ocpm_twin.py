@@ -108,11 +108,12 @@ def parse_levels(text: str | None, field: str, lo: float, hi: float, unit: str, 
 
 def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max: float) -> int:
     """``twin measure`` with effects: the effect-aware twin (gravity, payload, temperature, drive effects)."""
-    from pmcal.twin.effects import EffectTwin, Effects, plan_effect_campaign
+    from pmcal.apps.effect_scenarios import parse_effects
+    from pmcal.twin.effects import EffectTwin, plan_effect_campaign
     from pmcal.twin.tracker import LaserTracker
 
     try:
-        effects = Effects.parse(args.effect)
+        effects = parse_effects(args.effect)
     except ValueError as exc:
         raise InputError(str(exc), field="--effect") from None
     payloads = parse_levels(args.payload, "--payload", 0.0, 100.0, "kg") or (0.0,)
