@@ -1,11 +1,11 @@
-"""Monte Carlo benchmark of the identification methods on the seed's per-limb model (twin data).
+"""Monte Carlo benchmark of the identification methods on the paper's per-limb model (twin data).
 
 For every error draw (fixed seeds) the MuJoCo twin (reference closure compliance) is measured at 24
 poses (theta <= 60 deg, tracker noise 0.01 mm); both actuated limbs are identified by every method;
 the machine is compensated (exact real IK + fitted position map) and driven to 24 held-out poses.
 
 Scenarios
-  limbs12 : errors only in limbs 1-2 (+-1.5 mm, +-0.3 deg, the size of seed Table 2): the seed's setting.
+  limbs12 : errors only in limbs 1-2 (+-1.5 mm, +-0.3 deg, the size of paper Table 2): the paper's setting.
   all     : errors in every limb and the SS limb (+-0.5 mm, +-0.1 deg, MECHANISM.md): over-constraint.
 
 Per method: success rate (chi-square within max(1, 1 %) of the bounded least-squares optimum found from

@@ -253,7 +253,7 @@ def identify(meas: Measurements, *, model: str = DEFAULT_MODEL, method: str | No
         check_reachable(meas, source, geom)
         return _identify_full(meas, sigma, source or "", geom, fit_stiffness_ratio)
     method = check_choice(method, DEFAULT_METHOD, METHODS, "--method")
-    n_free = len(pm.SEED_LIMB_FIELDS)
+    n_free = len(pm.PAPER_LIMB_FIELDS)
     if len(meas) <= n_free:
         raise InputError(f"{len(meas)} poses cannot determine {n_free} parameters a limb: measure at least "
                          f"{n_free + 1} (the paper uses 24)", file=source, field="pose_id")

@@ -1,4 +1,4 @@
-"""Compensation (calib/ocpm/compensation.py): exact real IK, seed eq. 15, position map, calibrated FK."""
+"""Compensation (calib/ocpm/compensation.py): exact real IK, paper eq. 15, position map, calibrated FK."""
 
 import numpy as np
 import pytest
@@ -23,7 +23,7 @@ def test_no_errors_gives_the_nominal_ik():
 
 
 def test_linearised_eq15_is_first_order():
-    """seed eq. 15 differs from the exact real IK by a second-order term: ten times smaller errors, a
+    """paper eq. 15 differs from the exact real IK by a second-order term: ten times smaller errors, a
     hundred times smaller difference."""
     names = pm.param_names()
     x = np.array([TABLE2.get(k) for k in names])

@@ -100,7 +100,7 @@ def test_a_different_stiffness_ratio_is_identified():
 
 def test_on_consistent_data_both_methods_compensate_exactly():
     """Errors only in the motor zero offsets: the closures stay consistent, eq. 7 holds, and both the
-    seed's method (HGA + real IK at the eq. 7 position) and the whole chain reach the noise floor."""
+    paper's method (HGA + real IK at the eq. 7 position) and the whole chain reach the noise floor."""
     from pmcal.calib.ocpm import compensation as comp
     from pmcal.calib.ocpm import paper_model as pm
 
