@@ -52,9 +52,9 @@ def limbs12(params: dict) -> dict:
 def paper_identify(meas):
     """The paper's identification (HGA on eq. 14, both limbs) and the fitted position map."""
     from pmcal.calib.ocpm import compensation as comp
-    from pmcal.calib.ocpm import paper_model as pm
+    from pmcal.calib.ocpm import paper_calibration
 
-    cal = pm.calibrate(meas, "hga", (1, 2), seed=0)
+    cal = paper_calibration.calibrate(meas, "hga", (1, 2), seed=0)
     return cal.errors(), comp.fit_position_map(cal.model.r, cal.model.R)
 
 

@@ -37,6 +37,7 @@ if str(ROOT) not in sys.path:
 
 from pmcal.calib.identifiability import analyse  # noqa: E402
 from pmcal.calib.ocpm import compensation as comp  # noqa: E402
+from pmcal.calib.ocpm import paper_calibration  # noqa: E402
 from pmcal.calib.ocpm import paper_model as pm  # noqa: E402
 from pmcal.mechanism.ocpm.params import ErrorSet, random_errors  # noqa: E402
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion  # noqa: E402
@@ -201,7 +202,7 @@ def pose_draw(args) -> dict:
         plan = plan_campaign(N_CAL, THETA_MAX, seed=d) if sel is None else CampaignPlan(
             phi_deg=sel[0], theta_deg=sel[1], approach=np.ones((N_CAL, 2)), time_s=np.arange(N_CAL) * 30.0)
         meas = run_campaign(twin, plan, LaserTracker(SIGMA, rng))
-        cal = pm.calibrate(meas, "hga", seed=d, sigma_mm=SIGMA)
+        cal = paper_calibration.calibrate(meas, "hga", seed=d, sigma_mm=SIGMA)
         pmap = comp.fit_position_map(cal.model.r, cal.model.R)
         keep = [i for i, k in enumerate(cal.names) if k not in cal.unidentifiable and pm.param_units([k])[0] == "mm"]
         dev = cal.x[keep] - np.array([E_true.get(cal.names[i]) for i in keep])
