@@ -136,3 +136,17 @@ def test_plan_rejects_bad_input(tmp_path, capsys):
 
     assert main(["twin", "plan", "--for-diagnosis", "--poses", "5", "-o", str(tmp_path / "p.csv")]) == 2
     assert "--poses" in capsys.readouterr().err and not (tmp_path / "p.csv").exists()
+
+
+def test_inferred_approach_matches_the_simulated_move_order():
+    """pmcal's approach from the row order equals the simulator's own move signs (rows 2..N)."""
+    from crosssim.campaign import drive_angles
+
+    from pmcal.mechanism.ocpm.effects import approach_from_order
+
+    c = plan(60, 70, np.random.default_rng(4))
+    c.cmd_deg[10] = c.cmd_deg[9]          # a row that does not move: the sign carries over
+    lag = np.rad2deg(drive_angles(c, Geometry(), SimEffects(backlash=(1.0, 1.0)))) - c.cmd_deg
+    s = approach_from_order(c.cmd_deg)
+    assert s[0].tolist() == [0, 0]
+    np.testing.assert_array_equal(s[1:], -np.round(lag[1:]))
