@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pmcal.apps.ocpm_full import FullCompensation
+from pmcal.compensators import FullCompensation
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.kinematics import nominal_ik
 from pmcal.mechanism.ocpm.params import random_errors
