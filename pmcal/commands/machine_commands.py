@@ -16,6 +16,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the whole job on the built-in machine, no arguments needed")
     p.add_argument("--out", default="pmcal-demo", help="output folder (report, tables); default pmcal-demo")
     p.add_argument("--seed", type=int, default=1, help="random seed of the virtual campaign")
+    p.add_argument("--full", action="store_true",
+                   help="run the population methods (ga, pso, sa) to their own stopping rules instead of the "
+                        "quick demo's capped budgets (about a minute longer)")
     p.add_argument("--hidden-effect", default=None, metavar="NAME",
                    help="hide a physical effect in the campaign and let the diagnosis find it")
     p.set_defaults(func=_cmd("demo"))
