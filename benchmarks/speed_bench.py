@@ -26,10 +26,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.common import print_table, write_json  # noqa: E402
-
 SUBPACKAGES = ("mechanism", "twin", "calib", "bridge", "mjcf", "plc")
 
 
@@ -66,6 +62,12 @@ def _policy(version: str) -> None:
         apply_blas_policy()
 
 
+def _which() -> str:
+    import pmcal.twin.machine
+
+    return str(Path(pmcal.twin.machine.__file__).resolve())
+
+
 def measure_compensation() -> dict:
     import numpy as np
 
@@ -97,7 +99,7 @@ def measure_compensation() -> dict:
     t = time.perf_counter()
     comp.commands_deg(p2, t2)
     clean = time.perf_counter() - t
-    t2[100] = 89.0                                         # one target out of reach
+    p2[100], t2[100] = 200.0, 130.0                        # one target beyond the workspace
     t = time.perf_counter()
     comp.commands_deg(p2, t2)
     one_bad = time.perf_counter() - t
@@ -182,7 +184,7 @@ def run_measure(args) -> None:
     _policy(args.version)
     fn = {"compensation": measure_compensation, "twin": measure_twin,
           "identify": lambda: measure_identify(False), "demo": lambda: measure_demo(args.version)}[args.measure]
-    print(json.dumps(fn()))
+    print(json.dumps({**fn(), "code": _which()}))
 
 
 def main() -> None:
@@ -194,9 +196,12 @@ def main() -> None:
     ap.add_argument("--measure", help=argparse.SUPPRESS)
     ap.add_argument("--version", help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if args.measure:
+    if args.measure:                   # a child: import pmcal from its PYTHONPATH only, not this tree's root
+        sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() not in (ROOT, ROOT / "benchmarks")]
         run_measure(args)
         return
+    sys.path.insert(0, str(ROOT))
+    from benchmarks.common import print_table, write_json
     only = args.only.split(",")
     tmp = Path(tempfile.mkdtemp(prefix="pmcal-before-"))
     results: dict[str, dict] = {"before_ref": args.before, "command": " ".join(["python"] + sys.argv)}
@@ -207,11 +212,13 @@ def main() -> None:
             if what in only:
                 res = {v: child(v, p, what) for v, p in versions.items()}
                 results[what] = res
-                rows += [[f"{what}: {k}", res["before"][k], res["after"][k]] for k in res["after"]]
+                rows += [[f"{what}: {k}", res["before"][k], res["after"][k]] for k in res["after"] if k != "code"]
         if "identify" in only:
             res = {}
             for v, p in versions.items():
-                idle = child(v, p, "identify")["identify_48_s"]
+                idle = child(v, p, "identify")
+                print(f"{v}: {idle['code']}")
+                idle = idle["identify_48_s"]
                 e = dict(os.environ, MUJOCO_GL="egl", PYTHONPATH=str(p) if p else "")
                 job = subprocess.Popen([sys.executable, __file__, "--measure", "busy", "--version", v], env=e,
                                        cwd=ROOT if p is None else p, stdout=subprocess.DEVNULL)
