@@ -51,7 +51,7 @@ class ModbusMap:
 
     # ---- information block (PLC writes) ----
     MAGIC: int = 0
-    INTERFACE_VERSION: int = 1
+    INTERFACE_VERSION: int = 1      # register offset (the value is plc_types.INTERFACE_VERSION)
     NPHI_MAX: int = 2
     NTHETA_MAX: int = 3
     WINDOW_LREALS: int = 4

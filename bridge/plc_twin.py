@@ -23,7 +23,8 @@ import time
 
 import numpy as np
 
-from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, CompTable, bilinear, crc16_ccitt
+from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, CompTable, crc16_ccitt, lookup
+from pmcal.bridge.nominal import REFERENCE_NOMINAL_IK, REFERENCE_NONE, NominalReference
 from pmcal.bridge.plc_types import (HEADER_SIZE, INTERFACE_VERSION, Header, LookupIn, LookupOut,
                               LookupResult, PlcState, State, Status, used_values)
 
@@ -32,6 +33,7 @@ _DEFECT_STATUS = {
     "grid_size": Status.GRID_SIZE, "grid_limits": Status.GRID_LIMITS, "limits": Status.LIMITS,
     "version": Status.VERSION_MISMATCH, "stale_version": Status.STALE_VERSION,
     "not_finite": Status.NOT_FINITE, "out_of_range": Status.OUT_OF_RANGE, "step": Status.STEP_TOO_LARGE,
+    "reference": Status.REFERENCE_MISMATCH,
 }
 #: the CRC self-test vector the ST code checks at start-up
 CRC_SELFTEST = (b"123456789", 0x29B1)
@@ -46,8 +48,11 @@ class PlcTwin:
     under the keys of :data:`pmcal.bridge.plc_types.SYMBOLS`. ``motion_idle`` is the PLC input that allows the buffer swap.
     """
 
-    def __init__(self, crc=crc16_ccitt, commit_timeout_s: float = 10.0) -> None:
+    def __init__(self, crc=crc16_ccitt, commit_timeout_s: float = 10.0,
+                 reference: NominalReference | None = None) -> None:
         self.lock = threading.RLock()
+        #: GVL_CompTableParam.REF_*: the nominal geometry the PLC's F_CompTableNominalIk uses
+        self.reference = reference or NominalReference.default()
         self._crc = crc
         self.motion_idle = True
         self.commit_timeout_s = commit_timeout_s
@@ -176,8 +181,16 @@ class PlcTwin:
             return Status.VERSION_MISMATCH
         if not (2 <= h.n_phi <= NPHI_MAX and 2 <= h.n_theta <= NTHETA_MAX):
             return Status.GRID_SIZE
+        if h.reference == REFERENCE_NOMINAL_IK:
+            if h.reference_crc != self._crc(self.reference.pack()):
+                return Status.REFERENCE_MISMATCH
+            ref = self.reference
+        elif h.reference == REFERENCE_NONE:
+            ref = None
+        else:
+            return Status.REFERENCE_MISMATCH
         values = used_values(h, self._buffers[idx])
-        table = CompTable(machine=h.machine, version=h.table_version, values=values, **h.limits())
+        table = CompTable(machine=h.machine, version=h.table_version, values=values, reference=ref, **h.limits())
         defect = table.header_defect(active_version=self._headers[self._active].table_version)
         if defect is not None and defect.kind != "machine":       # the PLC does not look at the name
             return _DEFECT_STATUS[defect.kind]
@@ -195,8 +208,9 @@ class PlcTwin:
         if h.table_version == 0:
             out = LookupOut(0.0, 0.0, req.seq, 0, LookupResult.NO_TABLE)
         else:
-            m, inside = bilinear(used_values(h, self._buffers[self._active]), (h.phi_min_deg, h.phi_max_deg),
-                                 (h.theta_min_deg, h.theta_max_deg), req.phi_deg, req.theta_deg)
+            ref = self.reference if h.reference == REFERENCE_NOMINAL_IK else None
+            m, inside = lookup(used_values(h, self._buffers[self._active]), ref, (h.phi_min_deg, h.phi_max_deg),
+                               (h.theta_min_deg, h.theta_max_deg), req.phi_deg, req.theta_deg)
             res = LookupResult.OK if bool(inside) else LookupResult.OUT_OF_GRID
             m = m if bool(inside) else np.zeros(2)
             out = LookupOut(float(m[0]), float(m[1]), req.seq, h.table_version, res)
