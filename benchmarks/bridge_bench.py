@@ -40,7 +40,8 @@ from pmcal.mechanism.ocpm.params import PAPER_TABLE2  # noqa: E402
 
 TARGET_S = {"ads": 0.050, "modbus": 1.0}
 ACCURACY_RATIO_MAX = 1.1
-ACCURACY_GRIDS = ((37, 16), (73, 31), (100, 61), (100, 100))
+ACCURACY_GRIDS = ((37, 7), (37, 16), (55, 21), (73, 31), (100, 61), (100, 100))
+PLOT = Path(__file__).resolve().parent.parent / "docs" / "img" / "comptable_grid_error.png"
 #: every-limb error set of the end-to-end run (mm, deg): 0.3 mm / 0.2 deg normal, seed 12
 ERROR_SEED = 12
 PHASES = ("connect_check", "stage", "readback", "commit_ack", "total")
@@ -162,6 +163,34 @@ def print_accuracy(acc: dict) -> None:
                  f"<= {ACCURACY_RATIO_MAX}x"], rows)
 
 
+def plot_accuracy(acc: dict, path: Path = PLOT) -> None:
+    """Mean true pointing error against grid size, both schemes, with the direct setpoints' line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for scheme, label, mark in (("nominal_ik", "format 2: nominal IK + bilinear correction", "o-"),
+                                ("absolute", "format 1: bilinear absolute commands", "s--")):
+        runs = [r for r in acc["runs"] if r["scheme"] == scheme and r["transport"] == "ads"]
+        ax.loglog([r["grid"][0] * r["grid"][1] for r in runs], [r["mean_deg"] for r in runs], mark, label=label)
+    ax.axhline(acc["direct_mean_deg"], color="k", lw=0.8, label="direct setpoints (no table)")
+    ax.axhline(ACCURACY_RATIO_MAX * acc["direct_mean_deg"], color="k", lw=0.8, ls=":", label="1.1 x direct")
+    for r in acc["runs"]:
+        if r["scheme"] == "nominal_ik" and r["transport"] == "ads":
+            ax.annotate(f"{r['grid'][0]}x{r['grid'][1]}", (r["grid"][0] * r["grid"][1], r["mean_deg"]),
+                        textcoords="offset points", xytext=(0, -12), ha="center", fontsize=7)
+    ax.set_xlabel("grid nodes n_phi x n_theta (phi 0..360 deg, theta 0..60 deg)")
+    ax.set_ylabel("mean pointing error, deg")
+    ax.set_title(f"through the PLC's table, {acc['heldout']} held-out orientations (twin)", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat-ads", type=int, default=20)
@@ -177,6 +206,7 @@ def main() -> None:
     if args.accuracy_only:
         acc = accuracy()
         print_accuracy(acc)
+        plot_accuracy(acc)
         write_json("bridge_accuracy", {"accuracy": acc}, args.json)
         return
     results = {"ads": bench("ads", args.repeat_ads), "modbus": bench("modbus", args.repeat_modbus)}
