@@ -217,3 +217,80 @@ def test_interpolation_refuses_targets_outside_the_grid():
         table.interpolate([10.0, 370.0], [5.0, 5.0])
     m, inside = bilinear(table.values, (0, 360), (0, 60), [10.0, np.nan, 10.0], [5.0, 5.0, 61.0])
     assert inside.tolist() == [True, False, False] and np.isnan(m[1:]).all()
+
+
+# ---- format 2: reference, version-1 files, required checksums ---------------------------------
+
+def _v1_file(tmp_path, table):
+    """A format-1 JSON file as the version-1 writer produced it (absolute values, SHA over values)."""
+    import hashlib
+
+    doc = table.header_dict()
+    doc.pop("reference")
+    doc["format_version"] = 1
+    doc["sha256"] = hashlib.sha256(table.values.tobytes()).hexdigest()
+    doc["values"] = table.values.tolist()
+    p = tmp_path / "v1.json"
+    p.write_text(json.dumps(doc))
+    return p
+
+
+def test_version_1_file_is_read_as_absolute_commands_with_the_same_lookup(tmp_path):
+    ref_table = make_table(version=4, n_phi=37, n_theta=13)
+    absolute = CompTable(machine="ocpm_2dof", version=4, values=ref_table.commands_at_nodes(),
+                         **ref_table.limits())
+    back = CompTable.load(_v1_file(tmp_path, absolute))
+    assert back.reference is None and back.values.tobytes() == absolute.values.tobytes()
+    back.validate()
+    # saving writes format 2 (reference kind none), which reads back to the same table
+    jp, cp = back.save(tmp_path / "v2.json")
+    assert json.loads(jp.read_text())["reference"] == {"kind": "none"}
+    for again in (CompTable.load(jp), CompTable.load(cp)):
+        assert again.reference is None and again.values.tobytes() == absolute.values.tobytes()
+
+
+@pytest.mark.parametrize("version", [0, 3, "2"])
+def test_unknown_format_version_is_refused(tmp_path, version):
+    jp, _ = make_table().save(tmp_path / "comp.json")
+    doc = json.loads(jp.read_text())
+    doc["format_version"] = version
+    jp.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="format_version") as exc:
+        CompTable.load(jp)
+    assert exc.value.field == "format_version"
+
+
+@pytest.mark.parametrize("drop", ["crc16_ccitt", "sha256"])
+def test_file_without_checksums_is_refused(tmp_path, drop):
+    jp, cp = make_table().save(tmp_path / "comp.json")
+    doc = json.loads(jp.read_text())
+    del doc[drop]
+    jp.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=f"no {drop}") as exc:
+        CompTable.load(jp)
+    assert exc.value.field == drop
+    lines = [ln for ln in cp.read_text().splitlines() if not ln.startswith("# crc16_ccitt")]
+    cp.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="no crc16_ccitt"):
+        CompTable.load(cp)
+
+
+def test_edited_reference_fails_the_sha256(tmp_path):
+    jp, _ = make_table().save(tmp_path / "comp.json")
+    doc = json.loads(jp.read_text())
+    doc["reference"]["l_mm"] += 0.001
+    jp.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="SHA-256 mismatch"):
+        CompTable.load(jp)
+
+
+def test_nominal_reference_equals_the_mechanism_inverse_kinematics():
+    """bridge/nominal.py (the ST arithmetic) against pmcal.mechanism's vectorised real IK, errors zero."""
+    from pmcal.bridge.nominal import NominalReference
+
+    rng = np.random.default_rng(3)
+    phi, theta = rng.uniform(0, 360, 2000), rng.uniform(0, 60, 2000)
+    np.testing.assert_allclose(NominalReference.default().commands_deg(phi, theta), nominal_setpoints(phi, theta),
+                               rtol=0, atol=1e-11)
+    # the table stores only the calibration's correction: zero for the nominal machine
+    assert np.abs(make_table(n_phi=37, n_theta=13).values).max() < 1e-11
