@@ -25,7 +25,7 @@ import numpy as np
 
 from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, CompTable, crc16_ccitt, lookup
 from pmcal.bridge.nominal import REFERENCE_NOMINAL_IK, REFERENCE_NONE, NominalReference
-from pmcal.bridge.plc_types import (HEADER_SIZE, INTERFACE_VERSION, Header, LookupIn, LookupOut,
+from pmcal.bridge.plc_types import (COMMIT_TIMEOUT_S, HEADER_SIZE, INTERFACE_VERSION, Header, LookupIn, LookupOut,
                               LookupResult, PlcState, State, Status, used_values)
 
 #: Defect.kind of calib.comptable -> the PLC's status code
@@ -48,7 +48,7 @@ class PlcTwin:
     under the keys of :data:`pmcal.bridge.plc_types.SYMBOLS`. ``motion_idle`` is the PLC input that allows the buffer swap.
     """
 
-    def __init__(self, crc=crc16_ccitt, commit_timeout_s: float = 10.0,
+    def __init__(self, crc=crc16_ccitt, commit_timeout_s: float = COMMIT_TIMEOUT_S,
                  reference: NominalReference | None = None) -> None:
         self.lock = threading.RLock()
         #: GVL_CompTableParam.REF_*: the nominal geometry the PLC's F_CompTableNominalIk uses

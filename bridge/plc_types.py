@@ -18,6 +18,10 @@ import numpy as np
 from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, CompTable, GridLimits
 from pmcal.bridge.nominal import REFERENCE_NOMINAL_IK, REFERENCE_NONE
 
+#: FB_CompTableManager.tCommitTimeout default (s): a checked table that motion keeps from being swapped
+#: in is dropped with SWAP_TIMEOUT after this long. The bridge's ack time-out (5 s) is longer, so the
+#: user always sees the PLC's verdict.
+COMMIT_TIMEOUT_S = 4.0
 #: interface version of GVL_CompTable (bumped when any layout below changes)
 INTERFACE_VERSION = 2
 LREAL_SIZE = 8

@@ -30,7 +30,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="connect, check the interface and the table, write nothing")
     p.add_argument("--attempts", type=int, default=3, help="transfer attempts on link errors (default 3)")
     p.add_argument("--ack-timeout", type=float, default=5.0, metavar="S",
-                   help="wait this long for the PLC's acknowledgement (default 5 s)")
+                   help="wait this long for the PLC's acknowledgement (default 5 s; keep it above the PLC's "
+                        "commit time-out, FB_CompTableManager.tCommitTimeout, 4 s)")
+    p.add_argument("--wait-motion", type=float, default=0.0, metavar="S",
+                   help="if the machine is moving (the PLC reports WAIT_MOTION/SWAP_TIMEOUT), keep the commit "
+                        "up for this long, s (default 0: report it at once)")
     p.add_argument("--audit", default=None, metavar="FILE",
                    help="audit log to append to (default: bridge_audit.log beside TABLE)")
     p.add_argument("--no-audit", action="store_true", help="write no audit line")
@@ -109,18 +113,26 @@ def make_link(args, writes=None):
 def cmd_push(args) -> int:
     from pmcal.bridge.comptable import CompTable
     from pmcal.bridge.errors import BridgeError
-    from pmcal.bridge.transfer import PushOptions, push
+    from pmcal.bridge.transfer import PushOptions, check_writable, push
 
     if args.attempts < 1:
         raise InputError(f"attempts must be at least 1, got {args.attempts}", field="--attempts")
     if not (args.ack_timeout > 0):
         raise InputError(f"acknowledgement time-out must be positive, got {args.ack_timeout}",
                          field="--ack-timeout")
-    table = CompTable.load(args.table).validate()
+    if not (args.wait_motion >= 0.0) or args.wait_motion > 3600.0:
+        raise InputError(f"wait for motion must be 0..3600 s, got {args.wait_motion}", field="--wait-motion")
+    table = CompTable.load(args.table).validate()       # checksums and values: before connecting
     link = make_link(args, writes=frozenset() if args.dry_run else None)
     _quiet_libraries()
     audit = None if args.no_audit else (args.audit or Path(args.table).with_name("bridge_audit.log"))
-    options = PushOptions(attempts=args.attempts, ack_timeout_s=args.ack_timeout, dry_run=args.dry_run)
+    # everything that can fail locally, before the first byte goes to the PLC
+    if audit is not None and not args.dry_run:
+        check_writable(audit, "--audit")
+    if args.json:
+        check_writable(args.json, "--json", replace=True)
+    options = PushOptions(attempts=args.attempts, ack_timeout_s=args.ack_timeout, dry_run=args.dry_run,
+                          wait_motion_s=args.wait_motion)
     try:
         rep = push(link, table, options, audit_path=audit)
     except BridgeError as exc:
