@@ -54,7 +54,7 @@ class ModbusArea:
         if not self.dirty:
             return
         self.dirty = False
-        for key in ("shadow_header", "commit_version", "lookup_in"):
+        for key in ("shadow_header", "commit_version", "staging_claim", "lookup_in"):
             self.twin.write_symbol(key, self.get(key))
         r = self.rmap
         index, count, cmd, seq = (int(x) for x in self.image[r.PAGE_CONTROL:r.PAGE_CONTROL + 4])
@@ -125,13 +125,15 @@ class ModbusMockPlc(MockPlc):
         return (self.area.copy_in,), (self.area.copy_out,)
 
     def _device(self) -> SimDevice:
-        """Holding registers of the area; information and PLC answers read-only."""
+        """Holding registers of the whole mapped area (TF6250: 16#3000..16#5FFF -> %MB0..), all writable.
+
+        TF6250 maps holding registers onto PLC memory without any notion of who owns a variable, so
+        a write to a register the PLC writes is accepted; the PLC overwrites it at the end of its next
+        cycle (``copy_out``). The bridge itself only writes its allow-list (:class:`ModbusLink`).
+        """
         r = self.rmap
-        blocks = [(r.MAGIC, r.SHADOW_HEADER, True), (r.SHADOW_HEADER, r.PAGE_ACK, False),
-                  (r.PAGE_ACK, r.LOOKUP_IN, True), (r.LOOKUP_IN, r.LOOKUP_OUT, False),
-                  (r.LOOKUP_OUT, r.WINDOW, True), (r.WINDOW, r.WINDOW + 4 * r.window_lreals, False)]
-        simdata = [SimData(address=r.base + a, count=b - a, values=0, datatype=DataType.REGISTERS, readonly=ro)
-                   for a, b, ro in blocks]
+        simdata = [SimData(address=r.base, count=r.area_size, values=0, datatype=DataType.REGISTERS,
+                           readonly=False)]
         return SimDevice(id=r.device_id, simdata=simdata, action=self._action)
 
     async def _action(self, fc: int, start: int, address: int, count: int, registers: list[int], values):

@@ -25,7 +25,7 @@ import numpy as np
 
 from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, CompTable, crc16_ccitt, lookup
 from pmcal.bridge.nominal import REFERENCE_NOMINAL_IK, REFERENCE_NONE, NominalReference
-from pmcal.bridge.plc_types import (COMMIT_TIMEOUT_S, HEADER_SIZE, INTERFACE_VERSION, Header, LookupIn, LookupOut,
+from pmcal.bridge.plc_types import (COMMIT_TIMEOUT_S, STAGING_LEASE_S, HEADER_SIZE, INTERFACE_VERSION, Header, LookupIn, LookupOut,
                               LookupResult, PlcState, State, Status, used_values)
 
 #: Defect.kind of calib.comptable -> the PLC's status code
@@ -61,6 +61,10 @@ class PlcTwin:
         self.shadow_header = _ZERO_HEADER.pack()
         self.shadow = np.zeros((NPHI_MAX, NTHETA_MAX, 2), dtype="<f8")
         self.commit_version = 0
+        self.staging_claim = 0
+        self._owner = 0
+        self._owner_since = 0.0
+        self.staging_lease_s = STAGING_LEASE_S
         # double buffer
         self._buffers = [np.zeros_like(self.shadow), np.zeros_like(self.shadow)]
         self._headers = [_ZERO_HEADER, _ZERO_HEADER]
@@ -85,6 +89,8 @@ class PlcTwin:
                 return self.shadow.tobytes()
             if key == "commit_version":
                 return self.commit_version.to_bytes(4, "little")
+            if key == "staging_claim":
+                return self.staging_claim.to_bytes(4, "little")
             if key == "state":
                 return self._out.pack()
             if key == "active_header":
@@ -104,6 +110,8 @@ class PlcTwin:
                 self.shadow = np.frombuffer(bytes(data), dtype="<f8").reshape(self.shadow.shape).copy()
             elif key == "commit_version":
                 self.commit_version = int.from_bytes(data, "little")
+            elif key == "staging_claim":
+                self.staging_claim = int.from_bytes(data, "little")
             elif key == "lookup_in":
                 self.lookup_in = bytes(data)
             else:
@@ -166,9 +174,25 @@ class PlcTwin:
                 self._fsm, status, ack = State.IDLE, Status.OK, self._last_commit
             elif self._fsm == State.WAIT_MOTION and time.monotonic() - self._wait_since > self.commit_timeout_s:
                 self._fsm, status, ack = State.IDLE, Status.SWAP_TIMEOUT, self._last_commit
+            self._arbitrate()
             h = self._headers[active]
-            self._out = PlcState(ack, h.table_version, (out.cycle + 1) & 0xFFFFFFFF, status, h.crc, self._fsm)
+            self._out = PlcState(ack, h.table_version, (out.cycle + 1) & 0xFFFFFFFF, status, h.crc, self._fsm,
+                                 self._owner)
             self._lookup()
+
+    def _arbitrate(self) -> None:
+        """FB_CompTableManager's staging arbitration: the first claim owns the staging area until it
+        writes 0 (or stays silent for ``staging_lease_s`` while the manager is idle); other claims wait."""
+        now = time.monotonic()
+        if self._owner == 0:
+            if self.staging_claim != 0:
+                self._owner, self._owner_since = self.staging_claim, now
+        elif self.staging_claim == 0:
+            self._owner = 0
+        elif self._fsm != State.IDLE or self.commit_version != 0:
+            self._owner_since = now                                   # the owner's commit is in progress
+        elif now - self._owner_since > self.staging_lease_s:
+            self._owner, self._owner_since = self.staging_claim, now  # lease expired: the latest claim
 
     def _check(self, idx: int) -> Status:
         """FB_CompTableCheck on buffer ``idx``: the same checks and order as the ST code."""
@@ -257,5 +281,5 @@ class PlcTwin:
             self._headers[idx] = Header.of(table)
             self._active = idx
             self._out = PlcState(self._out.ack_version, table.version, self._out.cycle, Status.OK,
-                                 table.crc16(), self._fsm)
+                                 table.crc16(), self._fsm, self._owner)
 

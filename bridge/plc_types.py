@@ -77,8 +77,10 @@ class LookupResult(IntEnum):
 #: = 104 bytes
 _HEADER = struct.Struct("<7dI4H32s2H")
 #: ST_CompTableState: nAckVersion, nActiveVersion, nCycle (UDINT); eStatus, nActiveCrc, eState,
-#: nReserved (UINT/WORD/INT) = 20 bytes, padded to 24
-_STATE = struct.Struct("<3I4H4x")
+#: nReserved (UINT/WORD/INT); nStagingOwner (UDINT) = 24 bytes
+_STATE = struct.Struct("<3I4HI")
+#: FB_CompTableManager.tStagingLease default (s): an owner that stays silent this long loses the staging
+STAGING_LEASE_S = 30.0
 #: ST_CompTableLookupIn: fPhi, fTheta (LREAL), nSeq (UDINT), 4 reserved = 24 bytes
 _LOOKUP_IN = struct.Struct("<2dI4x")
 #: ST_CompTableLookupOut: fM1, fM2 (LREAL), nSeq, nTableVersion (UDINT), eResult (INT), 6 reserved
@@ -134,15 +136,16 @@ class PlcState:
     status: Status
     active_crc: int
     state: State
+    staging_owner: int = 0       # session token of the client that owns the staging area (0: free)
 
     def pack(self) -> bytes:
         return _STATE.pack(self.ack_version, self.active_version, self.cycle, int(self.status),
-                           self.active_crc, int(self.state), 0)
+                           self.active_crc, int(self.state), 0, self.staging_owner)
 
     @classmethod
     def unpack(cls, data: bytes) -> "PlcState":
-        ack, active, cycle, status, crc, state, _ = _STATE.unpack(data)
-        return cls(ack, active, cycle, _enum(Status, status), crc, _enum(State, state))
+        ack, active, cycle, status, crc, state, _, owner = _STATE.unpack(data)
+        return cls(ack, active, cycle, _enum(Status, status), crc, _enum(State, state), owner)
 
 
 @dataclass(frozen=True)
@@ -198,6 +201,7 @@ SYMBOLS: tuple[Symbol, ...] = (
     Symbol("shadow", "aShadow", f"ARRAY [0..{NPHI_MAX - 1},0..{NTHETA_MAX - 1},0..1] OF LREAL",
            SHADOW_SIZE, "bridge"),
     Symbol("commit_version", "nCommitVersion", "UDINT", 4, "bridge"),
+    Symbol("staging_claim", "nStagingClaim", "UDINT", 4, "bridge"),
     Symbol("state", "stState", "ST_CompTableState", STATE_SIZE, "plc"),
     Symbol("active_header", "stActiveHeader", "ST_CompTableHeader", HEADER_SIZE, "plc"),
     Symbol("lookup_in", "stLookupIn", "ST_CompTableLookupIn", LOOKUP_IN_SIZE, "bridge"),
@@ -205,7 +209,7 @@ SYMBOLS: tuple[Symbol, ...] = (
 )
 SYMBOL = {s.key: s for s in SYMBOLS}
 #: the allow-lists: what the bridge may write to push a table, and to ask for motor targets
-PUSH_WRITES = frozenset({"shadow_header", "shadow", "commit_version"})
+PUSH_WRITES = frozenset({"shadow_header", "shadow", "commit_version", "staging_claim"})
 LOOKUP_WRITES = frozenset({"lookup_in"})
 
 

@@ -22,13 +22,14 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import secrets
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from pmcal.bridge.comptable import NTHETA_MAX, CompTable
-from pmcal.bridge.errors import AckTimeout, BridgeError, LinkError, ReadbackMismatch, Rejected
+from pmcal.bridge.errors import AckTimeout, BridgeError, LinkError, ReadbackMismatch, Rejected, StagingBusy
 from pmcal.bridge.link import PlcLink
 from pmcal.bridge.plc_types import HEADER_SIZE, LREAL_SIZE, Header, PlcState, State, Status, shadow_rows
 from pmcal.errors import InputError
@@ -117,6 +118,7 @@ def push(link: PlcLink, table: CompTable, options: PushOptions = PushOptions(),
         failure.report = rep
         raise failure from exc
     finally:
+        run.release()
         link.close()
         run.rep.timings_s["total"] = time.perf_counter() - t0
         if audit_path is not None:
@@ -133,10 +135,46 @@ class _Run:
     rep: PushReport
     commit_sent: bool = False
     acknowledged: bool = False
+    owned: bool = False
 
     def __post_init__(self) -> None:
         self.header = Header.of(self.table).pack()
         self.rows = shadow_rows(self.table)
+        self.token = secrets.randbits(32) | 1          # this push's session token (never 0)
+
+    def claim(self) -> None:
+        """Own the PLC's staging area (``nStagingClaim := token``) or raise :class:`StagingBusy`.
+
+        The PLC grants the staging to the first claim and keeps it until its owner writes 0 (or stays
+        silent for the staging lease), so two pushes never interleave their writes.
+        """
+        link, opt = self.link, self.opt
+        link.write_claim(self.token)
+        st = _wait(link, lambda s: s.staging_owner != 0, opt.idle_timeout_s, opt.poll_s,
+                   "PLC did not grant the staging area (nStagingOwner stays 0)")
+        if st.staging_owner != self.token:
+            raise StagingBusy(f"another client is staging a table on this PLC (session 0x{st.staging_owner:08X}); "
+                              "nothing written, try again when it has finished (the PLC frees the staging "
+                              "area of a silent client after its staging lease)")
+        self.owned = True
+
+    def release(self) -> None:
+        """``nStagingClaim := 0`` if this push owns the staging area (best effort)."""
+        if not self.owned:
+            return
+        for reopen in (False, True):                   # after a broken link: once more on a fresh one
+            try:
+                if reopen:
+                    self.link.close()
+                    self.link.open()
+                self.link.write_claim(0)
+                self.owned = False
+                # wait until the PLC has seen the release, so a push right after this one finds it free
+                _wait(self.link, lambda s: s.staging_owner != self.token, self.opt.idle_timeout_s,
+                      self.opt.poll_s, "")
+                return
+            except (BridgeError, OSError):
+                continue
 
     def abandon(self) -> str:
         """After a failure with a commit possibly pending: withdraw it and say what is active.
@@ -187,7 +225,8 @@ class _Run:
             rep.message = (f"dry run: would stage {len(would)} bytes (sha256 {rep.sha256_sent[:16]}) and commit "
                            f"version {version} (active version {st.active_version}); nothing written")
             return
-        # withdraw whatever is pending, wait for an idle manager
+        # own the staging area, withdraw whatever is pending, wait for an idle manager
+        self.claim()
         link.write_commit(0)
         _wait(link, lambda s: s.ack_version == 0 and s.state == State.IDLE, opt.idle_timeout_s, opt.poll_s,
               "PLC manager did not become idle after clearing nCommitVersion")

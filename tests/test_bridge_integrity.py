@@ -136,3 +136,61 @@ def test_bridge_ack_timeout_is_longer_than_the_plc_commit_timeout():
     assert PushOptions().ack_timeout_s > COMMIT_TIMEOUT_S == PlcTwin().commit_timeout_s
     from tests.test_bridge_plc import DECL
     assert "tCommitTimeout : TIME := T#4S" in DECL["FB_CompTableManager"]
+
+
+# ---- concurrent pushes: the PLC arbitrates the staging area -----------------------------------
+
+@pytest.mark.parametrize("link", [ads_link, modbus_link], ids=["ads", "modbus"])
+def test_second_client_is_told_another_client_is_staging(link):
+    from pmcal.bridge.errors import StagingBusy
+
+    mock = AdsMockPlc if link is ads_link else ModbusMockPlc
+    with running(mock(lifetime_s=60.0)) as plc:
+        plc.twin.seed(make_table(version=1))
+        other = link(plc)
+        with other:
+            other.write_claim(0x12345679)                  # a client that owns the staging area
+            time.sleep(0.02)
+            assert plc.twin.state.staging_owner == 0x12345679
+            with pytest.raises(StagingBusy, match="another client is staging") as exc:
+                push(link(plc), make_table(version=2), PushOptions(ack_timeout_s=1.0))
+            assert "nothing committed" in str(exc.value)
+            assert plc.twin.state.active_version == 1
+            assert plc.twin.state.staging_owner == 0x12345679   # the loser did not take it over
+            other.write_claim(0)                            # the owner finishes
+        time.sleep(0.02)
+        rep = push(link(plc), make_table(version=2), PushOptions(ack_timeout_s=1.0))
+        time.sleep(0.02)
+        assert rep.result == "ok" and plc.twin.state.staging_owner == 0     # released after the push
+
+
+@pytest.mark.parametrize("transport", ["ads", "modbus"])
+def test_concurrent_pushes_one_wins_the_other_hears_why(transport):
+    from pmcal.bridge.errors import StagingBusy
+
+    mock = AdsMockPlc if transport == "ads" else ModbusMockPlc
+    link = ads_link if transport == "ads" else modbus_link
+    tables = [make_table(version=v, n_phi=100, n_theta=100, offset_deg=0.01 * v) for v in (2, 3)]
+    with running(mock(lifetime_s=60.0)) as plc:
+        plc.twin.seed(make_table(version=1, n_phi=100, n_theta=100))
+        results = [None, None]
+
+        def run(k):
+            try:
+                results[k] = push(link(plc, timeout_s=2.0), tables[k], PushOptions(ack_timeout_s=3.0)).result
+            except StagingBusy as exc:
+                results[k] = str(exc)
+            except Exception as exc:                     # noqa: BLE001 - reported in the assertion below
+                results[k] = f"{type(exc).__name__}: {exc}"
+
+        threads = [threading.Thread(target=run, args=(k,)) for k in (0, 1)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(30)
+        # never a byte-offset read-back failure: each push either made its table active or was told why
+        for r in results:
+            assert r == "ok" or "another client is staging" in r or "not newer" in r, results
+        assert "ok" in results
+        active = plc.twin.state.active_version
+        assert plc.twin.active_table()[1].tobytes() == tables[active - 2].values.tobytes()
