@@ -134,11 +134,23 @@ class AdsLink(LinkBase):
         except pyads.ADSError as exc:
             code = getattr(exc, "err_code", None)
             text = exc.msg.strip().rstrip(".") if getattr(exc, "msg", "") else str(exc)
+            if code in ROUTING_HINTS:
+                raise DeviceError(f"ADS link to {self.target} failed to {what}: ADS error {code} ({text}): "
+                                  f"{ROUTING_HINTS[code].format(port=self.amap.ams_port)}") from None
             if code is None or code < 0 or code in LINK_ERRORS:
                 raise LinkError(f"ADS link to {self.target} failed to {what}: {text}") from None
             raise DeviceError(f"PLC at {self.target} refused to {what}: ADS error {text}") from None
         except (RuntimeError, OSError) as exc:
             raise LinkError(f"ADS link to {self.target} failed to {what}: {exc}") from None
+
+
+#: AMS routing errors (Beckhoff InfoSys "ADS Return Codes" 0x6, 0x7) and what the user can do about them
+ROUTING_HINTS = {
+    6: "no ADS server on AMS port {port} of that NetID: is the PLC runtime started, and is --ams-port right "
+       "(851 for the first TwinCAT 3 PLC runtime)?",
+    7: "the router does not know that AMS NetID: check the NetID in --ads NETID@HOST and the route on the PLC "
+       "for this client's NetID (--local-netid, docs/bridge.md 'Routes')",
+}
 
 
 def _norm(type_name: str) -> str:

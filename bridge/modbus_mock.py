@@ -23,7 +23,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from pmcal.bridge.faults import Kind, Point
 from pmcal.bridge.mock import MockPlc
-from pmcal.bridge.modbus_map import MAGIC, PAGE_BAD, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap
+from pmcal.bridge.modbus_map import FC3_MAX, FC16_MAX, MAGIC, PAGE_BAD, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap
 from pmcal.bridge.plc_types import INTERFACE_VERSION, NPHI_MAX, NTHETA_MAX, SHADOW_SIZE
 from pmcal.bridge.plc_twin import PlcTwin
 
@@ -100,6 +100,20 @@ class ModbusArea:
         return None
 
 
+def _tf6250_exception(request: bytes, reply: bytes) -> bytes:
+    """pymodbus' server answers a request it cannot decode with function 0x80, exception 1. TF6250 (as
+    the Modbus application protocol, sections 6.3 and 6.12) answers a quantity outside 1..125 (FC3/FC4)
+    or 1..123 (FC16) with the request's function | 0x80 and exception 3, ILLEGAL DATA VALUE."""
+    if len(reply) < 9 or reply[7] != 0x80 or reply[8] != 1 or len(request) < 12:
+        return reply
+    fc = request[7]
+    count = int.from_bytes(request[10:12], "big")
+    limit = {3: FC3_MAX, 4: FC3_MAX, 16: FC16_MAX}.get(fc)
+    if limit is None or 1 <= count <= limit:
+        return reply
+    return reply[:7] + bytes([fc | 0x80, 3])
+
+
 class ModbusMockPlc(MockPlc):
     """A mock PLC serving ST_CompTableModbusArea over Modbus TCP on 127.0.0.1.
 
@@ -113,6 +127,7 @@ class ModbusMockPlc(MockPlc):
         self.rmap = rmap
         self.area = ModbusArea(rmap, self.twin)
         self._mute = 0
+        self._last_rx = b""
         self._server: ModbusTcpServer | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -173,11 +188,14 @@ class ModbusMockPlc(MockPlc):
         return None
 
     def _trace(self, sending: bool, data: bytes) -> bytes:
-        """Swallow the reply of a request that hit a no_reply fault."""
-        if sending and self._mute:
+        """Swallow the reply of a request that hit a no_reply fault; TF6250's exception codes."""
+        if not sending:
+            self._last_rx = bytes(data)
+            return data
+        if self._mute:
             self._mute -= 1
             return b""
-        return data
+        return _tf6250_exception(self._last_rx, data)
 
     def _start_server(self) -> None:
         ready = threading.Event()
