@@ -134,8 +134,8 @@ class AdsLink(LinkBase):
         except pyads.ADSError as exc:
             code = getattr(exc, "err_code", None)
             text = exc.msg.strip().rstrip(".") if getattr(exc, "msg", "") else str(exc)
-            if code in ROUTING_HINTS:
-                raise DeviceError(f"ADS link to {self.target} failed to {what}: ADS error {code} ({text}): "
+            if code in ROUTING_HINTS:            # retried: AdsLib also says so while a PLC boots
+                raise LinkError(f"ADS link to {self.target} failed to {what}: ADS error {code} ({text}): "
                                   f"{ROUTING_HINTS[code].format(port=self.amap.ams_port)}") from None
             if code is None or code < 0 or code in LINK_ERRORS:
                 raise LinkError(f"ADS link to {self.target} failed to {what}: {text}") from None

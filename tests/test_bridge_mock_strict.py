@@ -18,7 +18,7 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from pmcal.bridge.ads_mock import AdsMockPlc
-from pmcal.bridge.errors import DeviceError
+from pmcal.bridge.errors import LinkError
 from pmcal.bridge.ads_map import AdsMap
 from pmcal.bridge.modbus_mock import ModbusMockPlc
 from tests.bridge_fixtures import ads_link, running
@@ -51,7 +51,7 @@ def test_ads_mock_answers_only_its_own_netid_and_port():
 def test_link_names_the_routing_problem(port, code):
     with running(AdsMockPlc(lifetime_s=30.0)) as plc:
         link = ads_link(plc, amap=AdsMap(ams_port=port))
-        with pytest.raises(DeviceError, match=f"ADS error {code}.*--ams-port"):
+        with pytest.raises(LinkError, match=f"ADS error {code}.*--ams-port"):
             with link:
                 link.check_interface()
 
