@@ -139,6 +139,9 @@ class ModbusMockPlc(MockPlc):
     def _task_hooks(self) -> tuple[tuple, tuple]:
         return (self.area.copy_in,), (self.area.copy_out,)
 
+    def _reset_volatile(self) -> None:
+        self.area = ModbusArea(self.rmap, self.twin)        # %M is not persistent
+
     def _device(self) -> SimDevice:
         """Holding registers of the whole mapped area (TF6250: 16#3000..16#5FFF -> %MB0..), all writable.
 

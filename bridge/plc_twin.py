@@ -272,6 +272,55 @@ class PlcTwin:
             self._thread.join(timeout=2.0)
             self._thread = None
 
+    def restart(self) -> None:
+        """A power cycle or cold reset of the PLC (the task must be stopped around it).
+
+        Volatile data start from zero: staging (``stShadowHeader``, ``aShadow``), ``nCommitVersion``,
+        the staging claim, the manager's step, the lookup. The double buffer, its headers and
+        ``nActive`` are ``VAR_GLOBAL PERSISTENT`` (GVL_CompTable), so the active table, its version
+        and with it the version order survive. At start-up FB_CompTableManager re-checks the active
+        table (CRC-16 against its header, then values, ranges and steps, as for a commit); a damaged
+        persistent table is dropped (``NO_TABLE``, status ``CRC_MISMATCH`` or the check's verdict)
+        rather than used.
+        """
+        with self.lock:
+            self.shadow_header = _ZERO_HEADER.pack()
+            self.shadow[...] = 0.0
+            self.commit_version = self.staging_claim = self._owner = 0
+            self._last_commit, self._fsm = 0, State.IDLE
+            self.lookup_in = LookupIn(0.0, 0.0, 0).pack()
+            self.lookup_out = LookupOut(0.0, 0.0, 0, 0, LookupResult.NO_TABLE).pack()
+            self._selftest_ok = self._crc(CRC_SELFTEST[0]) == CRC_SELFTEST[1]
+            status = self._startup_check()
+            h = self._headers[self._active]
+            self._out = PlcState(0, h.table_version, 0, status, h.crc, State.IDLE, 0)
+
+    def _startup_check(self) -> Status:
+        """FB_CompTableManager's first cycles: the persistent active table checked like a commit."""
+        h = self._headers[self._active]
+        if h.table_version == 0:
+            return Status.NONE
+        self._last_commit = h.table_version
+        saved = self._headers[self._active]
+        self._headers[self._active] = _ZERO_HEADER          # "newer than active": compare with nothing
+        other = 1 - self._active
+        self._headers[other], spare_header = h, self._headers[other]
+        self._buffers[other], spare = self._buffers[self._active], self._buffers[other]
+        try:
+            verdict = self._check(other)
+        finally:
+            self._buffers[other], self._headers[other] = spare, spare_header
+            self._headers[self._active] = saved
+            self._last_commit = 0
+        if verdict is not Status.OK:
+            self._headers[self._active] = _ZERO_HEADER      # never move with a damaged table
+        return verdict
+
+    def corrupt_persistent(self) -> None:
+        """Flip a bit of the active table in persistent memory (fault injection for the start-up check)."""
+        with self.lock:
+            self._buffers[self._active].reshape(-1).view(np.uint8)[3] ^= 0x10
+
     def seed(self, table: CompTable) -> None:
         """Make ``table`` the active table directly (commissioning: the 'last good version')."""
         with self.lock:

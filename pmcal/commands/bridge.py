@@ -52,6 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="inject a fault, e.g. drop@mid_stage or delay@ack_wait*1 (repeatable)")
     m.add_argument("--motion-busy", action="store_true", help="the machine never stands still (no swap)")
     m.add_argument("--cycle-ms", type=float, default=1.0, help="PLC task cycle, ms (default 1)")
+    m.add_argument("--restart-after", type=float, default=None, metavar="S",
+                   help="power-cycle the mock PLC once after S seconds (persistent table kept, staging lost)")
     m.set_defaults(func=cmd_mock_plc)
 
     lp = sub.add_parser("loop", help="twin in the loop: pointing error before and after a push")
@@ -166,6 +168,8 @@ def cmd_mock_plc(args) -> int:
         raise InputError("cycle must be 0.1 .. 1000 ms", field="--cycle-ms")
     if not 0 <= args.port < 65536:
         raise InputError(f"port {args.port} outside 0..65535", field="--port")
+    if args.restart_after is not None and not 0 < args.restart_after < args.seconds:
+        raise InputError(f"restart-after must be in (0, {args.seconds:g}) s", field="--restart-after")
     faults = []
     for text in args.fault:
         try:
@@ -191,9 +195,16 @@ def cmd_mock_plc(args) -> int:
     print(f"mock PLC ({mock.transport}) at {mock.target} for {args.seconds:g} s; "
           f"try: pmcal push TABLE {flag} {mock.target}", flush=True)
     stop = _stop_on_sigterm()
+    restart_at = None if args.restart_after is None else time.monotonic() + args.restart_after
     try:
         while not mock.expired() and not stop:
-            time.sleep(0.1)
+            time.sleep(0.05)
+            if restart_at is not None and time.monotonic() >= restart_at:
+                restart_at = None
+                mock.restart()
+                st = mock.twin.state
+                print(f"mock PLC restarted: active version {st.active_version}, start-up check "
+                      f"{getattr(st.status, 'name', st.status)}", flush=True)
     except KeyboardInterrupt:
         pass
     finally:
