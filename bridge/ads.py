@@ -158,6 +158,22 @@ def _norm(type_name: str) -> str:
     return "".join(type_name.split()).upper()
 
 
+def set_local_netid(netid: str) -> None:
+    """Set this client's AMS NetID (``a.b.c.d.e.f``) for AdsLib (Linux), before any connection.
+
+    Without it AdsLib derives the NetID from the local IP address plus ``.1.1``; the PLC must have a
+    route for whichever NetID is used (docs/bridge.md, 'Routes'). ``ValueError`` for a malformed one.
+    """
+    parts = netid.split(".")
+    if len(parts) != 6 or not all(p.isdigit() and 0 <= int(p) <= 255 for p in parts):
+        raise ValueError(f"AMS NetID must be six numbers 0..255 separated by dots, got '{netid}'")
+    if hasattr(pyads, "set_local_address"):
+        try:
+            pyads.set_local_address(netid)
+        except (pyads.ADSError, OSError, ValueError) as exc:
+            raise ValueError(f"cannot set the local AMS NetID {netid}: {exc}") from None
+
+
 def set_adslib_log_level(level: int = 3) -> bool:
     """Quieten AdsLib's own stderr logging (0 verbose .. 3 errors only, 4 silent); process-wide.
 

@@ -56,6 +56,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="power-cycle the mock PLC once after S seconds (persistent table kept, staging lost)")
     m.set_defaults(func=cmd_mock_plc)
 
+    pl = sub.add_parser("plc", help="ask the PLC what it runs: status, or verify a table is active")
+    psub = pl.add_subparsers(dest="plc_cmd", required=True)
+    st = psub.add_parser("status", help="runtime state, interface, active table (version, CRC, machine), last status")
+    _target_args(st)
+    st.add_argument("--json", action="store_true", help="print the status as one JSON object")
+    st.set_defaults(func=cmd_plc_status)
+    vf = psub.add_parser("verify", help="exit 0 if exactly TABLE is active on the PLC, 4 if not")
+    vf.add_argument("table", metavar="TABLE", help="compensation table, .json or .csv")
+    _target_args(vf)
+    vf.add_argument("--json", action="store_true", help="print the verdict as one JSON object")
+    vf.set_defaults(func=cmd_plc_verify)
+
     lp = sub.add_parser("loop", help="twin in the loop: pointing error before and after a push")
     lp.add_argument("--table", default=None, metavar="TABLE",
                     help="table to push (default: built from the twin's own error set, see --errors)")
@@ -77,6 +89,9 @@ def _target_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--modbus", default=None, metavar="HOST[:PORT]", help="Modbus TCP target (TF6250)")
     p.add_argument("--ams-port", type=int, default=851, help="AMS port of the PLC runtime (default 851)")
     p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="per-request time-out (default 2 s)")
+    p.add_argument("--local-netid", default=None, metavar="NETID",
+                   help="AMS NetID of this client (ADS; default: AdsLib derives it from the local IP + .1.1). "
+                        "The PLC needs a route to it (docs/bridge.md, 'Routes')")
 
 
 def _quiet_libraries() -> None:
@@ -95,8 +110,14 @@ def make_link(args, writes=None):
     if not (args.timeout > 0):
         raise InputError(f"time-out must be positive, got {args.timeout}", field="--timeout")
     if args.ads:
-        from pmcal.bridge.ads import AdsLink
+        from pmcal.bridge.ads import AdsLink, set_local_netid
         from pmcal.bridge.ads_map import AdsMap, AdsTarget
+
+        if getattr(args, "local_netid", None):
+            try:
+                set_local_netid(args.local_netid)
+            except ValueError as exc:
+                raise InputError(str(exc), field="--local-netid") from None
 
         try:
             target = AdsTarget.parse(args.ads)
@@ -147,6 +168,95 @@ def cmd_push(args) -> int:
     print(f"{rep.result}: {args.table} v{rep.version} -> {link.transport} {link.target}: {rep.message} "
           f"(crc {rep.crc16}{sent}, {total_ms:.1f} ms)")
     return 0
+
+
+def plc_status(link) -> dict:
+    """What the PLC runs, read over ``link`` (read-only): one dict, JSON-ready."""
+    from pmcal.bridge.plc_types import Header
+
+    with link:
+        link.check_interface()
+        st = link.read_state()
+        h = Header.unpack(link.read_active_header())
+    name = lambda v: getattr(v, "name", v)  # noqa: E731
+    return {"transport": link.transport, "target": link.target, "runtime": "RUN",
+            "interface_version": _interface_version(), "active_version": st.active_version,
+            "active_crc16": f"0x{st.active_crc:04X}", "machine": h.machine if st.active_version else None,
+            "format_version": h.format_version if st.active_version else None,
+            "reference": {0: "none", 1: "nominal_ik"}.get(h.reference, h.reference) if st.active_version else None,
+            "grid": [h.n_phi, h.n_theta] if st.active_version else None,
+            "last_status": name(st.status), "state": name(st.state), "ack_version": st.ack_version,
+            "staging_owner": f"0x{st.staging_owner:08X}" if st.staging_owner else None,
+            "plc_cycle": st.cycle,
+            "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+
+def _interface_version() -> int:
+    from pmcal.bridge.plc_types import INTERFACE_VERSION
+
+    return INTERFACE_VERSION           # check_interface() refused any other
+
+
+def _status_link(args):
+    from pmcal.bridge.errors import BridgeError  # noqa: F401  (callers catch it)
+
+    return make_link(args, writes=frozenset())
+
+
+def cmd_plc_status(args) -> int:
+    from pmcal.bridge.errors import BridgeError
+
+    link = _status_link(args)
+    _quiet_libraries()
+    try:
+        s = plc_status(link)
+    except BridgeError as exc:
+        print(f"pmcal: failed: status of {link.transport} {link.target}: {exc}", file=sys.stderr)
+        return exc.exit_status
+    if args.json:
+        print(json.dumps(s))
+    else:
+        print(f"{s['transport']} {s['target']}: runtime {s['runtime']}, interface v{s['interface_version']}, "
+              f"active table v{s['active_version']} crc {s['active_crc16']} machine {s['machine']} "
+              f"(reference {s['reference']}, grid {s['grid']}), last status {s['last_status']}, "
+              f"manager {s['state']}, at {s['time']}")
+    return 0
+
+
+def cmd_plc_verify(args) -> int:
+    """Exit 0 if exactly TABLE (version, CRC-16 and the whole header) is active, 4 if not."""
+    from pmcal.bridge.comptable import CompTable
+    from pmcal.bridge.errors import BridgeError
+    from pmcal.bridge.plc_types import Header
+
+    table = CompTable.load(args.table).validate()
+    link = _status_link(args)
+    _quiet_libraries()
+    try:
+        with link:
+            link.check_interface()
+            st = link.read_state()
+            active = link.read_active_header()
+    except BridgeError as exc:
+        print(f"pmcal: failed: verify against {link.transport} {link.target}: {exc}", file=sys.stderr)
+        return exc.exit_status
+    want = Header.of(table)
+    same = st.active_version == table.version and st.active_crc == table.crc16() and active == want.pack()
+    if same:
+        why = "active"
+    elif st.active_version != table.version:
+        why = f"not active: the PLC runs version {st.active_version}"
+    elif st.active_crc != table.crc16():
+        why = f"not active: version {table.version} is active with another CRC (0x{st.active_crc:04X})"
+    else:
+        why = "not active: the active header differs (limits, grid, reference or machine)"
+    if args.json:
+        print(json.dumps({"table": str(args.table), "version": int(table.version), "crc16": f"0x{table.crc16():04X}",
+                          "active": same, "active_version": st.active_version,
+                          "active_crc16": f"0x{st.active_crc:04X}", "message": why}))
+    else:
+        print(f"{args.table} v{table.version} crc 0x{table.crc16():04X}: {why} on {link.transport} {link.target}")
+    return 0 if same else 4
 
 
 def _write_json(path, report) -> None:
