@@ -12,6 +12,9 @@ command (format version 1 semantics). The array layout is the PLC's memory layou
 ``ARRAY[0..NPHI_MAX-1, 0..NTHETA_MAX-1, 0..1] OF LREAL`` restricted to the used nodes (last index
 fastest, little-endian IEEE-754 double).
 
+Longer than the project's ~400 lines on purpose: the type, its checks and its two file formats
+(JSON, CSV, versions 1 and 2) form one interface specification with docs/compensation_table.md.
+
 Typical use by the identification code::
 
     table = CompTable.from_setpoints(my_setpoints, machine="ocpm_2dof", version=7,
