@@ -240,13 +240,13 @@ def test_evaluate_missing_params(files, tmp_path, capsys):
 
 def test_demo_small(tmp_path, monkeypatch):
     """The demo end to end with the fast methods only (the full demo: `pmcal demo`, benchmarked)."""
-    from pmcal.apps import ocpm_calib
+    from pmcal.studies import demo as demo_study
 
-    monkeypatch.setattr(ocpm_calib.DemoStudy, "METHODS_COMPARED", ("hga", "lm", "tikhonov", "tsvd"))
+    monkeypatch.setattr(demo_study.DemoStudy, "METHODS_COMPARED", ("hga", "lm", "tikhonov", "tsvd"))
     out = tmp_path / "demo"
     assert main(["--quiet", "demo", "--out", str(out)]) == 0
     html = (out / "report.html").read_text()
-    for heading in ("Identified vs predefined", "seed Fig. 5", "Algorithm comparison", "Regularisation",
+    for heading in ("Identified vs predefined", "paper Fig. 5", "Algorithm comparison", "Regularisation",
                     "Identifiability", "Pose selection", "Compensation table"):
         assert heading in html
     assert html.count("data:image/png;base64") >= 4 and "http" not in html.split("<body>")[1].split("Generated")[0]
