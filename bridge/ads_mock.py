@@ -316,6 +316,7 @@ class AdsMockPlc(MockPlc):
 
     def _start_server(self) -> None:
         self._server = _FramedServer(self)
+        self._server.server.listen(5)            # accept connections as soon as this returns (restart)
         self.port = self._server.server.getsockname()[1]
         self._server.start()
 
