@@ -27,6 +27,12 @@ def identify_document(meas: Measurements, sigma: float, source: str, geom: Geome
     """Identify the whole chain; returns (params mm/deg, the rest of the params JSON)."""
     res = identify_full(meas, FullChainModel(geom),
                         FullChainOptions(fit_stiffness_ratio=fit_stiffness_ratio, sigma_mm=sigma))
+    return result_document(res, meas, sigma, source, fit_stiffness_ratio)
+
+
+def result_document(res, meas: Measurements, sigma: float, source: str, fit_stiffness_ratio: bool
+                    ) -> tuple[dict[str, float], dict]:
+    """(params mm/deg, the rest of the params JSON) of a whole-chain :class:`IdentResult`."""
     std = res.std
     prior = res.info["prior_std"]
     to_unit = lambda k, v: float(np.rad2deg(v)) if is_angular(k) else float(v)  # noqa: E731
