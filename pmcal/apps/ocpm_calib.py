@@ -57,7 +57,7 @@ def check_reachable(meas, path: str, geom: Geometry) -> None:
     """Every measured pose must be within reach of the actuated limbs of the nominal machine."""
     r, R, _ = meas.poses(geom)
     ik = limb_ik(r, R, None, geom, (1, 2))
-    bad = np.argwhere(~np.isfinite(ik.beta))
+    bad = np.argwhere(~np.isfinite(ik.beta) & np.isfinite(r).all(axis=1)[:, None])   # NaN r: blocked target
     if bad.size:
         i, j = (int(v) for v in bad[0])
         raise InputError(f"the measured platform pose is out of reach of limb {j + 1} (|K/rho| = "
@@ -111,6 +111,8 @@ def identify(args) -> int:
     model = check_model(args.model)
     if model == "full":
         return identify_full_chain(args, geom)
+    if (getattr(args, "frame", None) or "base") != "base":
+        raise InputError("--frame tracker needs the whole-chain model (--model full)", field="--frame")
     method = check_method(args.method)
     sigma = check_sigma(args.sigma, geom)
     meas = read_measurements(args.measurements, geom)
@@ -129,20 +131,31 @@ def identify(args) -> int:
 
 def identify_full_chain(args, geom: Geometry) -> int:
     """``pmcal identify --model full`` (the default): the whole closed chain, all limbs and SS."""
-    from pmcal.apps.ocpm_full import identify_document
+    from pmcal.apps.ocpm_full import result_document
+    from pmcal.apps.ocpm_tracker import check_nest_tolerance, identify_result, parse_frame, tracker_document
+    from pmcal.twin.forward import FullChainModel
 
+    frame, reg0 = parse_frame(getattr(args, "frame", None))
+    nest_std = check_nest_tolerance(getattr(args, "nest_tolerance", None))
     if args.method is not None:
         raise InputError("--method chooses the solver of --model paper; the whole-chain model is fitted by "
                          "MAP least squares (give --model paper to use the seed's methods)", field="--method")
     sigma = check_sigma(args.sigma, geom)
-    meas = read_measurements(args.measurements, geom)
+    meas = read_measurements(args.measurements, geom, frame=frame)
     if len(meas) < MIN_POSES_FULL:
         raise InputError(f"{len(meas)} poses are too few for the whole-chain model: measure at least "
                          f"{MIN_POSES_FULL} (24-48 recommended, docs/fullchain.md)", file=args.measurements,
                          field="pose_id")
-    check_reachable(meas, args.measurements, geom)
-    progress.status(f"identifying the whole closed chain from {len(meas)} poses")
-    params, doc = identify_document(meas, sigma, str(args.measurements), geom)
+    if frame == "base":
+        check_reachable(meas, args.measurements, geom)
+    progress.status(f"identifying the whole closed chain from {len(meas)} poses ({frame} frame)")
+    res = identify_result(meas, FullChainModel(geom), sigma, frame, reg0, nest_std,
+                          robust=True if getattr(args, "robust", False) else None, source=str(args.measurements))
+    params, doc = result_document(res, meas, sigma, str(args.measurements), True)
+    doc.update(tracker_document(res, meas, geom))
+    for r in doc.get("rejected", []):
+        progress.status(f"rejected outlier: row {r['row']} ({r['pose_id']}) target t{r['target']}, "
+                        f"residual {r['residual_mm']:.3g} mm")
     write_params(args.output, params, **doc)
     progress.status(f"identified {len(params)} parameters (whole chain); chi2/dof "
                     f"{doc['fit']['chi2_per_dof']:.3g}; written {args.output}")
