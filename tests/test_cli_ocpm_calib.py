@@ -240,9 +240,9 @@ def test_evaluate_missing_params(files, tmp_path, capsys):
 
 def test_demo_small(tmp_path, monkeypatch):
     """The demo end to end with the fast methods only (the full demo: `pmcal demo`, benchmarked)."""
-    from pmcal.apps import ocpm_calib
+    from pmcal.studies import demo as demo_study
 
-    monkeypatch.setattr(ocpm_calib.DemoStudy, "METHODS_COMPARED", ("hga", "lm", "tikhonov", "tsvd"))
+    monkeypatch.setattr(demo_study.DemoStudy, "METHODS_COMPARED", ("hga", "lm", "tikhonov", "tsvd"))
     out = tmp_path / "demo"
     assert main(["--quiet", "demo", "--out", str(out)]) == 0
     html = (out / "report.html").read_text()

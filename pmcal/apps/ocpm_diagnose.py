@@ -170,7 +170,7 @@ def hidden_effect_demo(args) -> int:
 def report(d: Diagnosis, title: str, extra=None):
     """The HTML report: verdicts, scoreboard, held-out gaps, context plots, added-variable plots,
     per-pose residual arrows, the diagnosed model."""
-    from pmcal.report import Report, matplotlib_agg
+    from pmcal.reports.html import Report, matplotlib_agg
 
     matplotlib_agg()
     meas = d.meas

@@ -107,7 +107,7 @@ def demo(args) -> int:
     from pmcal.fileio import atomic_directory
     from pmcal.fileio import write_json
     from pmcal.io_planar import params_document, write_measurements
-    from pmcal.report import matplotlib_agg
+    from pmcal.reports.html import matplotlib_agg
     from pmcal.twin.planar.campaign import commands_for, measure
     from pmcal.twin.planar.config import default_machine
     from pmcal.apps.planar_study import GROUPS, SEED, evaluate_at, run_study, settings
@@ -246,7 +246,7 @@ def _results(machine, studies, dpmax_seedpos, dpmax_before, SEED, ns, k1, km, n,
 
 def _report(machine, results, studies, fig9, dpmax_seedpos, SEED, ns, k1, km, seed_pos, ours_pos, picture,
             sets, full_cmp):
-    from pmcal.report import Report
+    from pmcal.reports.html import Report
     from pmcal.apps.planar_study import GROUPS
 
     R = Report("Planar 2-DOF robot: zero-offset calibration with the measuring mechanism",

@@ -1,5 +1,6 @@
-"""``pmcal identify --frame ...``: whole-chain identification from tracker data (registration, nests,
-blocked targets, outliers), its options checked at the edge and its part of the params JSON.
+"""Whole-chain identification from tracker data (registration, nests, blocked targets, outliers) for
+:func:`pmcal.identify` and ``pmcal identify --frame ...``: options checked at the edge, the fit chosen by
+frame, and its part of the params JSON.
 
 Units at the interface: mm and degrees. See docs/tracker_frame.md.
 """
@@ -11,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from pmcal.mechanism.ocpm.config import Geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full
 from pmcal.calib.ocpm.registration import read_registration
@@ -68,7 +68,7 @@ def identify_result(meas: Measurements, model, sigma: float, frame: str = "base"
         raise InputError(str(exc), file=source) from None
 
 
-def tracker_document(res, meas: Measurements, geom: Geometry) -> dict:
+def tracker_document(res, meas: Measurements) -> dict:
     """The registration, nests and rejected rows of a fit, for the params JSON (mm, deg)."""
     info = res.info
     doc: dict = {"frame": info.get("frame", "base")}

@@ -1,0 +1,349 @@
+"""Identification of the over-constrained PM and its result, :class:`Calibration`.
+
+Two models (``model=``): ``"full"`` (default), the whole closed chain — every limb, the SS limb, motor
+zero offsets and the closure stiffness ratio, fitted by MAP least squares on the raw target coordinates
+through the twin's forward model; ``"paper"``, the per-limb model of Sun et al. 2018 (limbs 1 and 2,
+eq. 14), solved by one of the paper's methods (``method=``: HGA by default) with the platform position
+map fitted afterwards. Units at this interface: mm and degrees.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+from scipy.linalg import block_diag
+
+from pmcal import progress
+from pmcal.bridge.comptable import CompTable
+from pmcal.calib.ocpm import compensation as comp
+from pmcal.calib.ocpm import paper_model as pm
+from pmcal.calib.solvers import METHODS
+from pmcal.compensators import (DEFAULT_GRID, Compensator, FullCompensation, PaperCompensation, build_table,
+                                checked_commands)
+from pmcal.errors import InputError
+from pmcal.io_ocpm import read_params, write_params
+from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.ocpm.data import Measurements
+from pmcal.mechanism.ocpm.kinematics import limb_ik
+from pmcal.mechanism.ocpm.params import LOG_RATIO, ErrorSet, describe, is_angular, to_interface
+from pmcal.tracker_frame import identify_result, tracker_document
+from pmcal.twin.forward import FullChainModel
+
+MODELS = ("full", "paper")
+DEFAULT_MODEL = "full"
+DEFAULT_METHOD = "hga"
+#: Fewest poses the whole-chain fit accepts: ~40 effective parameters, 6 pose coordinates a pose.
+MIN_POSES_FULL = 12
+#: A parameter whose posterior std is above this fraction of its prior std is "not determined by the
+#: campaign": the data moved it little, the prior (manufacturing tolerance) holds it.
+UNDETERMINED_FRACTION = 0.7
+
+
+@dataclass
+class Calibration:
+    """The identified machine: parameters, their uncertainty, the model used, and its compensation.
+
+    Attributes
+    ----------
+    params : dict of str to float
+        Identified parameters in interface units (mm, deg), keys as in ``docs/formats.md``; an absent key
+        is nominal (zero error).
+    model : str
+        ``"full"`` (whole closed chain) or ``"paper"`` (per-limb model of the paper).
+    method : str
+        Solver: ``"map-least-squares"`` for the whole chain, the paper's method name otherwise.
+    document : dict
+        Everything else the parameters file records: uncertainty (1 sigma, mm/deg), identifiability,
+        fit statistics (``fit.residual_rms_mm`` or ``fit.residual_rms_sigma``), solver report, and for
+        the whole chain ``stiffness_ratio``; for the paper model ``position_map``.
+    names : list of str
+        Parameter keys of ``covariance`` (internal order; may include ``log_stiffness_ratio``).
+    covariance : ndarray or None
+        Posterior covariance over ``names`` in internal units (mm, rad); None when loaded from a file
+        that did not record it.
+    residuals : ndarray or None
+        Fit residuals (mm for the whole chain, whitened for the paper model); None when loaded.
+    geometry : Geometry
+        Nominal geometry the parameters refer to.
+    solution : object or None
+        The solver's own result (``IdentResult`` for the whole chain, ``PaperCalibration`` with the
+        per-limb results for the paper model); None when loaded from a file.
+
+    Examples
+    --------
+    >>> import pmcal
+    >>> meas = pmcal.read_measurements("m.csv")                      # doctest: +SKIP
+    >>> cal = pmcal.identify(meas)                                   # doctest: +SKIP
+    >>> cal.setpoints([0.0, 90.0], [10.0, 30.0]).shape               # doctest: +SKIP
+    (2, 2)
+    """
+
+    params: dict[str, float]
+    model: str
+    method: str
+    document: dict = field(default_factory=dict)
+    names: list[str] = field(default_factory=list)
+    covariance: np.ndarray | None = None
+    residuals: np.ndarray | None = None
+    geometry: Geometry = field(default_factory=default_geometry, repr=False)
+    solution: object | None = field(default=None, repr=False)
+
+    @cached_property
+    def compensator(self) -> Compensator:
+        """The compensation of this calibration (one type per model)."""
+        geom = self.geometry
+        if self.model == "full":
+            return FullCompensation(self.params, self.document.get("stiffness_ratio"), geom)
+        errors = ErrorSet.from_dict(self.params, geom.n_limbs, geom.actuated)
+        pmap = self.document.get("position_map")
+        return PaperCompensation(errors, comp.PositionMap.from_dict(pmap) if pmap is not None else None, geom)
+
+    def setpoints(self, phi_deg, theta_deg) -> np.ndarray:
+        """Motor commands (n, 2) deg that point the calibrated machine at the orientations (deg).
+
+        Parameters
+        ----------
+        phi_deg, theta_deg : array_like
+            Azimuth and tilt (tilt-torsion angles, base frame), degrees.
+
+        Raises
+        ------
+        pmcal.errors.InputError
+            Naming the first orientation out of reach or needing commands outside the motor limits.
+        """
+        phi, theta = np.atleast_1d(np.asarray(phi_deg, float)), np.atleast_1d(np.asarray(theta_deg, float))
+        if phi.shape != theta.shape:
+            raise InputError(f"phi_deg has {phi.size} values, theta_deg {theta.size}", field="theta_deg")
+        return checked_commands(self.compensator, phi, theta, self.geometry)
+
+    def compensation_table(self, version: int | None = None, grid: tuple[int, int] = DEFAULT_GRID) -> CompTable:
+        """The PLC's compensation table over phi 0..360 deg and theta 0..theta_max (validated).
+
+        ``version`` (1..2**32-1) defaults to the current Unix time; ``grid`` is (n_phi, n_theta).
+        """
+        version = int(time.time()) if version is None else int(version)
+        return build_table(self.compensator, self.geometry, grid, version)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the parameters file (JSON, ``docs/formats.md``), atomically; returns the path."""
+        extra = dict(self.document, model=self.model, method=self.method)
+        if self.covariance is not None:
+            extra["covariance"] = {"names": list(self.names), "unit": "mm, rad (log for the stiffness ratio)",
+                                   "matrix": np.asarray(self.covariance).tolist()}
+        write_params(path, self.params, **extra)
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | Path, geometry: Geometry | None = None) -> "Calibration":
+        """Read a parameters file written by :meth:`save` or ``pmcal identify``."""
+        geom = geometry or default_geometry()
+        params, doc = read_params(path, geom)
+        model = doc.get("model")
+        if model is None:
+            model = "paper" if "position_map" in doc else DEFAULT_MODEL
+        if model not in MODELS:
+            raise InputError(f"unknown model '{model}' (known: {', '.join(MODELS)})", file=str(path), field="model")
+        ratio = doc.get("stiffness_ratio")
+        if model == "full" and ratio is not None and not (
+                isinstance(ratio, (int, float)) and not isinstance(ratio, bool) and np.isfinite(ratio) and ratio > 0):
+            raise InputError(f"stiffness ratio {ratio!r} is not a positive number", file=str(path),
+                             field="stiffness_ratio")
+        pmap = doc.get("position_map")
+        if model == "paper" and pmap is not None:
+            try:
+                comp.PositionMap.from_dict(pmap)
+            except (KeyError, TypeError, ValueError) as exc:
+                raise InputError(f"invalid position map ({exc})", file=str(path), field="position_map") from None
+        cov = doc.pop("covariance", None)
+        names, matrix = [], None
+        if isinstance(cov, dict) and "matrix" in cov:
+            names, matrix = list(cov.get("names", [])), np.asarray(cov["matrix"], float)
+        method = str(doc.pop("method", "map-least-squares" if model == "full" else DEFAULT_METHOD))
+        doc.pop("model", None)
+        return cls(params=params, model=model, method=method, document=doc, names=names, covariance=matrix,
+                   geometry=geom)
+
+
+# ================================================================================ identification
+def check_choice(value: str | None, default: str, known, option: str) -> str:
+    """``value`` (or ``default``) if it is one of ``known``, else InputError naming ``option``."""
+    value = default if value is None else value
+    if value not in known:
+        raise InputError(f"unknown {option.lstrip('-')} '{value}' (known: {', '.join(known)})", field=option)
+    return value
+
+
+def check_sigma(sigma: float | None, geom: Geometry) -> float:
+    """Tracker noise (mm), default from the machine configuration; InputError unless positive."""
+    sigma = geom.sigma_mm if sigma is None else float(sigma)
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise InputError(f"tracker noise must be a positive number of mm, got {sigma}", field="--sigma")
+    return sigma
+
+
+def check_reachable(meas: Measurements, path: str | None, geom: Geometry) -> None:
+    """Every measured pose must be within reach of the actuated limbs of the nominal machine."""
+    r, R, _ = meas.poses(geom)
+    ik = limb_ik(r, R, None, geom, (1, 2))
+    bad = np.argwhere(~np.isfinite(ik.beta) & np.isfinite(r).all(axis=1)[:, None])   # NaN r: blocked target
+    if bad.size:
+        i, j = (int(v) for v in bad[0])
+        raise InputError(f"the measured platform pose is out of reach of limb {j + 1} (|K/rho| = "
+                         f"{abs(ik.reach[i, j]):.3g} > 1): not a pose of this machine", file=path, row=i + 1,
+                         field="t1_x")
+
+
+def identify(meas: Measurements, *, model: str = DEFAULT_MODEL, method: str | None = None,
+             sigma_mm: float | None = None, rng_seed: int | None = 0, fit_stiffness_ratio: bool = True,
+             source: str | None = None, geometry: Geometry | None = None, frame: str = "base",
+             registration=None, nest_tolerance_mm: float = 0.5, robust: bool | None = None) -> Calibration:
+    """Calibrate the over-constrained PM from a measurement campaign.
+
+    Parameters
+    ----------
+    meas : Measurements
+        The campaign (:func:`pmcal.read_measurements`): commanded motor angles and measured targets, mm,
+        base frame.
+    model : {"full", "paper"}
+        ``"full"``: the whole closed chain (every limb, SS, zero offsets, stiffness ratio), MAP least
+        squares. ``"paper"``: the per-limb model of Sun et al. 2018 for limbs 1 and 2.
+    method : str, optional
+        Solver of the paper model (``pmcal.calib.solvers.METHODS``; default ``"hga"``, the paper's
+        hybrid genetic algorithm). Not used by the whole chain.
+    sigma_mm : float, optional
+        Tracker noise, 1 sigma per coordinate, mm (default: the machine's, 0.01 mm).
+    rng_seed : int or None
+        Seed of the random generator of the population methods (paper model).
+    fit_stiffness_ratio : bool
+        Identify the closure stiffness ratio with the whole chain.
+    source : str, optional
+        Where the data came from (recorded; named in error messages).
+    frame : {"base", "tracker"}
+        Frame of the measured targets. ``"tracker"``: the tracker's own frame; the pose of the base
+        frame in it (registration) and the target nests' offsets are identified with the machine, the
+        base frame fixed to the motor axes (``docs/tracker_frame.md``). Whole-chain model only.
+    registration : (R (3, 3), t (3,) mm), optional
+        Start value of the registration (default: from the data).
+    nest_tolerance_mm : float
+        Prior of the nests' offsets from the drawing, 1 sigma per coordinate, mm (tracker frame).
+    robust : bool, optional
+        Robust fit with named outlier rejection (default: on in the tracker frame and with blocked targets).
+
+    Returns
+    -------
+    Calibration
+
+    Raises
+    ------
+    pmcal.errors.InputError
+        Too few poses, poses out of reach, an unknown model or method, a non-positive noise, a bad
+        campaign (more outliers than the robust fit may reject).
+
+    Examples
+    --------
+    >>> import pmcal
+    >>> cal = pmcal.identify(pmcal.read_measurements("m.csv"))        # doctest: +SKIP
+    >>> cal.params["L1.dbx"]                                          # doctest: +SKIP
+    -1.49
+    """
+    geom = geometry or default_geometry()
+    model = check_choice(model, DEFAULT_MODEL, MODELS, "--model")
+    frame = check_choice(frame, "base", ("base", "tracker"), "--frame")
+    sigma = check_sigma(sigma_mm, geom)
+    if model != "full" and frame != "base":
+        raise InputError("--frame tracker needs the whole-chain model (--model full)", field="--frame")
+    if model == "full":
+        if method is not None:
+            raise InputError("--method chooses the solver of --model paper; the whole-chain model is fitted "
+                             "by MAP least squares (give --model paper to use the paper's methods)",
+                             field="--method")
+        if len(meas) < MIN_POSES_FULL:
+            raise InputError(f"{len(meas)} poses are too few for the whole-chain model: measure at least "
+                             f"{MIN_POSES_FULL} (24-48 recommended, docs/fullchain.md)", file=source,
+                             field="pose_id")
+        if frame == "base":
+            check_reachable(meas, source, geom)
+        res = identify_result(meas, FullChainModel(geom), sigma, frame, registration, nest_tolerance_mm, robust,
+                              fit_stiffness_ratio, source)
+        return _identify_full(res, meas, sigma, source or "", geom, fit_stiffness_ratio)
+    method = check_choice(method, DEFAULT_METHOD, METHODS, "--method")
+    n_free = len(pm.SEED_LIMB_FIELDS)
+    if len(meas) <= n_free:
+        raise InputError(f"{len(meas)} poses cannot determine {n_free} parameters a limb: measure at least "
+                         f"{n_free + 1} (the paper uses 24)", file=source, field="pose_id")
+    check_reachable(meas, source, geom)
+    return _identify_paper(meas, method, sigma, rng_seed, source or "", geom)
+
+
+def _identify_full(res, meas: Measurements, sigma: float, source: str, geom: Geometry,
+                   fit_stiffness_ratio: bool) -> Calibration:
+    std, prior = res.std, res.info["prior_std"]
+    to_unit = lambda k, v: float(np.rad2deg(v)) if is_angular(k) else float(v)  # noqa: E731
+    keys = [k for k in res.names if k != LOG_RATIO]
+    idx = {k: i for i, k in enumerate(res.names)}
+    undetermined = [k for k in keys if std[idx[k]] > UNDETERMINED_FRACTION * prior[idx[k]]]
+    sv = res.info["singular_values"]
+    doc = {
+        "stiffness_ratio": res.info["stiffness_ratio"],
+        "stiffness_ratio_identified": fit_stiffness_ratio, "source": source,
+        "uncertainty": {k: to_unit(k, std[idx[k]]) for k in keys},
+        "prior_std": {k: to_unit(k, prior[idx[k]]) for k in keys},
+        "identifiability": {
+            "effective_parameters": res.info["effective_parameters"],
+            "condition_number": float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf"),
+            "not_determined_by_campaign": undetermined,
+            "explanations": {k: describe(k) for k in undetermined},
+            "note": "MAP fit with manufacturing-tolerance priors; 'not determined': posterior std above "
+                    f"{UNDETERMINED_FRACTION:g} x prior std (held near the design value by the prior)",
+        },
+        "fit": {"n_poses": len(meas), "noise_sigma_mm": sigma,
+                "residual_rms_mm": float(np.sqrt(np.mean(res.residuals**2))),
+                "chi2_per_dof": res.info["chi2_per_dof"], "dof": res.info["dof"]},
+        "solver": {"n_eval": res.n_eval, "n_iter": res.n_iter, "wall_time_s": res.wall_time,
+                   "success": res.success, "message": res.message},
+        **tracker_document(res, meas),
+    }
+    return Calibration(params=to_interface(res.names, res.x), model="full", method="map-least-squares",
+                       document=doc, names=list(res.names), covariance=res.covariance,
+                       residuals=np.asarray(res.residuals), geometry=geom, solution=res)
+
+
+def _identify_paper(meas: Measurements, method: str, sigma: float, rng_seed: int | None, source: str,
+                    geom: Geometry) -> Calibration:
+    with progress.progress(total=2, desc=f"identify ({method})", unit="limb") as bar:
+        cal = pm.calibrate(meas, method, (1, 2), seed=rng_seed, sigma_mm=sigma, geom=geom,
+                           on_limb_done=lambda j, res: bar.update(1))
+    pmap = comp.fit_position_map(cal.model.r, cal.model.R, geom)
+    motor = np.rad2deg(cal.model.motor_residual(cal.x))
+    cond = {f"L{j}": a.condition_number for j, a in cal.identifiability.items()}
+    weak = [k for a in cal.identifiability.values() for k in a.weak]
+    chi = np.concatenate([r.residuals for r in cal.results.values()])
+    doc = {
+        "source": source,
+        "uncertainty": cal.uncertainty(),
+        "identifiability": {
+            "condition_number": max(cond.values()), "condition_number_per_limb": cond,
+            "unidentifiable": cal.unidentifiable,
+            "explanations": {k: pm.explain(k) for k in cal.unidentifiable},
+            "weak": weak,
+            "note": "condition number of the column-normalised whitened Jacobian at the solution; "
+                    "unidentifiable: no first-order effect on the motor angles (held at 0); weak: "
+                    "Cramer-Rao std larger than the search box half-width",
+        },
+        "fit": {"n_poses": int(len(motor)), "noise_sigma_mm": sigma,
+                "residual_rms_sigma": float(np.sqrt(np.mean(chi**2))),
+                "motor_residual_rms_deg": {f"L{j}": float(np.sqrt(np.mean(motor[:, i] ** 2)))
+                                           for i, j in enumerate((1, 2))}},
+        "position_map": pmap.to_dict(),
+        "solver": {f"L{j}": {"n_eval": r.n_eval, "n_iter": r.n_iter, "wall_time_s": r.wall_time,
+                             "success": r.success, "message": r.message} for j, r in cal.results.items()},
+    }
+    names = [n for r in cal.results.values() for n in r.names]
+    covs = [r.covariance for r in cal.results.values()]
+    cov = block_diag(*covs) if all(c is not None for c in covs) else None
+    return Calibration(params=cal.params(), model="paper", method=method, document=doc, names=names,
+                       covariance=cov, residuals=chi, geometry=geom, solution=cal)

@@ -1,0 +1,1 @@
+"""Reports: the self-contained HTML builder (:mod:`.html`) and one module per report."""
