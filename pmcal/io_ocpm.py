@@ -28,6 +28,9 @@ TARGET_AXES = ("x", "y", "z")
 PLAUSIBLE_POINTING_DEG = 5.0
 #: Largest plausible error of a measured distance between two targets (mm).
 PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
+#: The same in the tracker frame, where gross outliers are expected and rejected (named) by the robust fit:
+#: only a unit mix-up or a swapped column is an input error there (mm).
+PLAUSIBLE_TARGET_DISTANCE_TRACKER_MM = 20.0
 
 
 def target_columns(k: int) -> list[str]:
@@ -93,7 +96,8 @@ def check_plausible(meas: Measurements, geom: Geometry, path: str, frame: str = 
     pairs = [(a, b) for a in range(k) for b in range(a + 1, k)]
     d_nom = np.array([np.linalg.norm(X[a] - X[b]) for a, b in pairs])
     d_meas = np.stack([np.linalg.norm(meas.targets[:, a] - meas.targets[:, b], axis=1) for a, b in pairs], 1)
-    bad = np.abs(d_meas - d_nom) > PLAUSIBLE_TARGET_DISTANCE_MM
+    limit = PLAUSIBLE_TARGET_DISTANCE_MM if frame == "base" else PLAUSIBLE_TARGET_DISTANCE_TRACKER_MM
+    bad = np.abs(d_meas - d_nom) > limit
     if bad.any():
         row, p = np.argwhere(bad)[0]
         a, b = pairs[p]

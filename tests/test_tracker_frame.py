@@ -225,3 +225,40 @@ def test_frame_option_errors(base_campaign, tmp_path, capsys):
         assert main(["identify", str(d / "meas.csv"), "--frame", frame, "-o", str(tmp_path / "p.json")]) == 2
         assert msg in capsys.readouterr().err
     assert not (tmp_path / "p.json").exists()
+
+
+def test_twin_measure_tracker_campaign_end_to_end(tmp_path, capsys):
+    """`pmcal twin measure` with every tracker option, then `pmcal identify --frame tracker`: the outlier
+    the twin wrote into the file's comments is the one rejected, the registration is the twin's."""
+    m = tmp_path / "t.csv"
+    assert main(["--quiet", "twin", "measure", "--preset", "paper-table2", "--poses", "30", "--seed", "4",
+                 "--tracker-pose", "1500,-800,200,1,-1,120", "--nest-error", "0.3", "--blocked", "0.1",
+                 "--outliers", "1:3", "-o", str(m)]) == 0
+    text = m.read_text()
+    assert ",,," in text
+    line = next(x for x in text.splitlines() if x.startswith("# truth outlier"))
+    row, target = int(line.split("row ")[1].split()[0]), int(line.split("target t")[1].split()[0])
+    assert main(["--quiet", "identify", str(m), "--frame", "tracker", "-o", str(tmp_path / "p.json")]) == 0
+    doc = json.loads((tmp_path / "p.json").read_text())
+    assert [(r["row"], r["target"]) for r in doc["rejected"]] == [(row, target)]
+    assert doc["frame"] == "tracker" and set(doc["gauge"]["held_at_zero"]) == set(GAUGE_KEYS)
+    assert not set(GAUGE_KEYS) & set(doc["params"])
+    reg = doc["registration"]
+    assert np.allclose(reg["t_mm"], [1500, -800, 200], atol=4 * max(reg["std_t_mm"]) + 0.5)
+    # paper-table2 tilts motor 1's axis: the registration carries that rotation (tenths of a degree)
+    true_rot = Rotation.from_rotvec([1, -1, 120], degrees=True).as_matrix()
+    assert np.linalg.norm(Rotation.from_matrix(np.array(reg["R"]) @ true_rot.T).as_rotvec(degrees=True)) < 0.5
+    assert main(["twin", "measure", "--poses", "5", "--blocked", "2", "-o", str(tmp_path / "x.csv")]) == 2
+    assert "--blocked" in capsys.readouterr().err and not (tmp_path / "x.csv").exists()
+
+
+def test_api_reads_and_identifies_the_tracker_frame(tracker_case, tmp_path):
+    import pmcal
+
+    _, _, meas, _, _ = tracker_case
+    write_measurements(tmp_path / "t.csv", meas)
+    back = pmcal.read_measurements(tmp_path / "t.csv", frame="tracker")
+    assert np.array_equal(back.visible, meas.visible)
+    cal = pmcal.identify(back, frame="tracker")
+    assert cal.document["frame"] == "tracker" and len(cal.document["rejected"]) == 1
+    assert cal.setpoints([30.0], [20.0]).shape == (1, 2)
