@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, metavar="PARAMS.json")
     p.add_argument("--method", default=None, help="identification method (machine default if omitted)")
     p.add_argument("--model", default=None, choices=["full", "paper"],
-                   help="error model: whole closed chain (full) or the seed's per-limb real IK (paper)")
+                   help="error model: whole closed chain (full) or the paper's per-limb real IK (paper)")
     p.add_argument("--sigma", type=float, default=None, help="tracker noise, mm (machine default)")
     p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods")
     p.add_argument("--frame", default="base", metavar="base|tracker|tracker:T.json",
