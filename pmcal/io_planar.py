@@ -20,7 +20,7 @@ from pmcal.errors import InputError
 
 MECHANISM = "planar_2dof"
 MEAS_COLUMNS = ("pose_id", "theta1_cmd_deg", "theta2_cmd_deg", "scale_change_mm")
-#: largest plausible |scale change| between adjacent positions, mm (the seed's scale range is 350 mm)
+#: largest plausible |scale change| between adjacent positions, mm (the paper's scale range is 350 mm)
 PLAUSIBLE_CHANGE_MM = 400.0
 
 
@@ -92,7 +92,7 @@ def read_measurements(path: str | Path, geom: Geometry, min_positions: int = 6) 
                          field="campaign")
     if len(ids) < min_positions:
         raise InputError(f"{len(ids)} positions; the identification needs at least {min_positions} "
-                         f"(K > 5, seed section 4)", file=t.path, field="pose_id")
+                         f"(K > 5, paper section 4)", file=t.path, field="pose_id")
     r = _plausible_positions(geom, theta, t.path, "theta1_cmd_deg")
     return PlanarMeasurements(ids=ids, theta_cmd=theta, readings=change[~starts], segments=seg, r=r,
                               path=t.path)

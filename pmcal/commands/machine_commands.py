@@ -28,9 +28,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, metavar="PARAMS.json")
     p.add_argument("--method", default=None, help="identification method (machine default if omitted)")
     p.add_argument("--model", default=None, choices=["full", "paper"],
-                   help="error model: whole closed chain (full) or the seed's per-limb real IK (paper)")
+                   help="error model: whole closed chain (full) or the paper's per-limb real IK (paper)")
     p.add_argument("--sigma", type=float, default=None, help="tracker noise, mm (machine default)")
     p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods")
+    p.add_argument("--frame", default="base", metavar="base|tracker|tracker:T.json",
+                   help="frame of the measured targets: the machine's base frame (default) or the tracker's "
+                        "own frame (registration and nest offsets identified; T.json: start registration "
+                        "{\"R\": 3x3, \"t_mm\": [x, y, z]}), docs/tracker_frame.md")
+    p.add_argument("--nest-tolerance", type=float, default=None, metavar="MM",
+                   help="prior of the target nests' offsets from the drawing, mm per coordinate (default 0.5)")
+    p.add_argument("--robust", action="store_true",
+                   help="robust fit with named outlier rejection also in the base frame (always on with "
+                        "--frame tracker or blocked targets)")
     p.set_defaults(func=_cmd("identify"))
 
     p = sub.add_parser("compensate", help="corrected motor commands for target orientations")
