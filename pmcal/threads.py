@@ -13,6 +13,8 @@ imports nothing else of pmcal.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import os
 
 #: Environment variable that overrides the policy: a positive thread count, or 0 / "default".
@@ -70,3 +72,21 @@ def blas_threads() -> list[int]:
     from threadpoolctl import threadpool_info
 
     return [int(i["num_threads"]) for i in threadpool_info() if i.get("user_api") == "blas"]
+
+
+@contextmanager
+def blas_policy(n: int | None = None):
+    """The policy's thread limit for the duration of a block (or of a decorated function), restored after.
+
+    The library's heavy entry points (:func:`pmcal.identify`, :meth:`pmcal.Calibration.setpoints`,
+    :meth:`pmcal.Calibration.compensation_table`) run under it, so a script or notebook gets the same
+    policy as the command line without a process-wide side effect.
+    """
+    count = policy_threads(n)
+    if count is None:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=count, user_api="blas"):
+        yield
