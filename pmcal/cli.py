@@ -12,7 +12,7 @@ import importlib
 import pkgutil
 import sys
 
-from pmcal import __version__, progress
+from pmcal import __version__, progress, threads
 from pmcal.errors import InputError, RunError
 
 DEFAULT_MACHINE = "ocpm_2dof"
@@ -27,6 +27,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--machine", default=DEFAULT_MACHINE,
                         help=f"machine name (a folder under mjcf/); default {DEFAULT_MACHINE}")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress output")
+    parser.add_argument("--blas-threads", type=int, default=None, metavar="N",
+                        help="BLAS threads per process (default: $PMCAL_BLAS_THREADS, else 1; 0 = the "
+                             "libraries' own default); see docs/speed.md")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     import pmcal.commands as commands
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda i: i.name):
@@ -43,6 +46,11 @@ def main(argv: list[str] | None = None) -> int:
     progress.set_quiet(args.quiet)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
+        return 2
+    try:
+        threads.apply_blas_policy(args.blas_threads)
+    except ValueError as exc:
+        print(f"pmcal: error: {exc}", file=sys.stderr)
         return 2
     try:
         return int(args.func(args) or 0)

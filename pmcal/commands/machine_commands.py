@@ -16,6 +16,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the whole job on the built-in machine, no arguments needed")
     p.add_argument("--out", default="pmcal-demo", help="output folder (report, tables); default pmcal-demo")
     p.add_argument("--seed", type=int, default=1, help="random seed of the virtual campaign")
+    p.add_argument("--full", action="store_true",
+                   help="run the population methods (ga, pso, sa) to their own stopping rules instead of the "
+                        "quick demo's capped budgets (about a minute longer)")
     p.add_argument("--hidden-effect", default=None, metavar="NAME",
                    help="hide a physical effect in the campaign and let the diagnosis find it")
     p.set_defaults(func=_cmd("demo"))
@@ -28,6 +31,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="error model: whole closed chain (full) or the paper's per-limb real IK (paper)")
     p.add_argument("--sigma", type=float, default=None, help="tracker noise, mm (machine default)")
     p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods")
+    p.add_argument("--frame", default="base", metavar="base|tracker|tracker:T.json",
+                   help="frame of the measured targets: the machine's base frame (default) or the tracker's "
+                        "own frame (registration and nest offsets identified; T.json: start registration "
+                        "{\"R\": 3x3, \"t_mm\": [x, y, z]}), docs/tracker_frame.md")
+    p.add_argument("--nest-tolerance", type=float, default=None, metavar="MM",
+                   help="prior of the target nests' offsets from the drawing, mm per coordinate (default 0.5)")
+    p.add_argument("--robust", action="store_true",
+                   help="robust fit with named outlier rejection also in the base frame (always on with "
+                        "--frame tracker or blocked targets)")
     p.set_defaults(func=_cmd("identify"))
 
     p = sub.add_parser("compensate", help="corrected motor commands for target orientations")
