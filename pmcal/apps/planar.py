@@ -128,6 +128,24 @@ def _errors_from_args(args, machine):
     return machine.preset(name), f"preset {name}"
 
 
+def targets(args) -> int:
+    """``pmcal --machine planar_2dof targets -o TARGETS.csv``: ``--count`` positions (mm, seed frame) on the
+    boundary of the paper's workspace (Fig. 7), the layout the identification uses."""
+    from pmcal.calib.planar.design import boundary_positions
+    from pmcal.csvio import write_csv
+
+    if not 2 <= args.count <= 100_000:
+        raise InputError(f"count must be 2..100000, got {args.count}", field="--count")
+    if args.theta_max is not None:
+        raise InputError("--theta-max is for ocpm_2dof; planar targets are positions", field="--theta-max")
+    machine = _machine()
+    r = boundary_positions(machine.workspace, (args.count + 1) // 2)[: args.count]
+    write_csv(args.output, ["x_mm", "y_mm"], ([f"{x:.4f}", f"{y:.4f}"] for x, y in r),
+              [f"pmcal targets: machine planar_2dof, {len(r)} positions on the workspace boundary",
+               "units: mm; seed frame O-xy, y up, the platform below the base (y < 0); docs/formats.md"])
+    return 0
+
+
 def twin_measure(args) -> int:
     """A virtual campaign: ``--poses K`` positions (seed Fig. 7, K even) or ``--targets``; scale noise
     ``--noise`` (mm, default eq. 34) and servo noise (eq. 35); readings as in the measurement CSV."""
@@ -155,7 +173,7 @@ def twin_measure(args) -> int:
         if len(r) < 2:
             raise InputError("a campaign needs at least two positions", file=args.targets, field="x_mm")
     else:
-        K = int(getattr(args, "poses", 6))
+        K = int(getattr(args, "poses", None) or 6)
         if K < 6 or K % 2:
             raise InputError(f"number of poses must be even and at least 6 (K = 2n > 5), got {K}",
                              field="--poses")
