@@ -14,7 +14,7 @@ import numpy as np
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_fk
-from pmcal.mechanism.ocpm.params import check_key
+from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, SEED_LIMB_FIELDS, check_key
 from pmcal.mechanism.rigid import fit_pose
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.csvio import read_csv, write_csv
@@ -119,12 +119,36 @@ def write_measurements(path: str | Path, meas: Measurements, comments=()) -> Non
     write_csv(path, header, rows, comments)
 
 
+#: The parameters file's schema (docs/formats.md): error models, and the largest plausible magnitude of a
+#: geometric error. Beyond it a unit mix-up (radians, micrometres, angles x1000) is far more likely than a
+#: machine that still closes its chain: the paper's Table 2 errors are below 2 mm and 1 deg.
+PARAM_MODELS = ("full", "paper")
+PLAUSIBLE_PARAM = {"mm": 25.0, "deg": 10.0}
+
+
+def param_unit(key: str) -> str:
+    """``deg`` for an angular parameter key, else ``mm``."""
+    return "deg" if key.rsplit(".", 1)[-1] in ANGULAR_FIELDS else "mm"
+
+
+def paper_keys_only(params: dict[str, float]) -> bool:
+    """Every key is one of the paper's 11 per limb of limbs 1 and 2 (a paper-model file)."""
+    return bool(params) and all(k.split(".", 1)[0] in ("L1", "L2") and k.split(".", 1)[1] in SEED_LIMB_FIELDS
+                                for k in params)
+
+
 def read_params(path: str | Path, geom: Geometry | None = None) -> tuple[dict[str, float], dict]:
-    """Read a parameters JSON (INTERFACES.md); returns (params in mm/deg, whole document)."""
+    """Read and validate a parameters JSON (docs/formats.md); returns (params in mm/deg, whole document).
+
+    The one schema of the ``ocpm_2dof`` parameters file, whichever command reads it: ``mechanism``,
+    ``model`` (one of :data:`PARAM_MODELS` when present), ``stiffness_ratio`` (a positive number when
+    present), ``params`` keys (:func:`pmcal.mechanism.ocpm.params.check_key`), finite numbers within
+    :data:`PLAUSIBLE_PARAM` of their unit.
+    """
     geom = geom or default_geometry()
     p = str(path)
     try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+        doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise InputError("file not found", file=p) from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -143,7 +167,18 @@ def read_params(path: str | Path, geom: Geometry | None = None) -> tuple[dict[st
             raise InputError(msg, file=p, field=key)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise InputError(f"value {value!r} is not a finite number", file=p, field=key)
+        unit = param_unit(key)
+        if abs(value) > PLAUSIBLE_PARAM[unit]:
+            raise InputError(f"{value:g} {unit} is implausible for a geometric error (at most "
+                             f"{PLAUSIBLE_PARAM[unit]:g} {unit}; units are mm and degrees)", file=p, field=key)
         params[key] = float(value)
+    model = doc.get("model")
+    if model is not None and model not in PARAM_MODELS:
+        raise InputError(f"unknown model {model!r} (known: {', '.join(PARAM_MODELS)})", file=p, field="model")
+    ratio = doc.get("stiffness_ratio")
+    if ratio is not None and (isinstance(ratio, bool) or not isinstance(ratio, (int, float))
+                              or not math.isfinite(ratio) or ratio <= 0):
+        raise InputError(f"stiffness ratio {ratio!r} is not a positive number", file=p, field="stiffness_ratio")
     return params, doc
 
 

@@ -147,6 +147,10 @@ def write_setpoints(path: str | Path, header: list[str], rows: list[list[str]], 
     write_csv(path, list(header) + ["theta1_deg", "theta2_deg"], out, comments=list(comments))
 
 
+#: error models of a planar parameters file (docs/planar_measurement_format.md)
+PARAM_MODELS = ("simplified", "full")
+
+
 def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Errors, dict]:
     """A parameters/errors JSON: ``{"mechanism": "planar_2dof", "params": {key: value}}`` (mm, deg).
 
@@ -155,7 +159,7 @@ def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Er
     """
     p = str(path)
     try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+        doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise InputError("file not found", file=p) from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -163,6 +167,12 @@ def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Er
     if not isinstance(doc, dict):
         raise InputError("must be a JSON object", file=p)
     if "params" in doc or require_mechanism:
+        model = doc.get("model")
+        if model is not None and model not in PARAM_MODELS:
+            raise InputError(f"unknown model {model!r} (known: {', '.join(PARAM_MODELS)})", file=p, field="model")
+        if "stiffness_ratio" in doc:
+            raise InputError("planar_2dof has no stiffness ratio (a parameter of ocpm_2dof)", file=p,
+                             field="stiffness_ratio")
         mech = doc.get("mechanism")
         if mech != MECHANISM and (require_mechanism or mech is not None):
             raise InputError(f"mechanism is {mech!r}, expected '{MECHANISM}'", file=p, field="mechanism")
