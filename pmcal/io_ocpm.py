@@ -27,6 +27,9 @@ TARGET_AXES = ("x", "y", "z")
 #: Largest disagreement between the measured tilt and the tilt the commands give on the nominal machine
 #: that is still plausible for a machine with geometric errors (deg). Beyond it, a unit mix-up is likely.
 PLAUSIBLE_POINTING_DEG = 5.0
+#: Most poses a measurement file may hold: identification and diagnosis solve dense problems whose cost
+#: grows with the poses (a campaign has 24..128; 2000 take minutes).
+MAX_POSES = 2000
 #: Largest plausible error of a measured distance between two targets (mm).
 PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
 
@@ -40,7 +43,7 @@ def read_measurements(path: str | Path, geom: Geometry | None = None, check_unit
     ids, targets inconsistent with the platform (metres?), commands outside the workspace or
     disagreeing with the measured tilt (radians?)."""
     geom = geom or default_geometry()
-    t = read_csv(path)
+    t = read_csv(path, max_rows=MAX_POSES)
     k = 3
     while t.has(f"t{k + 1}_x"):
         k += 1

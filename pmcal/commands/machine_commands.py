@@ -44,7 +44,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "real IK (paper). planar_2dof: the paper's 4-parameter model (simplified = paper, "
                         "default) or all 12 parameters (full)")
     p.add_argument("--sigma", type=float, default=None, help="tracker noise, mm (machine default)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods")
+    p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods (default 0)")
+    p.add_argument("--allow-rank-deficient", action="store_true",
+                   help="planar_2dof --model full: accept a rank-deficient fit (null space reported in the "
+                        "file) as success; without it the file says success false and the exit status is 1")
     p.set_defaults(func=_cmd("identify"))
 
     p = sub.add_parser("compensate", help="corrected motor commands for target orientations")

@@ -66,7 +66,7 @@ def _machine_errors(p: argparse.ArgumentParser) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--preset", default=None, metavar="NAME",
                    help="built-in error set: ocpm_2dof nominal (default) or paper-table2; planar_2dof nominal "
-                        "or paper")
+                        "or group1..group6 (the paper's error groups)")
     g.add_argument("--errors", default=None, metavar="PARAMS.json",
                    help="error set of the real machine: a parameters file (docs/formats.md)")
     p.add_argument("--stiffness-ratio", type=float, default=None, metavar="RATIO",
