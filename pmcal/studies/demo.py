@@ -144,11 +144,11 @@ class DemoStudy:
 
     def step_algorithms(self, out: Path) -> None:
         """Every method on the same data; the slow population methods run in two worker processes."""
-        from concurrent.futures import ProcessPoolExecutor
+        from pmcal.studies.workers import worker_pool
 
         t0 = time.perf_counter()
         slow = [m for m in self.METHODS_COMPARED if m in ("ga", "pso", "sa")]
-        with ProcessPoolExecutor(max_workers=2) as pool:
+        with worker_pool(2) as pool:               # Ctrl-C: the workers are killed, not waited for
             futures = {m: pool.submit(_timed_calibration, self.meas, m, self.seed) for m in slow}
             runs = {m: _timed_calibration(self.meas, m, self.seed) for m in self.METHODS_COMPARED
                     if m not in slow and m != "hga"}
