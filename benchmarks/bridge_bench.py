@@ -94,7 +94,7 @@ def main() -> None:
         rows = [[t, f"{DEFAULT_GRID[0]}x{DEFAULT_GRID[1]}", s["targets"], s["before"]["rms_deg"],
                  s["before"]["max_deg"], s["after"]["rms_deg"], s["after"]["max_deg"],
                  s["direct_no_table"]["rms_deg"], str(s["plc_equals_table_interpolation"])] for t, s in loop.items()]
-        print_table("twin in the loop, seed Table 2 errors: pointing error measured by the virtual tracker (deg)",
+        print_table("twin in the loop, paper Table 2 errors: pointing error measured by the virtual tracker (deg)",
                     ["transport", "grid", "poses", "before rms", "before max", "after rms", "after max",
                      "no-table rms", "PLC = table"], rows)
     write_json("bridge_bench", results, args.json)

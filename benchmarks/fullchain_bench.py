@@ -1,13 +1,13 @@
-"""Whole-closed-chain calibration vs the seed's method, on the same twin data.
+"""Whole-closed-chain calibration vs the paper's method, on the same twin data.
 
 For each random error draw: a campaign of N training poses (theta <= 60 deg, sigma = 0.01 mm) and 24
 held-out test poses. Compensation is judged on the held-out poses: the twin is driven with the
 compensated commands and its pointing error (angle between platform normal and target normal) is taken
 both from the true pose and as the tracker measures it (noise floor ~0.006 deg with these targets).
 
-Methods: uncompensated (nominal IK); seed method = real IK of limbs 1-2 at the nominal platform position
-of eq. 7, with limb 1-2 parameters identified by the seed's HGA (`paper-hga`) and, as an upper bound
-of what that model can do, with the true limb 1-2 parameters (`paper-oracle`); the seed's identification
+Methods: uncompensated (nominal IK); paper method = real IK of limbs 1-2 at the nominal platform position
+of eq. 7, with limb 1-2 parameters identified by the paper's HGA (`paper-hga`) and, as an upper bound
+of what that model can do, with the true limb 1-2 parameters (`paper-oracle`); the paper's identification
 with pmcal's fitted position map instead of eq. 7 (`paper-hga + position map`); whole chain (`full`).
 
 Run: python benchmarks/fullchain_bench.py [--draws 10] [--poses 48] [--quick]
@@ -40,7 +40,7 @@ SIGMA = 0.01
 
 
 def seed_commands(errors: ErrorSet, phi_deg, theta_deg) -> np.ndarray:
-    """The seed's compensation: real IK of limbs 1-2 at the nominal pose (eq. 4, 7)."""
+    """The paper's compensation: real IK of limbs 1-2 at the nominal pose (eq. 4, 7)."""
     r, R = nominal_pose(np.deg2rad(phi_deg), np.deg2rad(theta_deg))
     return np.rad2deg(real_ik_commands(r, R, errors))
 
@@ -50,11 +50,11 @@ def limbs12(params: dict) -> dict:
 
 
 def paper_identify(meas):
-    """The seed's identification (HGA on eq. 14, both limbs) and the fitted position map."""
+    """The paper's identification (HGA on eq. 14, both limbs) and the fitted position map."""
     from pmcal.calib.ocpm import compensation as comp
-    from pmcal.calib.ocpm import paper_model as pm
+    from pmcal.calib.ocpm import paper_calibration
 
-    cal = pm.calibrate(meas, "hga", (1, 2), seed=0)
+    cal = paper_calibration.calibrate(meas, "hga", (1, 2), seed=0)
     return cal.errors(), comp.fit_position_map(cal.model.r, cal.model.R)
 
 
@@ -124,7 +124,7 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=10)
     ap.add_argument("--poses", type=int, default=48)
     ap.add_argument("--quick", action="store_true", help="3 draws, main case only")
-    ap.add_argument("--no-paper", action="store_true", help="skip the seed's HGA identification")
+    ap.add_argument("--no-paper", action="store_true", help="skip the paper's HGA identification")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     draws = 3 if args.quick else args.draws

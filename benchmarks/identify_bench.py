@@ -1,11 +1,11 @@
-"""Monte Carlo benchmark of the identification methods on the seed's per-limb model (twin data).
+"""Monte Carlo benchmark of the identification methods on the paper's per-limb model (twin data).
 
 For every error draw (fixed seeds) the MuJoCo twin (reference closure compliance) is measured at 24
 poses (theta <= 60 deg, tracker noise 0.01 mm); both actuated limbs are identified by every method;
 the machine is compensated (exact real IK + fitted position map) and driven to 24 held-out poses.
 
 Scenarios
-  limbs12 : errors only in limbs 1-2 (+-1.5 mm, +-0.3 deg, the size of seed Table 2): the seed's setting.
+  limbs12 : errors only in limbs 1-2 (+-1.5 mm, +-0.3 deg, the size of paper Table 2): the paper's setting.
   all     : errors in every limb and the SS limb (+-0.5 mm, +-0.1 deg, MECHANISM.md): over-constraint.
 
 Per method: success rate (chi-square within max(1, 1 %) of the bounded least-squares optimum found from
@@ -37,6 +37,7 @@ if str(ROOT) not in sys.path:
 
 from pmcal.calib.identifiability import analyse  # noqa: E402
 from pmcal.calib.ocpm import compensation as comp  # noqa: E402
+from pmcal.calib.ocpm import paper_calibration  # noqa: E402
 from pmcal.calib.ocpm import paper_model as pm  # noqa: E402
 from pmcal.mechanism.ocpm.params import ErrorSet, random_errors  # noqa: E402
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion  # noqa: E402
@@ -201,7 +202,7 @@ def pose_draw(args) -> dict:
         plan = plan_campaign(N_CAL, THETA_MAX, seed=d) if sel is None else CampaignPlan(
             phi_deg=sel[0], theta_deg=sel[1], approach=np.ones((N_CAL, 2)), time_s=np.arange(N_CAL) * 30.0)
         meas = run_campaign(twin, plan, LaserTracker(SIGMA, rng))
-        cal = pm.calibrate(meas, "hga", seed=d, sigma_mm=SIGMA)
+        cal = paper_calibration.calibrate(meas, "hga", seed=d, sigma_mm=SIGMA)
         pmap = comp.fit_position_map(cal.model.r, cal.model.R)
         keep = [i for i, k in enumerate(cal.names) if k not in cal.unidentifiable and pm.param_units([k])[0] == "mm"]
         dev = cal.x[keep] - np.array([E_true.get(cal.names[i]) for i in keep])

@@ -1,9 +1,9 @@
-"""Planar 2-DOF robot (seed 003): reproduction of the seed's simulation (Tables 3-6, Fig. 8) over many noise
-realisations on the MuJoCo twin, the noise floor of the seed's positions, and the calibration-region
+"""Planar 2-DOF robot (paper 003): reproduction of the paper's simulation (Tables 3-6, Fig. 8) over many noise
+realisations on the MuJoCo twin, the noise floor of the paper's positions, and the calibration-region
 trade-off of this project's noise-optimal positions. Prints tables; writes benchmarks/results/planar_bench.json.
 
-Settings per group 1-6 (seed Table 2): ``seed`` = the seed's method (K = 6 on W, TSVD, eq. 30 loop) under
-the noise of eq. 34-35; ``seed_scale_only`` = the same with the servo error off; ``ours`` = noise-optimal
+Settings per group 1-6 (paper Table 2): ``seed`` = the paper's method (K = 6 on W, TSVD, eq. 30 loop) under
+the noise of eq. 34-35; ``paper_scale_only`` = the same with the servo error off; ``ours`` = noise-optimal
 positions in the configured calibration region + GLS, noise of eq. 34-35.
 
 Run: python benchmarks/planar_bench.py [--runs 500] [--quick]
@@ -27,45 +27,45 @@ from pmcal.calib.planar.design import (boundary_positions, condition_study, opti
 from pmcal.calib.planar.identification import identify  # noqa: E402
 from pmcal.mechanism.planar.kinematics import inverse  # noqa: E402
 from pmcal.twin.planar.config import default_machine  # noqa: E402
-from pmcal.apps.planar_study import GROUPS, SEED, evaluate_at, run_study, settings  # noqa: E402
+from pmcal.apps.planar_study import GROUPS, PAPER, evaluate_at, run_study, settings  # noqa: E402
 from pmcal.twin.planar.twin import PlanarTwin  # noqa: E402
 
 
 def reproduction(machine, runs: int, seed: int) -> dict:
     g, ws, cal = machine.geometry, machine.workspace, machine.calibration
-    seed_pos = boundary_positions(ws, cal.n_per_boundary)
+    paper_pos = boundary_positions(ws, cal.n_per_boundary)
     ours_pos = optimal_positions(g, machine.design.region, machine.design.positions, machine.noise,
                                  step=machine.design.grid_step)
-    out = {"positions": {"seed": seed_pos.tolist(), "ours": ours_pos.tolist()}, "groups": {}}
+    out = {"positions": {"seed": paper_pos.tolist(), "ours": ours_pos.tolist()}, "groups": {}}
     rows3, rows45 = [], []
     for gi, grp in enumerate(GROUPS):
         err = machine.preset(grp)
         twin = PlanarTwin(err, machine)
         out["groups"][grp] = {}
-        before = float(evaluate_at(twin, seed_pos, np.zeros((1, 2)))[0])
-        for si, s in enumerate(settings(machine, seed_pos, ours_pos)):
+        before = float(evaluate_at(twin, paper_pos, np.zeros((1, 2)))[0])
+        for si, s in enumerate(settings(machine, paper_pos, ours_pos)):
             t0 = time.perf_counter()
             res = run_study(err, s.positions, s.noise, runs, seed=seed + 100 * gi + si, method=s.method,
                             mu0=cal.mu0, max_iter=cal.max_iterations, twin=twin)
             dt = time.perf_counter() - t0
             d = res.summary()
-            d["dpmax_seed_positions_before_mm"] = before
-            d["dpmax_seed_positions_after_median_mm"] = float(np.median(evaluate_at(twin, seed_pos, res.comp_deg)))
+            d["dpmax_paper_positions_before_mm"] = before
+            d["dpmax_paper_positions_after_median_mm"] = float(np.median(evaluate_at(twin, paper_pos, res.comp_deg)))
             d["wall_s"] = dt
             out["groups"][grp][s.name] = d
-            s3 = SEED["table3"][grp]
+            s3 = PAPER["table3"][grp]
             rows3.append([grp, s.name, f"{s3[1]:.3f}/{s3[3]:.3f}",
                           "{:.4f}/{:.4f}".format(*d["delta_deg_median"]), "{:.4f}/{:.4f}".format(*d["delta_deg_rms"]),
                           f"{s3[4]:.3f}", f"{d['dp0_before_mm']:.3f}", f"{s3[5]:.3f}", f"{d['dp0_after_median_mm']:.3f}",
                           f"{d['converged_fraction']:.2f}", f"{d['m_median']:.0f}"])
-            rows45.append([grp, s.name, f"{SEED['table4'][grp][0]:.3f}/{SEED['table4'][grp][1]:.3f}",
-                           f"{before:.3f}/{d['dpmax_seed_positions_after_median_mm']:.3f}",
-                           "{:.3f}/{:.3f}".format(*SEED["table5"][grp]), "{:.3f}/{:.3f}".format(*d["delta_M_median_mm"]),
-                           f"{SEED['table6'][grp]:.2f}", "" if d["cond_later_mean"] is None else f"{d['cond_later_mean']:.2f}"])
+            rows45.append([grp, s.name, f"{PAPER['table4'][grp][0]:.3f}/{PAPER['table4'][grp][1]:.3f}",
+                           f"{before:.3f}/{d['dpmax_paper_positions_after_median_mm']:.3f}",
+                           "{:.3f}/{:.3f}".format(*PAPER["table5"][grp]), "{:.3f}/{:.3f}".format(*d["delta_M_median_mm"]),
+                           f"{PAPER['table6'][grp]:.2f}", "" if d["cond_later_mean"] is None else f"{d['cond_later_mean']:.2f}"])
     print_table(f"Table 3 (seed) vs twin, {runs} runs per group and setting: δ = |compensation - set| (deg), "
                 "Δp0 (mm)", ["group", "setting", "δ1/δ2 seed", "δ median", "δ RMS", "Δp0 bef. seed", "Δp0 bef.",
                              "Δp0 aft. seed", "Δp0 aft. median", "converged", "m median"], rows3)
-    print_table("Tables 4-6: Δp_max at the seed positions before/after (mm), δM (mm), mean κ",
+    print_table("Tables 4-6: Δp_max at the paper positions before/after (mm), δM (mm), mean κ",
                 ["group", "setting", "Δpmax seed", "Δpmax ours (median)", "δMx/δMy seed", "δMx/δMy median",
                  "κ seed", "κ mean"], rows45)
     return out
@@ -76,14 +76,14 @@ def condition(machine) -> dict:
     k1, km = condition_study(machine.geometry, machine.workspace, ns, machine.preset("group1").drM)
     print_table("Fig. 8: condition numbers (seed at n = 3: κ1 = 475.34, κm = 472.54)", ["n", "κ1", "κm"],
                 [[int(n), float(a), float(b)] for n, a, b in zip(ns, k1, km)])
-    return {"n": ns.tolist(), "kappa1": k1.tolist(), "kappam": km.tolist(), "seed": SEED["fig8"]}
+    return {"n": ns.tolist(), "kappa1": k1.tolist(), "kappam": km.tolist(), "seed": PAPER["fig8"]}
 
 
 def region_sweep(machine, quick: bool) -> list[dict]:
     """Cramér-Rao bound of the zero offsets (GLS) for noise-optimal positions in W enlarged by a margin."""
     g, ws, noise = machine.geometry, machine.workspace, machine.noise
     seed_sd = np.rad2deg(np.sqrt(np.diag(zero_offset_covariance(g, boundary_positions(ws, 3), noise))[:2]))
-    rows, out = [["seed positions", 6, "{:.4f}/{:.4f}".format(*seed_sd), ""]], []
+    rows, out = [["paper positions", 6, "{:.4f}/{:.4f}".format(*seed_sd), ""]], []
     margins = (0, 100, 200, 300) if quick else (0, 50, 100, 150, 200, 250, 300)
     for K in (6, 10):
         for m in margins:
@@ -135,7 +135,7 @@ def main() -> None:
     data = {"runs": runs, "noise": {"scale_sigma_mm": machine.noise.scale,
                                     "servo_sigma_deg": float(np.rad2deg(machine.noise.servo))},
             "condition": condition(machine), "reproduction": reproduction(machine, runs, a.seed),
-            "region_sweep": region_sweep(machine, a.quick), "speed": speed(machine), "seed_tables": SEED}
+            "region_sweep": region_sweep(machine, a.quick), "speed": speed(machine), "paper_tables": PAPER}
     data["wall_s"] = time.perf_counter() - t0
     write_json("planar_bench", data, a.output)
 

@@ -44,7 +44,7 @@ def main() -> None:
     cases = {
         "nominal": {},
         "zero offsets only": {"L1.dtheta": 0.3, "L2.dtheta": -0.2},
-        "seed Table 2 (limbs 1-2)": PAPER_TABLE2,
+        "paper Table 2 (limbs 1-2)": PAPER_TABLE2,
         "0.5 mm / 0.1 deg, every limb + SS": random_errors(rng, 0.5, 0.1),
     }
     rows, results = [], {}

@@ -1,5 +1,13 @@
-"""Calibration numerics: kinematics, error models, identification, identifiability, compensation.
+"""Identification, diagnosis and compensation numerics (numpy/scipy; no MuJoCo, no files, no CLI).
 
-Pure numpy/scipy: no file I/O, no CLI. Units inside: mm and radians unless a name says otherwise
-(``*_deg``). Interfaces to files and users are in degrees and converted at the edge.
+The algorithms reach the physics only through :class:`pmcal.calib.forward_model.ForwardModel` objects
+handed to them (the twin's, or any other simulator's); the machine description comes from
+:mod:`pmcal.mechanism`. Units inside: mm and radians unless a name says otherwise (``*_deg``);
+interfaces to files and users are in degrees and converted at the edge.
+
+- :mod:`~pmcal.calib.solvers` — identification methods behind one signature and one result type.
+- :mod:`~pmcal.calib.identifiability`, :mod:`~pmcal.calib.pose_selection` — what a campaign determines.
+- :mod:`~pmcal.calib.ocpm` — the over-constrained PM: the paper's per-limb model and procedure, the whole
+  closed chain, the discrepancy diagnosis, compensation.
+- :mod:`~pmcal.calib.planar` — the planar robot: identification on adjacent positions, TSVD, design.
 """

@@ -1,11 +1,11 @@
 """Choosing measurement poses: D-optimal or minimum-condition-number subsets of a candidate set.
 
-Seed 003 (section 5) picks positions on the workspace boundary by the condition number of the
+Paper 003 (section 5) picks positions on the workspace boundary by the condition number of the
 identification matrix. Generalised here: given the whitened Jacobian rows of every candidate pose,
 ``blocks`` (N_candidates, C, n), choose ``k`` poses that
 
 - ``"D"``: maximise ``log det(J^T J)`` (D-optimality: smallest volume of the confidence ellipsoid), or
-- ``"condition"``: minimise the condition number of the column-normalised ``J`` (seed 003),
+- ``"condition"``: minimise the condition number of the column-normalised ``J`` (paper 003),
 
 by a greedy start (for ``"condition"``: the D-optimal set, a much better start than greedy) followed by
 exchange sweeps (Fedorov): each selected pose is swapped for the best

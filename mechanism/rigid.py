@@ -44,7 +44,7 @@ def fit_pose(Y: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def _three_point_frame(P: np.ndarray) -> np.ndarray:
-    """Seed 000 eq. 16: u along P2->P1, w normal to the plane of P1, P2, P3, v = w × u."""
+    """Paper 000 eq. 16: u along P2->P1, w normal to the plane of P1, P2, P3, v = w × u."""
     P = np.asarray(P, dtype=float)
     p21 = P[..., 0, :] - P[..., 1, :]
     p23 = P[..., 2, :] - P[..., 1, :]
@@ -56,7 +56,7 @@ def _three_point_frame(P: np.ndarray) -> np.ndarray:
 
 
 def pose_from_three_points(Y: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The seed's three-point construction (eq. 16) generalised to any platform target layout.
+    """The paper's three-point construction (eq. 16) generalised to any platform target layout.
 
     The frame of eq. 16 built on the measured points, composed with the inverse of the same frame built
     on the nominal platform coordinates, gives the platform orientation; the position follows from the

@@ -34,7 +34,7 @@ def rot_z(angle) -> np.ndarray:
 
 
 def tilt_torsion(phi, theta) -> np.ndarray:
-    """Platform orientation of seed 000 eq. 4: ``R = Rz(phi) Ry(theta) Rz(-phi)``.
+    """Platform orientation of paper 000 eq. 4: ``R = Rz(phi) Ry(theta) Rz(-phi)``.
 
     ``phi`` is the azimuth of the tilt axis' normal, ``theta`` the tilt; both rad, broadcast together.
     """
@@ -43,7 +43,7 @@ def tilt_torsion(phi, theta) -> np.ndarray:
 
 
 def tilt_torsion_angles(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(phi, theta) of a rotation matrix by seed eq. 17: ``theta = acos(R33)``, ``phi = atan2(R23, R13)``.
+    """(phi, theta) of a rotation matrix by paper eq. 17: ``theta = acos(R33)``, ``phi = atan2(R23, R13)``.
 
     ``phi`` is returned in [0, 2 pi); at ``theta = 0`` it is undefined and returned as 0.
     """

@@ -20,6 +20,7 @@ from scipy.linalg import block_diag
 from pmcal import progress
 from pmcal.bridge.comptable import CompTable
 from pmcal.calib.ocpm import compensation as comp
+from pmcal.calib.ocpm import paper_calibration
 from pmcal.calib.ocpm import paper_model as pm
 from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full
 from pmcal.calib.solvers import METHODS
@@ -253,7 +254,7 @@ def identify(meas: Measurements, *, model: str = DEFAULT_MODEL, method: str | No
         check_reachable(meas, source, geom)
         return _identify_full(meas, sigma, source or "", geom, fit_stiffness_ratio)
     method = check_choice(method, DEFAULT_METHOD, METHODS, "--method")
-    n_free = len(pm.SEED_LIMB_FIELDS)
+    n_free = len(pm.PAPER_LIMB_FIELDS)
     if len(meas) <= n_free:
         raise InputError(f"{len(meas)} poses cannot determine {n_free} parameters a limb: measure at least "
                          f"{n_free + 1} (the paper uses 24)", file=source, field="pose_id")
@@ -298,7 +299,7 @@ def _identify_full(meas: Measurements, sigma: float, source: str, geom: Geometry
 def _identify_paper(meas: Measurements, method: str, sigma: float, rng_seed: int | None, source: str,
                     geom: Geometry) -> Calibration:
     with progress.progress(total=2, desc=f"identify ({method})", unit="limb") as bar:
-        cal = pm.calibrate(meas, method, (1, 2), seed=rng_seed, sigma_mm=sigma, geom=geom,
+        cal = paper_calibration.calibrate(meas, method, (1, 2), seed=rng_seed, sigma_mm=sigma, geom=geom,
                            on_limb_done=lambda j, res: bar.update(1))
     pmap = comp.fit_position_map(cal.model.r, cal.model.R, geom)
     motor = np.rad2deg(cal.model.motor_residual(cal.x))

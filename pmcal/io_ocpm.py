@@ -14,7 +14,7 @@ import numpy as np
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_fk
-from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, SEED_LIMB_FIELDS, check_key
+from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, PAPER_LIMB_FIELDS, check_key
 from pmcal.mechanism.rigid import fit_pose
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.csvio import read_csv, write_csv
@@ -136,7 +136,7 @@ def param_unit(key: str) -> str:
 
 def paper_keys_only(params: dict[str, float]) -> bool:
     """Every key is one of the paper's 11 per limb of limbs 1 and 2 (a paper-model file)."""
-    return bool(params) and all(k.split(".", 1)[0] in ("L1", "L2") and k.split(".", 1)[1] in SEED_LIMB_FIELDS
+    return bool(params) and all(k.split(".", 1)[0] in ("L1", "L2") and k.split(".", 1)[1] in PAPER_LIMB_FIELDS
                                 for k in params)
 
 

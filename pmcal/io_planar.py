@@ -25,7 +25,7 @@ MAX_POSITIONS = 2000
 #: accepted ratio of the readings to the nominal distance changes (a geometric error changes them by
 #: a few per cent; metres or micrometres change them by 1000)
 PLAUSIBLE_READING_RATIO = (0.5, 2.0)
-#: largest plausible |scale change| between adjacent positions, mm (the seed's scale range is 350 mm)
+#: largest plausible |scale change| between adjacent positions, mm (the paper's scale range is 350 mm)
 PLAUSIBLE_CHANGE_MM = 400.0
 
 
@@ -115,7 +115,7 @@ def read_measurements(path: str | Path, geom: Geometry, min_positions: int = 6) 
                          field="campaign")
     if len(ids) < min_positions:
         raise InputError(f"{len(ids)} positions; the identification needs at least {min_positions} "
-                         f"(K > 5, seed section 4)", file=t.path, field="pose_id")
+                         f"(K > 5, paper section 4)", file=t.path, field="pose_id")
     r = _plausible_positions(geom, theta, t.path, "theta1_cmd_deg")
     _check_reading_units(geom, r, change, starts, t.path)
     return PlanarMeasurements(ids=ids, theta_cmd=theta, readings=change[~starts], segments=seg, r=r,

@@ -1,4 +1,4 @@
-"""Twin in the loop: the MuJoCo twin with the seed's Table 2 errors asks a mock PLC for its motor
+"""Twin in the loop: the MuJoCo twin with the paper's Table 2 errors asks a mock PLC for its motor
 targets, before and after the compensation table is pushed, and a virtual tracker measures."""
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ def test_pointing_error_before_and_after_the_push(mock, table):
     assert res.push.result == "ok" and res.table_version == 2
     assert res.extra["plc_equals_table_interpolation"]           # the PLC's bilinear = the Python one
     before, after, direct = res.before.summary(), res.after.summary(), res.direct.summary()
-    assert before["true_rms_deg"] > 0.5                         # seed Table 2 errors, nominal controller
+    assert before["true_rms_deg"] > 0.5                         # paper Table 2 errors, nominal controller
     assert after["true_rms_deg"] < before["true_rms_deg"] / 20   # the table does its job ...
     assert direct["true_max_deg"] < 1e-4                         # ... up to its interpolation error
     assert after["true_max_deg"] < 0.1

@@ -246,7 +246,7 @@ def test_demo_small(tmp_path, monkeypatch):
     out = tmp_path / "demo"
     assert main(["--quiet", "demo", "--out", str(out)]) == 0
     html = (out / "report.html").read_text()
-    for heading in ("Identified vs predefined", "seed Fig. 5", "Algorithm comparison", "Regularisation",
+    for heading in ("Identified vs predefined", "paper Fig. 5", "Algorithm comparison", "Regularisation",
                     "Identifiability", "Pose selection", "Compensation table"):
         assert heading in html
     assert html.count("data:image/png;base64") >= 4 and "http" not in html.split("<body>")[1].split("Generated")[0]

@@ -50,8 +50,8 @@ def test_whole_chain_is_the_default_and_records_its_fit(every_limb):
 
 
 def test_whole_chain_beats_the_seed_model_on_held_out_poses(every_limb):
-    """With errors in every limb the seed's model cannot reach the noise floor; the whole chain does
-    (fullchain_bench: 0.0019 deg true mean vs >= 0.15 deg for the seed method with perfect limb 1-2
+    """With errors in every limb the paper's model cannot reach the noise floor; the whole chain does
+    (fullchain_bench: 0.0019 deg true mean vs >= 0.15 deg for the paper method with perfect limb 1-2
     parameters; asserted conservatively)."""
     d, twin, test = every_limb
     full = pointing_after(d, twin, test, "full.json")

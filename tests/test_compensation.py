@@ -1,9 +1,10 @@
-"""Compensation (calib/ocpm/compensation.py): exact real IK, seed eq. 15, position map, calibrated FK."""
+"""Compensation (calib/ocpm/compensation.py): exact real IK, paper eq. 15, position map, calibrated FK."""
 
 import numpy as np
 import pytest
 
 from pmcal.calib.ocpm import compensation as comp
+from pmcal.calib.ocpm import paper_calibration
 from pmcal.calib.ocpm import paper_model as pm
 from pmcal.mechanism.ocpm.kinematics import nominal_ik, nominal_pose
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet
@@ -23,7 +24,7 @@ def test_no_errors_gives_the_nominal_ik():
 
 
 def test_linearised_eq15_is_first_order():
-    """seed eq. 15 differs from the exact real IK by a second-order term: ten times smaller errors, a
+    """paper eq. 15 differs from the exact real IK by a second-order term: ten times smaller errors, a
     hundred times smaller difference."""
     names = pm.param_names()
     x = np.array([TABLE2.get(k) for k in names])
@@ -73,7 +74,7 @@ def test_compensation_on_held_out_poses(campaign):
     these Table 2 data (pmcal demo); benchmarks/identify_bench.py over 20 random draws: median 21x, worst
     8x. Assert 10x here (Table 2)."""
     twin, meas, test = campaign
-    cal = pm.calibrate(meas, "hga", seed=0)
+    cal = paper_calibration.calibrate(meas, "hga", seed=0)
     pmap = comp.fit_position_map(cal.model.r, cal.model.R)
     ph, th = np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg)
     target = tilt_torsion(ph, th)

@@ -70,7 +70,7 @@ def test_joint_compliance_deflects_by_gravity_torque_over_stiffness(payload):
 
 
 def test_series_springs_agree_with_mujoco_dynamics():
-    """Seed Table 2 errors (internal forces too): MuJoCo's time-domain simulation with position servos of
+    """Paper Table 2 errors (internal forces too): MuJoCo's time-domain simulation with position servos of
     stiffness K, started from the held pose, sags to the quasi-static spring solution."""
     cmd = np.rad2deg(nominal_ik(np.deg2rad(40), np.deg2rad(35)))[0]
     K = 2e5

@@ -100,16 +100,16 @@ def test_a_different_stiffness_ratio_is_identified():
 
 def test_on_consistent_data_both_methods_compensate_exactly():
     """Errors only in the motor zero offsets: the closures stay consistent, eq. 7 holds, and both the
-    seed's method (HGA + real IK at the eq. 7 position) and the whole chain reach the noise floor."""
+    paper's method (HGA + real IK at the eq. 7 position) and the whole chain reach the noise floor."""
     from pmcal.calib.ocpm import compensation as comp
-    from pmcal.calib.ocpm import paper_model as pm
+    from pmcal.calib.ocpm import paper_calibration, paper_model as pm
 
     params = {"L1.dtheta": -0.28, "L2.dtheta": -0.4}
     twin, meas = campaign(params, n=24, seed=8, noise_seed=9)
     test = plan_campaign(24, 60, seed=98)
     ph, th = np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg)
     Rt = tilt_torsion(ph, th)
-    cal = pm.calibrate(meas, "hga", (1, 2), seed=0)
+    cal = paper_calibration.calibrate(meas, "hga", (1, 2), seed=0)
     m_seed = np.rad2deg(comp.setpoints(ph, th, cal.errors()))
     res = identify_full(meas, FullChainModel())
     e, _ = errors_and_ratio(res.names, res.x)

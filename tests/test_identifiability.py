@@ -1,4 +1,4 @@
-"""Identifiability analysis (calib/identifiability.py) on closed-form Jacobians and the seed's model."""
+"""Identifiability analysis (calib/identifiability.py) on closed-form Jacobians and the paper's model."""
 
 import numpy as np
 

@@ -1,8 +1,9 @@
-"""The seed's per-limb model (eq. 14) and HGA identification on twin data with known errors."""
+"""The paper's per-limb model (eq. 14) and HGA identification on twin data with known errors."""
 
 import numpy as np
 import pytest
 
+from pmcal.calib.ocpm import paper_calibration
 from pmcal.calib.ocpm import paper_model as pm
 from pmcal.mechanism.ocpm.kinematics import nominal_pose
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet
@@ -23,7 +24,7 @@ def truth(names):
 @pytest.fixture(scope="module")
 def exact_twin():
     """Errors only in limbs 1-2 and actuated closures 1e5 times stiffer than the passive ones: the
-    actuated closures hold to ~0.05 um, so the seed's per-limb model is exact for these data."""
+    actuated closures hold to ~0.05 um, so the paper's per-limb model is exact for these data."""
     return Twin(PAPER_TABLE2, stiffness_ratio=1e5)
 
 
@@ -92,10 +93,10 @@ def test_planarity_makes_platform_tilts_identifiable(rich):
 
 
 def test_seed_case_24_poses(exact_twin):
-    """The seed's set-up: 24 poses up to 60 deg. Residual at the noise level; the parameters the data
+    """The paper's set-up: 24 poses up to 60 deg. Residual at the noise level; the parameters the data
     pin down (CRLB below 0.2 mm or 0.02 deg) are recovered within 3 CRLB."""
     meas = run_campaign(exact_twin, plan_campaign(24, 60.0, seed=1), LaserTracker(SIGMA, np.random.default_rng(0)))
-    cal = pm.calibrate(meas, "hga", seed=0, sigma_mm=SIGMA)
+    cal = paper_calibration.calibrate(meas, "hga", seed=0, sigma_mm=SIGMA)
     assert set(cal.unidentifiable) == {"L1.day", "L2.dax"}
     chi = np.concatenate([r.residuals for r in cal.results.values()])
     assert abs(np.mean(chi**2) * chi.size / (chi.size - 20) - 1) < 4 * np.sqrt(2 / (chi.size - 20))
@@ -110,7 +111,7 @@ def test_seed_case_24_poses(exact_twin):
 def test_all_limb_errors_and_closure_stiffness(ratio, fits):
     """The over-constraint (MECHANISM.md) with errors in every limb. At the reference stiffness ratio
     (actuated closures 1000x stiffer than passive) the actuated closures still hold to a few um and the
-    seed's per-limb model fits to the noise level; with a soft chain (ratio 10: actuated gaps ~0.4 mm)
+    paper's per-limb model fits to the noise level; with a soft chain (ratio 10: actuated gaps ~0.4 mm)
     it cannot."""
     from pmcal.mechanism.ocpm.params import random_errors
 
@@ -118,7 +119,7 @@ def test_all_limb_errors_and_closure_stiffness(ratio, fits):
     errs = {**random_errors(rng, 0.5, 0.1), **PAPER_TABLE2}
     meas = run_campaign(Twin(errs, stiffness_ratio=ratio), plan_campaign(48, 60.0, seed=4),
                         LaserTracker(SIGMA, np.random.default_rng(1)))
-    cal = pm.calibrate(meas, "hga", seed=0, sigma_mm=SIGMA)
+    cal = paper_calibration.calibrate(meas, "hga", seed=0, sigma_mm=SIGMA)
     chi = np.concatenate([r.residuals for r in cal.results.values()])
     dof = chi.size - 20
     at_noise = abs(np.sum(chi**2) / dof - 1) < 4 * np.sqrt(2 / dof)
@@ -126,7 +127,7 @@ def test_all_limb_errors_and_closure_stiffness(ratio, fits):
 
 
 def test_linear_pose_model_is_the_first_order_of_the_chain():
-    """Seed eq. 18: on the nominal machine at nominal poses the pose error is zero; the error Jacobian
+    """Paper eq. 18: on the nominal machine at nominal poses the pose error is zero; the error Jacobian
     predicts the constraint-consistent pose change for small errors (finite-difference check through
     the nonlinear constraints with the pose fitted by least squares)."""
     from pmcal.mechanism.ocpm.kinematics import nominal_ik

@@ -41,7 +41,7 @@ def check_scatter(err, r, method, noise, seed):
 
 
 def test_seed_method_with_scale_noise_only_matches_the_seed_table_3_level():
-    """The seed's Table 3 (δ ≈ 0.025-0.049°) is what the seed's method gives when only the scale is noisy."""
+    """The paper's Table 3 (δ ≈ 0.025-0.049°) is what the paper's method gives when only the scale is noisy."""
     err = M.preset("group1")
     rms, res = check_scatter(err, R6, "tsvd", Noise(scale=M.noise.scale, servo=0.0), seed=1)
     assert np.all(rms > 0.02) and np.all(rms < 0.08)
@@ -49,7 +49,7 @@ def test_seed_method_with_scale_noise_only_matches_the_seed_table_3_level():
 
 
 def test_seed_method_under_the_full_noise_of_eq_34_35():
-    """With the servo error of eq. 35 the six positions on W cannot give the seed's 0.04°: ~0.5° RMS."""
+    """With the servo error of eq. 35 the six positions on W cannot give the paper's 0.04°: ~0.5° RMS."""
     rms, _ = check_scatter(M.preset("group4"), R6, "tsvd", M.noise, seed=2)
     assert np.all(rms > 0.3)
 

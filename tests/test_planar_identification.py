@@ -1,4 +1,4 @@
-"""Identification model of seed 003 (eq. 14-31): rank, condition numbers, solutions and their covariance."""
+"""Identification model of paper 003 (eq. 14-31): rank, condition numbers, solutions and their covariance."""
 
 import numpy as np
 import pytest
@@ -38,7 +38,7 @@ def test_rank_of_the_simplified_model_is_four():
 
 
 def test_full_model_has_rank_nine_with_three_rigid_motion_null_vectors():
-    """The seed states rank(G') = 12 for K > 13. Distances O1O2 do not change when the base translates
+    """The paper states rank(G') = 12 for K > 13. Distances O1O2 do not change when the base translates
     together with O1 (2 directions) or when the robot turns about O1 (1 direction), so rank(G') = 9."""
     r = boundary_positions(W, 8)                      # K = 16
     Gf = identification_matrix(G, r, "full")
@@ -70,7 +70,7 @@ def test_full_model_has_rank_nine_with_three_rigid_motion_null_vectors():
 def test_condition_numbers_of_fig_8():
     ns = np.arange(3, 22, 2)
     k1, km = condition_study(G, W, ns, np.array([1.0, 0.5]))
-    assert k1[0] == pytest.approx(475.34, abs=5e-3)                   # seed Fig. 8
+    assert k1[0] == pytest.approx(475.34, abs=5e-3)                   # paper Fig. 8
     assert km[0] == pytest.approx(472.35, abs=5e-3)                   # seed: 472.54 (see docs/planar.md)
     assert km[0] == pytest.approx(472.54, rel=1e-3)
     # the correction's sign matters: λ + ΔrM instead of λ - ΔrM would raise κ above κ1

@@ -1,5 +1,5 @@
-"""Closed-form kinematics and error model of the planar robot (seed 003 eq. 1-13), checked against
-independent computations: circle geometry, finite differences, and the seed's own tables."""
+"""Closed-form kinematics and error model of the planar robot (paper 003 eq. 1-13), checked against
+independent computations: circle geometry, finite differences, and the paper's own tables."""
 
 import numpy as np
 import pytest
@@ -9,7 +9,7 @@ from pmcal.mechanism.planar.geometry import Errors, Geometry, Workspace
 from pmcal.mechanism.planar.kinematics import actual_position, forward, inverse, jacobian
 from pmcal.calib.planar.calibration import home_error, position_errors
 from pmcal.twin.planar.config import default_machine
-from pmcal.apps.planar_study import SEED
+from pmcal.apps.planar_study import PAPER
 
 G = Geometry()
 W = Workspace()
@@ -35,7 +35,7 @@ def test_ik_satisfies_the_loop_equation_and_fk_inverts_it():
     # eq. 1: |r - B_i| = l_i for both limbs
     assert np.abs(np.linalg.norm(r[:, None, :] - B, axis=-1) - G.l).max() < 1e-9
     assert np.abs(forward(G, th) - r).max() < 1e-9
-    # assembly mode of the seed's robot: elbows outwards, theta1 near 0 and theta2 near 180 deg
+    # assembly mode of the paper's robot: elbows outwards, theta1 near 0 and theta2 near 180 deg
     assert np.all(np.abs(th[:, 0]) < np.deg2rad(60)) and np.all(np.abs(th[:, 1] - np.pi) < np.deg2rad(60))
 
 
@@ -60,13 +60,13 @@ def test_error_transfer_matrix_matches_finite_differences(model):
         assert np.abs(fd - J[..., col]).max() < 1e-6, key
 
 
-def test_position_errors_before_calibration_equal_seed_tables_3_and_4():
+def test_position_errors_before_calibration_equal_paper_tables_3_and_4():
     """Δp0 (Table 3) and Δp_max at the six positions (Table 4) before calibration: pure kinematics of
-    seed Tables 1-2. Agreement to the printed digits fixes the frame (y up, c = (0,-79), d = (0,-51)) and
+    paper Tables 1-2. Agreement to the printed digits fixes the frame (y up, c = (0,-79), d = (0,-51)) and
     the sign convention of the zero offsets (real angle = commanded + Δθ)."""
     machine = default_machine()
     r6 = boundary_positions(W, 3)
-    for grp in SEED["table3"]:
+    for grp in PAPER["table3"]:
         err = machine.preset(grp)
-        assert home_error(G, err) == pytest.approx(SEED["table3"][grp][4], abs=2e-3), grp
-        assert position_errors(G, err, r6).max() == pytest.approx(SEED["table4"][grp][0], abs=1e-3), grp
+        assert home_error(G, err) == pytest.approx(PAPER["table3"][grp][4], abs=2e-3), grp
+        assert position_errors(G, err, r6).max() == pytest.approx(PAPER["table4"][grp][0], abs=1e-3), grp

@@ -1,4 +1,4 @@
-"""Pose from tracker targets: exactness, the seed's three-point construction, noise statistics."""
+"""Pose from tracker targets: exactness, the paper's three-point construction, noise statistics."""
 
 import numpy as np
 import pytest

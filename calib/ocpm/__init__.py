@@ -1,1 +1,1 @@
-"""The over-constrained 2-DoF rotational PM of seed 000 (Sun et al. 2018): SS limb + four RSR limbs."""
+"""The over-constrained 2-DoF rotational PM of paper 000 (Sun et al. 2018): SS limb + four RSR limbs."""

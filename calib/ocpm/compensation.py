@@ -1,16 +1,16 @@
 """Compensation of the over-constrained PM: corrected motor commands for target orientations.
 
-The identified real inverse kinematics (seed eq. 12-13) gives the motor commands that put the
+The identified real inverse kinematics (paper eq. 12-13) gives the motor commands that put the
 actuated limbs' closures exactly at a target pose: ``m = beta(r, R; errors) - dtheta``
 (:func:`pmcal.mechanism.ocpm.kinematics.real_ik_commands`). It needs the platform *position* r at the target
 orientation R, which the per-limb model does not determine (the SS and passive limbs do). Two options:
 
-- ``position_map=None``: the nominal position of seed eq. 7 (the seed's choice);
+- ``position_map=None``: the nominal position of paper eq. 7 (the paper's choice);
 - a :class:`PositionMap` fitted to the measured platform positions of the calibration campaign:
   ``r(p) = r_eq7(p) + sum_k c_k b_k(p)`` with a polynomial basis ``b_k`` in the pointing coordinates
   ``p = theta (cos phi, sin phi)``, degree chosen by leave-one-out cross-validation.
 
-:func:`setpoints_linear` is the seed's first-order compensation (eq. 15) for comparison.
+:func:`setpoints_linear` is the paper's first-order compensation (eq. 15) for comparison.
 :func:`predict_orientation` is the forward kinematics of the calibrated model (where commands take the
 platform), used to evaluate a parameter set against measurements.
 
@@ -121,7 +121,7 @@ def setpoints(phi: np.ndarray, theta: np.ndarray, errors: ErrorSet, geom: Geomet
 
 def setpoints_linear(phi: np.ndarray, theta: np.ndarray, errors: ErrorSet,
                      geom: Geometry | None = None) -> np.ndarray:
-    """Seed eq. 15, first order: ``m = m_nominal + E eps`` (= ``m_nom - J_p^{-1} E_ac eps_ac - dtheta``
+    """Paper eq. 15, first order: ``m = m_nominal + E eps`` (= ``m_nom - J_p^{-1} E_ac eps_ac - dtheta``
     with the motor-side Jacobian), E the error coefficient matrix at the nominal pose (eq. 7)."""
     geom = geom or default_geometry()
     names = param_names((1, 2), tilts=True)

@@ -44,14 +44,14 @@ from pmcal.mechanism.ocpm.params import LOG_RATIO
 from pmcal.calib.ocpm.linear_tests import (Linearization, SubFit, conditional_information, fit, huber_weighted,
                                      nested_test, power, predict)
 from pmcal.calib.ocpm.noise_estimate import NoiseEstimate, estimate_noise
-from pmcal.mechanism.ocpm.params import LIMB_FIELDS, SEED_LIMB_FIELDS, SS_FIELDS, is_angular
+from pmcal.mechanism.ocpm.params import LIMB_FIELDS, PAPER_LIMB_FIELDS, SS_FIELDS, is_angular
 from pmcal.calib.solvers.result import IdentResult
 
-#: Baseline key sets. "full": limbs 1-2 (12 geometric keys + dtheta each) and SS; "paper": the seed's 11
+#: Baseline key sets. "full": limbs 1-2 (12 geometric keys + dtheta each) and SS; "paper": the paper's 11
 #: parameters of limbs 1-2 (evaluated with the whole-chain forward model).
 BASELINES: dict[str, list[str]] = {
     "full": [f"L{j}.{f}" for j in (1, 2) for f in LIMB_FIELDS] + [f"SS.{f}" for f in SS_FIELDS],
-    "paper": [f"L{j}.{f}" for j in (1, 2) for f in SEED_LIMB_FIELDS],
+    "paper": [f"L{j}.{f}" for j in (1, 2) for f in PAPER_LIMB_FIELDS],
 }
 
 

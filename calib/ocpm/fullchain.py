@@ -1,4 +1,4 @@
-"""Whole-closed-chain calibration of the over-constrained PM (issue: get past the seed's accuracy limit).
+"""Whole-closed-chain calibration of the over-constrained PM (issue: get past the paper's accuracy limit).
 
 Forward model: the pose the machine reaches for motor commands, given the full parameter set (all four
 limbs, SS, motor zero offsets, closure stiffness ratio) and the same closure-compliance physics as the

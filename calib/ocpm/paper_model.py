@@ -1,4 +1,4 @@
-"""The seed's error model of the over-constrained PM (seed 000 eq. 12-14) and its linearised
+"""The paper's error model of the over-constrained PM (paper 000 eq. 12-14) and its linearised
 pose-error model (eq. 18-20), as :class:`pmcal.calib.solvers.problem.Problem` objects.
 
 Per-limb model (eq. 14). At every measured pose (r, R) (rigid fit of the tracker targets) the real
@@ -7,16 +7,16 @@ was commanded ``m_j`` and its joint sits at ``m_j + dtheta_j``. The residual is
 
     e_j = beta_j(r, R; errors) - (m_j + dtheta_j)          [rad]
 
-11 parameters a limb (seed Table 1/2, :data:`SEED_LIMB_FIELDS`). Optionally (``planarity=True``) a
+11 parameters a limb (paper Table 1/2, :data:`PAPER_LIMB_FIELDS`). Optionally (``planarity=True``) a
 second residual per limb and pose: the distance of S_j from the plane of the platform revolute at A_j
-[mm], the closure condition the seed's distance-only model drops. It is the only place where the
+[mm], the closure condition the paper's distance-only model drops. It is the only place where the
 platform-axis tilts ``dmu``/``dnu`` appear and it adds one equation per limb and pose.
 
 Noise. The residuals inherit the tracker noise through the measured pose. For each pose the residual
 block is mapped to the target coordinates by central differences (the Jacobian ``G_i``), its covariance
 is ``sigma^2 G_i G_i^T`` and the model whitens each pose block with the inverse Cholesky factor, so the
 problem's residuals are independent with unit variance (``Problem.sigma = 1``) and the chi-square of a
-correct fit is about the number of residuals minus parameters. ``weighting="none"`` is the seed's
+correct fit is about the number of residuals minus parameters. ``weighting="none"`` is the paper's
 unweighted sum of squared motor-angle errors (rad), with ``sigma`` the RMS of the per-entry noise.
 
 Linearised pose-error model (eq. 18-20): ``dX = H eps`` with ``dX`` the measured minus nominally
@@ -29,20 +29,19 @@ Units: mm and rad inside; frames as in MECHANISM.md §1.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.kinematics import from_pointing_coords, limb_ik, nominal_fk, nominal_pose
-from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, SEED_LIMB_FIELDS, ErrorSet, describe
+from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, PAPER_LIMB_FIELDS, ErrorSet, describe
 from pmcal.mechanism.rigid import fit_pose
 from pmcal.mechanism.rotations import tilt_torsion_angles
 from pmcal.calib.solvers.problem import Problem, box_problem
 
 TILT_FIELDS: tuple[str, ...] = ("dmu", "dnu")
-#: Default search box half-widths (mm, rad): wider than the seed's Table 2 errors (max 2 mm, 0.4 deg).
+#: Default search box half-widths (mm, rad): wider than the paper's Table 2 errors (max 2 mm, 0.4 deg).
 BOX_MM = 3.0
 BOX_RAD = float(np.deg2rad(0.5))
 #: Target-coordinate step for the noise propagation (mm).
@@ -50,8 +49,8 @@ _H_TARGET = 1e-3
 
 
 def param_names(limbs: tuple[int, ...] = (1, 2), tilts: bool = False) -> list[str]:
-    """Parameter keys of the per-limb model: the seed's 11 a limb (+ ``dmu``, ``dnu`` if ``tilts``)."""
-    fields = SEED_LIMB_FIELDS + (TILT_FIELDS if tilts else ())
+    """Parameter keys of the per-limb model: the paper's 11 a limb (+ ``dmu``, ``dnu`` if ``tilts``)."""
+    fields = PAPER_LIMB_FIELDS + (TILT_FIELDS if tilts else ())
     return [f"L{j}.{f}" for j in limbs for f in fields]
 
 
@@ -143,14 +142,14 @@ def whitening(G: np.ndarray, sigma_mm: float) -> np.ndarray:
 
 @dataclass
 class PaperModel:
-    """Seed eq. 14 at measured poses: residuals of the actuated limbs for candidate parameter vectors.
+    """Paper eq. 14 at measured poses: residuals of the actuated limbs for candidate parameter vectors.
 
     targets : (N, k, 3) measured tracker targets, base frame, mm.
     m_cmd : (N, 2) commanded motor angles, rad.
     names : parameter keys identified (internal units in vectors); others come from ``base``.
     limbs : actuated limbs modelled (subset of (1, 2)).
     planarity : add the platform-revolute plane condition as a second residual per limb and pose.
-    weighting : ``"noise"`` (whiten by the propagated tracker noise) or ``"none"`` (seed eq. 14).
+    weighting : ``"noise"`` (whiten by the propagated tracker noise) or ``"none"`` (paper eq. 14).
     sigma_mm : tracker noise per coordinate, mm.
     """
 
@@ -218,7 +217,7 @@ class PaperModel:
         return self.raw(x)[..., : len(self.limbs)]
 
     def orientations(self) -> tuple[np.ndarray, np.ndarray]:
-        """Measured tilt-torsion angles (phi, theta) of the poses, rad (seed eq. 17)."""
+        """Measured tilt-torsion angles (phi, theta) of the poses, rad (paper eq. 17)."""
         return tilt_torsion_angles(self.R)
 
     def design(self) -> "PaperModel":
@@ -308,12 +307,12 @@ def pose_vector(r: np.ndarray, R: np.ndarray, r0: np.ndarray, R0: np.ndarray) ->
 
 @dataclass
 class LinearPoseModel:
-    """Seed eq. 18-19 ``dX = H eps`` at measured poses, whitened by the propagated tracker noise.
+    """Paper eq. 18-19 ``dX = H eps`` at measured poses, whitened by the propagated tracker noise.
 
     dX : (N, 6) measured minus nominal pose at the commanded motor angles (mm, rad; :func:`pose_vector`).
     H : (N, 6, n) first-order pose error per parameter, ``H = -(J_x^T J_x)^{-1} J_x^T E_e`` (eq. 18) with
         ``J_x`` (7 x 6) the derivative of the chain's :func:`constraints` w.r.t. the platform twist and
-        ``E_e`` (7 x n) w.r.t. the parameters, at the nominal pose (seed eq. 7).
+        ``E_e`` (7 x n) w.r.t. the parameters, at the nominal pose (paper eq. 7).
     W : (N, 6, 6) whitening of the measured pose.
     """
 
@@ -342,7 +341,7 @@ class LinearPoseModel:
 
 def error_jacobian(r: np.ndarray, R: np.ndarray, m_cmd: np.ndarray, names: list[str], geom: Geometry,
                    h_pose: float = 1e-6) -> np.ndarray:
-    """Seed eq. 18 error Jacobian ``J_e = -(J_x^T J_x)^{-1} J_x^T E_e`` (N, 6, n) at poses (r, R)."""
+    """Paper eq. 18 error Jacobian ``J_e = -(J_x^T J_x)^{-1} J_x^T E_e`` (N, 6, n) at poses (r, R)."""
     from pmcal.mechanism.rotations import rot_x, rot_y, rot_z
 
     n = len(names)
@@ -390,7 +389,7 @@ def pose_sensitivity(p: np.ndarray, names: list[str], geom: Geometry | None = No
 
 def linear_pose_model(meas, names: list[str] | None = None, sigma_mm: float | None = None,
                       geom: Geometry | None = None) -> LinearPoseModel:
-    """Seed eq. 18-19 for a measurement campaign (both actuated limbs, 22 parameters by default).
+    """Paper eq. 18-19 for a measurement campaign (both actuated limbs, 22 parameters by default).
 
     The nominal pose of each row is the nominal forward kinematics of its commanded motor angles.
     """
@@ -408,78 +407,3 @@ def linear_pose_model(meas, names: list[str] | None = None, sigma_mm: float | No
     dX = measured(meas.targets)
     W = whitening(target_jacobian(measured, meas.targets), sigma_mm)
     return LinearPoseModel(dX=dX, H=error_jacobian(r0, R0, m, names, geom), W=W, names=list(names))
-
-
-# ---------------------------------------------------------------------- the seed's procedure
-@dataclass
-class PaperCalibration:
-    """Per-limb identification with the seed's model (internal units mm/rad).
-
-    results : per limb, the solver's :class:`IdentResult` (parameters in the model's order).
-    identifiability : per limb, analysis of the whitened Jacobian at the solution (measured poses).
-    design : per limb, analysis on the nominal machine at the measured orientations (first order).
-    """
-
-    names: list[str]
-    x: np.ndarray
-    std: np.ndarray
-    results: dict
-    identifiability: dict
-    design: dict
-    model: PaperModel
-    wall_time: float
-
-    @property
-    def unidentifiable(self) -> list[str]:
-        return [k for a in self.design.values() for k in a.unidentifiable]
-
-    def errors(self) -> ErrorSet:
-        return errors_from_vector(self.names, self.x)
-
-    def params(self) -> dict[str, float]:
-        """Identified values in interface units (mm, deg), unidentifiable ones left out (nominal)."""
-        return {k: _to_interface(k, v) for k, v in zip(self.names, self.x) if k not in self.unidentifiable}
-
-    def uncertainty(self) -> dict[str, float | None]:
-        """Cramér-Rao standard deviations in interface units; None where unidentifiable."""
-        return {k: (None if not np.isfinite(s) else _to_interface(k, s)) for k, s in zip(self.names, self.std)}
-
-
-def _to_interface(key: str, v: float) -> float:
-    return float(np.rad2deg(v)) if key.split(".", 1)[1] in ANGULAR_FIELDS else float(v)
-
-
-def calibrate(meas, method: str = "hga", limbs: tuple[int, ...] = (1, 2), *, seed: int | None = 0,
-              sigma_mm: float | None = None, tilts: bool = False, planarity: bool = False,
-              prior_std: np.ndarray | float | None = None, geom: Geometry | None = None,
-              on_limb_done=None, **options) -> PaperCalibration:
-    """The seed's procedure: one identification problem per actuated limb (eq. 14), solved by ``method``.
-
-    ``on_limb_done(limb, result)`` is called after each limb (progress). ``options`` go to the solver.
-    """
-    from pmcal.calib.identifiability import analyse
-    from pmcal.calib.solvers import identify
-
-    t0 = time.perf_counter()
-    geom = geom or default_geometry()
-    names, xs, stds, results, ident, design = [], [], [], {}, {}, {}
-    for j in limbs:
-        m = from_measurements(meas, (j,), tilts, planarity, "noise", sigma_mm, geom)
-        prob = m.problem()
-        res = identify(prob, method, seed=seed, prior_std=prior_std, **options)
-        design[j] = analyse(prob.design, explain=lambda k: explain(k, geom))
-        ident[j] = analyse(prob.fix(res.fixed), res.x[[res.names.index(k) for k in res.names
-                                                       if k not in res.fixed]],
-                           explain=lambda k: explain(k, geom))
-        std = res.std.copy()
-        std[[res.names.index(k) for k in res.fixed]] = np.inf
-        names += res.names
-        xs.append(res.x)
-        stds.append(std)
-        results[j] = res
-        if on_limb_done is not None:
-            on_limb_done(j, res)
-    model = from_measurements(meas, tuple(limbs), tilts, planarity, "noise", sigma_mm, geom)
-    return PaperCalibration(names=names, x=np.concatenate(xs), std=np.concatenate(stds), results=results,
-                            identifiability=ident, design=design, model=model,
-                            wall_time=time.perf_counter() - t0)

@@ -1,4 +1,4 @@
-"""The planar 2-DOF translational robot with its distance-measuring mechanism (seed 003, Mei et al. 2017).
+"""The planar 2-DOF translational robot with its distance-measuring mechanism (paper 003, Mei et al. 2017).
 
 Modules, one job each (mm and radians throughout; seed frame O-xy, x horizontal, y up, the platform hangs
 below the base at y < 0; see ``docs/planar.md``):
@@ -12,5 +12,5 @@ below the base at y < 0; see ``docs/planar.md``):
   noise-optimal positions.
 - :mod:`~pmcal.calib.planar.calibration` — repeated identification with the MAEMM correction (eq. 30) and the
   iterative compensation (eq. 32-33).
-- :mod:`~pmcal.mechanism.planar.noise` — scale and servo noise of the seed's simulation (eq. 34-35).
+- :mod:`~pmcal.mechanism.planar.noise` — scale and servo noise of the paper's simulation (eq. 34-35).
 """

@@ -71,9 +71,9 @@ class CalibrationRun:
 def calibrate(geom: Geometry, r: np.ndarray, measure: Measure, *, mu0: float = np.deg2rad(0.1),
               max_iter: int = 19, stop: bool = True, correct_maemm: bool = True, method: str = "tsvd",
               rank: int | None = None, noise: Noise | None = None) -> CalibrationRun:
-    """Run the seed's zero-offset calibration at nominal positions ``r`` (K, 2) mm.
+    """Run the paper's zero-offset calibration at nominal positions ``r`` (K, 2) mm.
 
-    ``stop=False`` runs all ``max_iter`` identifications (the seed's robustness study, Fig. 9) and reports
+    ``stop=False`` runs all ``max_iter`` identifications (the paper's robustness study, Fig. 9) and reports
     in ``m`` where the stopping rule would have stopped (``max_iter`` if never). ``correct_maemm=False``
     identifies the MAEMM afresh each time without correcting the mechanism (eq. 29 throughout).
     """
@@ -134,5 +134,5 @@ def position_errors(geom: Geometry, err: Errors, r: np.ndarray, comp: np.ndarray
 
 
 def home_error(geom: Geometry, err: Errors, comp: np.ndarray | None = None) -> float:
-    """Δp0: absolute position error (mm) at the home position P0 (θ1 = 0, θ2 = 180°), seed Table 3."""
+    """Δp0: absolute position error (mm) at the home position P0 (θ1 = 0, θ2 = 180°), paper Table 3."""
     return float(position_errors(geom, err, forward(geom, geom.home), comp))

@@ -1,4 +1,4 @@
-"""Measurement positions: the seed's boundary positions and condition numbers (section 5, eq. 31, Fig. 7-8),
+"""Measurement positions: the paper's boundary positions and condition numbers (section 5, eq. 31, Fig. 7-8),
 and positions chosen for the smallest zero-offset uncertainty (this project's addition, docs/planar.md).
 
 Positions are (K, 2) arrays in mm (seed frame, y up), in the order the platform visits them.
@@ -19,7 +19,7 @@ from pmcal.mechanism.planar.region import Region
 
 def boundary_positions(ws: Workspace, n: int) -> np.ndarray:
     """Fig. 7: ``n`` evenly spaced positions on the upper boundary of W (corners included, left to right),
-    then ``n`` on the lower boundary (left to right); K = 2n. This order reproduces the seed's
+    then ``n`` on the lower boundary (left to right); K = 2n. This order reproduces the paper's
     κ1 = 475.34 at n = 3 (Fig. 8)."""
     if n < 2:
         raise ValueError("at least 2 positions per boundary")
@@ -43,7 +43,7 @@ def condition_study(geom: Geometry, ws: Workspace, ns, drM_later: np.ndarray) ->
 def choose_n(geom: Geometry, ws: Workspace, eps0: float, drM_later: np.ndarray, ns=range(3, 22, 2)) -> int:
     """Eq. 31: the smallest n (K = 2n > 5) whose relative difference ``|κ1 - κm| / κ1`` is within ``eps0``.
 
-    The seed's Fig. 8 evaluates odd n = 3..21, over which κ1 and κm grow with n, so the smallest
+    The paper's Fig. 8 evaluates odd n = 3..21, over which κ1 and κm grow with n, so the smallest
     admissible n also gives the smallest condition numbers (even n = 4 dips to κ1 = 457.8)."""
     ns = [n for n in ns if 2 * n > 5]
     k1, km = condition_study(geom, ws, ns, drM_later)

@@ -1,5 +1,5 @@
 """Identification of the zero offsets (and the MAEMM) from distance changes between adjacent positions
-(seed sections 4, eq. 14-30).
+(paper sections 4, eq. 14-30).
 
 At position k the measuring mechanism's length is ``ρ_k ≈ λ_k + λ̂_k^T (Δr_k - ΔrM)`` (eq. 19-20), i.e.
 ``ρ_k - λ_k = g_k Δp`` with ``g_k = λ̂_k^T [J_k  -I]`` (eq. 21, 28). The linear scale reads changes
@@ -27,7 +27,7 @@ from pmcal.calib.solvers.result import IdentResult
 
 MODELS = {"simplified": SIMPLIFIED_KEYS, "full": FULL_KEYS}
 METHODS = ("tsvd", "ls", "gls")
-#: default relative singular-value cut of the TSVD: keeps the numerical rank (the seed's eq. 29 keeps all
+#: default relative singular-value cut of the TSVD: keeps the numerical rank (the paper's eq. 29 keeps all
 #: four singular values of the simplified model, κ ≈ 475; the full model loses three, see docs/planar.md)
 DEFAULT_RTOL = 1e-9
 
@@ -109,13 +109,13 @@ def covariance_from_sensitivity(sens_sq: np.ndarray, noise: Noise, D: np.ndarray
 
 
 def condition_number(G: np.ndarray) -> float:
-    """``κ = σ_max / σ_min`` of a matrix (the seed's criterion, eq. 31)."""
+    """``κ = σ_max / σ_min`` of a matrix (the paper's criterion, eq. 31)."""
     s = np.linalg.svd(G, compute_uv=False)
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
 def _scale(geom: Geometry, model: str) -> np.ndarray:
-    """Factors from calib units (rad, mm) to the seed's scaled unknowns (mm)."""
+    """Factors from calib units (rad, mm) to the paper's scaled unknowns (mm)."""
     keys = MODELS[model]
     return np.array([geom.L[0] if k == "dtheta1" else geom.L[1] if k == "dtheta2" else 1.0 for k in keys])
 

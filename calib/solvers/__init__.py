@@ -4,13 +4,13 @@
 least squares, see :mod:`pmcal.calib.solvers.problem`) with one of :data:`METHODS`:
 
 ==========  ==================================================================================
-hga         the seed's hybrid GA: GA to the basin, then a least-squares (or SQP) polish
-ga          the GA alone (seed VI-B)
-pso         particle swarm (seed VI-B)
-sa          simulated annealing, ``scipy.optimize.dual_annealing`` without local search (seed VI-B)
-lm          Levenberg-Marquardt, ``scipy.optimize.least_squares(method="lm")`` (seed VI-B)
-tikhonov    linearised model with Tikhonov regularisation and the L-curve corner (seed eq. 18-20)
-tsvd        linearised model with truncated SVD (seed 003 eq. 27-29)
+hga         the paper's hybrid GA: GA to the basin, then a least-squares (or SQP) polish
+ga          the GA alone (paper VI-B)
+pso         particle swarm (paper VI-B)
+sa          simulated annealing, ``scipy.optimize.dual_annealing`` without local search (paper VI-B)
+lm          Levenberg-Marquardt, ``scipy.optimize.least_squares(method="lm")`` (paper VI-B)
+tikhonov    linearised model with Tikhonov regularisation and the L-curve corner (paper eq. 18-20)
+tsvd        linearised model with truncated SVD (paper 003 eq. 27-29)
 ==========  ==================================================================================
 
 Before solving, parameters with no first-order effect on the data (:mod:`pmcal.calib.identifiability`,
@@ -70,7 +70,7 @@ def reference_point(problem: Problem) -> tuple[Problem, np.ndarray]:
     parameter.
 
     At the prior itself the measured data are inconsistent with the model, and that defect lends
-    parameters a spurious first-order effect (on the seed's model ``L1.day`` shows 9 noise sigmas at
+    parameters a spurious first-order effect (on the paper's model ``L1.day`` shows 9 noise sigmas at
     the nominal parameters and 0.2 at the solution); without the prior the fit runs far along the
     directions only the noise sees (``L1.day`` to 28 mm), where they gain one. Falls back to the prior
     if the fit fails.

@@ -1,11 +1,11 @@
-"""Genetic algorithm and the seed's hybrid GA (HGA: GA, then a local least-squares/SQP polish).
+"""Genetic algorithm and the paper's hybrid GA (HGA: GA, then a local least-squares/SQP polish).
 
 Real-coded GA, vectorised: a whole generation is scored in one population call of the residual
 function. Settings follow the seed (section V, MATLAB ``ga``): population 100, 8 elite, crossover
 fraction 0.7, mutation probability 0.1 per gene, 3000 generations at most, bounded search box; the run
 stops early when the best cost stalls (MATLAB's MaxStallGenerations / FunctionTolerance rule).
 
-Operators (decisions where the seed is silent, docs/identification.md): tournament selection of 2 on
+Operators (decisions where the paper is silent, docs/identification.md): tournament selection of 2 on
 rank; extended intermediate crossover (BLX-0.25) per gene; Gaussian mutation whose width follows the
 spread of the best quarter of the population (at least ``min_step`` of the box), reflected at the box.
 Works in unit-cube coordinates of the box, so mm and rad parameters are commensurable.
@@ -71,7 +71,7 @@ def evolve(problem: Problem, counter: Counter, rng: np.random.Generator, *, pop_
 def ga(problem: Problem, *, seed: int | None = None, pop_size: int = 100, elite: int = 8,
        crossover: float = 0.7, mutation: float = 0.1, max_gen: int = 3000, stall_gen: int = 50,
        tol: float = 1e-6, callback: Callback | None = None) -> IdentResult:
-    """The genetic algorithm alone (seed section VI-B 1)."""
+    """The genetic algorithm alone (paper section VI-B 1)."""
     t0 = time.perf_counter()
     c = Counter(problem)
     x, f, gen, reason, hist = evolve(problem, c, np.random.default_rng(seed), pop_size=pop_size, elite=elite,
@@ -84,13 +84,13 @@ def ga(problem: Problem, *, seed: int | None = None, pop_size: int = 100, elite:
 def hga(problem: Problem, *, seed: int | None = None, pop_size: int = 100, elite: int = 8,
         crossover: float = 0.7, mutation: float = 0.1, max_gen: int = 3000, stall_gen: int = 10,
         tol: float = 1e-2, polish: str = "lsq", callback: Callback | None = None) -> IdentResult:
-    """The seed's hybrid GA: GA to the basin of the optimum, then a local polish from the GA's best.
+    """The paper's hybrid GA: GA to the basin of the optimum, then a local polish from the GA's best.
 
     The GA phase stops once it stalls at the coarser ``tol`` (less than 1 % relative cost change over
-    10 generations by default): finding the basin is its job, the polish does the rest. (On the seed's
+    10 generations by default): finding the basin is its job, the polish does the rest. (On the paper's
     problem 1e-3 over 20 generations doubles the GA phase and ends at the same optimum:
     docs/identification.md.) ``polish``: ``"lsq"``
-    (trust-region least squares, default) or ``"sqp"`` (SLSQP on the chi-square, as the seed's fmincon).
+    (trust-region least squares, default) or ``"sqp"`` (SLSQP on the chi-square, as the paper's fmincon).
     """
     if polish not in ("lsq", "sqp"):
         raise ValueError(f"polish must be 'lsq' or 'sqp', got {polish!r}")

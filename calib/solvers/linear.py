@@ -1,7 +1,7 @@
 """Linear least-squares solvers for ill-conditioned identification models.
 
-``J dx = r`` with ``J`` the (m, n) identification Jacobian. Truncated SVD (seed 003 eq. 27-29) and
-Tikhonov regularisation with the L-curve corner (seed 000 eq. 18-20, Hansen & O'Leary 1993).
+``J dx = r`` with ``J`` the (m, n) identification Jacobian. Truncated SVD (paper 003 eq. 27-29) and
+Tikhonov regularisation with the L-curve corner (paper 000 eq. 18-20, Hansen & O'Leary 1993).
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ def tsvd_solve(J: np.ndarray, r: np.ndarray, rank: int | None = None,
 
 
 def tikhonov_solve(J: np.ndarray, r: np.ndarray, lam: float) -> LinearSolution:
-    """Tikhonov solution ``(J^T J + lam I)^{-1} J^T r`` (seed 000 eq. 20), via the SVD.
+    """Tikhonov solution ``(J^T J + lam I)^{-1} J^T r`` (paper 000 eq. 20), via the SVD.
 
     ``lam`` is in the units of ``J^T J`` (squared singular values), as in the seed.
     """

@@ -37,7 +37,7 @@ def lsq_polish(counter: Counter, x_start: np.ndarray, *, bounded: bool = True, m
 
 
 def sqp_polish(counter: Counter, x_start: np.ndarray, *, maxiter: int = 200, ftol: float = 1e-12):
-    """The seed's polish: SQP (``scipy.optimize.minimize(method="SLSQP")``) on the chi-square, in
+    """The paper's polish: SQP (``scipy.optimize.minimize(method="SLSQP")``) on the chi-square, in
     box-scaled coordinates, gradient ``2 J^T r / sigma^2``. Returns scipy's result object."""
     p = counter.problem
     fun, jac = _funs(counter)

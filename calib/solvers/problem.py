@@ -2,7 +2,7 @@
 
 A problem is ``min_x 1/2 sum_i (r_i(x) / sigma)^2`` over a bounded box, where the residual entries
 ``r_i`` are independent with noise standard deviation ``sigma`` (the model whitens them if they are
-not). It knows nothing about mechanisms: the seed's per-limb motor-angle model
+not). It knows nothing about mechanisms: the paper's per-limb motor-angle model
 (:mod:`pmcal.calib.ocpm.paper_model`) and a whole-chain forward model (residuals = measured minus predicted
 target coordinates, mm, ``sigma`` = tracker noise) plug into the same solvers.
 

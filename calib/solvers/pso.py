@@ -1,4 +1,4 @@
-"""Particle swarm optimisation (seed section VI-B 4), vectorised over the swarm.
+"""Particle swarm optimisation (paper section VI-B 4), vectorised over the swarm.
 
 Global-best PSO with constriction coefficients (Clerc & Kennedy 2002: inertia 0.7298, c1 = c2 = 1.49618)
 in unit-cube coordinates of the search box; velocities clamped to ``vmax`` of the box per step,

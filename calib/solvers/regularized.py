@@ -1,5 +1,5 @@
-"""Regularised linearised identification: Tikhonov with the L-curve corner (seed 000 eq. 18-20) and
-truncated SVD (seed 003 eq. 27-29), on any :class:`Problem`.
+"""Regularised linearised identification: Tikhonov with the L-curve corner (paper 000 eq. 18-20) and
+truncated SVD (paper 003 eq. 27-29), on any :class:`Problem`.
 
 The problem is linearised at the current estimate, ``r(x) ~ r(x_k) + J (x - x_k)``, and the step solves
 the regularised linear system in box-scaled coordinates ``z = (x - x0) / scale`` (so mm and rad are
@@ -8,7 +8,7 @@ commensurable and the regularisation pulls towards the prior ``x0``):
     Tikhonov:  z = argmin |J_s z - b|^2 + lam |z|^2,    b = -r(x_k) / sigma + J_s z_k
     TSVD:      z = sum_{i<=k} (u_i^T b / s_i) v_i
 
-For a linear model (the seed's pose-error model, eq. 19) one step is the seed's eq. 20; for a nonlinear
+For a linear model (the paper's pose-error model, eq. 19) one step is the paper's eq. 20; for a nonlinear
 one the linearisation is repeated (Gauss-Newton) with the same lambda / rank until the step is below
 ``xtol``. lambda comes from the L-curve corner of the first linearisation (seed); the rank from
 generalised cross-validation (no noise level needed) unless given.

@@ -1,7 +1,7 @@
-"""Simulated annealing (seed section VI-B 3) through ``scipy.optimize.dual_annealing``.
+"""Simulated annealing (paper section VI-B 3) through ``scipy.optimize.dual_annealing``.
 
 Generalised simulated annealing (Tsallis-Stariolo visiting distribution) with the local search switched
-off (``no_local_search=True``): plain SA, as the seed compares it. In unit-cube coordinates of the
+off (``no_local_search=True``): plain SA, as the paper compares it. In unit-cube coordinates of the
 search box. One parameter set per evaluation (scipy's SA is sequential), so it is the slowest method.
 """
 

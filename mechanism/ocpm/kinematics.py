@@ -1,4 +1,4 @@
-"""Closed-form kinematics of the over-constrained PM (seed 000 eq. 4-13), vectorised over poses.
+"""Closed-form kinematics of the over-constrained PM (paper 000 eq. 4-13), vectorised over poses.
 
 Frames and conventions: MECHANISM.md §1. Base frame O-xyz; limb j at azimuth psi_j with local frame
 x_j radial, y_j along the base revolute axis, z_j up; the error tilts turn it by Rz(dgamma)·Rx(dalpha).
@@ -22,14 +22,14 @@ E_Y = np.array([0.0, 1.0, 0.0])
 
 
 def nominal_position(phi, theta, h: float) -> np.ndarray:
-    """C_E of the nominal machine (seed eq. 7): ``h (cos phi sin(theta/2), sin phi sin(theta/2), cos(theta/2))``."""
+    """C_E of the nominal machine (paper eq. 7): ``h (cos phi sin(theta/2), sin phi sin(theta/2), cos(theta/2))``."""
     phi, theta = np.broadcast_arrays(np.asarray(phi, float), np.asarray(theta, float))
     s = np.sin(theta / 2)
     return h * np.stack([np.cos(phi) * s, np.sin(phi) * s, np.cos(theta / 2)], axis=-1)
 
 
 def nominal_pose(phi, theta, geom: Geometry | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Platform pose (r, R) of the nominal machine at tilt-torsion angles (seed eq. 4 and 7)."""
+    """Platform pose (r, R) of the nominal machine at tilt-torsion angles (paper eq. 4 and 7)."""
     geom = geom or default_geometry()
     return nominal_position(phi, theta, geom.h), tilt_torsion(phi, theta)
 
@@ -47,7 +47,7 @@ class LimbIK:
     S : (N, n, 3) centre of the spherical joint S_j from the base side, mm.
     A : (N, n, 3) centre A_j in the base frame, mm.
     planarity : (N, n) distance of S_j from the plane of the platform revolute at A_j, mm. Zero on a
-        consistent machine; the closure defect that the seed's distance-only model cannot see.
+        consistent machine; the closure defect that the paper's distance-only model cannot see.
     reach : (N, n) ``K / rho``: |reach| ≤ 1 is reachable; near ±1 is the singular boundary.
     """
 
@@ -60,9 +60,9 @@ class LimbIK:
 
 def limb_ik(r: np.ndarray, R: np.ndarray, errors: ErrorSet | None = None,
             geom: Geometry | None = None, limbs: tuple[int, ...] = (1, 2)) -> LimbIK:
-    """Real inverse kinematics of RSR limbs with every geometric error (seed eq. 12-13).
+    """Real inverse kinematics of RSR limbs with every geometric error (paper eq. 12-13).
 
-    The base revolute angle ``beta`` solves ``|B'_j + (l + dl1) w1(beta) - A'_j| = l + dl2`` (seed eq. 12,
+    The base revolute angle ``beta`` solves ``|B'_j + (l + dl1) w1(beta) - A'_j| = l + dl2`` (paper eq. 12,
     solved in closed form as in eq. 13) on the operating assembly branch (links up and outward,
     ``beta = -39.351 deg`` at home). ``A'_j = r + R (a_j + da_j)``, ``B'_j = b_j + db_j``, and
     ``w1 = Q_j Ry(beta) e_1`` with the tilted local frame ``Q_j``.
@@ -117,7 +117,7 @@ def real_ik_commands(r: np.ndarray, R: np.ndarray, errors: ErrorSet, geom: Geome
                      limbs: tuple[int, ...] = (1, 2)) -> np.ndarray:
     """Motor commands (rad) that put a machine with ``errors`` at pose (r, R): joint angle minus zero offset.
 
-    This is the seed's compensation through the real IK, exact for the actuated limbs' closures.
+    This is the paper's compensation through the real IK, exact for the actuated limbs' closures.
     """
     ik = limb_ik(r, R, errors, geom, limbs)
     idx = np.asarray(limbs) - 1

@@ -1,4 +1,4 @@
-"""Geometric error parameters of the over-constrained PM (MECHANISM.md §1, seed Table 1).
+"""Geometric error parameters of the over-constrained PM (MECHANISM.md §1, paper Table 1).
 
 Keys at every interface: ``L<j>.<name>`` for limb j = 1..4 and ``SS.<name>``; mm and degrees. Inside
 :class:`ErrorSet` the angles are radians. A missing key means zero error (nominal).
@@ -16,8 +16,8 @@ LIMB_FIELDS: tuple[str, ...] = ("dbx", "dby", "dbz", "dalpha", "dgamma", "dl1", 
 SS_FIELDS: tuple[str, ...] = ("dh", "dcx", "dcy", "dcz")
 ANGULAR_FIELDS = frozenset({"dalpha", "dgamma", "dmu", "dnu", "dtheta"})
 
-#: The seed's 11 parameters a limb (Table 1/2), in the seed's order.
-SEED_LIMB_FIELDS: tuple[str, ...] = ("dbx", "dby", "dbz", "dalpha", "dgamma", "dl1", "dl2",
+#: The paper's 11 parameters a limb (Table 1/2), in the paper's order.
+PAPER_LIMB_FIELDS: tuple[str, ...] = ("dbx", "dby", "dbz", "dalpha", "dgamma", "dl1", "dl2",
                                      "dax", "day", "daz", "dtheta")
 
 DESCRIPTIONS: dict[str, str] = {
@@ -34,9 +34,9 @@ DESCRIPTIONS: dict[str, str] = {
     "dcy": "moves the SS platform joint centre along v", "dcz": "moves the SS platform joint centre along w",
 }
 
-#: Seed 000 Table 2, "Predefined" column (mm, deg), mapped by name onto the spec's keys. Decision
+#: Paper 000 Table 2, "Predefined" column (mm, deg), mapped by name onto the spec's keys. Decision
 #: (docs/ocpm_2dof.md): the values keep the spec's frames (B in base axes, A in platform axes) for both
-#: limbs; the seed's appendix expresses limb 2 in a frame turned by 90 deg, the spec does not.
+#: limbs; the paper's appendix expresses limb 2 in a frame turned by 90 deg, the spec does not.
 PAPER_TABLE2: dict[str, float] = {
     "L1.dbx": -1.5, "L1.dby": 1.3, "L1.dbz": -1.0, "L1.dalpha": 0.0, "L1.dgamma": -0.1,
     "L1.dl1": 0.382, "L1.dl2": 1.214, "L1.dax": 1.4, "L1.day": 1.3, "L1.daz": 1.2, "L1.dtheta": -0.28,
@@ -44,7 +44,7 @@ PAPER_TABLE2: dict[str, float] = {
     "L2.dl1": -0.4, "L2.dl2": 0.5, "L2.dax": 1.5, "L2.day": 2.0, "L2.daz": 0.3, "L2.dtheta": -0.4,
 }
 
-#: Seed Table 2, "Identified" column (for the report's side-by-side comparison).
+#: Paper Table 2, "Identified" column (for the report's side-by-side comparison).
 PAPER_TABLE2_IDENTIFIED: dict[str, float] = {
     "L1.dbx": -1.488, "L1.dby": 1.275, "L1.dbz": -1.096, "L1.dalpha": 0.0, "L1.dgamma": -0.11,
     "L1.dl1": 0.213, "L1.dl2": 1.107, "L1.dax": 1.349, "L1.day": 0.901, "L1.daz": 1.119, "L1.dtheta": -0.305,

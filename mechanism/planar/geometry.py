@@ -1,6 +1,6 @@
-"""Nominal geometry, source errors and parameter names of the planar 2-DOF robot (seed 003).
+"""Nominal geometry, source errors and parameter names of the planar 2-DOF robot (paper 003).
 
-Frame (seed Fig. 4): O-xy in the plane of motion, O midway between the active joints A1 and A2, x
+Frame (paper Fig. 4): O-xy in the plane of motion, O midway between the active joints A1 and A2, x
 horizontal towards A1, y up; the platform hangs below the base (y < 0). Angles are measured from +x
 towards +y (counter-clockwise). Units: mm and radians. Limb 1 is the one at ``e1 = (+80, 0)``.
 
@@ -16,7 +16,7 @@ from typing import Mapping
 
 import numpy as np
 
-#: every source error, in the order of seed Table 2
+#: every source error, in the order of paper Table 2
 ERROR_KEYS: tuple[str, ...] = ("dtheta1", "dtheta2", "de1x", "de1y", "de2x", "de2y",
                                "dL1", "dL2", "dl1", "dl2", "drMx", "drMy")
 #: keys whose interface unit is degrees (radians inside calib)
@@ -67,7 +67,7 @@ class Geometry:
 
 @dataclass(frozen=True)
 class Workspace:
-    """The seed's task workspace W (Fig. 4): a rectangle of width b and height h whose upper edge lies H
+    """The paper's task workspace W (Fig. 4): a rectangle of width b and height h whose upper edge lies H
     below O, centred on the y axis (mm)."""
 
     H: float = 632.0
@@ -85,7 +85,7 @@ class Workspace:
 
 @dataclass(frozen=True)
 class Errors:
-    """Source errors of seed Table 2 (mm, rad). Absent = zero.
+    """Source errors of paper Table 2 (mm, rad). Absent = zero.
 
     dtheta : (2,) zero offsets: the real active-link angle is the commanded angle plus ``dtheta``.
     de : (2, 2) errors of A1, A2; dL, dl : (2,) link-length errors; drM : (2,) MAEMM (eq. 17).

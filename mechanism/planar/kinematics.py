@@ -1,4 +1,4 @@
-"""Closed-form kinematics and first-order error model of the planar 2-DOF robot (seed eq. 1-13).
+"""Closed-form kinematics and first-order error model of the planar 2-DOF robot (paper eq. 1-13).
 
 All functions are vectorised over leading axes: positions ``r`` are ``(..., 2)`` in mm (seed frame O-xy,
 y up, see :mod:`pmcal.mechanism.planar.geometry`), motor angles ``theta`` are ``(..., 2)`` in radians.
@@ -33,7 +33,7 @@ def inverse(geom: Geometry, r: np.ndarray) -> np.ndarray:
     ``D_i = -2 L_i (x - e_ix)``, ``E_i = (x - e_ix)^2 + (y - e_iy)^2 + L_i^2 - l_i^2`` and solves it with
     the half-angle substitution, which is singular at θ = π (the home angle of limb 2). The equivalent
     ``θ_i = atan2(C_i, D_i) ∓ arccos(-E_i / sqrt(C_i^2 + D_i^2))`` is used instead, with the assembly
-    mode of the seed's robot (both elbows outwards). Unreachable positions give NaN.
+    mode of the paper's robot (both elbows outwards). Unreachable positions give NaN.
     """
     r = np.asarray(r, dtype=float)
     dx = r[..., None, 0] - geom.e[:, 0]

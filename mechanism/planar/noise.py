@@ -1,6 +1,6 @@
-"""Measurement noise of the seed's simulation (section 6.1, eq. 34-35).
+"""Measurement noise of the paper's simulation (section 6.1, eq. 34-35).
 
-Both are Gaussian with zero mean; the seed's maximum errors are read as 3-sigma bounds.
+Both are Gaussian with zero mean; the paper's maximum errors are read as 3-sigma bounds.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ def scale_sigma(range_mm: float = 350.0, base_um: float = 3.0) -> float:
 def servo_sigma(pulses_per_rev: float = 1e4, max_pulse_error: float = 4.0, reduction: float = 20.0) -> float:
     """Standard deviation (rad) of the active-link angle error at one position (eq. 35).
 
-    ``ξ = (1/3) · (max_pulse_error / pulses_per_rev) · (1/reduction) · 360°`` = 0.0024° for the seed's
+    ``ξ = (1/3) · (max_pulse_error / pulses_per_rev) · (1/reduction) · 360°`` = 0.0024° for the paper's
     servo (10^4 pulses/rev, 4 pulses maximum error, reduction 20).
     """
     return float(np.deg2rad(max_pulse_error / pulses_per_rev / reduction * 360.0 / 3.0))

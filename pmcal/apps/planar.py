@@ -1,4 +1,4 @@
-"""Application of the planar 2-DOF robot with its measuring mechanism (``--machine planar_2dof``, seed 003).
+"""Application of the planar 2-DOF robot with its measuring mechanism (``--machine planar_2dof``, paper 003).
 
 Commands: ``identify`` (zero offsets and MAEMM from a measurement CSV), ``compensate`` (motor commands for
 target positions), ``evaluate`` (a parameter set against a measurement CSV), ``twin_measure`` and
@@ -102,7 +102,7 @@ def rank_deficiency(geom, meas, model: str, doc: dict) -> str:
 
 def compensate(args) -> int:
     """Motor commands (deg) that bring the identified machine to target positions (mm): the controller's
-    inverse kinematics with the identified parameters, minus the zero offsets (seed section 5)."""
+    inverse kinematics with the identified parameters, minus the zero offsets (paper section 5)."""
     from pmcal.mechanism.planar.kinematics import inverse
     from pmcal.io_planar import read_params, read_targets, write_setpoints
 
@@ -181,7 +181,7 @@ def targets(args) -> int:
 
 
 def twin_measure(args) -> int:
-    """A virtual campaign: ``--poses K`` positions (seed Fig. 7, K even) or ``--targets``; scale noise
+    """A virtual campaign: ``--poses K`` positions (paper Fig. 7, K even) or ``--targets``; scale noise
     ``--noise`` (mm, default eq. 34) and servo noise (eq. 35); readings as in the measurement CSV."""
     from pmcal.calib.planar.design import boundary_positions
     from pmcal.mechanism.planar.noise import Noise

@@ -1,5 +1,5 @@
-"""``pmcal --machine planar_2dof demo``: the seed's simulation study (Mei et al. 2017, section 6) on the
-MuJoCo twin, side by side with the seed's Tables 3-6 and Fig. 8-9, and this project's improvement.
+"""``pmcal --machine planar_2dof demo``: the paper's simulation study (Mei et al. 2017, section 6) on the
+MuJoCo twin, side by side with the paper's Tables 3-6 and Fig. 8-9, and this project's improvement.
 
 Writes ``<out>/report.html`` (self-contained), ``<out>/results.json`` and example files (a measurement CSV
 of group 1 and the parameters identified from it). Units: mm and degrees.
@@ -19,13 +19,13 @@ from pmcal.errors import InputError
 DEFAULT_RUNS = 60
 
 
-def _fig8(ns, k1, km, seed_fig8):
+def _fig8(ns, k1, km, paper_fig8):
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(6.4, 3.6))
     ax.plot(ns, k1, "o-", label="κ1 (first identification)")
     ax.plot(ns, km, "s--", label="κm (MAEMM-corrected, eq. 30)")
-    ax.plot([seed_fig8["n"]] * 2, [seed_fig8["kappa1"], seed_fig8["kappam"]], "k*", ms=12,
-            label="seed Fig. 8 at n = 3")
+    ax.plot([paper_fig8["n"]] * 2, [paper_fig8["kappa1"], paper_fig8["kappam"]], "k*", ms=12,
+            label="paper Fig. 8 at n = 3")
     ax.set_xlabel("n (positions per boundary, K = 2n; odd n as in the seed)")
     ax.set_ylabel("condition number of G")
     ax.grid(alpha=0.3)
@@ -33,7 +33,7 @@ def _fig8(ns, k1, km, seed_fig8):
     return fig
 
 
-def _fig_positions(machine, seed_pos, ours_pos):
+def _fig_positions(machine, paper_pos, ours_pos):
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
     ws, reg = machine.workspace, machine.design.region
@@ -41,7 +41,7 @@ def _fig_positions(machine, seed_pos, ours_pos):
     ax.add_patch(Rectangle((reg.x[0], reg.y[0]), reg.x[1] - reg.x[0], reg.y[1] - reg.y[0], fill=False,
                            ls=":", color="gray", label="calibration region (machine.toml [design])"))
     ax.add_patch(Rectangle((-ws.b / 2, ws.y_lower), ws.b, ws.h, alpha=0.2, color="tab:blue", label="workspace W"))
-    ax.plot(*seed_pos.T, "o-", color="tab:blue", label="seed positions (Fig. 7, n = 3)")
+    ax.plot(*paper_pos.T, "o-", color="tab:blue", label="paper positions (Fig. 7, n = 3)")
     ax.plot(*ours_pos.T, "s-", color="tab:red", label="noise-optimal positions")
     g = machine.geometry
     ax.plot(*g.e.T, "k^", label="A1, A2")
@@ -57,7 +57,7 @@ def _fig_positions(machine, seed_pos, ours_pos):
 def _fig9(fig9, groups):
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(2, 3, figsize=(11, 6), sharex=True)
-    styles = {"seed": ("tab:blue", "seed, eq. 34-35"), "seed_scale_only": ("tab:green", "seed, scale only"),
+    styles = {"seed": ("tab:blue", "seed, eq. 34-35"), "paper_scale_only": ("tab:green", "seed, scale only"),
               "ours": ("tab:red", "ours")}
     for ax, grp in zip(axes.ravel(), groups):
         for name, (col, lab) in styles.items():
@@ -81,7 +81,7 @@ def _fig9(fig9, groups):
 def _fig_delta(studies, groups, names):
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(9, 3.8))
-    cols = {"seed": "tab:blue", "seed_scale_only": "tab:green", "ours": "tab:red"}
+    cols = {"seed": "tab:blue", "paper_scale_only": "tab:green", "ours": "tab:red"}
     for j, name in enumerate(names):
         data = [np.max(studies[g][name].delta_deg, axis=1) for g in groups]
         pos = np.arange(len(groups)) * (len(names) + 1) + j
@@ -91,7 +91,7 @@ def _fig_delta(studies, groups, names):
             b.set_alpha(0.6)
         ax.plot([], [], color=cols[name], lw=8, alpha=0.6, label=name)
     ax.set_yscale("log")
-    ax.axhline(0.04, color="k", ls="--", lw=1, label="seed Table 3 (≈0.04°)")
+    ax.axhline(0.04, color="k", ls="--", lw=1, label="paper Table 3 (≈0.04°)")
     ax.axhline(0.02, color="k", ls=":", lw=1, label="goal 0.02°")
     ax.set_xticks(np.arange(len(groups)) * (len(names) + 1) + 1, groups)
     ax.set_ylabel("max(δ1, δ2), deg")
@@ -110,7 +110,7 @@ def demo(args) -> int:
     from pmcal.reports.html import matplotlib_agg
     from pmcal.twin.planar.campaign import commands_for, measure
     from pmcal.twin.planar.config import default_machine
-    from pmcal.apps.planar_study import GROUPS, SEED, evaluate_at, run_study, settings
+    from pmcal.apps.planar_study import GROUPS, PAPER, evaluate_at, run_study, settings
     from pmcal.twin.planar.twin import PlanarTwin
 
     if getattr(args, "hidden_effect", None):
@@ -131,40 +131,40 @@ def demo(args) -> int:
         ns = np.arange(3, 22, 2)
         k1, km = condition_study(g, ws, ns, drM_set)
         n = choose_n(g, ws, cal.eps0, drM_set)
-        seed_pos = boundary_positions(ws, n)
+        paper_pos = boundary_positions(ws, n)
         bar.update(1)
         ours_pos = optimal_positions(g, machine.design.region, machine.design.positions, machine.noise,
                                      step=machine.design.grid_step)
         bar.update(1)
         # identifiability (section 4)
-        rank_s = int(np.linalg.matrix_rank(identification_matrix(g, seed_pos)))
+        rank_s = int(np.linalg.matrix_rank(identification_matrix(g, paper_pos)))
         r14 = boundary_positions(ws, 7)
         Gf = identification_matrix(g, r14, "full")
         sv_full = np.linalg.svd(Gf, compute_uv=False)
         rank_f = int(np.linalg.matrix_rank(Gf))
         # the twin against the closed forms
         tw1 = PlanarTwin(machine.preset("group1"), machine)
-        poses = tw1.assemble(commands_for(tw1, seed_pos))
-        fk_diff = float(np.max(np.abs(poses.r - actual_position(g, tw1.errors, commands_for(tw1, seed_pos)))))
+        poses = tw1.assemble(commands_for(tw1, paper_pos))
+        fk_diff = float(np.max(np.abs(poses.r - actual_position(g, tw1.errors, commands_for(tw1, paper_pos)))))
         bar.update(1)
 
-        sets = settings(machine, seed_pos, ours_pos)
+        sets = settings(machine, paper_pos, ours_pos)
         studies: dict[str, dict] = {}
-        dpmax_seedpos: dict[str, dict] = {}
+        dpmax_paperpos: dict[str, dict] = {}
         fig9: dict[str, dict] = {}
         for gi, grp in enumerate(GROUPS):
             err = machine.preset(grp)
             tw = tw1 if grp == "group1" else PlanarTwin(err, machine)
-            studies[grp], dpmax_seedpos[grp], fig9[grp] = {}, {}, {}
+            studies[grp], dpmax_paperpos[grp], fig9[grp] = {}, {}, {}
             for si, s in enumerate(sets):
                 # Runs stop at convergence (eq. 32), except the first, which goes on to max_iter for Fig. 9.
                 res = run_study(err, s.positions, s.noise, runs, seed=seed * 1000 + 10 * gi + si, method=s.method,
                                 mu0=cal.mu0, max_iter=max_iter, stop=np.arange(runs) > 0, twin=tw)
                 studies[grp][s.name] = res
-                dpmax_seedpos[grp][s.name] = evaluate_at(tw, seed_pos, res.comp_deg)
+                dpmax_paperpos[grp][s.name] = evaluate_at(tw, paper_pos, res.comp_deg)
                 fig9[grp][s.name] = np.rad2deg(res.runs[0].history()["comp"]) - np.rad2deg(err.dtheta)
                 bar.update(1)
-        dpmax_before = {grp: float(evaluate_at(PlanarTwin(machine.preset(grp), machine), seed_pos,
+        dpmax_before = {grp: float(evaluate_at(PlanarTwin(machine.preset(grp), machine), paper_pos,
                                                np.zeros((1, 2)))[0]) for grp in GROUPS}
         bar.update(1)
 
@@ -181,13 +181,13 @@ def demo(args) -> int:
         bar.update(1)
 
         with atomic_directory(out) as tmp:
-            # example files: a group-1 campaign at the seed's positions and its identification
-            camp = measure(tw1, commands_for(tw1, seed_pos), machine.noise, np.random.default_rng(seed))
+            # example files: a group-1 campaign at the paper's positions and its identification
+            camp = measure(tw1, commands_for(tw1, paper_pos), machine.noise, np.random.default_rng(seed))
             write_measurements(tmp / "measurements_group1.csv", camp.theta_cmd[0], camp.readings[0],
-                               targets=seed_pos, comments=[
-                                   "pmcal demo: machine planar_2dof, errors: preset group1 (seed Table 2), "
+                               targets=paper_pos, comments=[
+                                   "pmcal demo: machine planar_2dof, errors: preset group1 (paper Table 2), "
                                    f"seed {seed}", "units: mm, deg; seed frame O-xy (y up)"])
-            ex = identify(g, seed_pos, camp.readings[0], method=cal.method, noise=machine.noise)
+            ex = identify(g, paper_pos, camp.readings[0], method=cal.method, noise=machine.noise)
             write_json(tmp / "params_group1.json", params_document(ex, {"source": "measurements_group1.csv"}))
             bar.update(1)
             picture = "not drawn"
@@ -199,32 +199,32 @@ def demo(args) -> int:
                 picture = f"{exc.__class__.__name__}: {exc}"
             bar.update(1)
 
-            results = _results(machine, studies, dpmax_seedpos, dpmax_before, SEED, ns, k1, km, n, rank_s,
-                               rank_f, sv_full, fk_diff, full_cmp, runs, seed, seed_pos, ours_pos, sets)
+            results = _results(machine, studies, dpmax_paperpos, dpmax_before, PAPER, ns, k1, km, n, rank_s,
+                               rank_f, sv_full, fk_diff, full_cmp, runs, seed, paper_pos, ours_pos, sets)
             results["elapsed_s"] = time.perf_counter() - t0
             write_json(tmp / "results.json", results)
-            rep = _report(machine, results, studies, fig9, dpmax_seedpos, SEED, ns, k1, km, seed_pos, ours_pos,
+            rep = _report(machine, results, studies, fig9, dpmax_paperpos, PAPER, ns, k1, km, paper_pos, ours_pos,
                           picture, sets, full_cmp)
             rep.write(tmp / "report.html")
             bar.update(2)
     t = time.perf_counter() - t0
     s = results["groups"]
     print(f"planar_2dof demo: {runs} runs per group and setting, {t:.1f} s -> {out}/report.html")
-    for name in ("seed", "seed_scale_only", "ours"):
+    for name in ("seed", "paper_scale_only", "ours"):
         med = max(max(s[grp][name]["delta_deg_median"]) for grp in GROUPS)
         print(f"  {name:16s} worst-group median zero-offset error {med:.4f} deg")
     return 0
 
 
-def _results(machine, studies, dpmax_seedpos, dpmax_before, SEED, ns, k1, km, n, rank_s, rank_f, sv_full,
-             fk_diff, full_cmp, runs, seed, seed_pos, ours_pos, sets) -> dict:
+def _results(machine, studies, dpmax_paperpos, dpmax_before, PAPER, ns, k1, km, n, rank_s, rank_f, sv_full,
+             fk_diff, full_cmp, runs, seed, paper_pos, ours_pos, sets) -> dict:
     groups = {}
     for grp, per in studies.items():
         groups[grp] = {}
         for name, res in per.items():
             d = res.summary()
-            d["dpmax_seed_positions_before_mm"] = dpmax_before[grp]
-            d["dpmax_seed_positions_after_median_mm"] = float(np.median(dpmax_seedpos[grp][name]))
+            d["dpmax_paper_positions_before_mm"] = dpmax_before[grp]
+            d["dpmax_paper_positions_after_median_mm"] = float(np.median(dpmax_paperpos[grp][name]))
             groups[grp][name] = d
     return {
         "mechanism": "planar_2dof", "runs_per_setting": runs, "seed": seed,
@@ -233,42 +233,42 @@ def _results(machine, studies, dpmax_seedpos, dpmax_before, SEED, ns, k1, km, n,
                               "scale_sigma_mm": s.noise.scale, "servo_sigma_deg": math.degrees(s.noise.servo)}
                      for s in sets},
         "condition": {"n": ns, "kappa1": k1, "kappam": km, "n_chosen": n,
-                      "seed_fig8": SEED["fig8"]},
+                      "paper_fig8": PAPER["fig8"]},
         "rank": {"simplified_K6": rank_s, "full_K14": rank_f, "full_singular_values": sv_full,
-                 "seed_claim": {"simplified": 4, "full": 12}},
+                 "paper_claim": {"simplified": 4, "full": 12}},
         "twin_vs_closed_form_max_mm": fk_diff,
         "full_model_comparison": [dict(zip(["noise", "model/method", "rank", "cond", "dtheta1_deg",
                                             "dtheta2_deg", "drMx_mm", "drMy_mm"], row)) for row in full_cmp],
         "groups": groups,
-        "seed_tables": SEED,
+        "paper_tables": PAPER,
     }
 
 
-def _report(machine, results, studies, fig9, dpmax_seedpos, SEED, ns, k1, km, seed_pos, ours_pos, picture,
+def _report(machine, results, studies, fig9, dpmax_paperpos, PAPER, ns, k1, km, paper_pos, ours_pos, picture,
             sets, full_cmp):
     from pmcal.reports.html import Report
     from pmcal.apps.planar_study import GROUPS
 
     R = Report("Planar 2-DOF robot: zero-offset calibration with the measuring mechanism",
-               subtitle="Reproduction of Mei et al. 2017 (seed 003) on the MuJoCo twin, and an improvement. "
+               subtitle="Reproduction of Mei et al. 2017 (paper 003) on the MuJoCo twin, and an improvement. "
                         f"{results['runs_per_setting']} noise realisations per group and setting.")
     nz = results["noise"]
     med = lambda grp, name, key: results["groups"][grp][name][key]  # noqa: E731
     worst = {name: max(max(med(g, name, "delta_deg_median")) for g in GROUPS) for name in
-             ("seed", "seed_scale_only", "ours")}
+             ("seed", "paper_scale_only", "ours")}
     R.card("Findings", [
-        f"Model: κ1 = {k1[0]:.2f} at n = 3 (seed 475.34); Δp0 and Δp_max before calibration equal the seed's "
+        f"Model: κ1 = {k1[0]:.2f} at n = 3 (paper 475.34); Δp0 and Δp_max before calibration equal the paper's "
         f"Tables 3-4 within 0.002 mm. The twin matches the closed-form kinematics to "
         f"{results['twin_vs_closed_form_max_mm']:.1e} mm.",
-        f"Seed method under the seed's own noise (eq. 34-35: σ_scale = {nz['scale_sigma_mm'] * 1000:.3f} µm, "
+        f"Paper method under the paper's own noise (eq. 34-35: σ_scale = {nz['scale_sigma_mm'] * 1000:.3f} µm, "
         f"ξ = {nz['servo_sigma_deg']:.4f}°): median zero-offset error up to {worst['seed']:.3f}° — ten times the "
-        "seed's 0.04°. This is the noise floor of 6 positions inside W, not a defect of the solver "
+        "paper's 0.04°. This is the noise floor of 6 positions inside W, not a defect of the solver "
         "(Cramér-Rao bound ≈ 0.52°).",
-        f"With the servo noise switched off the same method gives {worst['seed_scale_only']:.3f}° (worst-group "
-        "median): the seed's Table 3 is reproduced under that reading.",
+        f"With the servo noise switched off the same method gives {worst['paper_scale_only']:.3f}° (worst-group "
+        "median): the paper's Table 3 is reproduced under that reading.",
         f"Noise-optimal positions in an enlarged calibration region + GLS: {worst['ours']:.4f}° (worst-group "
         "median) under the full noise of eq. 34-35.",
-        f"Rank of the full model (eq. 24, K = 14): {results['rank']['full_K14']}, not 12 as the seed states: "
+        f"Rank of the full model (eq. 24, K = 14): {results['rank']['full_K14']}, not 12 as the paper states: "
         "translating the base with O1, and turning the robot about O1, change no distance.",
     ], css="ok")
     if isinstance(picture, bytes):
@@ -277,58 +277,58 @@ def _report(machine, results, studies, fig9, dpmax_seedpos, SEED, ns, k1, km, se
     else:
         R.paragraph(f"(No picture: {picture})", css="note")
 
-    R.heading("Measurement positions and condition numbers (seed section 5, Fig. 7-8)")
-    R.figure(_fig8(ns, k1, km, SEED["fig8"]), "Fig. 8 reproduced: κ1 and κm of the simplified model vs n "
+    R.heading("Measurement positions and condition numbers (paper section 5, Fig. 7-8)")
+    R.figure(_fig8(ns, k1, km, PAPER["fig8"]), "Fig. 8 reproduced: κ1 and κm of the simplified model vs n "
              "(κm with the mechanism corrected by ΔrM = (1, 0.5) mm).")
     R.table(["n", "κ1 ours", "κ1 seed", "κm ours", "κm seed", "|κ1-κm|/κ1"],
-            [[3, k1[0], SEED["fig8"]["kappa1"], km[0], SEED["fig8"]["kappam"], abs(k1[0] - km[0]) / k1[0]]]
+            [[3, k1[0], PAPER["fig8"]["kappa1"], km[0], PAPER["fig8"]["kappam"], abs(k1[0] - km[0]) / k1[0]]]
             + [[int(n), a, "", b, "", abs(a - b) / a] for n, a, b in zip(ns[1:], k1[1:], km[1:])])
     R.paragraph(f"Eq. 31 with ε0 = {machine.calibration.eps0} picks n = {results['condition']['n_chosen']} "
                 "(K = 6). κm uses the correction λ − ΔrM of eq. 30 (the sign that follows from eq. 16-17; the "
-                "other sign gives 478.4 > κ1). The seed's 472.54 is 0.04 % above ours (see docs/planar.md).",
+                "other sign gives 478.4 > κ1). The paper's 472.54 is 0.04 % above ours (see docs/planar.md).",
                 css="note")
-    R.figure(_fig_positions(machine, seed_pos, ours_pos), "Seed positions (Fig. 7) and this project's "
+    R.figure(_fig_positions(machine, paper_pos, ours_pos), "Paper positions (Fig. 7) and this project's "
              "noise-optimal positions (A-optimal for Δθ, GLS, scale range and transmission constraints).")
 
     R.heading("Table 3: zero offsets and Δp0 (seed vs this twin)")
     rows = []
     for grp in GROUPS:
-        s3 = SEED["table3"][grp]
+        s3 = PAPER["table3"][grp]
         set_ = np.rad2deg(machine.preset(grp).dtheta)
         for i in range(2):
             rows.append([grp if i == 0 else "", f"Δθ{i + 1}", set_[i], s3[2 * i], s3[2 * i + 1],
-                         med(grp, "seed", "delta_deg_median")[i], med(grp, "seed_scale_only", "delta_deg_median")[i],
+                         med(grp, "seed", "delta_deg_median")[i], med(grp, "paper_scale_only", "delta_deg_median")[i],
                          med(grp, "ours", "delta_deg_median")[i],
                          s3[4] if i == 0 else "", med(grp, "seed", "dp0_before_mm") if i == 0 else "",
                          s3[5] if i == 0 else "",
                          med(grp, "seed", "dp0_after_median_mm") if i == 0 else "",
-                         med(grp, "seed_scale_only", "dp0_after_median_mm") if i == 0 else "",
+                         med(grp, "paper_scale_only", "dp0_after_median_mm") if i == 0 else "",
                          med(grp, "ours", "dp0_after_median_mm") if i == 0 else ""])
     R.table(["group", "", "set °", "seed comp. °", "seed δ °", "δ seed-method °", "δ scale-only °", "δ ours °",
              "Δp0 before seed", "Δp0 before ours", "Δp0 after seed", "after seed-method", "after scale-only",
              "after ours"], rows, left_cols=2,
             caption="δ: |compensation − set value|, median over the runs; Δp0 in mm (after: median).")
 
-    R.heading("Table 4: Δp_max at the six seed positions, before and after (mm)")
+    R.heading("Table 4: Δp_max at the six paper positions, before and after (mm)")
     R.table(["group", "before seed", "before ours", "after seed", "after seed-method", "after scale-only",
              "after ours"],
-            [[grp, SEED["table4"][grp][0], results["groups"][grp]["seed"]["dpmax_seed_positions_before_mm"],
-              SEED["table4"][grp][1]] + [float(np.median(dpmax_seedpos[grp][n])) for n in
-                                          ("seed", "seed_scale_only", "ours")] for grp in GROUPS])
+            [[grp, PAPER["table4"][grp][0], results["groups"][grp]["seed"]["dpmax_paper_positions_before_mm"],
+              PAPER["table4"][grp][1]] + [float(np.median(dpmax_paperpos[grp][n])) for n in
+                                          ("seed", "paper_scale_only", "ours")] for grp in GROUPS])
 
     R.heading("Table 5: MAEMM identification error δM (mm) and Table 6: mean κ")
     R.table(["group", "δMx seed", "δMy seed", "δMx/δMy seed-method", "δMx/δMy scale-only", "δMx/δMy ours",
              "κ mean seed", "κ mean ours"],
-            [[grp, SEED["table5"][grp][0], SEED["table5"][grp][1]]
+            [[grp, PAPER["table5"][grp][0], PAPER["table5"][grp][1]]
              + ["{:.3f} / {:.3f}".format(*med(grp, n, "delta_M_median_mm")) for n in
-                ("seed", "seed_scale_only", "ours")]
-             + [SEED["table6"][grp], med(grp, "seed", "cond_later_mean")] for grp in GROUPS],
-            caption="δM: median over the runs. κ mean: identifications 2..m of the seed method (eq. 30).")
+                ("seed", "paper_scale_only", "ours")]
+             + [PAPER["table6"][grp], med(grp, "seed", "cond_later_mean")] for grp in GROUPS],
+            caption="δM: median over the runs. κ mean: identifications 2..m of the paper method (eq. 30).")
 
     R.heading("Fig. 9: robustness over m = 1..19 identifications")
     R.figure(_fig9(fig9, GROUPS), "Compensation value minus set value vs compensation number m, one run per "
              "group and setting (grey band ±0.1°).")
-    R.figure(_fig_delta(studies, GROUPS, ["seed", "seed_scale_only", "ours"]),
+    R.figure(_fig_delta(studies, GROUPS, ["seed", "paper_scale_only", "ours"]),
              "Distribution of the larger zero-offset error per run, per group and setting.")
     R.table(["group", "setting", "δ median °", "δ RMS °", "δ p95 °", "m median", "converged"],
             [[grp, s.name, max(med(grp, s.name, "delta_deg_median")), max(med(grp, s.name, "delta_deg_rms")),

@@ -1,7 +1,7 @@
-"""Monte Carlo studies of the zero-offset calibration on the twin (seed section 6; demo and benchmark).
+"""Monte Carlo studies of the zero-offset calibration on the twin (paper section 6; demo and benchmark).
 
 For one error set, S noise realisations of the whole loop (identify, compensate, repeat) run in lockstep
-on one twin. Outcomes are in the seed's terms: compensation values and their error δ (deg), MAEMM error
+on one twin. Outcomes are in the paper's terms: compensation values and their error δ (deg), MAEMM error
 δM (mm), Δp0 and Δp_max before and after calibration (mm), condition numbers.
 """
 
@@ -91,10 +91,10 @@ def run_study(errors: Errors, positions: np.ndarray, noise: Noise, runs: int, *,
 
 
 # ----------------------------------------------------------------------------------------------------------
-# The seed's simulation study (section 6) and this project's comparison, shared by the demo and the benchmark.
+# The paper's simulation study (section 6) and this project's comparison, shared by the demo and the benchmark.
 
-#: the seed's published numbers (Mei et al. 2017), for side-by-side tables
-SEED = {
+#: the paper's published numbers (Mei et al. 2017), for side-by-side tables
+PAPER = {
     "table3": {  # group: (comp dtheta1, delta1, comp dtheta2, delta2, dp0 before, dp0 after) deg, mm
         "group1": (2.033, 0.033, -0.957, 0.043, 10.933, 0.402),
         "group2": (-1.049, 0.049, 0.463, 0.037, 5.482, 0.423),
@@ -125,14 +125,14 @@ class Setting:
     noise: Noise
 
 
-def settings(machine, seed_positions: np.ndarray, ours_positions: np.ndarray) -> list[Setting]:
-    """The three settings compared: the seed's method under the seed's noise (eq. 34-35), the seed's method
-    with the scale noise alone (the reading under which the seed's Table 3 is reproduced), and this
+def settings(machine, paper_positions: np.ndarray, ours_positions: np.ndarray) -> list[Setting]:
+    """The three settings compared: the paper's method under the paper's noise (eq. 34-35), the paper's method
+    with the scale noise alone (the reading under which the paper's Table 3 is reproduced), and this
     project's positions + GLS under the full noise."""
     full = machine.noise
     return [
-        Setting("seed", "seed method (K=6 on W, TSVD), noise eq. 34-35", seed_positions, "tsvd", full),
-        Setting("seed_scale_only", "seed method, scale noise only (servo off)", seed_positions, "tsvd",
+        Setting("seed", "paper method (K=6 on W, TSVD), noise eq. 34-35", paper_positions, "tsvd", full),
+        Setting("paper_scale_only", "paper method, scale noise only (servo off)", paper_positions, "tsvd",
                 Noise(scale=full.scale, servo=0.0)),
         Setting("ours", f"noise-optimal positions (K={len(ours_positions)}) + GLS, noise eq. 34-35",
                 ours_positions, machine.design.method, full),

@@ -21,11 +21,11 @@ def demo_report(st):
     from pmcal.mechanism.ocpm.params import PAPER_TABLE2_IDENTIFIED, describe, unit
 
     rep = Report("pmcal demo: calibration of the over-constrained 2-DoF PM",
-                 "Digital twin with the seed's Table 2 errors (limbs 1 and 2), closure compliance, tracker "
+                 "Digital twin with the paper's Table 2 errors (limbs 1 and 2), closure compliance, tracker "
                  f"noise {st.geom.sigma_mm} mm; {st.N_CAL} calibration poses, {st.N_TEST} held-out test poses, "
-                 f"seed {st.seed}. Method: seed 000 (Sun et al. 2018) sections IV-VI.")
+                 f"seed {st.seed}. Method: paper 000 (Sun et al. 2018) sections IV-VI.")
     b, a = st.before["pointing"], st.after["pointing"]
-    rep.card("Result", [f"pointing error before: {_stats(b)} deg", f"after (seed HGA method): {_stats(a)} deg",
+    rep.card("Result", [f"pointing error before: {_stats(b)} deg", f"after (paper HGA method): {_stats(a)} deg",
                         f"after (whole closed chain): {_stats(st.full_after)} deg",
                         f"improvement of the mean: {100 * (1 - a.mean() / b.mean()):.1f} % (seed, experiment: "
                         "93.96 % in theta, 90.38 % in phi)",
@@ -39,10 +39,10 @@ def demo_report(st):
     cl = st.closure
     rep.paragraph(f"Over-constraint: on the calibration poses the passive limbs' closures miss by up to "
                   f"{cl[:, 2:].max():.2f} mm (absorbed by compliance), the actuated ones by "
-                  f"{1000 * cl[:, :2].max():.1f} um: the seed's per-limb model is nearly exact for these data.")
+                  f"{1000 * cl[:, :2].max():.1f} um: the paper's per-limb model is nearly exact for these data.")
 
     # ---- Table 2
-    rep.heading("Identified vs predefined errors (seed Table 2)")
+    rep.heading("Identified vs predefined errors (paper Table 2)")
     std = st.cal.uncertainty()
     got = st.cal.params()
     rows = []
@@ -56,7 +56,7 @@ def demo_report(st):
               caption="Positions mm, angles deg. CRLB: Cramer-Rao standard deviation at 0.01 mm tracker noise.")
 
     # ---- Fig. 5
-    rep.heading("Pointing before and after compensation (seed Fig. 5)")
+    rep.heading("Pointing before and after compensation (paper Fig. 5)")
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
     idx = np.arange(1, st.N_TEST + 1)
     for k, (key, lab) in enumerate((("dtheta", "theta deviation, deg"), ("dphi", "phi deviation, deg"),
@@ -71,11 +71,11 @@ def demo_report(st):
     rep.table(["compensation", "mean pointing, deg", "max pointing, deg", "mean |dtheta|", "mean |dphi|"],
               [[k, v["pointing"].mean(), v["pointing"].max(), np.abs(v["dtheta"]).mean(), np.abs(v["dphi"]).mean()]
                for k, v in st.variants.items()],
-              caption="The seed's eq. 7 position limits compensation even with the true errors; the position "
+              caption="The paper's eq. 7 position limits compensation even with the true errors; the position "
                       "map fitted to the measured platform positions removes that limit.")
 
     # ---- whole chain
-    rep.heading("Seed method vs whole closed chain")
+    rep.heading("Paper method vs whole closed chain")
     rows = []
     for case, d in st.fullchain.items():
         for m, v in d.items():
@@ -95,7 +95,7 @@ def demo_report(st):
         a_.grid(alpha=.3)
     np.atleast_1d(ax)[0].set_ylabel("pointing error, deg")
     np.atleast_1d(ax)[0].legend(fontsize=7)
-    rep.figure(fig, "Held-out pointing errors: seed method and whole closed chain")
+    rep.figure(fig, "Held-out pointing errors: paper method and whole closed chain")
     doc = st.fullchain["Table 2, limbs 1-2"]["_calibration"].document
     rep.paragraph(f"Whole-chain fit (Table 2 machine): chi2/dof {doc['fit']['chi2_per_dof']:.3f}, effective "
                   f"parameters {doc['identifiability']['effective_parameters']:.1f} of 55, stiffness ratio "
@@ -104,7 +104,7 @@ def demo_report(st):
                   "(not determined by this campaign). The compensation table below comes from this model.")
 
     # ---- Fig. 7-8
-    rep.heading("Algorithm comparison (seed Fig. 7-8)")
+    rep.heading("Algorithm comparison (paper Fig. 7-8)")
     rows = []
     for m, d in st.methods.items():
         dev = np.array([d["dev"][k] for k in d["dev"]])
@@ -132,7 +132,7 @@ def demo_report(st):
     rep.figure(fig, "Deviation of the identified from the predefined errors per method")
 
     # ---- Fig. 6
-    rep.heading("Regularisation (seed Fig. 6, eq. 18-20)")
+    rep.heading("Regularisation (paper Fig. 6, eq. 18-20)")
     lams, res, sol, corner = st.lcurve
     fig, ax = plt.subplots(1, 2, figsize=(12, 3.8))
     ax[0].loglog(res, sol, "-")
@@ -148,7 +148,7 @@ def demo_report(st):
     ax[1].set_xlabel("test point")
     ax[1].set_ylabel("pointing error, deg")
     ax[1].legend(fontsize=8)
-    rep.figure(fig, "Tikhonov / TSVD on the seed's linearised pose-error model vs HGA on the real IK model")
+    rep.figure(fig, "Tikhonov / TSVD on the paper's linearised pose-error model vs HGA on the real IK model")
     rep.table(["method", "mean pointing, deg", "max pointing, deg", "lambda / rank"],
               [[n, d["held_out"]["pointing"].mean(), d["held_out"]["pointing"].max(),
                 "" if d["res"] is None else (f"{d['res'].info['lambda']:.3g}" if "tikhonov" in n
@@ -186,7 +186,7 @@ def demo_report(st):
     ax[2].set_title("CRLB std (mm or rad)")
     ax[2].legend()
     rep.figure(fig, "Singular values, correlations, and Cramer-Rao bounds for random vs D-optimal poses")
-    rep.heading("Pose selection (seed 003 section 5, generalised)")
+    rep.heading("Pose selection (paper 003 section 5, generalised)")
     mm_dev = lambda dev: max(abs(v) for k, v in dev.items() if unit(k) == "mm")  # noqa: E731
     rows = [["random (median of 200 draws)", ps["random (median of 200)"]["cond"],
              np.max(ps["random (median of 200)"]["crlb"]), "", ""],

@@ -15,6 +15,7 @@ import numpy as np
 
 from pmcal import progress
 from pmcal.calib.ocpm import compensation as comp
+from pmcal.calib.ocpm import paper_calibration
 from pmcal.calib.ocpm import paper_model as pm
 from pmcal.calib.solvers import METHODS
 from pmcal.calibration import identify
@@ -61,7 +62,7 @@ def parameter_errors(cal, truth: dict[str, float]) -> dict[str, float]:
 def _timed_calibration(meas, method: str, seed: int):
     """(calibration, wall time) of one method on both limbs (a worker-process entry point)."""
     t0 = time.perf_counter()
-    cal = pm.calibrate(meas, method, seed=seed)
+    cal = paper_calibration.calibrate(meas, method, seed=seed)
     return cal, time.perf_counter() - t0
 
 
@@ -70,7 +71,7 @@ class DemoStudy:
 
     N_CAL = 24
     N_TEST = 24
-    N_REG = 96            # the seed's regularisation study uses 96 poses (section VI-A)
+    N_REG = 96            # the paper's regularisation study uses 96 poses (section VI-A)
     METHODS_COMPARED: tuple[str, ...] = METHODS
 
     def __init__(self, seed: int):
@@ -219,7 +220,7 @@ class DemoStudy:
         self._timed("pose selection", t0)
 
     def step_fullchain(self, out: Path) -> None:
-        """Seed method vs whole closed chain on the same data: Table 2 errors in limbs 1-2, and the same
+        """Paper method vs whole closed chain on the same data: Table 2 errors in limbs 1-2, and the same
         machine with 0.5 mm / 0.1 deg (1 sigma) errors added to the passive limbs and the SS limb."""
         from pmcal.mechanism.ocpm.params import random_errors
         from pmcal.twin.campaign import nominal_commands, run_campaign
@@ -278,7 +279,7 @@ class DemoStudy:
                 "improvement_percent": float(100 * (1 - a.mean() / b.mean())),
                 "after_model": "whole closed chain",
                 "hga_paper_after_mean_deg": float(self.after["pointing"].mean()),
-                "seed_vs_whole_chain": {c: {m: float(v.mean()) for m, v in d.items() if not m.startswith("_")}
+                "paper_vs_whole_chain": {c: {m: float(v.mean()) for m, v in d.items() if not m.startswith("_")}
                                         for c, d in self.fullchain.items()},
                 "methods": {m: {"wall_time_s": d["wall"], "held_out_mean_deg": float(d["held_out"].mean()),
                                 "residual_rms_sigma": d["chi_rms"]} for m, d in self.methods.items()},
@@ -286,7 +287,7 @@ class DemoStudy:
 
 
 def run_demo(out: Path, seed: int) -> int:
-    """The whole job on the built-in machine with seed Table 2 errors; writes ``out/``."""
+    """The whole job on the built-in machine with paper Table 2 errors; writes ``out/``."""
     from pmcal.fileio import atomic_directory
     from pmcal.io_ocpm import write_measurements
 
@@ -302,7 +303,7 @@ def run_demo(out: Path, seed: int) -> int:
                 bar.update(1)
             bar.set_description("pmcal demo: report")
             write_measurements(tmp / "calibration_meas.csv", study.meas,
-                               comments=[f"pmcal demo: twin with seed Table 2 errors, seed {seed}"])
+                               comments=[f"pmcal demo: twin with paper Table 2 errors, seed {seed}"])
             study.timings["total"] = time.perf_counter() - t0
             summary = study.summary()
             demo_report(study).write(tmp / "report.html")
@@ -310,6 +311,6 @@ def run_demo(out: Path, seed: int) -> int:
             bar.update(1)
     print(f"pmcal demo: wrote {out}/report.html in {time.perf_counter() - t0:.0f} s; mean pointing error on "
           f"{DemoStudy.N_TEST} test poses {summary['before_mean_deg']:.4f} -> {summary['after_mean_deg']:.4f} deg "
-          f"({summary['improvement_percent']:.1f} % better, whole closed chain; seed HGA method "
+          f"({summary['improvement_percent']:.1f} % better, whole closed chain; paper HGA method "
           f"{summary['hga_paper_after_mean_deg']:.4f} deg)")
     return 0

@@ -1,4 +1,4 @@
-"""Digital twin of the planar 2-DOF robot with its measuring mechanism (seed 003).
+"""Digital twin of the planar 2-DOF robot with its measuring mechanism (paper 003).
 
 :mod:`~pmcal.twin.planar.config` (machine.toml), :mod:`~pmcal.twin.planar.model` (MJCF with errors),
 :mod:`~pmcal.twin.planar.twin` (loop closure, P and the linear scale), :mod:`~pmcal.twin.planar.campaign` (noisy

@@ -1,7 +1,7 @@
 """Virtual measurement campaigns on the planar twin: commanded positions, servo and scale noise, readings.
 
 A campaign visits K positions in order. At each the servo holds the commanded angle plus its motion
-error ξ (seed eq. 35); the twin closes the loops; the linear scale's reading head is reset after each
+error ξ (paper eq. 35); the twin closes the loops; the linear scale's reading head is reset after each
 measurement, so each reading is the change of |O1 O2| since the previous position plus one scale error
 (eq. 34). Units: mm and radians.
 """

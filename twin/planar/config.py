@@ -28,7 +28,7 @@ CONFIG_TOML = MACHINE_DIR / "machine.toml"
 
 @dataclass(frozen=True)
 class CalibrationSettings:
-    """Seed sections 5-6: positions per boundary, eq. 31 threshold, eq. 32 threshold (rad), loop length."""
+    """Paper sections 5-6: positions per boundary, eq. 31 threshold, eq. 32 threshold (rad), loop length."""
 
     n_per_boundary: int = 3
     eps0: float = 0.01
@@ -153,7 +153,7 @@ def load_machine(path: str | Path | None = None) -> PlanarMachine:
                           rd.number("noise", "reduction", positive=True)))
     n = rd.number("calibration", "n_per_boundary", positive=True)
     if n != int(n) or n < 3:
-        raise InputError("must be an integer >= 3 (K = 2n > 5 positions, seed section 5)", file=p,
+        raise InputError("must be an integer >= 3 (K = 2n > 5 positions, paper section 5)", file=p,
                          field="[calibration] n_per_boundary")
     max_it = rd.number("calibration", "max_iterations", positive=True)
     if max_it != int(max_it) or max_it < 2:

@@ -2,7 +2,7 @@
 
 The nominal MJCF (``mjcf/planar_2dof/planar_2dof.xml``) is the template; positions are rewritten from
 machine.toml plus the errors, so the parallelograms stay parallelograms (a geometric error moves both
-bars of a pair) and the platform stays translational, as in the seed's model. Zero offsets turn the
+bars of a pair) and the platform stays translational, as in the paper's model. Zero offsets turn the
 active links' body frames about their joint axes: the motor joint reads the commanded angle while the
 link sits ``Δθ`` further on. The MAEMM ``ΔrM`` moves the mechanism's base joint O1.
 

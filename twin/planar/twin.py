@@ -64,7 +64,7 @@ class PlanarTwin:
         return np.stack([xyz[..., 0] / MM, (xyz[..., 2] - self.z0) / MM], axis=-1)
 
     def initial_qpos(self, motor: np.ndarray) -> np.ndarray:
-        """Starting configurations (N, nq) on the seed's assembly branch, from the nominal closed forms.
+        """Starting configurations (N, nq) on the paper's assembly branch, from the nominal closed forms.
 
         Only the branch matters: Gauss-Newton then converges to the model's own closure.
         """
