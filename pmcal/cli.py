@@ -41,6 +41,76 @@ EPILOG = ("File formats (measurement, targets, setpoints, parameters, diagnosis 
           "docs/formats.md. Units at every interface: mm and degrees.")
 
 
+#: per-machine help: (command, option) -> help text, or None to hide an option that machine does not have
+MACHINE_HELP: dict[str, dict[tuple[str, str], str | None]] = {
+    "ocpm_2dof": {
+        ("twin measure", "--servo-noise"): None, ("identify", "--allow-rank-deficient"): None,
+        ("twin measure", "--poses"): "number of poses (default 24)",
+        ("identify", "--model"): "error model: whole closed chain (full, default) or the paper's per-limb real "
+                                 "IK (paper)",
+        ("identify", "--method"): "identification method: --model paper hga (default), ga, pso, sa, lm, "
+                                  "tikhonov, tsvd; --model full the whole-chain least squares",
+        ("twin measure", "--preset"): "built-in error set: nominal (default) or paper-table2",
+        ("twin render", "--preset"): "built-in error set: nominal (default) or paper-table2",
+    },
+    "planar_2dof": {
+        **{("twin measure", o): None for o in ("--stiffness-ratio", "--effect", "--payload", "--temperature",
+                                                "--shuffle", "--seconds-per-pose", "--theta-max",
+                                                "--no-random-approach")},
+        ("twin render", "--stiffness-ratio"): None, ("compensate", "--table"): None,
+        ("compensate", "--grid"): None, ("compensate", "--table-version"): None,
+        ("twin measure", "--poses"): "number of positions on the workspace boundary, even, >= 6 (default 6, "
+                                     "the paper's)",
+        ("twin measure", "--noise"): "linear-scale noise, standard deviation, mm (default the paper's eq. 34)",
+        ("twin measure", "--targets"): "explicit target positions (x_mm, y_mm) instead of the boundary layout",
+        ("twin measure", "--preset"): "built-in error set: nominal (default) or group1..group6 (the paper's "
+                                      "Table 3 groups)",
+        ("twin render", "--preset"): "built-in error set: nominal (default) or group1..group6",
+        ("twin render", "--pose"): "position X,Y of the platform, mm (seed frame, y < 0)",
+        ("identify", "--model"): "error model: the paper's 4 parameters (simplified = paper, default) or all "
+                                 "12 (full; rank 9, see --allow-rank-deficient)",
+        ("identify", "--method"): "tsvd (default, eq. 29), ls (eq. 25) or gls (whitened TSVD)",
+        ("identify", "--sigma"): "linear-scale noise, mm (default the paper's eq. 34)",
+        ("identify", "--seed"): None,
+        ("compensate", "--targets"): "targets CSV: x_mm, y_mm ('pmcal --machine planar_2dof targets' writes "
+                                     "one)",
+        ("compensate", "-o"): "setpoints CSV to write: the targets with theta1_deg, theta2_deg appended",
+    },
+}
+
+
+def _machine_from_argv(argv: list[str]) -> str:
+    """The ``--machine`` value before the subcommand (for per-machine help), else the default."""
+    for i, a in enumerate(argv):
+        if a == "--machine" and i + 1 < len(argv):
+            return argv[i + 1]
+        if a.startswith("--machine="):
+            return a.split("=", 1)[1]
+    return DEFAULT_MACHINE
+
+
+def specialise_help(parser: argparse.ArgumentParser, machine: str) -> None:
+    """Help texts of ``machine``: its own wording and defaults, options of other machines hidden."""
+    table = MACHINE_HELP.get(machine, {})
+    for name, sp in _named_subparsers(parser):
+        for action in sp._actions:
+            for opt in action.option_strings:
+                if (name, opt) in table:
+                    text = table[(name, opt)]
+                    action.help = argparse.SUPPRESS if text is None else text
+        if machine != DEFAULT_MACHINE:
+            sp.description = f"(machine {machine}) " + (sp.description or "")
+
+
+def _named_subparsers(parser: argparse.ArgumentParser, prefix: str = ""):
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sp in action.choices.items():
+                full = f"{prefix}{name}"
+                yield full, sp
+                yield from _named_subparsers(sp, full + " ")
+
+
 def _common_options(p: argparse.ArgumentParser, top: bool) -> None:
     """``--quiet``/``--verbose`` on the top parser and, defaults suppressed, on every subcommand."""
     kw = {} if top else {"default": argparse.SUPPRESS}
@@ -57,7 +127,7 @@ def _all_subparsers(parser: argparse.ArgumentParser):
                 yield from _all_subparsers(sp)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pmcal",
         description="Calibrate parallel mechanisms against a MuJoCo digital twin and push the "
@@ -82,6 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
             _common_options(sp, top=False)
         if sp.epilog is None:
             sp.epilog = EPILOG
+    specialise_help(parser, machine)
     return parser
 
 
@@ -129,7 +200,8 @@ def _mtime(path: str) -> float | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_machine_from_argv(argv))
     try:
         args = parser.parse_args(argv)
     except KeyboardInterrupt:

@@ -269,3 +269,24 @@ def test_render_size_is_checked_with_the_right_message(work, capsys, tmp_path):
                               says="--width")
         assert "EGL" not in line
     assert not list(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------- CLI conventions
+@pytest.mark.parametrize("machine", ["ocpm_2dof", "planar_2dof"])
+def test_every_argument_has_help(machine):
+    import argparse
+
+    from pmcal.cli import _named_subparsers, build_parser
+
+    parser = build_parser(machine)
+    missing = [f"{name} {a.dest}" for name, sp in _named_subparsers(parser) for a in sp._actions
+               if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction)) and not a.help]
+    assert not missing
+    assert "--version" in parser.format_help()
+
+
+def test_quiet_and_verbose_are_accepted_after_the_subcommand(work, capsys, tmp_path):
+    status, _ = run(capsys, "targets", "-o", tmp_path / "t.csv", "--quiet")
+    assert status == 0 and capsys.readouterr().out == ""
+    assert main(["targets", "-o", str(tmp_path / "t2.csv"), "--verbose"]) == 0
+    assert capsys.readouterr().out.strip() == f"pmcal: wrote {tmp_path / 't2.csv'}"
