@@ -119,14 +119,6 @@ def _common_options(p: argparse.ArgumentParser, top: bool) -> None:
                    help="more detail (and the traceback of an unexpected failure)", **kw)
 
 
-def _all_subparsers(parser: argparse.ArgumentParser):
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            for sp in dict.fromkeys(action.choices.values()):
-                yield sp
-                yield from _all_subparsers(sp)
-
-
 def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pmcal",
@@ -147,7 +139,7 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
         register = getattr(module, "register", None)
         if register is not None:
             register(sub)
-    for sp in _all_subparsers(parser):
+    for _, sp in _named_subparsers(parser):
         if not any("--quiet" in a.option_strings for a in sp._actions):
             _common_options(sp, top=False)
         if sp.epilog is None:
