@@ -4,7 +4,15 @@ Modbus TCP against the mock PLCs on loopback (real pyads / pymodbus clients and 
 
 Targets (issue 5): ADS <= 50 ms, Modbus <= 1 s for the whole hand-over of a 100x100x2 table.
 
-Run: python benchmarks/bridge_bench.py [--repeat-ads 20] [--repeat-modbus 5] [--no-loop] [--json PATH]
+End-to-end accuracy (issue 12): a twin campaign on a machine with errors on every limb, ``pmcal identify``,
+``pmcal compensate --table`` (several grids, the default 73x31 among them) and ``--targets`` for the
+direct setpoints; the table is pushed to each mock PLC, the commands of held-out orientations are
+looked up over the PLC interface (stLookupIn/Out), and the twin (true errors) is driven to them. The
+true pointing error (angle between reached and wanted platform normals, no tracker noise) through the
+PLC's table must stay within 1.1x that of the direct setpoints (mean over the held-out orientations).
+
+Run: python benchmarks/bridge_bench.py [--repeat-ads 20] [--repeat-modbus 5] [--no-loop] [--no-accuracy]
+     [--accuracy-only] [--json PATH]
 """
 
 from __future__ import annotations
@@ -12,6 +20,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +39,11 @@ from pmcal.mechanism.ocpm.kinematics import nominal_ik  # noqa: E402
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2  # noqa: E402
 
 TARGET_S = {"ads": 0.050, "modbus": 1.0}
+ACCURACY_RATIO_MAX = 1.1
+ACCURACY_GRIDS = ((37, 7), (37, 16), (55, 21), (73, 31), (100, 61), (100, 100))
+PLOT = Path(__file__).resolve().parent.parent / "docs" / "img" / "comptable_grid_error.png"
+#: every-limb error set of the end-to-end run (mm, deg): 0.3 mm / 0.2 deg normal, seed 12
+ERROR_SEED = 12
 PHASES = ("connect_check", "stage", "readback", "commit_ack", "total")
 
 
@@ -66,16 +80,135 @@ def bench(transport: str, repeat: int) -> dict:
     return out
 
 
+def every_limb_errors(seed: int = ERROR_SEED):
+    """Random errors on all four limbs at the size the paper identifies (ErrorSet, mm and rad)."""
+    from pmcal.mechanism.ocpm.params import ErrorSet
+
+    rng = np.random.default_rng(seed)
+    e = ErrorSet()
+    e.db, e.da = rng.normal(0, 0.3, (4, 3)), rng.normal(0, 0.3, (4, 3))
+    e.dl1, e.dl2 = rng.normal(0, 0.3, 4), rng.normal(0, 0.3, 4)
+    for name in ("dalpha", "dgamma", "dmu", "dnu"):
+        setattr(e, name, np.deg2rad(rng.normal(0, 0.2, 4)))
+    e.dtheta[:2] = np.deg2rad(rng.normal(0, 0.2, 2))
+    return e
+
+
+def accuracy(grids=ACCURACY_GRIDS, n_poses: int = 40, n_heldout: int = 48, workdir: Path | None = None) -> dict:
+    """Calibrate through the CLI on a twin campaign, push each grid's table to both mocks, compare."""
+    import json
+    import tempfile
+
+    from pmcal.apps.plc_loop import measure, plc_commands
+    from pmcal.bridge.plc_types import LOOKUP_WRITES, PUSH_WRITES
+    from pmcal.cli import main as cli
+    from pmcal.mechanism.ocpm.config import default_geometry
+    from pmcal.twin.campaign import plan_orientations
+    from pmcal.twin.machine import Twin
+    from pmcal.twin.tracker import LaserTracker
+
+    geom = default_geometry()
+    errors = every_limb_errors()
+    tmp = Path(workdir or tempfile.mkdtemp(prefix="pmcal-e2e-"))
+    (tmp / "true.json").write_text(json.dumps({"mechanism": "ocpm_2dof", "params": errors.to_dict()}))
+    rng = np.random.default_rng(99)                       # held-out orientations, not in the campaign
+    phi, theta = plan_orientations(n_heldout, float(np.rad2deg(geom.theta_max)), rng)
+    (tmp / "heldout.csv").write_text("phi_deg,theta_deg\n" + "".join(f"{float(p)!r},{float(t)!r}\n" for p, t in zip(phi, theta)))
+    steps = [["twin", "measure", "--errors", str(tmp / "true.json"), "--poses", str(n_poses), "--seed", "3",
+              "-o", str(tmp / "meas.csv")],
+             ["identify", str(tmp / "meas.csv"), "-o", str(tmp / "params.json")]]
+    for g in grids:
+        steps.append(["compensate", str(tmp / "params.json"), "--targets", str(tmp / "heldout.csv"), "-o",
+                      str(tmp / "setpoints.csv"), "--table", str(tmp / f"table_{g[0]}x{g[1]}.json"),
+                      "--grid", f"{g[0]},{g[1]}", "--table-version", "2"])
+    for argv in steps:
+        if cli(["-q", *argv]) != 0:
+            raise SystemExit(f"pmcal {' '.join(argv)} failed")
+    rows = [r.split(",") for r in (tmp / "setpoints.csv").read_text().splitlines()
+            if r and not r.startswith(("#", "phi"))]
+    sp = np.array([[float(r[2]), float(r[3])] for r in rows])     # written to 1e-6 deg by pmcal
+    twin, tracker = Twin(errors, geom), LaserTracker(geom.sigma_mm, np.random.default_rng(5))
+    direct = measure(twin, tracker, sp, phi, theta).true_deg
+    out = {"heldout": n_heldout, "campaign_poses": n_poses, "direct_mean_deg": float(direct.mean()),
+           "direct_max_deg": float(direct.max()), "runs": []}
+    for g in grids:
+        table = CompTable.load(tmp / f"table_{g[0]}x{g[1]}.json").validate()
+        # the version-1 scheme for contrast: the same commands at the nodes, stored absolute (ADS only)
+        absolute = replace(table, values=table.commands_at_nodes(), reference=None)
+        for scheme, transport, mock_cls, table in (("nominal_ik", "ads", AdsMockPlc, table),
+                                                   ("nominal_ik", "modbus", ModbusMockPlc, table),
+                                                   ("absolute", "ads", AdsMockPlc, absolute)):
+            with mock_cls(lifetime_s=600.0) as mock:
+                mk = (lambda w: AdsLink(mock.address, writes=w)) if transport == "ads" else (
+                    lambda w: ModbusLink(mock.host, mock.port, rmap=mock.rmap, writes=w))
+                rep = push(mk(PUSH_WRITES), table)
+                with mk(LOOKUP_WRITES) as link:
+                    cmd, version = plc_commands(link, phi, theta)
+            err = measure(twin, tracker, cmd, phi, theta).true_deg
+            out["runs"].append({"grid": list(g), "scheme": scheme, "transport": transport, "push": rep.result,
+                                "table_version": version, "mean_deg": float(err.mean()),
+                                "max_deg": float(err.max()), "ratio": float(err.mean() / direct.mean()),
+                                "plc_equals_interpolation": bool(np.array_equal(cmd, table.interpolate(phi, theta))),
+                                "meets_target": bool(err.mean() <= ACCURACY_RATIO_MAX * direct.mean())})
+    return out
+
+
+def print_accuracy(acc: dict) -> None:
+    rows = [[f"{r['grid'][0]}x{r['grid'][1]}", r["scheme"], r["transport"], r["mean_deg"], r["max_deg"], acc["direct_mean_deg"],
+             r["ratio"], str(r["plc_equals_interpolation"]), "yes" if r["meets_target"] else "NO"]
+            for r in acc["runs"]]
+    print_table(f"end to end: calibrated on {acc['campaign_poses']} twin poses (every-limb errors), "
+                f"{acc['heldout']} held-out orientations looked up over the PLC, true pointing error (deg)",
+                ["grid", "table", "transport", "PLC mean", "PLC max", "direct mean", "ratio", "PLC = interpolate",
+                 f"<= {ACCURACY_RATIO_MAX}x"], rows)
+
+
+def plot_accuracy(acc: dict, path: Path = PLOT) -> None:
+    """Mean true pointing error against grid size, both schemes, with the direct setpoints' line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for scheme, label, mark in (("nominal_ik", "format 2: nominal IK + bilinear correction", "o-"),
+                                ("absolute", "format 1: bilinear absolute commands", "s--")):
+        runs = [r for r in acc["runs"] if r["scheme"] == scheme and r["transport"] == "ads"]
+        ax.loglog([r["grid"][0] * r["grid"][1] for r in runs], [r["mean_deg"] for r in runs], mark, label=label)
+    ax.axhline(acc["direct_mean_deg"], color="k", lw=0.8, label="direct setpoints (no table)")
+    ax.axhline(ACCURACY_RATIO_MAX * acc["direct_mean_deg"], color="k", lw=0.8, ls=":", label="1.1 x direct")
+    for r in acc["runs"]:
+        if r["scheme"] == "nominal_ik" and r["transport"] == "ads":
+            ax.annotate(f"{r['grid'][0]}x{r['grid'][1]}", (r["grid"][0] * r["grid"][1], r["mean_deg"]),
+                        textcoords="offset points", xytext=(0, -12), ha="center", fontsize=7)
+    ax.set_xlabel("grid nodes n_phi x n_theta (phi 0..360 deg, theta 0..60 deg)")
+    ax.set_ylabel("mean pointing error, deg")
+    ax.set_title(f"through the PLC's table, {acc['heldout']} held-out orientations (twin)", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat-ads", type=int, default=20)
     ap.add_argument("--repeat-modbus", type=int, default=5)
     ap.add_argument("--no-loop", action="store_true", help="skip the twin-in-the-loop study")
+    ap.add_argument("--no-accuracy", action="store_true", help="skip the end-to-end accuracy run")
+    ap.add_argument("--accuracy-only", action="store_true", help="only the end-to-end accuracy run")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     set_adslib_log_level(4)
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
+    if args.accuracy_only:
+        acc = accuracy()
+        print_accuracy(acc)
+        plot_accuracy(acc)
+        write_json("bridge_accuracy", {"accuracy": acc}, args.json)
+        return
     results = {"ads": bench("ads", args.repeat_ads), "modbus": bench("modbus", args.repeat_modbus)}
     rows = []
     for transport, r in results.items():
@@ -97,6 +230,9 @@ def main() -> None:
         print_table("twin in the loop, paper Table 2 errors: pointing error measured by the virtual tracker (deg)",
                     ["transport", "grid", "poses", "before rms", "before max", "after rms", "after max",
                      "no-table rms", "PLC = table"], rows)
+    if not args.no_accuracy:
+        results["accuracy"] = accuracy()
+        print_accuracy(results["accuracy"])
     write_json("bridge_bench", results, args.json)
 
 

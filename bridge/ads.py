@@ -134,6 +134,9 @@ class AdsLink(LinkBase):
         except pyads.ADSError as exc:
             code = getattr(exc, "err_code", None)
             text = exc.msg.strip().rstrip(".") if getattr(exc, "msg", "") else str(exc)
+            if code in ROUTING_HINTS:            # retried: AdsLib also says so while a PLC boots
+                raise LinkError(f"ADS link to {self.target} failed to {what}: ADS error {code} ({text}): "
+                                  f"{ROUTING_HINTS[code].format(port=self.amap.ams_port)}") from None
             if code is None or code < 0 or code in LINK_ERRORS:
                 raise LinkError(f"ADS link to {self.target} failed to {what}: {text}") from None
             raise DeviceError(f"PLC at {self.target} refused to {what}: ADS error {text}") from None
@@ -141,9 +144,34 @@ class AdsLink(LinkBase):
             raise LinkError(f"ADS link to {self.target} failed to {what}: {exc}") from None
 
 
+#: AMS routing errors (Beckhoff InfoSys "ADS Return Codes" 0x6, 0x7) and what the user can do about them
+ROUTING_HINTS = {
+    6: "no ADS server on AMS port {port} of that NetID: is the PLC runtime started, and is --ams-port right "
+       "(851 for the first TwinCAT 3 PLC runtime)?",
+    7: "the router does not know that AMS NetID: check the NetID in --ads NETID@HOST and the route on the PLC "
+       "for this client's NetID (--local-netid, docs/bridge.md 'Routes')",
+}
+
+
 def _norm(type_name: str) -> str:
     """Type names compare without spaces and case (``ARRAY [0..99,0..99,0..1] OF LREAL``)."""
     return "".join(type_name.split()).upper()
+
+
+def set_local_netid(netid: str) -> None:
+    """Set this client's AMS NetID (``a.b.c.d.e.f``) for AdsLib (Linux), before any connection.
+
+    Without it AdsLib derives the NetID from the local IP address plus ``.1.1``; the PLC must have a
+    route for whichever NetID is used (docs/bridge.md, 'Routes'). ``ValueError`` for a malformed one.
+    """
+    parts = netid.split(".")
+    if len(parts) != 6 or not all(p.isdigit() and 0 <= int(p) <= 255 for p in parts):
+        raise ValueError(f"AMS NetID must be six numbers 0..255 separated by dots, got '{netid}'")
+    if hasattr(pyads, "set_local_address"):
+        try:
+            pyads.set_local_address(netid)
+        except (pyads.ADSError, OSError, ValueError) as exc:
+            raise ValueError(f"cannot set the local AMS NetID {netid}: {exc}") from None
 
 
 def set_adslib_log_level(level: int = 3) -> bool:

@@ -34,6 +34,8 @@ from pmcal.bridge.plc_types import SYMBOLS, Symbol
 
 _NO_REPLY = "no-reply"
 _DROP = "drop"
+ERR_TARGET_PORT_NOT_FOUND = 6        # AMS router: no ADS server on that port of this NetID
+ERR_TARGET_MACHINE_NOT_FOUND = 7     # AMS router: no route to that NetID
 ERR_SERVICE_NOT_SUPPORTED = 1793
 ERR_INVALID_GROUP = 1794
 ERR_ACCESS_DENIED = 1796
@@ -82,6 +84,11 @@ class StrictHandler(AdvancedHandler):
 
     def handle_request(self, request: AmsPacket):
         h = request.ams_header
+        routing = self._routing_error(h)
+        if routing:
+            # as the TwinCAT router: the AMS header's error field, no ADS payload
+            return AmsResponseData(struct.pack("<H", struct.unpack("<H", h.state_flags)[0] | 0x0001),
+                                   struct.pack("<I", routing), b"")
         cmd = struct.unpack("<H", h.command_id)[0]
         data = h.data
         var, code, point, group = None, 0, Point.BEFORE_STAGE, 0
@@ -126,6 +133,18 @@ class StrictHandler(AdvancedHandler):
         if corrupt:           # first payload byte after the result (and length) fields
             response = response._replace(data=_flip(response.data, 4 if cmd == constants.ADSCOMMAND_READSTATE else 8))
         return response
+
+    def _routing_error(self, h) -> int:
+        """0, or the AMS error a TwinCAT router returns for a packet not addressed to this PLC runtime:
+        ``ERR_TARGETMACHINENOTFOUND`` (7) for another AMS NetID, ``ERR_TARGETPORTNOTFOUND`` (6) for a
+        port with no ADS server on this NetID (Beckhoff InfoSys, "ADS Return Codes", codes 0x6 and 0x7;
+        pyads.errorcodes)."""
+        netid = ".".join(str(b) for b in h.target_net_id)
+        if netid != self.mock.netid:
+            return ERR_TARGET_MACHINE_NOT_FOUND
+        if struct.unpack("<H", h.target_port)[0] != self.mock.amap.ams_port:
+            return ERR_TARGET_PORT_NOT_FOUND
+        return 0
 
     def _resolve(self, cmd: int, group: int, offset: int, data: bytes) -> tuple[TwinVariable | None, int]:
         """The variable a request addresses and the ADS error it earns (0: none)."""
@@ -297,6 +316,7 @@ class AdsMockPlc(MockPlc):
 
     def _start_server(self) -> None:
         self._server = _FramedServer(self)
+        self._server.server.listen(5)            # accept connections as soon as this returns (restart)
         self.port = self._server.server.getsockname()[1]
         self._server.start()
 

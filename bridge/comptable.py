@@ -5,10 +5,15 @@ an interface type, written to files and sent to the PLC).
 
 The grid spans ``phi_deg`` (azimuth) from ``phi_min_deg`` to ``phi_max_deg`` in ``n_phi`` nodes and
 ``theta_deg`` (tilt) from ``theta_min_deg`` to ``theta_max_deg`` in ``n_theta`` nodes, both ends
-included. ``values[i, j, k]`` is the absolute command of motor ``k`` (0: m1, 1: m2) in degrees that
-brings the calibrated machine to (phi_i, theta_j). The array layout is the PLC's memory layout
+included. ``values[i, j, k]`` is, for motor ``k`` (0: m1, 1: m2) in degrees, the correction to add to
+the nominal closed-form inverse kinematics (``reference``, :mod:`pmcal.bridge.nominal`, format version 2)
+so that the calibrated machine reaches (phi_i, theta_j); with ``reference=None`` it is the absolute
+command (format version 1 semantics). The array layout is the PLC's memory layout
 ``ARRAY[0..NPHI_MAX-1, 0..NTHETA_MAX-1, 0..1] OF LREAL`` restricted to the used nodes (last index
 fastest, little-endian IEEE-754 double).
+
+Longer than the project's ~400 lines on purpose: the type, its checks and its two file formats
+(JSON, CSV, versions 1 and 2) form one interface specification with docs/compensation_table.md.
 
 Typical use by the identification code::
 
@@ -31,11 +36,14 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+from pmcal.bridge.nominal import NominalReference
 from pmcal.errors import InputError
 from pmcal.fileio import atomic_write
 
 FORMAT = "pmcal-comptable"
-FORMAT_VERSION = 1
+#: 2: corrections relative to the nominal IK (``reference``); 1 (read, converted): absolute commands
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)
 #: fixed PLC array sizes (ARRAY[0..NPHI_MAX-1, 0..NTHETA_MAX-1, 0..1] OF LREAL)
 NPHI_MAX = 100
 NTHETA_MAX = 100
@@ -46,6 +54,8 @@ MACHINE_MAX_LEN = 31
 #: largest azimuth span (deg); the PLC never wraps phi, so a table covers at most one turn
 PHI_SPAN_MAX_DEG = 360.0
 CSV_COLUMNS = ("phi_deg", "theta_deg", "m1_deg", "m2_deg")
+#: CSV columns of a table with a nominal-IK reference (the values are corrections)
+CSV_COLUMNS_REF = ("phi_deg", "theta_deg", "dm1_deg", "dm2_deg")
 MOTOR_FIELDS = ("m1_deg", "m2_deg")
 
 Setpoints = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -129,12 +139,14 @@ class CompTable(GridLimits):
 
     Keyword-only. ``version`` is the table version (UDINT, 1..2**32-1) that the PLC requires to increase
     strictly. ``max_step_deg`` bounds the change of either motor command between neighbouring nodes.
+    ``reference``: the nominal IK the values are corrections to (None: values are absolute commands).
     ``source`` (not part of the data) names the file the table was read from, for error messages.
     """
 
     machine: str
     version: int
     values: np.ndarray
+    reference: NominalReference | None = None
     source: str | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -171,13 +183,26 @@ class CompTable(GridLimits):
         """The used nodes as the PLC stores them row by row: little-endian doubles, C order."""
         return self.values.tobytes(order="C")
 
+    def nominal_at_nodes(self) -> np.ndarray:
+        """The reference commands (n_phi, n_theta, 2) deg at the nodes; zeros without reference."""
+        if self.reference is None:
+            return np.zeros_like(self.values)
+        pp, tt = np.meshgrid(self.phi_nodes_deg(), self.theta_nodes_deg(), indexing="ij")
+        return self.reference.commands_deg(pp, tt)
+
+    def commands_at_nodes(self) -> np.ndarray:
+        """Absolute motor commands (n_phi, n_theta, 2) deg at the nodes: reference + correction."""
+        return self.values if self.reference is None else self.nominal_at_nodes() + self.values
+
     def crc16(self) -> int:
         """CRC-16/CCITT (:func:`crc16_ccitt`) over :meth:`data_bytes`; the PLC recomputes it."""
         return crc16_ccitt(self.data_bytes())
 
     def sha256(self) -> str:
-        """SHA-256 (hex) over :meth:`data_bytes`, for the audit trail."""
-        return hashlib.sha256(self.data_bytes()).hexdigest()
+        """SHA-256 (hex) over :meth:`data_bytes` followed by the reference geometry's five LREALs
+        (:meth:`NominalReference.pack`, nothing without a reference), for the files and the audit trail."""
+        ref = b"" if self.reference is None else self.reference.pack()
+        return hashlib.sha256(self.data_bytes() + ref).hexdigest()
 
     # ---- validation -----------------------------------------------------------------------
     def defect(self, active_version: int | None = None) -> Defect | None:
@@ -207,6 +232,8 @@ class CompTable(GridLimits):
         if active_version is not None and int(self.version) <= int(active_version):
             return Defect("stale_version", f"table version {self.version} is not newer than the active "
                                            f"version {active_version} on the PLC")
+        if self.reference is not None and self.reference.defect():
+            return Defect("reference", self.reference.defect())
         if not (self.machine.isascii() and 0 < len(self.machine) <= MACHINE_MAX_LEN):
             return Defect("machine", f"machine name must be 1..{MACHINE_MAX_LEN} ASCII characters")
         return None
@@ -214,12 +241,16 @@ class CompTable(GridLimits):
     def data_defect(self) -> Defect | None:
         """All values finite, then all within the motor limits, then every step within max_step.
 
+        Limits and steps apply to the absolute commands (reference + correction) at the nodes.
         Each check covers the whole table before the next starts (as FB_CompTableCheck's phases).
         """
-        v = self.values
-        bad = ~np.isfinite(v)
+        bad = ~np.isfinite(self.values)
         if bad.any():
             return self._node_defect("not_finite", bad, "is not a finite number")
+        v = self.commands_at_nodes()
+        bad = ~np.isfinite(v)
+        if bad.any():
+            return self._node_defect("not_finite", bad, "gives a nominal command out of reach")
         bad = (v < self.m_min_deg) | (v > self.m_max_deg)
         if bad.any():
             return self._node_defect("out_of_range", bad, f"outside the motor limits "
@@ -253,16 +284,23 @@ class CompTable(GridLimits):
 
     def _node_defect(self, kind: str, bad: np.ndarray, what: str) -> Defect:
         i, j, k = (int(x) for x in np.argwhere(bad)[0])
-        return Defect(kind, f"{MOTOR_FIELDS[k]} = {float(self.values[i, j, k])!r} {what}", (i, j), MOTOR_FIELDS[k])
+        if self.reference is None or kind == "not_finite":
+            text = f"{MOTOR_FIELDS[k]} = {float(self.values[i, j, k])!r} {what}"
+        else:
+            text = (f"command {MOTOR_FIELDS[k]} = nominal + correction "
+                    f"{float(self.values[i, j, k])!r} = {float(self.commands_at_nodes()[i, j, k])!r} {what}")
+        return Defect(kind, text, (i, j), MOTOR_FIELDS[k])
 
     # ---- evaluation -----------------------------------------------------------------------
     def interpolate(self, phi_deg, theta_deg) -> np.ndarray:
-        """Motor commands (..., 2) in deg at target orientations, bilinear as on the PLC.
+        """Motor commands (..., 2) in deg at target orientations, as FB_CompTableLookup on the PLC.
 
-        Raises :class:`InputError` if a target lies outside the grid (the PLC refuses it too).
+        ``reference(phi, theta) + bilinear(values)`` (bilinear alone without reference), in that
+        order of IEEE operations. Raises :class:`InputError` if a target lies outside the grid (the
+        PLC refuses it too).
         """
-        m, inside = bilinear(self.values, (self.phi_min_deg, self.phi_max_deg),
-                             (self.theta_min_deg, self.theta_max_deg), phi_deg, theta_deg)
+        m, inside = lookup(self.values, self.reference, (self.phi_min_deg, self.phi_max_deg),
+                           (self.theta_min_deg, self.theta_max_deg), phi_deg, theta_deg)
         if not inside.all():
             raise InputError(f"target orientation outside the table grid phi [{self.phi_min_deg:g}, "
                              f"{self.phi_max_deg:g}] deg, theta [{self.theta_min_deg:g}, {self.theta_max_deg:g}] deg",
@@ -274,23 +312,33 @@ class CompTable(GridLimits):
                        n_theta: int = 31, phi_range_deg: tuple[float, float] = (0.0, 360.0),
                        theta_range_deg: tuple[float, float] = (0.0, 60.0),
                        motor_limits_deg: tuple[float, float] = (-180.0, 180.0),
-                       max_step_deg: float = 10.0) -> "CompTable":
+                       max_step_deg: float = 10.0,
+                       reference: NominalReference | str | None = "nominal_ik") -> "CompTable":
         """Fill a table from ``setpoints(phi_deg[N], theta_deg[N]) -> m_deg[N, 2]``.
 
         The callable receives the N = n_phi*n_theta node coordinates (deg) in row order
-        (phi outer, theta inner) and returns the corrected motor commands (deg). Not validated.
+        (phi outer, theta inner) and returns the corrected (absolute) motor commands (deg). The table
+        stores them relative to ``reference``: ``"nominal_ik"`` (default) is the machine's nominal
+        closed-form IK (:meth:`NominalReference.default`), a :class:`NominalReference` another
+        geometry, ``None`` absolute commands (the version-1 scheme). Not validated.
         """
+        if isinstance(reference, str):
+            if reference != "nominal_ik":
+                raise ValueError(f"reference must be 'nominal_ik', a NominalReference or None, got {reference!r}")
+            reference = NominalReference.default()
         phi = _nodes(*phi_range_deg, n_phi)
         theta = _nodes(*theta_range_deg, n_theta)
         pp, tt = np.meshgrid(phi, theta, indexing="ij")
         m = np.asarray(setpoints(pp.ravel(), tt.ravel()), dtype=np.float64)
         if m.shape != (pp.size, 2):
             raise ValueError(f"setpoints returned shape {m.shape}, expected ({pp.size}, 2)")
+        m = m.reshape(n_phi, n_theta, 2)
+        if reference is not None:
+            m = m - reference.commands_deg(pp, tt)
         return cls(machine=machine, version=int(version), phi_min_deg=phi_range_deg[0],
                    phi_max_deg=phi_range_deg[1], theta_min_deg=theta_range_deg[0],
                    theta_max_deg=theta_range_deg[1], m_min_deg=motor_limits_deg[0],
-                   m_max_deg=motor_limits_deg[1], max_step_deg=max_step_deg,
-                   values=m.reshape(n_phi, n_theta, 2))
+                   m_max_deg=motor_limits_deg[1], max_step_deg=max_step_deg, values=m, reference=reference)
 
     # ---- files ----------------------------------------------------------------------------
     def header_dict(self) -> dict:
@@ -303,13 +351,17 @@ class CompTable(GridLimits):
                      "theta_min_deg": self.theta_min_deg, "theta_max_deg": self.theta_max_deg},
             "limits": {"m_min_deg": self.m_min_deg, "m_max_deg": self.m_max_deg,
                        "max_step_deg": self.max_step_deg},
+            "reference": {"kind": "none"} if self.reference is None else self.reference.as_dict(),
             "crc16_ccitt": f"0x{self.crc16():04X}", "sha256": self.sha256(),
         }
 
     def to_json(self, path: str | Path) -> None:
         """Write the JSON file atomically (header, nested ``values[i][j] = [m1, m2]``, checksums)."""
         doc = self.header_dict()
-        doc["layout"] = "values[i_phi][i_theta] = [m1_deg, m2_deg]; node = min + index*(max-min)/(n-1)"
+        doc["layout"] = ("values[i_phi][i_theta] = [m1_deg, m2_deg]; node = min + index*(max-min)/(n-1)"
+                         if self.reference is None else
+                         "values[i_phi][i_theta] = [dm1_deg, dm2_deg] added to the nominal IK of 'reference'; "
+                         "node = min + index*(max-min)/(n-1)")
         doc["values"] = self.values.tolist()
         try:
             text = json.dumps(doc, indent=1, allow_nan=False)
@@ -328,9 +380,11 @@ class CompTable(GridLimits):
             fh.write(f"# machine={self.machine}\n# table_version={self.version}\n")
             fh.write("# grid " + " ".join(f"{k}={_num(v)}" for k, v in g.items()) + "\n")
             fh.write("# limits " + " ".join(f"{k}={_num(v)}" for k, v in lim.items()) + "\n")
+            fh.write("# reference " + " ".join(f"{k}={v if k == 'kind' else _num(v)}"
+                                               for k, v in h["reference"].items()) + "\n")
             fh.write(f"# crc16_ccitt={h['crc16_ccitt']} sha256={h['sha256']}\n")
             w = csv.writer(fh, lineterminator="\n")
-            w.writerow(CSV_COLUMNS)
+            w.writerow(CSV_COLUMNS if self.reference is None else CSV_COLUMNS_REF)
             phi, theta = self.phi_nodes_deg(), self.theta_nodes_deg()
             for i in range(self.n_phi):
                 for j in range(self.n_theta):
@@ -366,8 +420,9 @@ class CompTable(GridLimits):
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
             raise InputError(f"not a compensation table (expected \"format\": \"{FORMAT}\")", file=src,
                              field="format")
-        _check_format_version(doc.get("format_version"), src)
+        fv = _check_format_version(doc.get("format_version"), src)
         grid, lim = _section(doc, "grid", src), _section(doc, "limits", src)
+        reference = None if fv == 1 else _reference(_section(doc, "reference", src), src)
         n_phi, n_theta = _int(grid, "n_phi", src), _int(grid, "n_theta", src)
         try:
             values = np.asarray(doc.get("values"), dtype=np.float64)
@@ -381,8 +436,9 @@ class CompTable(GridLimits):
                     theta_min_deg=_float(grid, "theta_min_deg", src),
                     theta_max_deg=_float(grid, "theta_max_deg", src),
                     m_min_deg=_float(lim, "m_min_deg", src), m_max_deg=_float(lim, "m_max_deg", src),
-                    max_step_deg=_float(lim, "max_step_deg", src), values=values, source=src)
-        _check_sums(table, doc.get("crc16_ccitt"), doc.get("sha256"), src)
+                    max_step_deg=_float(lim, "max_step_deg", src), values=values, reference=reference,
+                    source=src)
+        _check_sums(table, doc.get("crc16_ccitt"), doc.get("sha256"), src, fv)
         return table
 
     @classmethod
@@ -409,10 +465,18 @@ class CompTable(GridLimits):
                 body.append(line)
         if meta.get("format") != FORMAT:
             raise InputError(f"not a compensation table (first comment must name {FORMAT})", file=src)
-        _check_format_version(_parse(meta, "format_version", int, src), src)
+        fv = _check_format_version(_parse(meta, "format_version", int, src), src)
         n_phi, n_theta = _parse(meta, "n_phi", int, src), _parse(meta, "n_theta", int, src)
-        if not body or tuple(c.strip() for c in body[0].split(",")) != CSV_COLUMNS:
-            raise InputError(f"header row must be {','.join(CSV_COLUMNS)}", file=src)
+        reference = None
+        if fv >= 2:
+            kind = meta.get("kind")
+            ref_doc = {"kind": kind}
+            if kind == "nominal_ik":
+                ref_doc.update({k: _parse(meta, k, float, src) for k in NominalReference.KEYS})
+            reference = _reference(ref_doc, src)
+        columns = CSV_COLUMNS if reference is None else CSV_COLUMNS_REF
+        if not body or tuple(c.strip() for c in body[0].split(",")) != columns:
+            raise InputError(f"header row must be {','.join(columns)}", file=src)
         rows = list(csv.reader(body[1:]))
         if len(rows) != n_phi * n_theta or n_phi < 1 or n_theta < 1:
             raise InputError(f"{len(rows)} data rows, header grid {n_phi}x{n_theta} needs {n_phi * n_theta}",
@@ -424,13 +488,13 @@ class CompTable(GridLimits):
                     theta_max_deg=_parse(meta, "theta_max_deg", float, src),
                     m_min_deg=_parse(meta, "m_min_deg", float, src), m_max_deg=_parse(meta, "m_max_deg", float, src),
                     max_step_deg=_parse(meta, "max_step_deg", float, src),
-                    values=np.zeros((n_phi, n_theta, 2)), source=src)
+                    values=np.zeros((n_phi, n_theta, 2)), reference=reference, source=src)
         phi, theta = table.phi_nodes_deg(), table.theta_nodes_deg()
         for r, row in enumerate(rows, start=1):
             if len(row) != 4:
                 raise InputError(f"expected 4 fields, got {len(row)}", file=src, row=r)
             nums = []
-            for name, text in zip(CSV_COLUMNS, row):
+            for name, text in zip(columns, row):
                 try:
                     nums.append(float(text))
                 except ValueError:
@@ -441,7 +505,7 @@ class CompTable(GridLimits):
                     raise InputError(f"{got:g} is not the grid node {want:.10g} expected at this row "
                                      "(rows go phi-major, theta fastest)", file=src, row=r, field=name)
             table.values[i, j] = nums[2:]
-        _check_sums(table, meta.get("crc16_ccitt"), meta.get("sha256"), src)
+        _check_sums(table, meta.get("crc16_ccitt"), meta.get("sha256"), src, fv)
         return table
 
 
@@ -464,10 +528,38 @@ def _num(x) -> str:
     return repr(x)
 
 
-def _check_format_version(v, src: str) -> None:
-    if v != FORMAT_VERSION:
-        raise InputError(f"format_version {v!r} not supported (this reader knows {FORMAT_VERSION})",
-                         file=src, field="format_version")
+def _check_format_version(v, src: str) -> int:
+    """The format version of a file; version 1 (absolute commands) is read as a table without reference."""
+    if isinstance(v, bool) or v not in READ_VERSIONS:
+        raise InputError(f"format_version {v!r} not supported (this reader knows "
+                         f"{', '.join(map(str, READ_VERSIONS))})", file=src, field="format_version")
+    return int(v)
+
+
+def _reference(doc: dict, src: str) -> NominalReference | None:
+    kind = doc.get("kind")
+    if kind == "none":
+        return None
+    if kind != "nominal_ik":
+        raise InputError(f"reference kind must be 'nominal_ik' or 'none', got {kind!r}", file=src,
+                         field="reference")
+    ref = NominalReference(**{k: _float(doc, k, src) for k in NominalReference.KEYS})
+    if ref.defect():
+        raise InputError(ref.defect(), file=src, field="reference")
+    return ref
+
+
+def lookup(values: np.ndarray, reference: NominalReference | None, phi_lim: tuple[float, float],
+           theta_lim: tuple[float, float], phi_deg, theta_deg) -> tuple[np.ndarray, np.ndarray]:
+    """FB_CompTableLookup: ``reference(phi, theta) + bilinear(values)`` (deg), and the inside mask.
+
+    Shared by :meth:`CompTable.interpolate` and the PLC twin, so both give the same bits.
+    """
+    m, inside = bilinear(values, phi_lim, theta_lim, phi_deg, theta_deg)
+    if reference is not None:
+        m = reference.commands_deg(phi_deg, theta_deg) + m
+        m[~inside] = np.nan
+    return m, inside
 
 
 def _section(doc: dict, key: str, src: str) -> dict:
@@ -507,8 +599,15 @@ def _parse(meta: dict, key: str, kind: type, src: str):
         raise InputError(f"bad value {meta[key]!r} in the # header lines", file=src, field=key) from None
 
 
-def _check_sums(table: CompTable, crc_text, sha_text, src: str) -> None:
-    """Compare the checksums stored in a file with the data read from it (if the file has them)."""
+def _check_sums(table: CompTable, crc_text, sha_text, src: str, format_version: int = FORMAT_VERSION) -> None:
+    """Compare the checksums stored in a file with the data read from it; both must be present.
+
+    A version-1 file's SHA-256 covers the values only (it has no reference).
+    """
+    for name, text in (("crc16_ccitt", crc_text), ("sha256", sha_text)):
+        if text is None:
+            raise InputError(f"no {name} checksum: a table must carry crc16_ccitt and sha256 "
+                             "(write it with pmcal; edited files are refused)", file=src, field=name)
     if not np.isfinite(table.values).all():
         return   # validate() names the bad node; a checksum message would hide it
     if crc_text is not None:
@@ -519,6 +618,7 @@ def _check_sums(table: CompTable, crc_text, sha_text, src: str) -> None:
         if crc != table.crc16():
             raise InputError(f"CRC mismatch: file says 0x{crc:04X}, data give 0x{table.crc16():04X} "
                              "(file edited or damaged)", file=src, field="crc16_ccitt")
-    if sha_text is not None and str(sha_text).lower() != table.sha256():
+    sha = table.sha256() if format_version >= 2 else hashlib.sha256(table.data_bytes()).hexdigest()
+    if sha_text is not None and str(sha_text).lower() != sha:
         raise InputError("SHA-256 mismatch between the file's checksum and its data (file edited or damaged)",
                          file=src, field="sha256")

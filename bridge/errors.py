@@ -36,6 +36,10 @@ class Rejected(BridgeError):
     exit_status = 3
 
 
+class StagingBusy(BridgeError):
+    """Another client owns the PLC's staging area (nStagingOwner is not our session token): no retry."""
+
+
 class AckTimeout(BridgeError):
     """The PLC did not acknowledge the commit in time; the commit was withdrawn."""
 

@@ -64,6 +64,22 @@ class MockPlc:
         self.twin.stop()
         self._stop_server()
 
+    def restart(self, down_s: float = 0.0) -> None:
+        """Power-cycle the PLC: the task and the server stop (clients lose their connections), the
+        volatile memory clears, persistent data stay (:meth:`PlcTwin.restart`), and after ``down_s``
+        the server comes back on the same port."""
+        self.twin.stop()
+        self._stop_server()
+        self.twin.restart()
+        self._reset_volatile()
+        time.sleep(down_s)
+        self._start_server()
+        before, after = self._task_hooks()
+        self.twin.start(self.cycle_s, max(0.0, self.deadline - time.monotonic()), before=before, after=after)
+
+    def _reset_volatile(self) -> None:
+        """Transport-side PLC memory that a restart clears (e.g. the Modbus area in %M)."""
+
     def expired(self) -> bool:
         return time.monotonic() >= self.deadline
 

@@ -33,9 +33,11 @@ FC16_MAX = 123
 FC3_MAX = 125
 
 _REGS = {"shadow_header": HEADER_SIZE // 2, "state": STATE_SIZE // 2, "active_header": HEADER_SIZE // 2,
-         "lookup_in": LOOKUP_IN_SIZE // 2, "lookup_out": LOOKUP_OUT_SIZE // 2, "commit_version": 2}
+         "lookup_in": LOOKUP_IN_SIZE // 2, "lookup_out": LOOKUP_OUT_SIZE // 2, "commit_version": 2,
+         "staging_claim": 2}
 _OFFSET = {"shadow_header": "SHADOW_HEADER", "commit_version": "COMMIT_VERSION", "state": "STATE",
-           "active_header": "ACTIVE_HEADER", "lookup_in": "LOOKUP_IN", "lookup_out": "LOOKUP_OUT"}
+           "active_header": "ACTIVE_HEADER", "lookup_in": "LOOKUP_IN", "lookup_out": "LOOKUP_OUT",
+           "staging_claim": "STAGING_CLAIM"}
 
 
 @dataclass(frozen=True)
@@ -51,7 +53,7 @@ class ModbusMap:
 
     # ---- information block (PLC writes) ----
     MAGIC: int = 0
-    INTERFACE_VERSION: int = 1
+    INTERFACE_VERSION: int = 1      # register offset (the value is plc_types.INTERFACE_VERSION)
     NPHI_MAX: int = 2
     NTHETA_MAX: int = 3
     WINDOW_LREALS: int = 4
@@ -66,6 +68,7 @@ class ModbusMap:
     # ---- motor-target lookup ----
     LOOKUP_IN: int = 132           # ST_CompTableLookupIn, 12 registers (bridge writes)
     LOOKUP_OUT: int = 144          # ST_CompTableLookupOut, 16 registers (PLC writes)
+    STAGING_CLAIM: int = 160       # UDINT session token, low word first (bridge writes; 0 releases)
     WINDOW: int = 256              # ARRAY[0..window_lreals-1] OF LREAL
 
     def __post_init__(self) -> None:

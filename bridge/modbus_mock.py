@@ -23,7 +23,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from pmcal.bridge.faults import Kind, Point
 from pmcal.bridge.mock import MockPlc
-from pmcal.bridge.modbus_map import MAGIC, PAGE_BAD, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap
+from pmcal.bridge.modbus_map import FC3_MAX, FC16_MAX, MAGIC, PAGE_BAD, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap
 from pmcal.bridge.plc_types import INTERFACE_VERSION, NPHI_MAX, NTHETA_MAX, SHADOW_SIZE
 from pmcal.bridge.plc_twin import PlcTwin
 
@@ -54,7 +54,7 @@ class ModbusArea:
         if not self.dirty:
             return
         self.dirty = False
-        for key in ("shadow_header", "commit_version", "lookup_in"):
+        for key in ("shadow_header", "commit_version", "staging_claim", "lookup_in"):
             self.twin.write_symbol(key, self.get(key))
         r = self.rmap
         index, count, cmd, seq = (int(x) for x in self.image[r.PAGE_CONTROL:r.PAGE_CONTROL + 4])
@@ -100,6 +100,20 @@ class ModbusArea:
         return None
 
 
+def _tf6250_exception(request: bytes, reply: bytes) -> bytes:
+    """pymodbus' server answers a request it cannot decode with function 0x80, exception 1. TF6250 (as
+    the Modbus application protocol, sections 6.3 and 6.12) answers a quantity outside 1..125 (FC3/FC4)
+    or 1..123 (FC16) with the request's function | 0x80 and exception 3, ILLEGAL DATA VALUE."""
+    if len(reply) < 9 or reply[7] != 0x80 or reply[8] != 1 or len(request) < 12:
+        return reply
+    fc = request[7]
+    count = int.from_bytes(request[10:12], "big")
+    limit = {3: FC3_MAX, 4: FC3_MAX, 16: FC16_MAX}.get(fc)
+    if limit is None or 1 <= count <= limit:
+        return reply
+    return reply[:7] + bytes([fc | 0x80, 3])
+
+
 class ModbusMockPlc(MockPlc):
     """A mock PLC serving ST_CompTableModbusArea over Modbus TCP on 127.0.0.1.
 
@@ -113,6 +127,7 @@ class ModbusMockPlc(MockPlc):
         self.rmap = rmap
         self.area = ModbusArea(rmap, self.twin)
         self._mute = 0
+        self._last_rx = b""
         self._server: ModbusTcpServer | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -124,14 +139,19 @@ class ModbusMockPlc(MockPlc):
     def _task_hooks(self) -> tuple[tuple, tuple]:
         return (self.area.copy_in,), (self.area.copy_out,)
 
+    def _reset_volatile(self) -> None:
+        self.area = ModbusArea(self.rmap, self.twin)        # %M is not persistent
+
     def _device(self) -> SimDevice:
-        """Holding registers of the area; information and PLC answers read-only."""
+        """Holding registers of the whole mapped area (TF6250: 16#3000..16#5FFF -> %MB0..), all writable.
+
+        TF6250 maps holding registers onto PLC memory without any notion of who owns a variable, so
+        a write to a register the PLC writes is accepted; the PLC overwrites it at the end of its next
+        cycle (``copy_out``). The bridge itself only writes its allow-list (:class:`ModbusLink`).
+        """
         r = self.rmap
-        blocks = [(r.MAGIC, r.SHADOW_HEADER, True), (r.SHADOW_HEADER, r.PAGE_ACK, False),
-                  (r.PAGE_ACK, r.LOOKUP_IN, True), (r.LOOKUP_IN, r.LOOKUP_OUT, False),
-                  (r.LOOKUP_OUT, r.WINDOW, True), (r.WINDOW, r.WINDOW + 4 * r.window_lreals, False)]
-        simdata = [SimData(address=r.base + a, count=b - a, values=0, datatype=DataType.REGISTERS, readonly=ro)
-                   for a, b, ro in blocks]
+        simdata = [SimData(address=r.base, count=r.area_size, values=0, datatype=DataType.REGISTERS,
+                           readonly=False)]
         return SimDevice(id=r.device_id, simdata=simdata, action=self._action)
 
     async def _action(self, fc: int, start: int, address: int, count: int, registers: list[int], values):
@@ -171,11 +191,14 @@ class ModbusMockPlc(MockPlc):
         return None
 
     def _trace(self, sending: bool, data: bytes) -> bytes:
-        """Swallow the reply of a request that hit a no_reply fault."""
-        if sending and self._mute:
+        """Swallow the reply of a request that hit a no_reply fault; TF6250's exception codes."""
+        if not sending:
+            self._last_rx = bytes(data)
+            return data
+        if self._mute:
             self._mute -= 1
             return b""
-        return data
+        return _tf6250_exception(self._last_rx, data)
 
     def _start_server(self) -> None:
         ready = threading.Event()

@@ -16,9 +16,14 @@ from enum import IntEnum
 import numpy as np
 
 from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, CompTable, GridLimits
+from pmcal.bridge.nominal import REFERENCE_NOMINAL_IK, REFERENCE_NONE
 
+#: FB_CompTableManager.tCommitTimeout default (s): a checked table that motion keeps from being swapped
+#: in is dropped with SWAP_TIMEOUT after this long. The bridge's ack time-out (5 s) is longer, so the
+#: user always sees the PLC's verdict.
+COMMIT_TIMEOUT_S = 4.0
 #: interface version of GVL_CompTable (bumped when any layout below changes)
-INTERFACE_VERSION = 1
+INTERFACE_VERSION = 2
 LREAL_SIZE = 8
 #: ARRAY[0..NPHI_MAX-1, 0..NTHETA_MAX-1, 0..1] OF LREAL
 SHADOW_LREALS = NPHI_MAX * NTHETA_MAX * 2
@@ -45,6 +50,7 @@ class Status(IntEnum):
     STEP_TOO_LARGE = 110
     CRC_SELFTEST = 111         # F_DATA_TO_CRC16_CCITT does not give 16#29B1 for '123456789'
     SWAP_TIMEOUT = 112         # motion did not allow the swap within tCommitTimeout
+    REFERENCE_MISMATCH = 113   # header's nominal-IK reference is not the PLC's (nReference, nReferenceCrc)
 
     @property
     def is_rejection(self) -> bool:
@@ -67,11 +73,14 @@ class LookupResult(IntEnum):
     NO_TABLE = 2
 
 
-#: ST_CompTableHeader: 7 LREAL, UDINT, 4 x UINT/WORD, STRING(31), 4 reserved bytes = 104 bytes
-_HEADER = struct.Struct("<7dI4H32s4x")
+#: ST_CompTableHeader: 7 LREAL, UDINT, 4 x UINT/WORD, STRING(31), nReference UINT, nReferenceCrc WORD
+#: = 104 bytes
+_HEADER = struct.Struct("<7dI4H32s2H")
 #: ST_CompTableState: nAckVersion, nActiveVersion, nCycle (UDINT); eStatus, nActiveCrc, eState,
-#: nReserved (UINT/WORD/INT) = 20 bytes, padded to 24
-_STATE = struct.Struct("<3I4H4x")
+#: nReserved (UINT/WORD/INT); nStagingOwner (UDINT) = 24 bytes
+_STATE = struct.Struct("<3I4HI")
+#: FB_CompTableManager.tStagingLease default (s): an owner that stays silent this long loses the staging
+STAGING_LEASE_S = 30.0
 #: ST_CompTableLookupIn: fPhi, fTheta (LREAL), nSeq (UDINT), 4 reserved = 24 bytes
 _LOOKUP_IN = struct.Struct("<2dI4x")
 #: ST_CompTableLookupOut: fM1, fM2 (LREAL), nSeq, nTableVersion (UDINT), eResult (INT), 6 reserved
@@ -93,23 +102,28 @@ class Header(GridLimits):
     n_theta: int
     crc: int
     machine: str
+    reference: int = REFERENCE_NONE      # nReference: 0 absolute commands, 1 corrections to the nominal IK
+    reference_crc: int = 0               # nReferenceCrc: NominalReference.crc16() of the reference geometry
 
     def pack(self) -> bytes:
         name = self.machine.encode("ascii")[:31]
         return _HEADER.pack(*self.limits().values(), self.table_version, self.format_version, self.n_phi,
-                            self.n_theta, self.crc, name)
+                            self.n_theta, self.crc, name, self.reference, self.reference_crc)
 
     @classmethod
     def unpack(cls, data: bytes) -> "Header":
         f = _HEADER.unpack(data)
         names = [x.name for x in dataclasses.fields(GridLimits)]
         return cls(**dict(zip(names, f[:7])), table_version=f[7], format_version=f[8],
-                   n_phi=f[9], n_theta=f[10], crc=f[11], machine=f[12].split(b"\0", 1)[0].decode("ascii", "replace"))
+                   n_phi=f[9], n_theta=f[10], crc=f[11], machine=f[12].split(b"\0", 1)[0].decode("ascii", "replace"),
+                   reference=f[13], reference_crc=f[14])
 
     @classmethod
     def of(cls, table: CompTable) -> "Header":
         return cls(**table.limits(), table_version=int(table.version), format_version=FORMAT_VERSION,
-                   n_phi=table.n_phi, n_theta=table.n_theta, crc=table.crc16(), machine=table.machine)
+                   n_phi=table.n_phi, n_theta=table.n_theta, crc=table.crc16(), machine=table.machine,
+                   reference=REFERENCE_NONE if table.reference is None else REFERENCE_NOMINAL_IK,
+                   reference_crc=0 if table.reference is None else table.reference.crc16())
 
 
 @dataclass(frozen=True)
@@ -122,15 +136,16 @@ class PlcState:
     status: Status
     active_crc: int
     state: State
+    staging_owner: int = 0       # session token of the client that owns the staging area (0: free)
 
     def pack(self) -> bytes:
         return _STATE.pack(self.ack_version, self.active_version, self.cycle, int(self.status),
-                           self.active_crc, int(self.state), 0)
+                           self.active_crc, int(self.state), 0, self.staging_owner)
 
     @classmethod
     def unpack(cls, data: bytes) -> "PlcState":
-        ack, active, cycle, status, crc, state, _ = _STATE.unpack(data)
-        return cls(ack, active, cycle, _enum(Status, status), crc, _enum(State, state))
+        ack, active, cycle, status, crc, state, _, owner = _STATE.unpack(data)
+        return cls(ack, active, cycle, _enum(Status, status), crc, _enum(State, state), owner)
 
 
 @dataclass(frozen=True)
@@ -186,6 +201,7 @@ SYMBOLS: tuple[Symbol, ...] = (
     Symbol("shadow", "aShadow", f"ARRAY [0..{NPHI_MAX - 1},0..{NTHETA_MAX - 1},0..1] OF LREAL",
            SHADOW_SIZE, "bridge"),
     Symbol("commit_version", "nCommitVersion", "UDINT", 4, "bridge"),
+    Symbol("staging_claim", "nStagingClaim", "UDINT", 4, "bridge"),
     Symbol("state", "stState", "ST_CompTableState", STATE_SIZE, "plc"),
     Symbol("active_header", "stActiveHeader", "ST_CompTableHeader", HEADER_SIZE, "plc"),
     Symbol("lookup_in", "stLookupIn", "ST_CompTableLookupIn", LOOKUP_IN_SIZE, "bridge"),
@@ -193,7 +209,7 @@ SYMBOLS: tuple[Symbol, ...] = (
 )
 SYMBOL = {s.key: s for s in SYMBOLS}
 #: the allow-lists: what the bridge may write to push a table, and to ask for motor targets
-PUSH_WRITES = frozenset({"shadow_header", "shadow", "commit_version"})
+PUSH_WRITES = frozenset({"shadow_header", "shadow", "commit_version", "staging_claim"})
 LOOKUP_WRITES = frozenset({"lookup_in"})
 
 

@@ -22,13 +22,14 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import secrets
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from pmcal.bridge.comptable import NTHETA_MAX, CompTable
-from pmcal.bridge.errors import AckTimeout, BridgeError, LinkError, ReadbackMismatch, Rejected
+from pmcal.bridge.errors import AckTimeout, BridgeError, LinkError, ReadbackMismatch, Rejected, StagingBusy
 from pmcal.bridge.link import PlcLink
 from pmcal.bridge.plc_types import HEADER_SIZE, LREAL_SIZE, Header, PlcState, State, Status, shadow_rows
 from pmcal.errors import InputError
@@ -44,6 +45,8 @@ class PushOptions:
     poll_s: float = 0.0005
     retry_pause_s: float = 0.05
     dry_run: bool = False
+    #: keep re-committing after SWAP_TIMEOUT (the machine moving) until this long has passed, s
+    wait_motion_s: float = 0.0
 
 
 @dataclass
@@ -81,6 +84,8 @@ def push(link: PlcLink, table: CompTable, options: PushOptions = PushOptions(),
     subclasses for transfer failures (with ``exc.report``). Returns the report on success.
     """
     table.validate()
+    if audit_path is not None and not options.dry_run:
+        check_writable(audit_path, "--audit")          # before anything reaches the PLC
     run = _Run(link, table, options, PushReport(link.transport, link.target, table.machine, int(table.version),
                                                 f"0x{table.crc16():04X}", dry_run=options.dry_run))
     t0 = time.perf_counter()
@@ -113,6 +118,7 @@ def push(link: PlcLink, table: CompTable, options: PushOptions = PushOptions(),
         failure.report = rep
         raise failure from exc
     finally:
+        run.release()
         link.close()
         run.rep.timings_s["total"] = time.perf_counter() - t0
         if audit_path is not None:
@@ -129,10 +135,46 @@ class _Run:
     rep: PushReport
     commit_sent: bool = False
     acknowledged: bool = False
+    owned: bool = False
 
     def __post_init__(self) -> None:
         self.header = Header.of(self.table).pack()
         self.rows = shadow_rows(self.table)
+        self.token = secrets.randbits(32) | 1          # this push's session token (never 0)
+
+    def claim(self) -> None:
+        """Own the PLC's staging area (``nStagingClaim := token``) or raise :class:`StagingBusy`.
+
+        The PLC grants the staging to the first claim and keeps it until its owner writes 0 (or stays
+        silent for the staging lease), so two pushes never interleave their writes.
+        """
+        link, opt = self.link, self.opt
+        link.write_claim(self.token)
+        st = _wait(link, lambda s: s.staging_owner != 0, opt.idle_timeout_s, opt.poll_s,
+                   "PLC did not grant the staging area (nStagingOwner stays 0)")
+        if st.staging_owner != self.token:
+            raise StagingBusy(f"another client is staging a table on this PLC (session 0x{st.staging_owner:08X}); "
+                              "nothing written, try again when it has finished (the PLC frees the staging "
+                              "area of a silent client after its staging lease)")
+        self.owned = True
+
+    def release(self) -> None:
+        """``nStagingClaim := 0`` if this push owns the staging area (best effort)."""
+        if not self.owned:
+            return
+        for reopen in (False, True):                   # after a broken link: once more on a fresh one
+            try:
+                if reopen:
+                    self.link.close()
+                    self.link.open()
+                self.link.write_claim(0)
+                self.owned = False
+                # wait until the PLC has seen the release, so a push right after this one finds it free
+                _wait(self.link, lambda s: s.staging_owner != self.token, self.opt.idle_timeout_s,
+                      self.opt.poll_s, "")
+                return
+            except (BridgeError, OSError):
+                continue
 
     def abandon(self) -> str:
         """After a failure with a commit possibly pending: withdraw it and say what is active.
@@ -183,7 +225,8 @@ class _Run:
             rep.message = (f"dry run: would stage {len(would)} bytes (sha256 {rep.sha256_sent[:16]}) and commit "
                            f"version {version} (active version {st.active_version}); nothing written")
             return
-        # withdraw whatever is pending, wait for an idle manager
+        # own the staging area, withdraw whatever is pending, wait for an idle manager
+        self.claim()
         link.write_commit(0)
         _wait(link, lambda s: s.ack_version == 0 and s.state == State.IDLE, opt.idle_timeout_s, opt.poll_s,
               "PLC manager did not become idle after clearing nCommitVersion")
@@ -200,18 +243,16 @@ class _Run:
         # commit and wait for the acknowledgement
         t = time.perf_counter()
         self.commit_sent = True
-        link.write_commit(version)
-        try:
-            st = _wait(link, lambda s: s.ack_version == version and s.state == State.IDLE, opt.ack_timeout_s,
-                       opt.poll_s, "")
-        except AckTimeout:
-            st = _withdraw(link, opt)
-            self.acknowledged = True                    # settled: withdrawn (or swapped just before)
-            rep.active_version, rep.status = st.active_version, _name(st.status)
-            if not (st.active_version == version and st.active_crc == crc):
-                raise AckTimeout(f"PLC did not acknowledge version {version} within {opt.ack_timeout_s:g} s "
-                                 f"(state {_name(st.state)}); commit withdrawn, active version stays "
-                                 f"{st.active_version}") from None
+        motion_deadline = time.monotonic() + opt.wait_motion_s
+        while True:
+            link.write_commit(version)
+            st = self._await_ack(version, crc)
+            if st.status != Status.SWAP_TIMEOUT or time.monotonic() >= motion_deadline:
+                break
+            # the machine kept moving for the PLC's whole commit time-out: commit again (--wait-motion)
+            link.write_commit(0)
+            _wait(link, lambda s: s.ack_version == 0 and s.state == State.IDLE, opt.idle_timeout_s, opt.poll_s,
+                  "PLC manager did not become idle after clearing nCommitVersion")
         rep.timings_s["commit_ack"] = time.perf_counter() - t
         self.acknowledged = True
         rep.active_version, rep.status = st.active_version, _name(st.status)
@@ -221,9 +262,36 @@ class _Run:
             rep.message = f"version {version} active (was {rep.previous_version})"
             return
         reason = _REASONS.get(st.status, "see plc/README.md")
+        if st.status == Status.SWAP_TIMEOUT:
+            waited = f" and {opt.wait_motion_s:g} s of --wait-motion" if opt.wait_motion_s > 0 else ""
+            reason += f"{waited}; stop the machine, or wait longer with --wait-motion S"
         raise Rejected(f"PLC rejected version {version}: {_name(st.status)} ({reason}); "
                        f"active version stays {st.active_version}")
 
+    def _await_ack(self, version: int, crc: int) -> PlcState:
+        """The PLC's acknowledgement of ``version``; on time-out withdraw and say what the PLC was doing."""
+        link, opt, rep = self.link, self.opt, self.rep
+        try:
+            return _wait(link, lambda s: s.ack_version == version and s.state == State.IDLE, opt.ack_timeout_s,
+                         opt.poll_s, "")
+        except AckTimeout:
+            before = link.read_state()                  # what the PLC was doing, before the withdrawal
+            st = _withdraw(link, opt)
+            self.acknowledged = True                    # settled: withdrawn (or swapped just before)
+            rep.active_version, rep.status = st.active_version, _name(st.status)
+            if st.active_version == version and st.active_crc == crc:
+                return st
+            doing = _DOING.get(before.state, f"state {_name(before.state)}")
+            raise AckTimeout(f"PLC did not acknowledge version {version} within {opt.ack_timeout_s:g} s: {doing}; "
+                             f"commit withdrawn, active version stays {st.active_version}") from None
+
+
+_DOING = {
+    State.WAIT_MOTION: "the table passed the PLC's checks and waits for the machine to stop (WAIT_MOTION; "
+                       "stop the machine, or use --wait-motion S)",
+    State.CHECKING: "the PLC was still checking the table (CHECKING; raise --ack-timeout)",
+    State.IDLE: "the PLC's manager is idle and did not take the commit (state IDLE)",
+}
 
 _REASONS = {
     Status.FORMAT_VERSION: "unknown table format version",
@@ -294,6 +362,26 @@ def _compare(sent_header: bytes, sent_rows: bytes, back_header: bytes, back_rows
         i, rest = divmod(k, NTHETA_MAX * 2)
         j, m = divmod(rest, 2)
         raise ReadbackMismatch(f"read-back of the staged table differs at node ({i}, {j}) m{m + 1}_deg")
+
+
+def check_writable(path: str | os.PathLike, what: str, replace: bool = False) -> None:
+    """Raise :class:`InputError` unless ``path`` can be appended to (or created in its folder).
+
+    ``replace``: the file is written atomically (a new file in its folder, then renamed), so the
+    folder must be writable. Called before the first write to the PLC, so a local failure never
+    follows a committed table.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise InputError("is a folder, not a file", file=str(p), field=what)
+    if p.exists() and not replace:
+        ok = os.access(p, os.W_OK)
+    else:
+        folder = next((d for d in [p.parent, *p.parent.parents] if d.exists()), Path("."))
+        ok = folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)
+    if not ok:
+        raise InputError("cannot be written (read-only file or folder); nothing was sent to the PLC",
+                         file=str(p), field=what)
 
 
 def append_audit(path: str | os.PathLike, line: str) -> None:

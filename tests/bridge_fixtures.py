@@ -29,11 +29,16 @@ def nominal_setpoints(phi_deg: np.ndarray, theta_deg: np.ndarray) -> np.ndarray:
     return np.rad2deg(nominal_ik(np.deg2rad(phi_deg), np.deg2rad(theta_deg)))
 
 
-def make_table(version: int = 1, n_phi: int = 37, n_theta: int = 13, offset_deg: float = 0.0) -> CompTable:
-    """A valid table from the nominal IK (plus ``offset_deg`` on both motors, to tell tables apart)."""
+def make_table(version: int = 1, n_phi: int = 37, n_theta: int = 13, offset_deg: float = 0.0,
+               reference="nominal_ik") -> CompTable:
+    """A valid table from the nominal IK (plus ``offset_deg`` on both motors, to tell tables apart).
+
+    ``reference=None`` stores absolute commands (format version 1 scheme).
+    """
     return CompTable.from_setpoints(lambda p, t: nominal_setpoints(p, t) + offset_deg, machine="ocpm_2dof",
                                     version=version, n_phi=n_phi, n_theta=n_theta,
-                                    motor_limits_deg=MOTOR_LIMITS_DEG, max_step_deg=MAX_STEP_DEG)
+                                    motor_limits_deg=MOTOR_LIMITS_DEG, max_step_deg=MAX_STEP_DEG,
+                                    reference=reference)
 
 
 @contextmanager

@@ -18,6 +18,7 @@ import pytest
 from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, crc16_ccitt
 from pmcal.bridge import plc_types
 from pmcal.bridge.modbus_map import MAGIC, PAGE_LOAD, PAGE_STORE, ModbusMap
+from pmcal.bridge.nominal import NominalReference
 from pmcal.bridge.plc_twin import PlcTwin
 from pmcal.bridge.plc_types import (SYMBOLS, Header, LookupIn, LookupOut, LookupResult, State, Status,
                               shadow_rows)
@@ -87,7 +88,8 @@ def _bad(kind: str):
     elif kind == "crc":
         h = replace(h, crc=h.crc ^ 0x0100)
     else:
-        table.values[4, 2, 1] = {"nan": np.nan, "range": 80.0, "step": table.values[4, 2, 1] + 20.0}[kind]
+        table.values[4, 2, 1] = {"nan": np.nan, "range": 80.0 - table.nominal_at_nodes()[4, 2, 1],
+                                 "step": table.values[4, 2, 1] + 20.0}[kind]
         h = Header.of(table)
     return table, h
 
@@ -262,6 +264,10 @@ def test_st_constants_match_the_bridge():
     assert (CONST["WINDOW_LREALS"], CONST["MB_MAGIC"]) == (rmap.window_lreals, MAGIC)
     assert (CONST["PAGE_STORE"], CONST["PAGE_LOAD"]) == (PAGE_STORE, PAGE_LOAD)
     assert crc16_ccitt(CONST["CRC_TEST_VECTOR"].encode()) == CONST["CRC_TEST_RESULT"] == 0x29B1
+    # the nominal-IK reference the PLC computes is the one tables are written against
+    ref = NominalReference.default()
+    assert tuple(float(CONST[k]) for k in ("REF_A_MM", "REF_H_MM", "REF_L_MM", "REF_PSI1_DEG", "REF_PSI2_DEG")) == (
+        ref.a_mm, ref.h_mm, ref.l_mm, ref.psi1_deg, ref.psi2_deg)
 
 
 def test_st_structs_have_the_bridge_byte_layout():

@@ -80,7 +80,7 @@ def test_compensate_setpoints_and_table(files, twin):
     assert (t.n_phi, t.n_theta, t.version) == (37, 16, 7)
     assert table.with_suffix(".csv").exists()
     assert (t.phi_min_deg, t.phi_max_deg, t.theta_min_deg, t.theta_max_deg) == (0.0, 360.0, 0.0, 60.0)
-    # node values are the exact compensation at the node orientations
+    # node values are the exact compensation at the node orientations  (format 2: reference + correction)
     nodes = [(3, 0), (10, 5), (20, 15), (36, 7)]
     node_targets = files / "nodes.csv"
     node_targets.write_text("phi_deg,theta_deg\n" + "".join(
@@ -88,7 +88,7 @@ def test_compensate_setpoints_and_table(files, twin):
     assert main(["compensate", str(files / "params.json"), "--targets", str(node_targets),
                  "-o", str(files / "nodes_out.csv")]) == 0
     at_nodes = np.array([[float(r["m1_deg"]), float(r["m2_deg"])] for r in read_rows(files / "nodes_out.csv")])
-    np.testing.assert_allclose(at_nodes, [t.values[i, j] for i, j in nodes], atol=2e-6)
+    np.testing.assert_allclose(at_nodes, [t.commands_at_nodes()[i, j] for i, j in nodes], atol=2e-6)
     # between nodes: bilinear, within the curvature bound of a 10 x 4 deg grid
     assert np.max(np.abs(t.interpolate(phi, theta) - m)) < 0.3
 

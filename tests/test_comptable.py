@@ -59,7 +59,7 @@ def test_valid_nominal_table_passes_and_covers_the_workspace():
     table = make_table(version=3, n_phi=37, n_theta=13).validate(active_version=2)
     assert table.values.shape == (37, 13, 2)
     # home pose (theta = 0): both motors at the nominal home angle -39.351 deg (spec/MECHANISM.md)
-    np.testing.assert_allclose(table.values[:, 0, :], -39.351, atol=5e-4)
+    np.testing.assert_allclose(table.commands_at_nodes()[:, 0, :], -39.351, atol=5e-4)
 
 
 @pytest.mark.parametrize("what, field, kind", [
@@ -72,7 +72,8 @@ def test_bad_values_are_refused_naming_row_and_field(what, field, kind):
     table = make_table(n_phi=37, n_theta=13)          # nominal steps up to 9.8 deg < MAX_STEP_DEG
     i, j = 4, 2
     k = 0 if field == "m1_deg" else 1
-    table.values[i, j, k] = {"nan": np.nan, "inf": np.inf, "range": 75.0,
+    # range and step apply to the absolute command: nominal (reference) + stored correction
+    table.values[i, j, k] = {"nan": np.nan, "inf": np.inf, "range": 75.0 - table.nominal_at_nodes()[i, j, k],
                              "step": table.values[i, j, k] + MAX_STEP_DEG + 1.0}[what]
     with pytest.raises(InputError) as exc:
         table.validate()
@@ -124,10 +125,10 @@ def test_json_and_csv_round_trip_bit_exact(tmp_path):
         assert back.crc16() == table.crc16() and back.sha256() == table.sha256()
         assert (back.version, back.machine, back.n_phi, back.n_theta) == (5, "ocpm_2dof", 100, 100)
     doc = json.loads(jp.read_text())
-    assert doc["format"] == "pmcal-comptable" and doc["format_version"] == 1
+    assert doc["format"] == "pmcal-comptable" and doc["format_version"] == 2
     assert doc["crc16_ccitt"] == f"0x{table.crc16():04X}" and doc["sha256"] == table.sha256()
     lines = cp.read_text().splitlines()
-    assert lines[0].startswith("# pmcal-comptable") and "phi_deg,theta_deg,m1_deg,m2_deg" in lines
+    assert lines[0].startswith("# pmcal-comptable") and "phi_deg,theta_deg,dm1_deg,dm2_deg" in lines
 
 
 def test_edited_file_fails_its_checksum(tmp_path):
@@ -149,7 +150,7 @@ def test_csv_errors_name_file_row_and_field(tmp_path):
     cp.write_text("\n".join(bad) + "\n")
     with pytest.raises(InputError) as exc:
         CompTable.load(cp)
-    assert (exc.value.file, exc.value.row, exc.value.field) == (str(cp), 5, "m2_deg")
+    assert (exc.value.file, exc.value.row, exc.value.field) == (str(cp), 5, "dm2_deg")
     bad = lines.copy()
     bad[first + 1] = "5," + bad[first + 1].split(",", 1)[1]           # row 2: phi is not the node
     cp.write_text("\n".join(bad) + "\n")
@@ -189,7 +190,7 @@ def test_missing_and_foreign_files(tmp_path):
 # ---- interpolation ------------------------------------------------------------------------
 
 def test_interpolation_hits_the_nodes_and_matches_scipy_between():
-    table = make_table(n_phi=37, n_theta=13)
+    table = make_table(n_phi=37, n_theta=13, reference=None)     # absolute commands: bilinear alone
     pp, tt = np.meshgrid(table.phi_nodes_deg(), table.theta_nodes_deg(), indexing="ij")
     # a + (b - a) * t is exact at t = 0 and within an ulp-sized rounding at t = 1
     np.testing.assert_allclose(table.interpolate(pp, tt), table.values, rtol=0, atol=1e-12)
@@ -201,7 +202,7 @@ def test_interpolation_hits_the_nodes_and_matches_scipy_between():
 
 
 def test_fine_table_reproduces_the_inverse_kinematics_within_the_bilinear_bound():
-    table = make_table(n_phi=100, n_theta=100)
+    table = make_table(n_phi=100, n_theta=100, reference=None)
     rng = np.random.default_rng(1)
     phi, theta = rng.uniform(0, 360, 300), rng.uniform(0, 60, 300)
     err = np.abs(table.interpolate(phi, theta) - nominal_setpoints(phi, theta))
@@ -216,3 +217,80 @@ def test_interpolation_refuses_targets_outside_the_grid():
         table.interpolate([10.0, 370.0], [5.0, 5.0])
     m, inside = bilinear(table.values, (0, 360), (0, 60), [10.0, np.nan, 10.0], [5.0, 5.0, 61.0])
     assert inside.tolist() == [True, False, False] and np.isnan(m[1:]).all()
+
+
+# ---- format 2: reference, version-1 files, required checksums ---------------------------------
+
+def _v1_file(tmp_path, table):
+    """A format-1 JSON file as the version-1 writer produced it (absolute values, SHA over values)."""
+    import hashlib
+
+    doc = table.header_dict()
+    doc.pop("reference")
+    doc["format_version"] = 1
+    doc["sha256"] = hashlib.sha256(table.values.tobytes()).hexdigest()
+    doc["values"] = table.values.tolist()
+    p = tmp_path / "v1.json"
+    p.write_text(json.dumps(doc))
+    return p
+
+
+def test_version_1_file_is_read_as_absolute_commands_with_the_same_lookup(tmp_path):
+    ref_table = make_table(version=4, n_phi=37, n_theta=13)
+    absolute = CompTable(machine="ocpm_2dof", version=4, values=ref_table.commands_at_nodes(),
+                         **ref_table.limits())
+    back = CompTable.load(_v1_file(tmp_path, absolute))
+    assert back.reference is None and back.values.tobytes() == absolute.values.tobytes()
+    back.validate()
+    # saving writes format 2 (reference kind none), which reads back to the same table
+    jp, cp = back.save(tmp_path / "v2.json")
+    assert json.loads(jp.read_text())["reference"] == {"kind": "none"}
+    for again in (CompTable.load(jp), CompTable.load(cp)):
+        assert again.reference is None and again.values.tobytes() == absolute.values.tobytes()
+
+
+@pytest.mark.parametrize("version", [0, 3, "2"])
+def test_unknown_format_version_is_refused(tmp_path, version):
+    jp, _ = make_table().save(tmp_path / "comp.json")
+    doc = json.loads(jp.read_text())
+    doc["format_version"] = version
+    jp.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="format_version") as exc:
+        CompTable.load(jp)
+    assert exc.value.field == "format_version"
+
+
+@pytest.mark.parametrize("drop", ["crc16_ccitt", "sha256"])
+def test_file_without_checksums_is_refused(tmp_path, drop):
+    jp, cp = make_table().save(tmp_path / "comp.json")
+    doc = json.loads(jp.read_text())
+    del doc[drop]
+    jp.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=f"no {drop}") as exc:
+        CompTable.load(jp)
+    assert exc.value.field == drop
+    lines = [ln for ln in cp.read_text().splitlines() if not ln.startswith("# crc16_ccitt")]
+    cp.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="no crc16_ccitt"):
+        CompTable.load(cp)
+
+
+def test_edited_reference_fails_the_sha256(tmp_path):
+    jp, _ = make_table().save(tmp_path / "comp.json")
+    doc = json.loads(jp.read_text())
+    doc["reference"]["l_mm"] += 0.001
+    jp.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="SHA-256 mismatch"):
+        CompTable.load(jp)
+
+
+def test_nominal_reference_equals_the_mechanism_inverse_kinematics():
+    """bridge/nominal.py (the ST arithmetic) against pmcal.mechanism's vectorised real IK, errors zero."""
+    from pmcal.bridge.nominal import NominalReference
+
+    rng = np.random.default_rng(3)
+    phi, theta = rng.uniform(0, 360, 2000), rng.uniform(0, 60, 2000)
+    np.testing.assert_allclose(NominalReference.default().commands_deg(phi, theta), nominal_setpoints(phi, theta),
+                               rtol=0, atol=1e-11)
+    # the table stores only the calibration's correction: zero for the nominal machine
+    assert np.abs(make_table(n_phi=37, n_theta=13).values).max() < 1e-11

@@ -30,7 +30,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="connect, check the interface and the table, write nothing")
     p.add_argument("--attempts", type=int, default=3, help="transfer attempts on link errors (default 3)")
     p.add_argument("--ack-timeout", type=float, default=5.0, metavar="S",
-                   help="wait this long for the PLC's acknowledgement (default 5 s)")
+                   help="wait this long for the PLC's acknowledgement (default 5 s; keep it above the PLC's "
+                        "commit time-out, FB_CompTableManager.tCommitTimeout, 4 s)")
+    p.add_argument("--wait-motion", type=float, default=0.0, metavar="S",
+                   help="if the machine is moving (the PLC reports WAIT_MOTION/SWAP_TIMEOUT), keep the commit "
+                        "up for this long, s (default 0: report it at once)")
     p.add_argument("--audit", default=None, metavar="FILE",
                    help="audit log to append to (default: bridge_audit.log beside TABLE)")
     p.add_argument("--no-audit", action="store_true", help="write no audit line")
@@ -48,7 +52,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="inject a fault, e.g. drop@mid_stage or delay@ack_wait*1 (repeatable)")
     m.add_argument("--motion-busy", action="store_true", help="the machine never stands still (no swap)")
     m.add_argument("--cycle-ms", type=float, default=1.0, help="PLC task cycle, ms (default 1)")
+    m.add_argument("--restart-after", type=float, default=None, metavar="S",
+                   help="power-cycle the mock PLC once after S seconds (persistent table kept, staging lost)")
     m.set_defaults(func=cmd_mock_plc)
+
+    pl = sub.add_parser("plc", help="ask the PLC what it runs: status, or verify a table is active")
+    psub = pl.add_subparsers(dest="plc_cmd", required=True)
+    st = psub.add_parser("status", help="runtime state, interface, active table (version, CRC, machine), last status")
+    _target_args(st)
+    st.add_argument("--json", action="store_true", help="print the status as one JSON object")
+    st.set_defaults(func=cmd_plc_status)
+    vf = psub.add_parser("verify", help="exit 0 if exactly TABLE is active on the PLC, 4 if not")
+    vf.add_argument("table", metavar="TABLE", help="compensation table, .json or .csv")
+    _target_args(vf)
+    vf.add_argument("--json", action="store_true", help="print the verdict as one JSON object")
+    vf.set_defaults(func=cmd_plc_verify)
 
     lp = sub.add_parser("loop", help="twin in the loop: pointing error before and after a push")
     lp.add_argument("--table", default=None, metavar="TABLE",
@@ -71,6 +89,9 @@ def _target_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--modbus", default=None, metavar="HOST[:PORT]", help="Modbus TCP target (TF6250)")
     p.add_argument("--ams-port", type=int, default=851, help="AMS port of the PLC runtime (default 851)")
     p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="per-request time-out (default 2 s)")
+    p.add_argument("--local-netid", default=None, metavar="NETID",
+                   help="AMS NetID of this client (ADS; default: AdsLib derives it from the local IP + .1.1). "
+                        "The PLC needs a route to it (docs/bridge.md, 'Routes')")
 
 
 def _quiet_libraries() -> None:
@@ -89,8 +110,14 @@ def make_link(args, writes=None):
     if not (args.timeout > 0):
         raise InputError(f"time-out must be positive, got {args.timeout}", field="--timeout")
     if args.ads:
-        from pmcal.bridge.ads import AdsLink
+        from pmcal.bridge.ads import AdsLink, set_local_netid
         from pmcal.bridge.ads_map import AdsMap, AdsTarget
+
+        if getattr(args, "local_netid", None):
+            try:
+                set_local_netid(args.local_netid)
+            except ValueError as exc:
+                raise InputError(str(exc), field="--local-netid") from None
 
         try:
             target = AdsTarget.parse(args.ads)
@@ -109,18 +136,26 @@ def make_link(args, writes=None):
 def cmd_push(args) -> int:
     from pmcal.bridge.comptable import CompTable
     from pmcal.bridge.errors import BridgeError
-    from pmcal.bridge.transfer import PushOptions, push
+    from pmcal.bridge.transfer import PushOptions, check_writable, push
 
     if args.attempts < 1:
         raise InputError(f"attempts must be at least 1, got {args.attempts}", field="--attempts")
     if not (args.ack_timeout > 0):
         raise InputError(f"acknowledgement time-out must be positive, got {args.ack_timeout}",
                          field="--ack-timeout")
-    table = CompTable.load(args.table).validate()
+    if not (args.wait_motion >= 0.0) or args.wait_motion > 3600.0:
+        raise InputError(f"wait for motion must be 0..3600 s, got {args.wait_motion}", field="--wait-motion")
+    table = CompTable.load(args.table).validate()       # checksums and values: before connecting
     link = make_link(args, writes=frozenset() if args.dry_run else None)
     _quiet_libraries()
     audit = None if args.no_audit else (args.audit or Path(args.table).with_name("bridge_audit.log"))
-    options = PushOptions(attempts=args.attempts, ack_timeout_s=args.ack_timeout, dry_run=args.dry_run)
+    # everything that can fail locally, before the first byte goes to the PLC
+    if audit is not None and not args.dry_run:
+        check_writable(audit, "--audit")
+    if args.json:
+        check_writable(args.json, "--json", replace=True)
+    options = PushOptions(attempts=args.attempts, ack_timeout_s=args.ack_timeout, dry_run=args.dry_run,
+                          wait_motion_s=args.wait_motion)
     try:
         rep = push(link, table, options, audit_path=audit)
     except BridgeError as exc:
@@ -133,6 +168,95 @@ def cmd_push(args) -> int:
     print(f"{rep.result}: {args.table} v{rep.version} -> {link.transport} {link.target}: {rep.message} "
           f"(crc {rep.crc16}{sent}, {total_ms:.1f} ms)")
     return 0
+
+
+def plc_status(link) -> dict:
+    """What the PLC runs, read over ``link`` (read-only): one dict, JSON-ready."""
+    from pmcal.bridge.plc_types import Header
+
+    with link:
+        link.check_interface()
+        st = link.read_state()
+        h = Header.unpack(link.read_active_header())
+    name = lambda v: getattr(v, "name", v)  # noqa: E731
+    return {"transport": link.transport, "target": link.target, "runtime": "RUN",
+            "interface_version": _interface_version(), "active_version": st.active_version,
+            "active_crc16": f"0x{st.active_crc:04X}", "machine": h.machine if st.active_version else None,
+            "format_version": h.format_version if st.active_version else None,
+            "reference": {0: "none", 1: "nominal_ik"}.get(h.reference, h.reference) if st.active_version else None,
+            "grid": [h.n_phi, h.n_theta] if st.active_version else None,
+            "last_status": name(st.status), "state": name(st.state), "ack_version": st.ack_version,
+            "staging_owner": f"0x{st.staging_owner:08X}" if st.staging_owner else None,
+            "plc_cycle": st.cycle,
+            "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+
+def _interface_version() -> int:
+    from pmcal.bridge.plc_types import INTERFACE_VERSION
+
+    return INTERFACE_VERSION           # check_interface() refused any other
+
+
+def _status_link(args):
+    from pmcal.bridge.errors import BridgeError  # noqa: F401  (callers catch it)
+
+    return make_link(args, writes=frozenset())
+
+
+def cmd_plc_status(args) -> int:
+    from pmcal.bridge.errors import BridgeError
+
+    link = _status_link(args)
+    _quiet_libraries()
+    try:
+        s = plc_status(link)
+    except BridgeError as exc:
+        print(f"pmcal: failed: status of {link.transport} {link.target}: {exc}", file=sys.stderr)
+        return exc.exit_status
+    if args.json:
+        print(json.dumps(s))
+    else:
+        print(f"{s['transport']} {s['target']}: runtime {s['runtime']}, interface v{s['interface_version']}, "
+              f"active table v{s['active_version']} crc {s['active_crc16']} machine {s['machine']} "
+              f"(reference {s['reference']}, grid {s['grid']}), last status {s['last_status']}, "
+              f"manager {s['state']}, at {s['time']}")
+    return 0
+
+
+def cmd_plc_verify(args) -> int:
+    """Exit 0 if exactly TABLE (version, CRC-16 and the whole header) is active, 4 if not."""
+    from pmcal.bridge.comptable import CompTable
+    from pmcal.bridge.errors import BridgeError
+    from pmcal.bridge.plc_types import Header
+
+    table = CompTable.load(args.table).validate()
+    link = _status_link(args)
+    _quiet_libraries()
+    try:
+        with link:
+            link.check_interface()
+            st = link.read_state()
+            active = link.read_active_header()
+    except BridgeError as exc:
+        print(f"pmcal: failed: verify against {link.transport} {link.target}: {exc}", file=sys.stderr)
+        return exc.exit_status
+    want = Header.of(table)
+    same = st.active_version == table.version and st.active_crc == table.crc16() and active == want.pack()
+    if same:
+        why = "active"
+    elif st.active_version != table.version:
+        why = f"not active: the PLC runs version {st.active_version}"
+    elif st.active_crc != table.crc16():
+        why = f"not active: version {table.version} is active with another CRC (0x{st.active_crc:04X})"
+    else:
+        why = "not active: the active header differs (limits, grid, reference or machine)"
+    if args.json:
+        print(json.dumps({"table": str(args.table), "version": int(table.version), "crc16": f"0x{table.crc16():04X}",
+                          "active": same, "active_version": st.active_version,
+                          "active_crc16": f"0x{st.active_crc:04X}", "message": why}))
+    else:
+        print(f"{args.table} v{table.version} crc 0x{table.crc16():04X}: {why} on {link.transport} {link.target}")
+    return 0 if same else 4
 
 
 def _write_json(path, report) -> None:
@@ -154,6 +278,8 @@ def cmd_mock_plc(args) -> int:
         raise InputError("cycle must be 0.1 .. 1000 ms", field="--cycle-ms")
     if not 0 <= args.port < 65536:
         raise InputError(f"port {args.port} outside 0..65535", field="--port")
+    if args.restart_after is not None and not 0 < args.restart_after < args.seconds:
+        raise InputError(f"restart-after must be in (0, {args.seconds:g}) s", field="--restart-after")
     faults = []
     for text in args.fault:
         try:
@@ -179,9 +305,16 @@ def cmd_mock_plc(args) -> int:
     print(f"mock PLC ({mock.transport}) at {mock.target} for {args.seconds:g} s; "
           f"try: pmcal push TABLE {flag} {mock.target}", flush=True)
     stop = _stop_on_sigterm()
+    restart_at = None if args.restart_after is None else time.monotonic() + args.restart_after
     try:
         while not mock.expired() and not stop:
-            time.sleep(0.1)
+            time.sleep(0.05)
+            if restart_at is not None and time.monotonic() >= restart_at:
+                restart_at = None
+                mock.restart()
+                st = mock.twin.state
+                print(f"mock PLC restarted: active version {st.active_version}, start-up check "
+                      f"{getattr(st.status, 'name', st.status)}", flush=True)
     except KeyboardInterrupt:
         pass
     finally:
