@@ -17,7 +17,9 @@ File formats: ``docs/formats.md``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import io
 import os
 import pkgutil
 import sys
@@ -212,7 +214,10 @@ def main(argv: list[str] | None = None) -> int:
             prepare(args)
         check_outputs(args)
         before = {path: _mtime(path) for _, path, _ in output_paths(args)}
-        status = int(args.func(args) or 0)
+        name = _command_name(args)
+        silence = quiet and (name in FILE_OUTPUTS or name in FOLDER_OUTPUTS)   # writers: nothing on stdout
+        with contextlib.redirect_stdout(io.StringIO()) if silence else contextlib.nullcontext():
+            status = int(args.func(args) or 0)
         if status == 0 and not quiet:
             _report_written(args, before)
         return status
