@@ -32,14 +32,18 @@ __all__ = ["Calibration", "CompTable", "Measurements", "PushReport", "identify",
            "push", "read_measurements"]
 
 
-def read_measurements(path: str | Path) -> Measurements:
+def read_measurements(path: str | Path, frame: str = "base") -> Measurements:
     """Read a measurement campaign of the over-constrained PM (CSV, ``docs/formats.md``).
 
     Parameters
     ----------
     path : str or Path
         UTF-8 CSV with ``pose_id, m1_cmd_deg, m2_cmd_deg, t1_x ... t3_z`` (mm, base frame) and optional
-        ``temp_c, time_s, payload_kg, m1_approach, m2_approach``.
+        ``temp_c, time_s, payload_kg, m1_approach, m2_approach``. A blocked target has its three cells
+        empty (NaN); a row needs at least two targets.
+    frame : {"base", "tracker"}
+        Frame of the targets; ``"tracker"`` (the tracker's own frame, ``docs/tracker_frame.md``) skips
+        the checks that need the base frame. Pass the same ``frame`` to :func:`identify`.
 
     Returns
     -------
@@ -50,7 +54,9 @@ def read_measurements(path: str | Path) -> Measurements:
     pmcal.errors.InputError
         Naming file, row and field of the first bad cell (also implausible units).
     """
-    return _read_measurements(path)
+    if frame not in ("base", "tracker"):
+        raise InputError(f"unknown frame '{frame}' (base or tracker)", field="--frame")
+    return _read_measurements(path, frame=frame)
 
 
 def load_calibration(path: str | Path) -> Calibration:

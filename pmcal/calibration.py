@@ -22,7 +22,6 @@ from pmcal.bridge.comptable import CompTable
 from pmcal.calib.ocpm import compensation as comp
 from pmcal.calib.ocpm import paper_calibration
 from pmcal.calib.ocpm import paper_model as pm
-from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full
 from pmcal.calib.solvers import METHODS
 from pmcal.compensators import (DEFAULT_GRID, Compensator, FullCompensation, PaperCompensation, build_table,
                                 checked_commands)
@@ -32,6 +31,7 @@ from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import limb_ik
 from pmcal.mechanism.ocpm.params import LOG_RATIO, ErrorSet, describe, is_angular, to_interface
+from pmcal.tracker_frame import identify_result, tracker_document
 from pmcal.twin.forward import FullChainModel
 
 MODELS = ("full", "paper")
@@ -190,7 +190,7 @@ def check_reachable(meas: Measurements, path: str | None, geom: Geometry) -> Non
     """Every measured pose must be within reach of the actuated limbs of the nominal machine."""
     r, R, _ = meas.poses(geom)
     ik = limb_ik(r, R, None, geom, (1, 2))
-    bad = np.argwhere(~np.isfinite(ik.beta))
+    bad = np.argwhere(~np.isfinite(ik.beta) & np.isfinite(r).all(axis=1)[:, None])   # NaN r: blocked target
     if bad.size:
         i, j = (int(v) for v in bad[0])
         raise InputError(f"the measured platform pose is out of reach of limb {j + 1} (|K/rho| = "
@@ -200,7 +200,8 @@ def check_reachable(meas: Measurements, path: str | None, geom: Geometry) -> Non
 
 def identify(meas: Measurements, *, model: str = DEFAULT_MODEL, method: str | None = None,
              sigma_mm: float | None = None, rng_seed: int | None = 0, fit_stiffness_ratio: bool = True,
-             source: str | None = None, geometry: Geometry | None = None) -> Calibration:
+             source: str | None = None, geometry: Geometry | None = None, frame: str = "base",
+             registration=None, nest_tolerance_mm: float = 0.5, robust: bool | None = None) -> Calibration:
     """Calibrate the over-constrained PM from a measurement campaign.
 
     Parameters
@@ -222,6 +223,16 @@ def identify(meas: Measurements, *, model: str = DEFAULT_MODEL, method: str | No
         Identify the closure stiffness ratio with the whole chain.
     source : str, optional
         Where the data came from (recorded; named in error messages).
+    frame : {"base", "tracker"}
+        Frame of the measured targets. ``"tracker"``: the tracker's own frame; the pose of the base
+        frame in it (registration) and the target nests' offsets are identified with the machine, the
+        base frame fixed to the motor axes (``docs/tracker_frame.md``). Whole-chain model only.
+    registration : (R (3, 3), t (3,) mm), optional
+        Start value of the registration (default: from the data).
+    nest_tolerance_mm : float
+        Prior of the nests' offsets from the drawing, 1 sigma per coordinate, mm (tracker frame).
+    robust : bool, optional
+        Robust fit with named outlier rejection (default: on in the tracker frame and with blocked targets).
 
     Returns
     -------
@@ -230,7 +241,8 @@ def identify(meas: Measurements, *, model: str = DEFAULT_MODEL, method: str | No
     Raises
     ------
     pmcal.errors.InputError
-        Too few poses, poses out of reach, an unknown model or method, a non-positive noise.
+        Too few poses, poses out of reach, an unknown model or method, a non-positive noise, a bad
+        campaign (more outliers than the robust fit may reject).
 
     Examples
     --------
@@ -241,7 +253,10 @@ def identify(meas: Measurements, *, model: str = DEFAULT_MODEL, method: str | No
     """
     geom = geometry or default_geometry()
     model = check_choice(model, DEFAULT_MODEL, MODELS, "--model")
+    frame = check_choice(frame, "base", ("base", "tracker"), "--frame")
     sigma = check_sigma(sigma_mm, geom)
+    if model != "full" and frame != "base":
+        raise InputError("--frame tracker needs the whole-chain model (--model full)", field="--frame")
     if model == "full":
         if method is not None:
             raise InputError("--method chooses the solver of --model paper; the whole-chain model is fitted "
@@ -251,8 +266,11 @@ def identify(meas: Measurements, *, model: str = DEFAULT_MODEL, method: str | No
             raise InputError(f"{len(meas)} poses are too few for the whole-chain model: measure at least "
                              f"{MIN_POSES_FULL} (24-48 recommended, docs/fullchain.md)", file=source,
                              field="pose_id")
-        check_reachable(meas, source, geom)
-        return _identify_full(meas, sigma, source or "", geom, fit_stiffness_ratio)
+        if frame == "base":
+            check_reachable(meas, source, geom)
+        res = identify_result(meas, FullChainModel(geom), sigma, frame, registration, nest_tolerance_mm, robust,
+                              fit_stiffness_ratio, source)
+        return _identify_full(res, meas, sigma, source or "", geom, fit_stiffness_ratio)
     method = check_choice(method, DEFAULT_METHOD, METHODS, "--method")
     n_free = len(pm.PAPER_LIMB_FIELDS)
     if len(meas) <= n_free:
@@ -262,10 +280,8 @@ def identify(meas: Measurements, *, model: str = DEFAULT_MODEL, method: str | No
     return _identify_paper(meas, method, sigma, rng_seed, source or "", geom)
 
 
-def _identify_full(meas: Measurements, sigma: float, source: str, geom: Geometry,
+def _identify_full(res, meas: Measurements, sigma: float, source: str, geom: Geometry,
                    fit_stiffness_ratio: bool) -> Calibration:
-    res = identify_full(meas, FullChainModel(geom),
-                        FullChainOptions(fit_stiffness_ratio=fit_stiffness_ratio, sigma_mm=sigma))
     std, prior = res.std, res.info["prior_std"]
     to_unit = lambda k, v: float(np.rad2deg(v)) if is_angular(k) else float(v)  # noqa: E731
     keys = [k for k in res.names if k != LOG_RATIO]
@@ -290,6 +306,7 @@ def _identify_full(meas: Measurements, sigma: float, source: str, geom: Geometry
                 "chi2_per_dof": res.info["chi2_per_dof"], "dof": res.info["dof"]},
         "solver": {"n_eval": res.n_eval, "n_iter": res.n_iter, "wall_time_s": res.wall_time,
                    "success": res.success, "message": res.message},
+        **tracker_document(res, meas),
     }
     return Calibration(params=to_interface(res.names, res.x), model="full", method="map-least-squares",
                        document=doc, names=list(res.names), covariance=res.covariance,

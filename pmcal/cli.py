@@ -58,7 +58,9 @@ MACHINE_HELP: dict[str, dict[tuple[str, str], str | None]] = {
     "planar_2dof": {
         **{("twin measure", o): None for o in ("--stiffness-ratio", "--effect", "--payload", "--temperature",
                                                 "--shuffle", "--seconds-per-pose", "--theta-max",
-                                                "--no-random-approach")},
+                                                "--no-random-approach", "--tracker-pose", "--nest-error",
+                                                "--blocked", "--outliers")},
+        **{("identify", o): None for o in ("--frame", "--nest-tolerance", "--robust")},
         ("twin render", "--stiffness-ratio"): None, ("compensate", "--table"): None,
         ("compensate", "--grid"): None, ("compensate", "--table-version"): None,
         ("twin measure", "--poses"): "number of positions on the workspace boundary, even, >= 6 (default 6, "

@@ -15,7 +15,6 @@ from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_fk
 from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, PAPER_LIMB_FIELDS, check_key
-from pmcal.mechanism.rigid import fit_pose
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.csvio import read_csv, write_csv
 from pmcal.errors import InputError
@@ -32,16 +31,24 @@ PLAUSIBLE_POINTING_DEG = 5.0
 MAX_POSES = 2000
 #: Largest plausible error of a measured distance between two targets (mm).
 PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
+#: The same in the tracker frame, where gross outliers are expected and rejected (named) by the robust fit:
+#: only a unit mix-up or a swapped column is an input error there (mm).
+PLAUSIBLE_TARGET_DISTANCE_TRACKER_MM = 20.0
 
 
 def target_columns(k: int) -> list[str]:
     return [f"t{i}_{a}" for i in range(1, k + 1) for a in TARGET_AXES]
 
 
-def read_measurements(path: str | Path, geom: Geometry | None = None, check_units: bool = True) -> Measurements:
+def read_measurements(path: str | Path, geom: Geometry | None = None, check_units: bool = True,
+                      frame: str = "base") -> Measurements:
     """Read and validate a measurement CSV (INTERFACES.md): missing columns, non-numbers, NaN, duplicate
     ids, targets inconsistent with the platform (metres?), commands outside the workspace or
-    disagreeing with the measured tilt (radians?)."""
+    disagreeing with the measured tilt (radians?).
+
+    A blocked target has all three cells empty (NaN in :class:`Measurements`); a half-empty target or a
+    row with fewer than two targets is an error naming row and field. ``frame="tracker"``: the targets
+    are in the tracker's own frame, so only frame-free checks (distances between targets) apply."""
     geom = geom or default_geometry()
     t = read_csv(path, max_rows=MAX_POSES)
     k = 3
@@ -53,7 +60,8 @@ def read_measurements(path: str | Path, geom: Geometry | None = None, check_unit
     t.require(["pose_id", "m1_cmd_deg", "m2_cmd_deg"] + target_columns(k))
     ids = t.unique_ids("pose_id")
     m = np.stack([t.numbers("m1_cmd_deg"), t.numbers("m2_cmd_deg")], axis=1)
-    coords = np.stack([t.numbers(c) for c in target_columns(k)], axis=1).reshape(len(ids), k, 3)
+    coords = np.stack([t.numbers(c, allow_empty=True) for c in target_columns(k)], axis=1).reshape(len(ids), k, 3)
+    check_blocked(coords, t.path)
     optional = {c: (t.numbers(c, allow_empty=True, default=d) if t.has(c) else None)
                 for c, d in (("temp_c", math.nan), ("time_s", math.nan), ("payload_kg", 0.0))}
     if optional["payload_kg"] is not None and np.any(optional["payload_kg"] < 0):
@@ -64,18 +72,35 @@ def read_measurements(path: str | Path, geom: Geometry | None = None, check_unit
         approach = np.stack([t.numbers("m1_approach"), t.numbers("m2_approach")], axis=1)
     meas = Measurements(pose_id=ids, m_cmd_deg=m, targets=coords, approach=approach, **optional)
     if check_units:
-        check_plausible(meas, geom, t.path)
+        check_plausible(meas, geom, t.path, frame)
     return meas
 
 
-def check_plausible(meas: Measurements, geom: Geometry, path: str) -> None:
-    """Catch unit mix-ups and impossible rows with a message naming the row and field."""
+def check_blocked(coords: np.ndarray, path: str) -> None:
+    """Blocked targets (all three cells empty) are allowed; a half-empty target or a row with fewer than
+    two measured targets is an :class:`InputError` naming row and field."""
+    empty = np.isnan(coords)
+    for i, j in np.argwhere(empty.any(axis=2) & ~empty.all(axis=2)):
+        a = TARGET_AXES[int(np.flatnonzero(empty[i, j])[0])]
+        raise InputError(f"target t{j + 1} is half empty: leave all three of t{j + 1}_x, t{j + 1}_y, "
+                         f"t{j + 1}_z empty for a blocked target", file=path, row=int(i) + 1, field=f"t{j + 1}_{a}")
+    n_vis = (~empty.all(axis=2)).sum(axis=1)
+    for i in np.flatnonzero(n_vis < 2):
+        j = int(np.flatnonzero(empty[i].all(axis=1))[0])
+        raise InputError(f"only {n_vis[i]} target(s) measured: a row needs at least two", file=path,
+                         row=int(i) + 1, field=f"t{j + 1}_x")
+
+
+def check_plausible(meas: Measurements, geom: Geometry, path: str, frame: str = "base") -> None:
+    """Catch unit mix-ups and impossible rows with a message naming the row and field (blocked targets
+    skipped; in the tracker frame only the distances between targets are checked)."""
     X = geom.targets[: meas.targets.shape[1]]
     k = len(X)
     pairs = [(a, b) for a in range(k) for b in range(a + 1, k)]
     d_nom = np.array([np.linalg.norm(X[a] - X[b]) for a, b in pairs])
     d_meas = np.stack([np.linalg.norm(meas.targets[:, a] - meas.targets[:, b], axis=1) for a, b in pairs], 1)
-    bad = np.abs(d_meas - d_nom) > PLAUSIBLE_TARGET_DISTANCE_MM
+    limit = PLAUSIBLE_TARGET_DISTANCE_MM if frame == "base" else PLAUSIBLE_TARGET_DISTANCE_TRACKER_MM
+    bad = np.abs(d_meas - d_nom) > limit
     if bad.any():
         row, p = np.argwhere(bad)[0]
         a, b = pairs[p]
@@ -86,7 +111,7 @@ def check_plausible(meas: Measurements, geom: Geometry, path: str) -> None:
                          field=f"t{b + 1}_x")
     beta = np.deg2rad(meas.m_cmd_deg)
     phi, theta = nominal_fk(beta, geom)
-    _, R_meas, _ = fit_pose(meas.targets, X)
+    _, R_meas, _ = meas.poses(geom)
     for i in np.flatnonzero(~np.isfinite(theta)):
         hint = ""
         as_rad = np.rad2deg(beta[i])
@@ -94,7 +119,11 @@ def check_plausible(meas: Measurements, geom: Geometry, path: str) -> None:
             hint = " (values look like radians: the file must be in degrees)"
         raise InputError(f"commands ({meas.m_cmd_deg[i, 0]:.6g}, {meas.m_cmd_deg[i, 1]:.6g}) deg are outside "
                          f"the workspace of the machine{hint}", file=path, row=int(i) + 1, field="m1_cmd_deg")
-    err = np.rad2deg(pointing_error(tilt_torsion(phi, theta), R_meas))
+    if frame != "base":
+        return
+    ok = np.isfinite(R_meas).all(axis=(1, 2))
+    err = np.zeros(len(meas))
+    err[ok] = np.rad2deg(pointing_error(tilt_torsion(phi[ok], theta[ok]), R_meas[ok]))
     for i in np.flatnonzero(err > PLAUSIBLE_POINTING_DEG):
         raise InputError(f"the measured platform points {err[i]:.3g} deg away from where the commands put a "
                          f"nominal machine (limit {PLAUSIBLE_POINTING_DEG} deg): wrong units (radians?) or a "
@@ -118,7 +147,8 @@ def write_measurements(path: str | Path, meas: Measurements, comments=()) -> Non
         header += ["m1_approach", "m2_approach"]
         cols += [meas.approach[:, 0], meas.approach[:, 1]]
         fmts += ["{:+.0f}", "{:+.0f}"]
-    rows = ([pid] + [f.format(float(c[i])) for c, f in zip(cols, fmts)] for i, pid in enumerate(meas.pose_id))
+    cell = lambda f, v: "" if math.isnan(v) else f.format(v)  # noqa: E731  (blocked target: empty cells)
+    rows = ([pid] + [cell(f, float(c[i])) for c, f in zip(cols, fmts)] for i, pid in enumerate(meas.pose_id))
     write_csv(path, header, rows, comments)
 
 

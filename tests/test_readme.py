@@ -49,7 +49,8 @@ def test_readme_walkthrough_runs_verbatim(tmp_path):
     res = run_block(command_blocks()[0], tmp_path, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     for name in ("targets.csv", "m.csv", "pm.png", "params.json", "paper.json", "setpoints.csv",
-                 "comp_table.json", "diagnosis.json", "diag/index.html", "planar.csv", "planar.json"):
+                 "comp_table.json", "diagnosis.json", "diag/index.html", "t.csv", "params_t.json", "planar.csv",
+                 "planar.json"):
         assert (tmp_path / name).is_file(), name
     assert "pmcal: wrote setpoints.csv" in res.stdout
     assert "dry_run" in res.stdout

@@ -14,6 +14,8 @@ import numpy as np
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_ik
+from pmcal.mechanism.ocpm.nests import shape_part
+from pmcal.mechanism.rigid import fit_pose
 from pmcal.twin.machine import Twin
 from pmcal.twin.tracker import LaserTracker
 
@@ -84,9 +86,59 @@ def nominal_commands(phi_deg: np.ndarray, theta_deg: np.ndarray, geom: Geometry 
     return m
 
 
+@dataclass
+class MeasurementFaults:
+    """What a real tracker campaign adds to clean measurements (all optional, reproducible by ``seed``).
+
+    nest_error_mm : size (1 sigma per coordinate) of the nests' offsets from the drawing; only their
+        shape part is applied (the rigid part is by definition platform geometry, see
+        :mod:`pmcal.mechanism.ocpm.nests`). nest_offsets : (k, 3) mm explicit offsets instead (shape part).
+    blocked : probability that a row has one target blocked (line of sight; its cells are empty).
+    outliers : number of rows with a gross error of ``outlier_mm`` in one coordinate of one target.
+    """
+
+    nest_error_mm: float = 0.0
+    nest_offsets: np.ndarray | None = None
+    blocked: float = 0.0
+    outliers: int = 0
+    outlier_mm: float = 2.0
+    seed: int | None = 0
+
+    def offsets(self, X: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        raw = self.nest_offsets if self.nest_offsets is not None else rng.normal(0, self.nest_error_mm, X.shape)
+        return shape_part(raw, X)
+
+
+def apply_faults(points: np.ndarray, X: np.ndarray, faults: MeasurementFaults, tracker: LaserTracker
+                 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Measure true platform points (N, k, 3) at drawing coordinates X through the faults; returns the
+    measured targets (tracker frame, NaN where blocked) and the truth (``nest_offsets`` (k, 3),
+    ``blocked`` (N, k) bool, ``outlier`` (N, k, 3) mm)."""
+    rng = np.random.default_rng(faults.seed)
+    n, k = points.shape[:2]
+    dn = faults.offsets(X, rng)
+    _, R, _ = fit_pose(points, X)
+    nests = points + np.einsum("nij,kj->nki", R, dn)
+    y = tracker.measure(nests)
+    blocked = np.zeros((n, k), bool)
+    rows = np.flatnonzero(rng.uniform(size=n) < faults.blocked)
+    blocked[rows, rng.integers(0, k, len(rows))] = True
+    outlier = np.zeros((n, k, 3))
+    free = np.flatnonzero(~blocked.any(axis=1))
+    for i in rng.choice(free, min(faults.outliers, len(free)), replace=False):
+        outlier[i, rng.integers(0, k), rng.integers(0, 3)] = faults.outlier_mm * rng.choice([-1.0, 1.0])
+    y = y + outlier
+    y[blocked] = np.nan
+    return y, {"nest_offsets": dn, "blocked": blocked, "outlier": outlier}
+
+
 def run_campaign(twin: Twin, plan: CampaignPlan, tracker: LaserTracker,
-                 m_cmd_deg: np.ndarray | None = None, id_prefix: str = "P") -> Measurements:
-    """Drive ``twin`` through ``plan`` (nominal commands unless ``m_cmd_deg`` is given) and measure."""
+                 m_cmd_deg: np.ndarray | None = None, id_prefix: str = "P",
+                 faults: MeasurementFaults | None = None) -> Measurements:
+    """Drive ``twin`` through ``plan`` (nominal commands unless ``m_cmd_deg`` is given) and measure.
+
+    With ``faults`` the measurement has nest offsets, blocked targets and outliers; the truth is in
+    ``extra`` (``outlier`` (N, k, 3) mm; the nest offsets as ``nest_offsets`` rows repeated)."""
     if m_cmd_deg is None:
         m_cmd_deg = nominal_commands(plan.phi_deg, plan.theta_deg, twin.geom)
     state = twin.reach(m_cmd_deg)
@@ -94,7 +146,15 @@ def run_campaign(twin: Twin, plan: CampaignPlan, tracker: LaserTracker,
         i = int(np.flatnonzero(~state.converged)[0])
         raise RuntimeError(f"pose {i + 1}: the twin did not assemble (closure solve did not converge)")
     width = len(str(len(plan)))
+    extra = {}
+    if faults is None:
+        y = tracker.measure(state.targets)
+    else:
+        y, truth = apply_faults(state.targets, twin.geom.targets[: state.targets.shape[1]], faults, tracker)
+        extra = {"outlier": truth["outlier"],
+                 "nest_offsets": np.broadcast_to(truth["nest_offsets"], y.shape).copy()}
     return Measurements(
         pose_id=[f"{id_prefix}{i + 1:0{width}d}" for i in range(len(plan))],
-        m_cmd_deg=np.asarray(m_cmd_deg, float), targets=tracker.measure(state.targets),
-        temp_c=plan.temp_c, time_s=plan.time_s, payload_kg=plan.payload_kg, approach=plan.approach)
+        m_cmd_deg=np.asarray(m_cmd_deg, float), targets=y,
+        temp_c=plan.temp_c, time_s=plan.time_s, payload_kg=plan.payload_kg, approach=plan.approach,
+        extra=extra)

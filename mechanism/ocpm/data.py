@@ -15,7 +15,9 @@ class Measurements:
     """One row per measured pose, in measurement order (order carries the motion history).
 
     pose_id : labels; m_cmd_deg : (N, 2) commanded motor angles, deg; targets : (N, k, 3) measured
-    target centres in the base frame, mm. Optional context (NaN/0 when absent): temp_c, time_s,
+    target centres, mm, in the base frame (or in the tracker's own frame for a campaign identified with
+    registration, see docs/tracker_frame.md). A blocked target is NaN in all three coordinates
+    (:attr:`visible` is the mask); every row has at least two visible targets. Optional context (NaN/0 when absent): temp_c, time_s,
     payload_kg; approach : (N, 2) sign of the last motion into each pose per motor (0 unknown).
     """
 
@@ -31,6 +33,11 @@ class Measurements:
     def __len__(self) -> int:
         return len(self.pose_id)
 
+    @property
+    def visible(self) -> np.ndarray:
+        """(N, k) bool: targets measured in that row (False: blocked, all three coordinates NaN)."""
+        return np.isfinite(self.targets).all(axis=-1)
+
     def subset(self, idx) -> "Measurements":
         idx = np.asarray(idx)
         pick = lambda a: None if a is None else np.asarray(a)[idx]  # noqa: E731
@@ -41,6 +48,20 @@ class Measurements:
                             extra={k: v[idx] for k, v in self.extra.items()})
 
     def poses(self, geom: Geometry | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Measured platform poses by rigid fit: r (N, 3) mm, R (N, 3, 3), fit rms (N,) mm."""
+        """Measured platform poses by rigid fit: r (N, 3) mm, R (N, 3, 3), fit rms (N,) mm.
+
+        Rows with a blocked target are fitted to their visible targets (needs three; with two the pose
+        is NaN: the rotation about the line through them is unknown)."""
         geom = geom or default_geometry()
-        return fit_pose(self.targets, geom.targets[: self.targets.shape[1]])
+        X = geom.targets[: self.targets.shape[1]]
+        vis = self.visible
+        if vis.all():
+            return fit_pose(self.targets, X)
+        n = len(self)
+        r, R, rms = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan), np.full(n, np.nan)
+        full = vis.all(axis=1)
+        if full.any():
+            r[full], R[full], rms[full] = fit_pose(self.targets[full], X)
+        for i in np.flatnonzero(~full & (vis.sum(axis=1) >= 3)):
+            r[i], R[i], rms[i] = fit_pose(self.targets[i, vis[i]], X[vis[i]])
+        return r, R, rms

@@ -36,11 +36,19 @@ def parse_grid(text: str | None) -> tuple[int, int]:
 
 # ====================================================================== identify
 def identify(args) -> int:
-    meas = read_measurements(args.measurements, default_geometry())
+    from pmcal.tracker_frame import check_nest_tolerance, parse_frame
+
+    frame, reg0 = parse_frame(getattr(args, "frame", None))
+    nest_std = check_nest_tolerance(getattr(args, "nest_tolerance", None))
+    meas = read_measurements(args.measurements, default_geometry(), frame=frame)
     if (args.model or "full") == "full" and args.method is None:
-        progress.status(f"identifying the whole closed chain from {len(meas)} poses")
+        progress.status(f"identifying the whole closed chain from {len(meas)} poses ({frame} frame)")
     cal = identify_campaign(meas, model=args.model or "full", method=args.method, sigma_mm=args.sigma,
-                            rng_seed=args.seed, source=str(args.measurements))
+                            rng_seed=args.seed, source=str(args.measurements), frame=frame, registration=reg0,
+                            nest_tolerance_mm=nest_std, robust=True if getattr(args, "robust", False) else None)
+    for r in cal.document.get("rejected", []):
+        progress.status(f"rejected outlier: row {r['row']} ({r['pose_id']}) target t{r['target']}, "
+                        f"residual {r['residual_mm']:.3g} mm")
     cal.save(args.output)
     fit = cal.document["fit"]
     quality = (f"chi2/dof {fit['chi2_per_dof']:.3g}" if cal.model == "full" else

@@ -44,6 +44,11 @@ def load(args, geom: Geometry):
     if model not in BASELINES:
         raise InputError(f"unknown model '{model}' (known: {', '.join(BASELINES)})", field="--model")
     meas = read_measurements(args.measurements, geom)
+    if not meas.visible.all():                 # docs/tracker_frame.md: the diagnosis takes complete rows
+        i, k = (int(v) for v in np.argwhere(~meas.visible)[0])
+        raise InputError(f"target t{k + 1} is blocked: the diagnosis needs every target in every row (leave "
+                         "the row out, or identify with 'pmcal identify')", file=args.measurements, row=i + 1,
+                         field=f"t{k + 1}_x")
     if len(meas) < MIN_POSES:
         raise InputError(f"{len(meas)} poses are too few to tell an effect from the geometry: measure at least "
                          f"{MIN_POSES} (the diagnosis campaign has 128)", file=args.measurements, field="pose_id")

@@ -74,7 +74,11 @@ def twin_measure(args) -> int:
                          "(the RSR limbs reach their stretched-link singularity near 87.5 deg)",
                          field="--theta-max")
     errors = machine_errors(args)
+    tracker_pose, faults = tracker_setup(args)
     if effect_campaign_requested(args):
+        if tracker_pose is not None or faults is not None:
+            raise InputError("tracker frame, nest errors, blocked targets and outliers are not available "
+                             "together with effects or context columns", field="--tracker-pose")
         return measure_with_effects(args, errors, sigma, theta_max)
     plan = plan_campaign(args.poses, theta_max, args.seed, randomize_approach=not args.no_random_approach)
     if args.targets:
@@ -90,7 +94,7 @@ def twin_measure(args) -> int:
     rng = np.random.default_rng(args.seed)
     progress.status(f"measuring {len(plan)} poses on the twin (σ = {sigma:g} mm)")
     try:
-        meas = run_campaign(twin, plan, LaserTracker(sigma, rng))
+        meas = run_campaign(twin, plan, LaserTracker(sigma, rng, pose=tracker_pose), faults=faults)
     except ValueError as exc:
         raise InputError(str(exc), file=args.targets, field="theta_deg" if args.targets else "--poses") from None
     except RuntimeError as exc:          # the closed chain of this machine cannot close at a pose
@@ -99,8 +103,74 @@ def twin_measure(args) -> int:
     write_measurements(args.output, meas, comments=[
         f"pmcal twin measure: machine {geom_name()}, errors: {source}, poses {len(meas)}, "
         f"tracker sigma {sigma:g} mm, seed {args.seed}",
-        "units: mm, deg; targets in the base frame O-xyz"])
+        "units: mm, deg; targets in the " + ("tracker frame" if tracker_pose is not None else "base frame O-xyz")]
+        + truth_comments(tracker_pose, meas))
     return 0
+
+
+def tracker_setup(args):
+    """``--tracker-pose``, ``--nest-error``, ``--blocked``, ``--outliers`` checked: (pose or None, faults
+    or None)."""
+    from scipy.spatial.transform import Rotation
+
+    from pmcal.twin.campaign import MeasurementFaults
+    from pmcal.twin.tracker import random_tracker_pose
+
+    pose = None
+    text = getattr(args, "tracker_pose", None)
+    if text == "random":
+        pose = random_tracker_pose(np.random.default_rng([args.seed, 16]))
+    elif text:
+        v = parse_numbers(text, 6, "--tracker-pose", "X,Y,Z,RX,RY,RZ (mm, deg) or 'random'")
+        pose = (Rotation.from_rotvec(v[3:], degrees=True).as_matrix(), v[:3])
+    nest = getattr(args, "nest_error", 0.0) or 0.0
+    blocked = getattr(args, "blocked", 0.0) or 0.0
+    if not (np.isfinite(nest) and 0 <= nest <= 5):
+        raise InputError(f"nest error must be 0..5 mm, got {nest}", field="--nest-error")
+    if not (np.isfinite(blocked) and 0 <= blocked <= 1):
+        raise InputError(f"blocked probability must be 0..1, got {blocked}", field="--blocked")
+    n_out, out_mm = 0, 2.0
+    if getattr(args, "outliers", None):
+        n_text, _, mm_text = args.outliers.partition(":")
+        try:
+            n_out, out_mm = int(n_text), float(mm_text) if mm_text else 2.0
+        except ValueError:
+            raise InputError(f"expected N or N:MM, got '{args.outliers}'", field="--outliers") from None
+        if n_out < 0 or not np.isfinite(out_mm):
+            raise InputError(f"expected a non-negative count and a finite size, got '{args.outliers}'",
+                             field="--outliers")
+    if not (nest or blocked or n_out):
+        return pose, None
+    return pose, MeasurementFaults(nest_error_mm=nest, blocked=blocked, outliers=n_out, outlier_mm=out_mm,
+                                   seed=args.seed + 16)
+
+
+def parse_numbers(text: str, n: int, field: str, what: str) -> np.ndarray:
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        v = np.array([])
+    if v.shape != (n,) or not np.isfinite(v).all():
+        raise InputError(f"expected {what}, got '{text}'", field=field)
+    return v
+
+
+def truth_comments(pose, meas) -> list[str]:
+    """What the twin did, for checking a calibration (comment lines; readers skip them)."""
+    from scipy.spatial.transform import Rotation
+
+    out = []
+    if pose is not None:
+        rv = Rotation.from_matrix(pose[0]).as_rotvec(degrees=True)
+        out.append("truth tracker pose (base in tracker; mm, rotvec deg): "
+                   + ",".join(f"{v:.6f}" for v in np.r_[pose[1], rv]))
+    if "nest_offsets" in meas.extra:
+        out.append("truth nest offsets (platform frame, mm): "
+                   + ",".join(f"{v:.5f}" for v in meas.extra["nest_offsets"][0].reshape(-1)))
+        for i, k, a in np.argwhere(meas.extra["outlier"] != 0):
+            out.append(f"truth outlier: row {i + 1} target t{k + 1} axis {'xyz'[a]} "
+                       f"{meas.extra['outlier'][i, k, a]:+.3f} mm")
+    return out
 
 
 def effect_campaign_requested(args) -> bool:

@@ -48,6 +48,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--allow-rank-deficient", action="store_true",
                    help="planar_2dof --model full: accept a rank-deficient fit (null space reported in the "
                         "file) as success; without it the file says success false and the exit status is 1")
+    p.add_argument("--frame", default="base", metavar="base|tracker|tracker:T.json",
+                   help="frame of the measured targets: the machine's base frame (default) or the tracker's "
+                        "own frame (registration and nest offsets identified; T.json: start registration "
+                        "{\"R\": 3x3, \"t_mm\": [x, y, z]}), docs/tracker_frame.md")
+    p.add_argument("--nest-tolerance", type=float, default=None, metavar="MM",
+                   help="prior of the target nests' offsets from the drawing, mm per coordinate (default 0.5)")
+    p.add_argument("--robust", action="store_true",
+                   help="robust fit with named outlier rejection also in the base frame (always on with "
+                        "--frame tracker or blocked targets)")
     p.set_defaults(func=_cmd("identify"))
 
     p = sub.add_parser("compensate", help="corrected motor commands for target orientations")

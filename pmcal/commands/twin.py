@@ -48,6 +48,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="measure the planned poses in random order (default: in order of tilt)")
     m.add_argument("--seconds-per-pose", type=float, default=30.0, metavar="S",
                    help="time between poses, s (time_s column; default 30)")
+    m.add_argument("--tracker-pose", default=None, metavar="X,Y,Z,RX,RY,RZ|random",
+                   help="measure in the tracker's own frame: pose of the base frame in the tracker frame "
+                        "(mm; rotation vector, deg), or 'random' (1-3 m away, any yaw, +-2 deg tilt; from "
+                        "--seed); default: the base frame (docs/tracker_frame.md)")
+    m.add_argument("--nest-error", type=float, default=0.0, metavar="MM",
+                   help="target nests off the drawing by this much (1 sigma per coordinate, shape part), mm")
+    m.add_argument("--blocked", type=float, default=0.0, metavar="P",
+                   help="probability that a row has one target blocked (its three cells left empty)")
+    m.add_argument("--outliers", default=None, metavar="N[:MM]",
+                   help="N rows with a gross error in one coordinate of one target (default 2 mm)")
     m.add_argument("-o", "--output", required=True, metavar="MEAS.csv",
                    help="measurement CSV to write (columns: docs/formats.md)")
     m.set_defaults(func=lambda a: dispatch("twin_measure", a))

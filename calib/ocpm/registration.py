@@ -1,0 +1,68 @@
+"""Frame registration: the pose of the machine's base frame in a laser tracker's own frame.
+
+A tracker reports a base-frame point p at ``y = R p + t`` (``R`` (3, 3), ``t`` (3,) mm: the base frame's
+pose in the tracker frame). The base frame is the machine's, defined by its motor axes
+(docs/tracker_frame.md): origin O at the SS limb's base joint, y along motor 1's axis, z normal to both
+motor axes. Rotating the base frame is the same machine as rotating every base-side parameter together,
+so in the tracker frame these three base-side angles are held at zero (the gauge) and the registration
+takes the rotation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+#: Base-side parameters held at zero when the registration is identified: they fix the base frame to
+#: the motor axes (L1.dalpha, L1.dgamma: motor 1 along y; L2.dalpha: motor 2 in the xy plane).
+GAUGE_KEYS = ("L1.dalpha", "L1.dgamma", "L2.dalpha")
+
+
+def rigid_fit(Y: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid transform ``Y ≈ R P + t`` of matched point sets (n, 3) mm (Kabsch, via scipy).
+
+    Rows with a non-finite coordinate in either set are left out."""
+    Y, P = np.asarray(Y, float).reshape(-1, 3), np.asarray(P, float).reshape(-1, 3)
+    ok = np.isfinite(Y).all(axis=1) & np.isfinite(P).all(axis=1)
+    if ok.sum() < 3:
+        raise ValueError("need at least three matched points for a rigid fit")
+    Y, P = Y[ok], P[ok]
+    yc, pc = Y.mean(axis=0), P.mean(axis=0)
+    rot, _ = Rotation.align_vectors(Y - yc, P - pc)
+    R = rot.as_matrix()
+    return R, yc - R @ pc
+
+
+def apply(R: np.ndarray, t: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Base-frame points (..., 3) mm in the tracker frame."""
+    return np.asarray(points, float) @ np.asarray(R).T + np.asarray(t)
+
+
+def inverse(R: np.ndarray, t: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Tracker-frame points (..., 3) mm in the base frame."""
+    return (np.asarray(points, float) - np.asarray(t)) @ np.asarray(R)
+
+
+def rotation_error_deg(R_est: np.ndarray, R_true: np.ndarray) -> float:
+    """Angle of the rotation between two registrations, deg."""
+    return float(np.rad2deg(Rotation.from_matrix(R_est @ R_true.T).magnitude()))
+
+
+def read_registration(doc: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Registration from a JSON document ``{"R": 3x3, "t_mm": [x, y, z]}`` (the ``registration`` block
+    of an identified params JSON has this form); raises ValueError naming the field."""
+    try:
+        R = np.asarray(doc["R"], float)
+    except (KeyError, TypeError, ValueError):
+        raise ValueError("field 'R' must be a 3x3 list of numbers") from None
+    try:
+        t = np.asarray(doc["t_mm"], float)
+    except (KeyError, TypeError, ValueError):
+        raise ValueError("field 't_mm' must be a list of three numbers (mm)") from None
+    if R.shape != (3, 3) or not np.isfinite(R).all():
+        raise ValueError("field 'R' must be a 3x3 list of numbers")
+    if t.shape != (3,) or not np.isfinite(t).all():
+        raise ValueError("field 't_mm' must be a list of three numbers (mm)")
+    if abs(np.linalg.det(R) - 1) > 1e-3 or np.abs(R.T @ R - np.eye(3)).max() > 1e-3:
+        raise ValueError("field 'R' is not a rotation matrix (orthonormal, det +1)")
+    return Rotation.from_matrix(R).as_matrix(), t
