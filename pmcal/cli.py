@@ -17,9 +17,7 @@ File formats: ``docs/formats.md``.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import importlib
-import io
 import os
 import pkgutil
 import sys
@@ -135,7 +133,7 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
                         help=f"machine: ocpm_2dof or planar_2dof (a folder under mjcf/); default "
                              f"{DEFAULT_MACHINE}. 'pmcal --machine NAME COMMAND --help' shows that machine's "
                              "options and defaults")
-    _common_options(parser, top=True)
+    _common_options(parser, top=True)       # --quiet: no progress and no wrote-lines; results still print
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     import pmcal.commands as commands
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda i: i.name):
@@ -216,10 +214,7 @@ def main(argv: list[str] | None = None) -> int:
             prepare(args)
         check_outputs(args)
         before = {path: _mtime(path) for _, path, _ in output_paths(args)}
-        name = _command_name(args)
-        silence = quiet and (name in FILE_OUTPUTS or name in FOLDER_OUTPUTS)   # writers: nothing on stdout
-        with contextlib.redirect_stdout(io.StringIO()) if silence else contextlib.nullcontext():
-            status = int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
         if status == 0 and not quiet:
             _report_written(args, before)
         return status
