@@ -176,7 +176,10 @@ def check_outputs(args) -> None:
         if key in seen:
             raise InputError(f"{path} is given as two outputs", field=option)
         seen.add(key)
-        check_output(path, folder=folder, force=force, field=option)
+        try:
+            check_output(path, folder=folder, force=force, field=option)
+        except InputError as exc:       # checked before any work: say so
+            raise InputError(f"{exc.message}; nothing was sent or written", field=exc.field) from None
 
 
 def _report_written(args, before: dict[str, float | None]) -> None:
