@@ -26,6 +26,7 @@ from pmcal.calib.solvers import METHODS
 from pmcal.compensators import (DEFAULT_GRID, Compensator, FullCompensation, PaperCompensation, build_table,
                                 checked_commands)
 from pmcal.errors import InputError
+from pmcal.threads import blas_policy
 from pmcal.io_ocpm import paper_keys_only, read_params, write_params
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
@@ -103,6 +104,7 @@ class Calibration:
         pmap = self.document.get("position_map")
         return PaperCompensation(errors, comp.PositionMap.from_dict(pmap) if pmap is not None else None, geom)
 
+    @blas_policy()
     def setpoints(self, phi_deg, theta_deg) -> np.ndarray:
         """Motor commands (n, 2) deg that point the calibrated machine at the orientations (deg).
 
@@ -121,6 +123,7 @@ class Calibration:
             raise InputError(f"phi_deg has {phi.size} values, theta_deg {theta.size}", field="theta_deg")
         return checked_commands(self.compensator, phi, theta, self.geometry)
 
+    @blas_policy()
     def compensation_table(self, version: int | None = None, grid: tuple[int, int] = DEFAULT_GRID) -> CompTable:
         """The PLC's compensation table over phi 0..360 deg and theta 0..theta_max (validated).
 
@@ -198,6 +201,7 @@ def check_reachable(meas: Measurements, path: str | None, geom: Geometry) -> Non
                          field="t1_x")
 
 
+@blas_policy()
 def identify(meas: Measurements, *, model: str = DEFAULT_MODEL, method: str | None = None,
              sigma_mm: float | None = None, rng_seed: int | None = 0, fit_stiffness_ratio: bool = True,
              source: str | None = None, geometry: Geometry | None = None, frame: str = "base",

@@ -23,7 +23,7 @@ import pkgutil
 import sys
 from pathlib import Path
 
-from pmcal import __version__, progress
+from pmcal import __version__, progress, threads
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import check_output
 
@@ -134,6 +134,9 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
                              f"{DEFAULT_MACHINE}. 'pmcal --machine NAME COMMAND --help' shows that machine's "
                              "options and defaults")
     _common_options(parser, top=True)       # --quiet: no progress and no wrote-lines; results still print
+    parser.add_argument("--blas-threads", type=int, default=None, metavar="N",
+                        help="BLAS threads per process (default: $PMCAL_BLAS_THREADS, else 1; 0 = the "
+                             "libraries' own default); see docs/speed.md")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     import pmcal.commands as commands
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda i: i.name):
@@ -210,6 +213,11 @@ def main(argv: list[str] | None = None) -> int:
     progress.set_verbose(verbose and not quiet)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
+        return 2
+    try:
+        threads.apply_blas_policy(args.blas_threads)
+    except ValueError as exc:
+        print(f"pmcal: error: {exc}", file=sys.stderr)
         return 2
     try:
         prepare = getattr(args, "prepare", None)

@@ -72,20 +72,30 @@ class FullCompensation:
         self.model = FullChainModel(geom, stiffness_ratio)
         self.ratio = self.model.stiffness_ratio
         self.geom = geom
+        self.unreachable = np.zeros(0, int)
+        self._last_targets = (np.zeros(0), np.zeros(0))
 
     def commands_deg(self, phi_deg, theta_deg) -> np.ndarray:
+        """Commands (N, 2) deg; rows out of reach (theta < 0, outside the workspace, not assembled or not
+        converged) are NaN, listed (0-based) in :attr:`unreachable` and named by
+        :meth:`unreachable_message` after each call."""
         phi_deg, theta_deg = np.atleast_1d(phi_deg), np.atleast_1d(theta_deg)
         out = np.full((len(phi_deg), 2), np.nan)
         ok = theta_deg >= 0
-        try:
-            out[ok] = setpoints(self.model, self.errors, phi_deg[ok], theta_deg[ok], self.ratio)
-        except ValueError:                 # a target beyond the workspace: commands NaN row by row
-            for i in np.flatnonzero(ok):
-                try:
-                    out[i] = setpoints(self.model, self.errors, phi_deg[i:i + 1], theta_deg[i:i + 1], self.ratio)
-                except ValueError:
-                    pass
+        out[ok] = setpoints(self.model, self.errors, phi_deg[ok], theta_deg[ok], self.ratio)
+        self.unreachable = np.flatnonzero(~np.isfinite(out).all(axis=1))
+        self._last_targets = (phi_deg, theta_deg)
         return out
+
+    def unreachable_message(self) -> str:
+        """One line naming the targets of the last :meth:`commands_deg` call left NaN (empty if none)."""
+        if not len(self.unreachable):
+            return ""
+        phi, theta = self._last_targets
+        rows = ", ".join(f"{i + 1} (phi {phi[i]:g}, theta {theta[i]:g})" for i in self.unreachable[:5])
+        more = f" and {len(self.unreachable) - 5} more" if len(self.unreachable) > 5 else ""
+        return (f"{len(self.unreachable)} target orientation(s) out of reach of the calibrated machine, "
+                f"commands NaN: row {rows}{more} (deg)")
 
     def orientation(self, m_cmd_deg) -> tuple[np.ndarray, np.ndarray]:
         self.model.set(self.errors, self.ratio)

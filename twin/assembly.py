@@ -165,22 +165,37 @@ def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], -1)
 
 
-def integrate_pos(m: mujoco.MjModel, qpos: np.ndarray, dv: np.ndarray) -> None:
-    """Vectorised ``mj_integratePos(m, qpos, dv, 1)`` for hinge, slide and ball joints (in place)."""
+def _joint_layout(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
+    """(qpos addresses, dof addresses) of the hinge and slide joints and (qpos, dof) of the balls of ``m``."""
+    q1, d1, balls = [], [], []
     for jnt in range(m.njnt):
-        qa, da, kind = m.jnt_qposadr[jnt], m.jnt_dofadr[jnt], int(m.jnt_type[jnt])
+        qa, da, kind = int(m.jnt_qposadr[jnt]), int(m.jnt_dofadr[jnt]), int(m.jnt_type[jnt])
         if kind == mujoco.mjtJoint.mjJNT_BALL:
-            w = dv[:, da:da + 3]
-            ang = np.linalg.norm(w, axis=1)
-            half = 0.5 * ang
-            scale = np.where(ang > 1e-300, np.sin(half) / np.maximum(ang, 1e-300), 0.5)
-            dq = np.concatenate([np.cos(half)[:, None], w * scale[:, None]], axis=1)
-            q = _quat_mul(qpos[:, qa:qa + 4], dq)
-            qpos[:, qa:qa + 4] = q / np.linalg.norm(q, axis=1, keepdims=True)
+            balls.append((qa, da))
         elif kind in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
-            qpos[:, qa] += dv[:, da]
+            q1.append(qa)
+            d1.append(da)
         else:
             raise ValueError("free joints are not expected inside the closed chain")
+    return np.array(q1, int), np.array(d1, int), balls
+
+
+def integrate_pos(m: mujoco.MjModel, qpos: np.ndarray, dv: np.ndarray) -> None:
+    """Vectorised ``mj_integratePos(m, qpos, dv, 1)`` for hinge, slide and ball joints (in place)."""
+    q1, d1, balls = _joint_layout(m)
+    qpos[:, q1] += dv[:, d1]
+    if not balls:
+        return
+    qa = np.array([b[0] for b in balls])
+    da = np.array([b[1] for b in balls])
+    w = dv[:, da[:, None] + np.arange(3)]                              # (N, nb, 3)
+    ang = np.linalg.norm(w, axis=-1)
+    half = 0.5 * ang
+    scale = np.where(ang > 1e-300, np.sin(half) / np.maximum(ang, 1e-300), 0.5)
+    dq = np.concatenate([np.cos(half)[..., None], w * scale[..., None]], axis=-1)
+    idx = qa[:, None] + np.arange(4)
+    q = _quat_mul(qpos[:, idx], dq)
+    qpos[:, idx] = q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 def solve_stacked(A: np.ndarray, B: np.ndarray) -> np.ndarray:

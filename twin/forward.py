@@ -14,6 +14,7 @@ import numpy as np
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.params import ErrorSet, errors_and_ratio
+from pmcal.twin.assembly import integrate_pos
 from pmcal.twin.machine import Twin
 from pmcal.twin.sensitivity import target_sensitivity
 
@@ -25,6 +26,9 @@ class FullChainModel:
         self.geom = geom or default_geometry()
         self.twin = Twin(None, self.geom, stiffness_ratio=stiffness_ratio)
         self._qpos: np.ndarray | None = None
+        self._cmd: np.ndarray | None = None
+        self._tangent: np.ndarray | None = None     # d qpos_free / d commands (rad/rad) of the last solve
+        self._free: np.ndarray | None = None
         self._cmd_key: bytes | None = None
 
     @property
@@ -37,24 +41,64 @@ class FullChainModel:
         if stiffness_ratio is not None:
             self.twin.set_stiffness_ratio(stiffness_ratio)
 
+    #: A pose starts from the last solve's equilibrium at the nearest command within this distance
+    #: (deg, largest of the two motors); farther poses start from the closed-form guess.
+    WARM_RADIUS_DEG = 2.0
+    _MOTOR_KEYS = ("L1.dtheta", "L2.dtheta")          # act exactly like the commands
+
     def solve(self, m_cmd_deg: np.ndarray):
-        """Equilibria for commands (N, 2) deg, warm-started from the previous solve of the same commands."""
+        """Equilibria for commands (N, 2) deg, each pose warm-started from the previous solve's equilibrium
+        at the nearest command (the same command when a fit re-solves its campaign; the previous Newton
+        iterate when compensation steps the commands) within :data:`WARM_RADIUS_DEG`. ``_cmd_key = None``
+        forgets the previous solve."""
         m_cmd_deg = np.atleast_2d(np.asarray(m_cmd_deg, float))
         key = m_cmd_deg.tobytes()
         joint = np.deg2rad(m_cmd_deg) + self.twin.errors.dtheta[:2]
-        state = self._reach(joint, self._qpos if key == self._cmd_key else None)
-        self._qpos, self._cmd_key = state.qpos.copy(), key
+        state = self._reach(joint, self._warm_start(m_cmd_deg, key))
+        ok = state.converged
+        self._qpos, self._cmd, self._cmd_key = state.qpos[ok].copy(), m_cmd_deg[ok].copy(), key
+        self._tangent = None                              # set by predict with the motor keys
         return state
 
+    def _warm_start(self, m_cmd_deg: np.ndarray, key: bytes) -> np.ndarray | None:
+        """Start configurations (N, nq) from the last solve (rows NaN: no neighbour), or None."""
+        if self._cmd_key is None or self._qpos is None or not len(self._qpos):
+            return None
+        if key == self._cmd_key and len(self._cmd) == len(m_cmd_deg):
+            return self._qpos
+        from scipy.spatial import cKDTree
+
+        dist, i = cKDTree(self._cmd).query(m_cmd_deg, p=np.inf, distance_upper_bound=self.WARM_RADIUS_DEG)
+        near = np.isfinite(dist)
+        if not near.any():
+            return None
+        warm = np.full((len(m_cmd_deg), self._qpos.shape[1]), np.nan)
+        j = i[near]
+        q = self._qpos[j].copy()
+        if self._tangent is not None:                     # first-order predictor along the commands
+            dv = np.zeros((len(j), self.twin.model.nv))
+            dv[:, self._free] = np.einsum("nfc,nc->nf", self._tangent[j], np.deg2rad(m_cmd_deg[near] - self._cmd[j]))
+            integrate_pos(self.twin.model, q, dv)
+        warm[near] = q
+        return warm
+
     def _reach(self, joint: np.ndarray, warm: np.ndarray | None):
-        """Equilibria at true joint angles (N, 2) rad from the configurations ``warm`` (or the closed-form
-        start); a warm start that leaves poses unconverged is redone from the closed form. Poses that still
-        do not converge get NaN targets: a parameter set under which the model cannot assemble a measured
-        pose predicts nothing there, so a fit rejects that step (scipy's trust region shrinks on non-finite
-        residuals) instead of taking a half-solved pose at face value."""
-        state = self.twin.reach_joint(joint, qpos=warm)
+        """Equilibria at true joint angles (N, 2) rad from the configurations ``warm`` (rows of NaN, or
+        None: the closed-form start); warm-started poses left unconverged are redone from the closed form.
+        Poses that still do not converge, or whose closed-form start lies outside the workspace, get NaN
+        targets: a parameter set under which the model cannot assemble a measured pose predicts nothing
+        there, so a fit rejects that step (scipy's trust region shrinks on non-finite residuals) instead
+        of taking a half-solved pose at face value."""
+        if warm is not None:
+            warm = np.array(warm, dtype=float, copy=True)
+            cold = ~np.isfinite(warm).all(axis=1)
+            if cold.any():
+                warm[cold] = self.twin.initial_qpos(joint[cold], outside="nan")
+        state = self.twin.reach_joint(joint, qpos=warm, outside="nan")
         if warm is not None and not state.converged.all():
-            state = self.twin.reach_joint(joint)
+            redo = ~state.converged
+            again = self.twin.reach_joint(joint[redo], outside="nan")
+            self.twin.merge_state(state, again, redo)
         state.targets[~state.converged] = np.nan
         return state
 
@@ -73,4 +117,13 @@ class FullChainModel:
         state = self.solve(m_cmd_deg)
         if keys is None:
             return state.targets, None
-        return state.targets, target_sensitivity(self.twin, state.qpos, keys).d_targets
+        ok = np.isfinite(state.qpos).all(axis=1)           # poses outside the workspace: NaN
+        dT = np.full(state.targets.shape + (len(keys),), np.nan)
+        if ok.any():
+            sens = target_sensitivity(self.twin, state.qpos if ok.all() else state.qpos[ok], keys)
+            dT[ok] = sens.d_targets
+            if all(k in keys for k in self._MOTOR_KEYS):  # keep the tangent along the commands
+                tangent = np.full((len(ok), len(sens.free), 2), np.nan)
+                tangent[ok] = sens.dq[..., [keys.index(k) for k in self._MOTOR_KEYS]]
+                self._tangent, self._free = tangent[state.converged], sens.free
+        return state.targets, dT

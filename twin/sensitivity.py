@@ -31,11 +31,16 @@ _E = np.eye(3)
 
 @dataclass
 class Sensitivity:
-    """targets (N, k, 3) mm at the equilibria; d_targets (N, k, 3, n_keys) mm per unit of each key."""
+    """targets (N, k, 3) mm at the equilibria; d_targets (N, k, 3, n_keys) mm per unit of each key;
+    dq (N, n_free, n_keys) the free joints' derivatives (rad or m per unit; ball joints in their body
+    frame, MuJoCo's velocity convention) over the free dof indices ``free``: the tangent along which a
+    warm start can follow a parameter or command change."""
 
     targets: np.ndarray
     d_targets: np.ndarray
     keys: list[str]
+    dq: np.ndarray | None = None
+    free: np.ndarray | None = None
 
 
 def target_sensitivity(twin, qpos: np.ndarray, keys: list[str]) -> Sensitivity:
@@ -111,4 +116,5 @@ def target_sensitivity(twin, qpos: np.ndarray, keys: list[str]) -> Sensitivity:
     JT = twin._target_jac.sites(lin.site_xpos[:, idx.site_targets], lin.xanchor, lin.xaxis,
                                 lin.xmat.reshape(N, -1, 9))[..., free]   # (N, k, 3, n_free)
     d_targets = (np.einsum("nkif,nfp->nkip", JT, dq) + DT) / MM
-    return Sensitivity(targets=lin.site_xpos[:, idx.site_targets] / MM, d_targets=d_targets, keys=list(keys))
+    return Sensitivity(targets=lin.site_xpos[:, idx.site_targets] / MM, d_targets=d_targets, keys=list(keys),
+                       dq=dq, free=free)

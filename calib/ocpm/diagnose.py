@@ -89,30 +89,13 @@ class DiagnoseOptions:
     max_nfev: int = 60
 
 
-def limit_blas_threads(n: int = 1) -> None:
-    """Cap the OpenBLAS threads of numpy and scipy at ``n`` for this process.
+def limit_blas_threads(n: int | None = None) -> None:
+    """Apply pmcal's BLAS thread policy (:func:`pmcal.threads.apply_blas_policy`: one thread unless
+    ``n`` or ``$PMCAL_BLAS_THREADS`` say otherwise). The diagnosis does many small dense factorisations;
+    with OpenBLAS threads competing one SVD took 0.4 s instead of 2 ms on the 2-core reference machine."""
+    from pmcal.threads import apply_blas_policy
 
-    The diagnosis does many small dense factorisations (a few hundred rows, tens of columns); with
-    OpenBLAS threads competing with MuJoCo's thread pool and other processes, one SVD took 0.4 s
-    instead of 2 ms on the 2-core reference machine. One thread is the right choice at these sizes.
-    """
-    import ctypes
-    from pathlib import Path
-
-    import scipy
-
-    for pkg in (np, scipy):
-        libdir = Path(pkg.__file__).resolve().parent.parent / f"{pkg.__name__}.libs"
-        for lib in sorted(libdir.glob("libscipy_openblas*.so*")):
-            try:
-                handle = ctypes.CDLL(str(lib))
-            except OSError:
-                continue
-            for sym in ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads"):
-                fn = getattr(handle, sym, None)
-                if fn is not None:
-                    fn(ctypes.c_int(n))
-                    break
+    apply_blas_policy(n)
 
 
 # ======================================================================================== linearisation
@@ -557,7 +540,7 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     """Run the diagnosis (module docstring) with the whole-chain ``model`` that carries the effect terms
     (:class:`pmcal.twin.effect_model.EffectChainModel`). ``on_step(text)`` reports progress."""
     t_start = time.perf_counter()
-    limit_blas_threads(1)
+    limit_blas_threads()
     opt = options or DiagnoseOptions()
     step = on_step or (lambda text: None)
     pb = _Problem(meas, opt, model)

@@ -164,7 +164,10 @@ def setpoints(model: ForwardModel, errors: ErrorSet, phi_deg, theta_deg, stiffne
 
     Newton on the forward model: the residual is the platform normal's offset from the target normal in
     the target's tangent plane (2 equations, 2 motors); derivatives from the implicit function theorem.
-    Starts from the nominal IK. Poses that do not converge come back as NaN.
+    Starts from the nominal IK; vectorised across targets, and each step predicts only the targets not yet
+    converged (a model that keeps its last equilibria, like the twin's, warm-starts from them). Targets
+    out of reach come back as NaN: outside the nominal workspace, not assembled by the model, or not
+    converged within ``max_iter`` steps.
     """
     model.set(errors, stiffness_ratio)
     phi, theta = np.deg2rad(np.atleast_1d(phi_deg)), np.deg2rad(np.atleast_1d(theta_deg))
@@ -173,17 +176,28 @@ def setpoints(model: ForwardModel, errors: ErrorSet, phi_deg, theta_deg, stiffne
     X = model.geom.targets
     keys = ["L1.dtheta", "L2.dtheta"]
     done = np.zeros(len(phi), bool)
+    active = np.flatnonzero(np.isfinite(cmd).all(axis=1))
     for _ in range(max_iter):
-        T, dT = model.predict(cmd, keys)
+        if active.size == 0:
+            break
+        T, dT = model.predict(cmd[active], keys)
+        ok = np.isfinite(T).all(axis=(1, 2))
+        active, T, dT = active[ok], T[ok], dT[ok]
         w = platform_normals(T, X)
-        e = np.stack([np.einsum("ni,ni->n", Rt[:, :, 0], w), np.einsum("ni,ni->n", Rt[:, :, 1], w)], 1)
-        done = np.abs(e).max(axis=1) < np.deg2rad(tol_deg)
-        if done.all():
+        u, v = Rt[active, :, 0], Rt[active, :, 1]
+        e = np.stack([np.einsum("ni,ni->n", u, w), np.einsum("ni,ni->n", v, w)], 1)
+        conv = np.abs(e).max(axis=1) < np.deg2rad(tol_deg)
+        done[active[conv]] = True
+        keep = ~conv
+        active, T, dT, w, u, v, e = active[keep], T[keep], dT[keep], w[keep], u[keep], v[keep], e[keep]
+        if active.size == 0:
             break
         h = 1e-6                                           # d normal / d targets by a small rigid fit step
         dw = np.stack([(platform_normals(T + h * dT[..., c], X) - w) / h for c in range(2)], axis=-1)
-        Je = np.stack([np.einsum("ni,nic->nc", Rt[:, :, 0], dw), np.einsum("ni,nic->nc", Rt[:, :, 1], dw)], 1)
+        Je = np.stack([np.einsum("ni,nic->nc", u, dw), np.einsum("ni,nic->nc", v, dw)], 1)
+        regular = np.abs(np.linalg.det(Je)) > 0           # a singular step: the target is given up
+        active, Je, e = active[regular], Je[regular], e[regular]
         step = -np.linalg.solve(Je, e[..., None])[..., 0]  # rad
-        cmd = cmd + np.where(done[:, None], 0.0, np.rad2deg(step))
+        cmd[active] += np.rad2deg(step)
     cmd[~done] = np.nan
     return cmd

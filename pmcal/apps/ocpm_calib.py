@@ -131,4 +131,4 @@ def demo(args) -> int:
         return hidden_effect_demo(args)
     from pmcal.studies.demo import run_demo
 
-    return run_demo(Path(args.out), args.seed)
+    return run_demo(Path(args.out), args.seed, full=getattr(args, "full", False))

@@ -27,6 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace the output folder even if pmcal did not write it (its content is lost)")
     p.add_argument("--seed", type=int, default=1, help="random seed of the virtual campaign (default 1)")
+    p.add_argument("--full", action="store_true",
+                   help="run the population methods (ga, pso, sa) to their own stopping rules instead of the "
+                        "quick demo's capped budgets (about a minute longer)")
     p.add_argument("--hidden-effect", default=None, metavar="NAME",
                    help="hide a physical effect in the campaign and let the diagnosis find it: an effect name "
                         "of docs/effects.md or 'random'")

@@ -11,8 +11,46 @@ def _stats(a: np.ndarray) -> str:
     return f"mean {np.mean(np.abs(a)):.4f}, max {np.max(np.abs(a)):.4f}"
 
 
-def demo_report(st):
-    """The demo's self-contained HTML report."""
+def _png(fig_pickle: bytes, dpi: int) -> bytes:
+    """PNG of a pickled matplotlib figure, as :meth:`Report.figure` draws it (a worker-process entry point)."""
+    import io
+    import pickle
+
+    from pmcal.reports.html import matplotlib_agg
+
+    matplotlib_agg()
+    fig = pickle.loads(fig_pickle)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    return buf.getvalue()
+
+
+def _parallel_figures(rep, pool):
+    """Make ``rep.figure`` draw in ``pool`` (drawing is most of a report's time); returns a function that
+    puts the finished PNGs in their places."""
+    import pickle
+
+    import matplotlib.pyplot as plt
+
+    pending = []
+
+    def figure(fig, caption: str = "", dpi: int = 110) -> None:
+        data = pickle.dumps(fig)
+        plt.close(fig)
+        rep.parts.append("")
+        pending.append((len(rep.parts) - 1, caption, pool.submit(_png, data, dpi)))
+
+    def resolve() -> None:
+        for i, caption, future in pending:
+            rep.image_png(future.result(), caption)
+            rep.parts[i] = rep.parts.pop()
+
+    rep.figure = figure
+    return resolve
+
+
+def demo_report(st, pool=None):
+    """The demo's self-contained HTML report; figures drawn in the process ``pool`` when given."""
     from pmcal.reports.html import Report, matplotlib_agg
 
     matplotlib_agg()
@@ -24,6 +62,7 @@ def demo_report(st):
                  "Digital twin with the paper's Table 2 errors (limbs 1 and 2), closure compliance, tracker "
                  f"noise {st.geom.sigma_mm} mm; {st.N_CAL} calibration poses, {st.N_TEST} held-out test poses, "
                  f"seed {st.seed}. Method: paper 000 (Sun et al. 2018) sections IV-VI.")
+    resolve = _parallel_figures(rep, pool) if pool is not None else (lambda: None)
     b, a = st.before["pointing"], st.after["pointing"]
     rep.card("Result: the paper's HGA method (with the fitted position map) and the whole closed chain",
              [f"pointing error before: {_stats(b)} deg", f"after (paper HGA method): {_stats(a)} deg",
@@ -116,8 +155,12 @@ def demo_report(st):
     rep.table(["method", "time, s", "evaluations", "residual rms, sigma", "max |pos. dev|, mm",
                "max |ang. dev|, deg", "held-out pointing, deg"], rows,
               caption="Both limbs, same 24 poses. Deviation: identified minus predefined. Residual 1 = noise level. "
-                      "ga/pso/sa ran in two parallel worker processes (times inflated by sharing the CPU); "
-                      "clean timings: benchmarks/identify_bench.py.")
+                      "ga/pso/sa ran in two parallel worker processes (times inflated by sharing the CPU)"
+                      + ("" if st.full else " with capped budgets ("
+                         + ", ".join(f"{m}: {', '.join(f'{k} {v}' for k, v in o.items())}"
+                                     for m, o in st.budgets.items())
+                         + "; `pmcal demo --full` runs them to their own stopping rules)")
+                      + "; clean timings: benchmarks/identify_bench.py.")
     keys = list(st.methods["hga"]["dev"])
     fig, ax = plt.subplots(2, 1, figsize=(13, 6.5), layout="constrained")
     width = 0.8 / len(st.methods)
@@ -215,4 +258,5 @@ def demo_report(st):
                   f"{t.phi_min_deg:g}..{t.phi_max_deg:g} deg and theta {t.theta_min_deg:g}..{t.theta_max_deg:g} deg, "
                   f"absolute motor commands in deg, version {t.version}, CRC-16/CCITT 0x{t.crc16():04X}.")
     rep.table(["step", "seconds"], [[k, v] for k, v in st.timings.items()])
+    resolve()
     return rep

@@ -59,11 +59,70 @@ def parameter_errors(cal, truth: dict[str, float]) -> dict[str, float]:
     return {k: got[k] - truth.get(k, 0.0) for k in cal.names if k in got}
 
 
-def _timed_calibration(meas, method: str, seed: int):
+#: Budgets of the population methods in the quick demo (``pmcal demo``; ``--full`` and
+#: benchmarks/identify_bench.py run them to their own stopping rules): about a tenth of their full cost.
+QUICK_BUDGETS: dict[str, dict] = {"ga": {"max_gen": 150}, "pso": {"max_iter": 150}, "sa": {"maxfun": 2000}}
+#: The slow methods, slowest first: submitted first so none waits for the others at the end.
+SLOW_FIRST = ("sa", "ga", "pso")
+
+
+def _timed_calibration(meas, method: str, seed: int, options: dict | None = None):
     """(calibration, wall time) of one method on both limbs (a worker-process entry point)."""
+    from pmcal.threads import apply_blas_policy
+
+    apply_blas_policy()
     t0 = time.perf_counter()
-    cal = paper_calibration.calibrate(meas, method, seed=seed)
+    cal = paper_calibration.calibrate(meas, method, seed=seed, **(options or {}))
     return cal, time.perf_counter() - t0
+
+
+def _render(truth: dict, geom: Geometry) -> tuple[bytes | None, str]:
+    """(PNG of the twin at phi 45, theta 30 deg, note): a worker-process entry point (EGL start-up ~2 s)."""
+    from pmcal.mechanism.ocpm.kinematics import nominal_ik
+
+    try:
+        from pmcal.twin.machine import Twin
+        from pmcal.twin.render import render_png
+
+        twin = Twin(truth, geom)
+        st = twin.reach(np.rad2deg(nominal_ik(np.deg2rad(45.0), np.deg2rad(30.0), geom)))
+        return render_png(st.qpos[0], twin.errors, width=640, height=480), ""
+    except Exception as exc:            # headless machines without EGL/OSMesa: report without picture
+        return None, f"render unavailable: {exc}"
+
+
+def _pose_study(seed: int, theta_max: float, unidentifiable: list[str], truth: dict, test_phi, test_theta,
+                n_cal: int, geom: Geometry) -> dict:
+    """Random vs D-optimal calibration poses (condition number, CRLB, held-out pointing): the demo's pose
+    selection step, a worker-process entry point."""
+    from pmcal.calib.pose_selection import condition_number, crlb_std, join_blocks, select_poses
+    from pmcal.threads import apply_blas_policy
+    from pmcal.twin.campaign import CampaignPlan, plan_orientations, run_campaign
+    from pmcal.twin.machine import Twin
+    from pmcal.twin.tracker import LaserTracker
+
+    apply_blas_policy()
+    twin = Twin(truth, geom)
+    rng = np.random.default_rng(seed + 3000)
+    ph, th = plan_orientations(600, theta_max, rng)
+    names = [k for k in pm.param_names() if k not in unidentifiable]
+    B = pm.design_blocks(np.deg2rad(ph), np.deg2rad(th), names, geom=geom)
+    B_joint = join_blocks(B, comp.position_map_blocks(np.deg2rad(ph), np.deg2rad(th)))
+    rand = [rng.choice(len(ph), n_cal, replace=False) for _ in range(200)]
+    pose_sel = {"names": names, "random (median of 200)": {
+        "cond": float(np.median([condition_number(B, i) for i in rand])),
+        "crlb": np.median([crlb_std(B, i) for i in rand], axis=0)}}
+    for label, blocks in (("D-optimal (identification)", B), ("D-optimal (identification + position map)",
+                                                               B_joint)):
+        sel = select_poses(blocks, n_cal, "D")
+        plan = CampaignPlan(phi_deg=ph[sel], theta_deg=th[sel], approach=np.ones((n_cal, 2)),
+                            time_s=np.arange(n_cal) * 30.0)
+        meas = run_campaign(twin, plan, LaserTracker(geom.sigma_mm, np.random.default_rng(seed + 4000)))
+        cal, pmap = _paper_fit(meas, seed)
+        pose_sel[label] = {
+            "cond": condition_number(B, sel), "crlb": crlb_std(B, sel), "dev": parameter_errors(cal, truth),
+            "held_out": held_out(twin, cal.errors(), pmap, test_phi, test_theta, geom)["pointing"]}
+    return pose_sel
 
 
 class DemoStudy:
@@ -74,10 +133,13 @@ class DemoStudy:
     N_REG = 96            # the paper's regularisation study uses 96 poses (section VI-A)
     METHODS_COMPARED: tuple[str, ...] = METHODS
 
-    def __init__(self, seed: int):
+    def __init__(self, seed: int, full: bool = False, pool=None):
         from pmcal.mechanism.ocpm.params import PAPER_TABLE2
         from pmcal.twin.machine import Twin
 
+        self.full, self.pool = full, pool            # pool: a 2-worker process pool for the slow steps
+        self.budgets = {} if full else QUICK_BUDGETS
+        self._futures: dict = {}
         self.seed, self.geom = seed, default_geometry()
         self.truth = dict(PAPER_TABLE2)
         self.twin = Twin(self.truth)
@@ -109,6 +171,13 @@ class DemoStudy:
         st = self.twin.reach(self.meas.m_cmd_deg)
         self.closure = st.closure_residual                     # (N, 4) mm
         self._timed("campaign", t0)
+        if self.pool is not None:                              # the slowest method first
+            self._submit_methods(SLOW_FIRST[:1])
+
+    def _submit_methods(self, methods) -> None:
+        for m in methods:
+            if m in self.METHODS_COMPARED:
+                self._futures[m] = self.pool.submit(_timed_calibration, self.meas, m, self.seed, self.budgets.get(m))
 
     def step_identify(self, out: Path) -> None:
         t0 = time.perf_counter()
@@ -118,6 +187,10 @@ class DemoStudy:
         self.calibration.document["source"] = "calibration_meas.csv"
         self.calibration.save(out / "params.json")
         self.params_doc = self.calibration.document
+        if self.pool is not None:                              # then pose selection, the rest, the picture
+            self._futures["pose"] = self.pool.submit(_pose_study, *self._pose_args())
+            self._submit_methods(SLOW_FIRST[1:])
+            self._futures["render"] = self.pool.submit(_render, self.truth, self.geom)
 
     def step_compensate(self, out: Path) -> None:
         from pmcal.twin.campaign import nominal_commands
@@ -144,16 +217,16 @@ class DemoStudy:
         self._timed("compensate", t0)
 
     def step_algorithms(self, out: Path) -> None:
-        """Every method on the same data; the slow population methods run in two worker processes."""
-        from pmcal.studies.workers import worker_pool
-
+        """Every method on the same data; the slow population methods run in the worker processes (with
+        the budgets :data:`QUICK_BUDGETS` unless ``full``), started right after the campaign."""
         t0 = time.perf_counter()
-        slow = [m for m in self.METHODS_COMPARED if m in ("ga", "pso", "sa")]
-        with worker_pool(2) as pool:               # Ctrl-C: the workers are killed, not waited for
-            futures = {m: pool.submit(_timed_calibration, self.meas, m, self.seed) for m in slow}
-            runs = {m: _timed_calibration(self.meas, m, self.seed) for m in self.METHODS_COMPARED
-                    if m not in slow and m != "hga"}
-            runs.update({m: f.result() for m, f in futures.items()})
+        slow = [m for m in self.METHODS_COMPARED if m in SLOW_FIRST]
+        runs = {m: _timed_calibration(self.meas, m, self.seed) for m in self.METHODS_COMPARED
+                if m not in slow and m != "hga"}
+        for m in slow:
+            f = self._futures.pop(m, None)
+            runs[m] = f.result() if f is not None else _timed_calibration(self.meas, m, self.seed,
+                                                                            self.budgets.get(m))
         runs["hga"] = (self.cal, self.cal.wall_time)
         for method in self.METHODS_COMPARED:
             cal, wall = runs[method]
@@ -193,31 +266,14 @@ class DemoStudy:
         self.ident = self.cal.identifiability
 
     def step_pose(self, out: Path) -> None:
-        from pmcal.calib.pose_selection import condition_number, crlb_std, join_blocks, select_poses
-        from pmcal.twin.campaign import CampaignPlan, plan_orientations
-
         t0 = time.perf_counter()
-        rng = np.random.default_rng(self.seed + 3000)
-        ph, th = plan_orientations(600, self.theta_max, rng)
-        names = [k for k in pm.param_names() if k not in self.cal.unidentifiable]
-        B = pm.design_blocks(np.deg2rad(ph), np.deg2rad(th), names, geom=self.geom)
-        B_joint = join_blocks(B, comp.position_map_blocks(np.deg2rad(ph), np.deg2rad(th)))
-        rand = [rng.choice(len(ph), self.N_CAL, replace=False) for _ in range(200)]
-        self.pose_sel = {"names": names, "random (median of 200)": {
-            "cond": float(np.median([condition_number(B, i) for i in rand])),
-            "crlb": np.median([crlb_std(B, i) for i in rand], axis=0)}}
-        for label, blocks in (("D-optimal (identification)", B), ("D-optimal (identification + position map)",
-                                                                   B_joint)):
-            sel = select_poses(blocks, self.N_CAL, "D")
-            plan = CampaignPlan(phi_deg=ph[sel], theta_deg=th[sel], approach=np.ones((self.N_CAL, 2)),
-                                time_s=np.arange(self.N_CAL) * 30.0)
-            meas = self.campaign(self.N_CAL, self.seed + 4000, plan=plan)
-            cal, pmap = _paper_fit(meas, self.seed)
-            self.pose_sel[label] = {
-                "cond": condition_number(B, sel), "crlb": crlb_std(B, sel), "dev": parameter_errors(cal, self.truth),
-                "held_out": held_out(self.twin, cal.errors(), pmap, self.test.phi_deg, self.test.theta_deg,
-                                     self.geom)["pointing"]}
+        f = self._futures.pop("pose", None)
+        self.pose_sel = f.result() if f is not None else _pose_study(*self._pose_args())
         self._timed("pose selection", t0)
+
+    def _pose_args(self) -> tuple:
+        return (self.seed, self.theta_max, list(self.cal.unidentifiable), self.truth, self.test.phi_deg,
+                self.test.theta_deg, self.N_CAL, self.geom)
 
     def step_fullchain(self, out: Path) -> None:
         """Paper method vs whole closed chain on the same data: Table 2 errors in limbs 1-2, and the same
@@ -252,16 +308,8 @@ class DemoStudy:
         self._timed("whole chain", t0)
 
     def step_render(self, out: Path) -> None:
-        from pmcal.mechanism.ocpm.kinematics import nominal_ik
-
-        self.render_png, self.render_note = None, ""
-        try:
-            from pmcal.twin.render import render_png
-
-            st = self.twin.reach(np.rad2deg(nominal_ik(np.deg2rad(45.0), np.deg2rad(30.0), self.geom)))
-            self.render_png = render_png(st.qpos[0], self.twin.errors, width=640, height=480)
-        except Exception as exc:            # headless machines without EGL/OSMesa: report without picture
-            self.render_note = f"render unavailable: {exc}"
+        f = self._futures.pop("render", None)
+        self.render_png, self.render_note = f.result() if f is not None else _render(self.truth, self.geom)
 
     def step_table(self, out: Path) -> None:
         t0 = time.perf_counter()
@@ -283,19 +331,25 @@ class DemoStudy:
                                         for c, d in self.fullchain.items()},
                 "methods": {m: {"wall_time_s": d["wall"], "held_out_mean_deg": float(d["held_out"].mean()),
                                 "residual_rms_sigma": d["chi_rms"]} for m, d in self.methods.items()},
+                "population_method_budgets": self.budgets or "full",
                 "timings_s": self.timings, "table_crc16": f"0x{self.table.crc16():04X}"}
 
 
-def run_demo(out: Path, seed: int) -> int:
-    """The whole job on the built-in machine with paper Table 2 errors; writes ``out/``."""
+def run_demo(out: Path, seed: int, full: bool = False) -> int:
+    """The whole job on the built-in machine with paper Table 2 errors; writes ``out/``.
+
+    The population methods' comparison and the picture run in two worker processes started at once;
+    without ``full`` the population methods get the budgets :data:`QUICK_BUDGETS` (the report says so).
+    """
     from pmcal.fileio import atomic_directory
     from pmcal.io_ocpm import write_measurements
+    from pmcal.studies.workers import worker_pool
 
     t0 = time.perf_counter()
-    steps = ["campaign", "identify", "compensate", "fullchain", "algorithms", "regularisation", "identifiability",
-             "pose", "render", "table"]
-    study = DemoStudy(seed)
-    with atomic_directory(out) as tmp:
+    steps = ["campaign", "identify", "compensate", "fullchain", "regularisation", "identifiability",
+             "table", "pose", "algorithms", "render"]
+    with worker_pool(2) as pool, atomic_directory(out) as tmp:     # Ctrl-C: workers killed, not waited for
+        study = DemoStudy(seed, full, pool)
         with progress.progress(total=len(steps) + 1, desc="pmcal demo", unit="step") as bar:
             for name in steps:
                 bar.set_description(f"pmcal demo: {name}")
@@ -306,7 +360,7 @@ def run_demo(out: Path, seed: int) -> int:
                                comments=[f"pmcal demo: twin with paper Table 2 errors, seed {seed}"])
             study.timings["total"] = time.perf_counter() - t0
             summary = study.summary()
-            demo_report(study).write(tmp / "report.html")
+            demo_report(study, pool).write(tmp / "report.html")
             write_json(tmp / "summary.json", summary)
             bar.update(1)
     print(f"pmcal demo: wrote {out}/report.html in {time.perf_counter() - t0:.0f} s; mean pointing error on "
