@@ -1,4 +1,4 @@
-"""File formats of the over-constrained PM (INTERFACES.md): measurements, parameters, targets, setpoints.
+"""File formats of the over-constrained PM (docs/formats.md): measurements, parameters, targets, setpoints.
 
 Validation happens here, at the edge: one :class:`InputError` naming file, row and field.
 """
@@ -42,7 +42,7 @@ def target_columns(k: int) -> list[str]:
 
 def read_measurements(path: str | Path, geom: Geometry | None = None, check_units: bool = True,
                       frame: str = "base") -> Measurements:
-    """Read and validate a measurement CSV (INTERFACES.md): missing columns, non-numbers, NaN, duplicate
+    """Read and validate a measurement CSV (docs/formats.md): missing columns, non-numbers, NaN, duplicate
     ids, targets inconsistent with the platform (metres?), commands outside the workspace or
     disagreeing with the measured tilt (radians?).
 
@@ -131,7 +131,7 @@ def check_plausible(meas: Measurements, geom: Geometry, path: str, frame: str = 
 
 
 def write_measurements(path: str | Path, meas: Measurements, comments=()) -> None:
-    """Write a measurement CSV (INTERFACES.md), atomically; optional columns only when present."""
+    """Write a measurement CSV (docs/formats.md), atomically; optional columns only when present."""
     k = meas.targets.shape[1]
     header = ["pose_id", "m1_cmd_deg", "m2_cmd_deg"] + target_columns(k)
     cols = [np.asarray(meas.m_cmd_deg)[:, 0], np.asarray(meas.m_cmd_deg)[:, 1]] + \

@@ -220,7 +220,7 @@ def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Er
 
 
 def params_document(result: IdentResult, extra: dict | None = None) -> dict:
-    """The parameters JSON of an identification (INTERFACES.md): values and 1-sigma uncertainties in
+    """The parameters JSON of an identification (docs/formats.md): values and 1-sigma uncertainties in
     mm and degrees, keys as in :mod:`pmcal.mechanism.planar.geometry`."""
     conv = [(180.0 / math.pi if u == "rad" else 1.0) for u in result.units]
     std = result.std
