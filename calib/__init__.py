@@ -1,4 +1,9 @@
-"""Identification, diagnosis and compensation numerics (numpy/scipy; no MuJoCo, no files, no CLI).
+"""Identification, diagnosis and compensation numerics (numpy/scipy; no MuJoCo, no CLI).
+
+No user files: calib reads and writes none of the user's files (those are :mod:`pmcal.io_ocpm`,
+:mod:`pmcal.io_planar`); it does read package data through :mod:`pmcal.mechanism` (the machine
+configuration ``mjcf/<machine>/machine.toml``: default tracker noise, stiffness ratio), and the diagnosis
+inspects installed shared libraries to pin BLAS threads.
 
 The algorithms reach the physics only through :class:`pmcal.calib.forward_model.ForwardModel` objects
 handed to them (the twin's, or any other simulator's); the machine description comes from

@@ -27,7 +27,7 @@ from pmcal.compensators import (DEFAULT_GRID, Compensator, FullCompensation, Pap
                                 checked_commands)
 from pmcal.errors import InputError
 from pmcal.threads import blas_policy
-from pmcal.io_ocpm import read_params, write_params
+from pmcal.io_ocpm import paper_keys_only, read_params, write_params
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import limb_ik
@@ -147,8 +147,8 @@ class Calibration:
         geom = geometry or default_geometry()
         params, doc = read_params(path, geom)
         model = doc.get("model")
-        if model is None:
-            model = "paper" if "position_map" in doc else DEFAULT_MODEL
+        if model is None:            # a file without "model": the paper's if it holds only the paper's keys
+            model = "paper" if "position_map" in doc or paper_keys_only(params) else DEFAULT_MODEL
         if model not in MODELS:
             raise InputError(f"unknown model '{model}' (known: {', '.join(MODELS)})", file=str(path), field="model")
         ratio = doc.get("stiffness_ratio")

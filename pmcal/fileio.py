@@ -14,6 +14,12 @@ import tempfile
 from pathlib import Path
 from typing import IO, Iterator
 
+from pmcal.errors import InputError
+
+#: File pmcal leaves in every folder it writes; a folder without it holds the user's files and is never
+#: replaced unless the user says ``--force``.
+MARKER = ".pmcal-output"
+
 
 def _default_mode() -> int:
     """Permissions of a newly created file under the current umask (mkstemp would give 0600)."""
@@ -68,9 +74,49 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp
         mode = _default_mode()
         os.chmod(tmp, mode | ((mode & 0o444) >> 2))     # directories: x where r is granted
+        (tmp / MARKER).write_text("written by pmcal; the whole folder is replaced on the next run\n",
+                                  encoding="utf-8")
         if target.exists():
             shutil.rmtree(target)
         os.replace(tmp, target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def check_output(path: str | os.PathLike, *, folder: bool = False, force: bool = False,
+                 field: str | None = None) -> None:
+    """Check before any work that ``path`` can be written; raise :class:`InputError` otherwise.
+
+    A file output must not be a folder, must not be a read-only file, and its folder must exist and be
+    writable. A folder output (``folder=True``) must not be a file; if it exists, it must hold the marker
+    :data:`MARKER` (pmcal wrote it, so replacing it loses nothing of the user's) or be empty, unless
+    ``force``.
+    """
+    if path is None:
+        return
+    target = Path(path)
+    parent = target.parent if str(target.parent) else Path(".")
+    if not str(path).strip():
+        raise InputError("empty output path", field=field)
+    if not parent.is_dir():
+        what = "is not a folder" if parent.exists() else "does not exist"
+        raise InputError(f"cannot write {target}: the folder {parent} {what}", field=field)
+    if not _writable(parent):
+        raise InputError(f"cannot write {target}: the folder {parent} is not writable", field=field)
+    if folder:
+        if target.exists() and not target.is_dir():
+            raise InputError(f"{target} is a file, not a folder", field=field)
+        if target.is_dir() and not (target / MARKER).exists() and any(target.iterdir()) and not force:
+            raise InputError(f"{target} exists and was not written by pmcal (no {MARKER}); it would be "
+                             "replaced: choose another folder or add --force", field=field)
+        return
+    if target.is_dir():
+        raise InputError(f"{target} is a folder; give a file name", field=field)
+    if target.exists() and not _writable(target):
+        raise InputError(f"{target} is read-only; it will not be replaced", field=field)
+
+
+def _writable(path: Path) -> bool:
+    """Writable by this process, and not marked read-only (also when running as root, who may write anyway)."""
+    return os.access(path, os.W_OK) and bool(path.stat().st_mode & 0o222)

@@ -1,4 +1,4 @@
-"""File formats of the over-constrained PM (INTERFACES.md): measurements, parameters, targets, setpoints.
+"""File formats of the over-constrained PM (docs/formats.md): measurements, parameters, targets, setpoints.
 
 Validation happens here, at the edge: one :class:`InputError` naming file, row and field.
 """
@@ -14,7 +14,7 @@ import numpy as np
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_fk
-from pmcal.mechanism.ocpm.params import check_key
+from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, PAPER_LIMB_FIELDS, check_key
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.csvio import read_csv, write_csv
 from pmcal.errors import InputError
@@ -26,6 +26,9 @@ TARGET_AXES = ("x", "y", "z")
 #: Largest disagreement between the measured tilt and the tilt the commands give on the nominal machine
 #: that is still plausible for a machine with geometric errors (deg). Beyond it, a unit mix-up is likely.
 PLAUSIBLE_POINTING_DEG = 5.0
+#: Most poses a measurement file may hold: identification and diagnosis solve dense problems whose cost
+#: grows with the poses (a campaign has 24..128; 2000 take minutes).
+MAX_POSES = 2000
 #: Largest plausible error of a measured distance between two targets (mm).
 PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
 #: The same in the tracker frame, where gross outliers are expected and rejected (named) by the robust fit:
@@ -39,7 +42,7 @@ def target_columns(k: int) -> list[str]:
 
 def read_measurements(path: str | Path, geom: Geometry | None = None, check_units: bool = True,
                       frame: str = "base") -> Measurements:
-    """Read and validate a measurement CSV (INTERFACES.md): missing columns, non-numbers, NaN, duplicate
+    """Read and validate a measurement CSV (docs/formats.md): missing columns, non-numbers, NaN, duplicate
     ids, targets inconsistent with the platform (metres?), commands outside the workspace or
     disagreeing with the measured tilt (radians?).
 
@@ -47,7 +50,7 @@ def read_measurements(path: str | Path, geom: Geometry | None = None, check_unit
     row with fewer than two targets is an error naming row and field. ``frame="tracker"``: the targets
     are in the tracker's own frame, so only frame-free checks (distances between targets) apply."""
     geom = geom or default_geometry()
-    t = read_csv(path)
+    t = read_csv(path, max_rows=MAX_POSES)
     k = 3
     while t.has(f"t{k + 1}_x"):
         k += 1
@@ -128,7 +131,7 @@ def check_plausible(meas: Measurements, geom: Geometry, path: str, frame: str = 
 
 
 def write_measurements(path: str | Path, meas: Measurements, comments=()) -> None:
-    """Write a measurement CSV (INTERFACES.md), atomically; optional columns only when present."""
+    """Write a measurement CSV (docs/formats.md), atomically; optional columns only when present."""
     k = meas.targets.shape[1]
     header = ["pose_id", "m1_cmd_deg", "m2_cmd_deg"] + target_columns(k)
     cols = [np.asarray(meas.m_cmd_deg)[:, 0], np.asarray(meas.m_cmd_deg)[:, 1]] + \
@@ -149,12 +152,36 @@ def write_measurements(path: str | Path, meas: Measurements, comments=()) -> Non
     write_csv(path, header, rows, comments)
 
 
+#: The parameters file's schema (docs/formats.md): error models, and the largest plausible magnitude of a
+#: geometric error. Beyond it a unit mix-up (radians, micrometres, angles x1000) is far more likely than a
+#: machine that still closes its chain: the paper's Table 2 errors are below 2 mm and 1 deg.
+PARAM_MODELS = ("full", "paper")
+PLAUSIBLE_PARAM = {"mm": 25.0, "deg": 10.0}
+
+
+def param_unit(key: str) -> str:
+    """``deg`` for an angular parameter key, else ``mm``."""
+    return "deg" if key.rsplit(".", 1)[-1] in ANGULAR_FIELDS else "mm"
+
+
+def paper_keys_only(params: dict[str, float]) -> bool:
+    """Every key is one of the paper's 11 per limb of limbs 1 and 2 (a paper-model file)."""
+    return bool(params) and all(k.split(".", 1)[0] in ("L1", "L2") and k.split(".", 1)[1] in PAPER_LIMB_FIELDS
+                                for k in params)
+
+
 def read_params(path: str | Path, geom: Geometry | None = None) -> tuple[dict[str, float], dict]:
-    """Read a parameters JSON (INTERFACES.md); returns (params in mm/deg, whole document)."""
+    """Read and validate a parameters JSON (docs/formats.md); returns (params in mm/deg, whole document).
+
+    The one schema of the ``ocpm_2dof`` parameters file, whichever command reads it: ``mechanism``,
+    ``model`` (one of :data:`PARAM_MODELS` when present), ``stiffness_ratio`` (a positive number when
+    present), ``params`` keys (:func:`pmcal.mechanism.ocpm.params.check_key`), finite numbers within
+    :data:`PLAUSIBLE_PARAM` of their unit.
+    """
     geom = geom or default_geometry()
     p = str(path)
     try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+        doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise InputError("file not found", file=p) from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -173,7 +200,18 @@ def read_params(path: str | Path, geom: Geometry | None = None) -> tuple[dict[st
             raise InputError(msg, file=p, field=key)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise InputError(f"value {value!r} is not a finite number", file=p, field=key)
+        unit = param_unit(key)
+        if abs(value) > PLAUSIBLE_PARAM[unit]:
+            raise InputError(f"{value:g} {unit} is implausible for a geometric error (at most "
+                             f"{PLAUSIBLE_PARAM[unit]:g} {unit}; units are mm and degrees)", file=p, field=key)
         params[key] = float(value)
+    model = doc.get("model")
+    if model is not None and model not in PARAM_MODELS:
+        raise InputError(f"unknown model {model!r} (known: {', '.join(PARAM_MODELS)})", file=p, field="model")
+    ratio = doc.get("stiffness_ratio")
+    if ratio is not None and (isinstance(ratio, bool) or not isinstance(ratio, (int, float))
+                              or not math.isfinite(ratio) or ratio <= 0):
+        raise InputError(f"stiffness ratio {ratio!r} is not a positive number", file=p, field="stiffness_ratio")
     return params, doc
 
 

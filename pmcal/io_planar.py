@@ -13,13 +13,18 @@ from pathlib import Path
 import numpy as np
 
 from pmcal.mechanism.planar.geometry import ERROR_KEYS, Errors, Geometry, interface_unit
-from pmcal.mechanism.planar.kinematics import forward, inverse
+from pmcal.mechanism.planar.kinematics import forward, inverse, mm_vector
 from pmcal.calib.solvers.result import IdentResult
 from pmcal.csvio import read_csv, write_csv
 from pmcal.errors import InputError
 
 MECHANISM = "planar_2dof"
 MEAS_COLUMNS = ("pose_id", "theta1_cmd_deg", "theta2_cmd_deg", "scale_change_mm")
+#: most positions a measurement file may hold: the reading covariance is dense (rows x rows)
+MAX_POSITIONS = 2000
+#: accepted ratio of the readings to the nominal distance changes (a geometric error changes them by
+#: a few per cent; metres or micrometres change them by 1000)
+PLAUSIBLE_READING_RATIO = (0.5, 2.0)
 #: largest plausible |scale change| between adjacent positions, mm (the paper's scale range is 350 mm)
 PLAUSIBLE_CHANGE_MM = 400.0
 
@@ -58,9 +63,27 @@ def _plausible_positions(geom: Geometry, theta: np.ndarray, path: str, fields: s
     return r
 
 
+def _check_reading_units(geom: Geometry, r: np.ndarray, change: np.ndarray, starts: np.ndarray, path: str) -> None:
+    """The readings must be the changes of the distance O1O2 in mm: compared with the nominal changes
+    (eq. 4) by their least-squares ratio, which a unit mistake moves by a factor 1000."""
+    length = np.linalg.norm(mm_vector(geom, r), axis=1)
+    expected = np.diff(length)[~starts[1:]]
+    got = change[~starts]
+    scale = float(expected @ expected)
+    if scale < 1.0:                               # positions too close to tell (under 1 mm of change)
+        return
+    ratio = float(got @ expected) / scale
+    lo, hi = PLAUSIBLE_READING_RATIO
+    if not lo <= ratio <= hi:
+        row = int(np.flatnonzero(~starts)[int(np.argmax(np.abs(expected)))]) + 1
+        hint = " (metres?)" if abs(ratio) < 0.01 else " (micrometres?)" if abs(ratio) > 100 else ""
+        raise InputError(f"the readings are {ratio:.3g} times the distance changes the commanded positions give: "
+                         f"the scale changes must be in mm{hint}", file=path, row=row, field="scale_change_mm")
+
+
 def read_measurements(path: str | Path, geom: Geometry, min_positions: int = 6) -> PlanarMeasurements:
     """Read and validate a planar measurement CSV."""
-    t = read_csv(path)
+    t = read_csv(path, max_rows=MAX_POSITIONS)
     t.require(MEAS_COLUMNS)
     ids = t.unique_ids("pose_id")
     theta = np.deg2rad(np.stack([t.numbers("theta1_cmd_deg"), t.numbers("theta2_cmd_deg")], axis=1))
@@ -94,6 +117,7 @@ def read_measurements(path: str | Path, geom: Geometry, min_positions: int = 6) 
         raise InputError(f"{len(ids)} positions; the identification needs at least {min_positions} "
                          f"(K > 5, paper section 4)", file=t.path, field="pose_id")
     r = _plausible_positions(geom, theta, t.path, "theta1_cmd_deg")
+    _check_reading_units(geom, r, change, starts, t.path)
     return PlanarMeasurements(ids=ids, theta_cmd=theta, readings=change[~starts], segments=seg, r=r,
                               path=t.path)
 
@@ -147,6 +171,10 @@ def write_setpoints(path: str | Path, header: list[str], rows: list[list[str]], 
     write_csv(path, list(header) + ["theta1_deg", "theta2_deg"], out, comments=list(comments))
 
 
+#: error models of a planar parameters file (docs/planar_measurement_format.md)
+PARAM_MODELS = ("simplified", "full")
+
+
 def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Errors, dict]:
     """A parameters/errors JSON: ``{"mechanism": "planar_2dof", "params": {key: value}}`` (mm, deg).
 
@@ -155,7 +183,7 @@ def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Er
     """
     p = str(path)
     try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+        doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise InputError("file not found", file=p) from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -163,6 +191,12 @@ def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Er
     if not isinstance(doc, dict):
         raise InputError("must be a JSON object", file=p)
     if "params" in doc or require_mechanism:
+        model = doc.get("model")
+        if model is not None and model not in PARAM_MODELS:
+            raise InputError(f"unknown model {model!r} (known: {', '.join(PARAM_MODELS)})", file=p, field="model")
+        if "stiffness_ratio" in doc:
+            raise InputError("planar_2dof has no stiffness ratio (a parameter of ocpm_2dof)", file=p,
+                             field="stiffness_ratio")
         mech = doc.get("mechanism")
         if mech != MECHANISM and (require_mechanism or mech is not None):
             raise InputError(f"mechanism is {mech!r}, expected '{MECHANISM}'", file=p, field="mechanism")
@@ -186,7 +220,7 @@ def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Er
 
 
 def params_document(result: IdentResult, extra: dict | None = None) -> dict:
-    """The parameters JSON of an identification (INTERFACES.md): values and 1-sigma uncertainties in
+    """The parameters JSON of an identification (docs/formats.md): values and 1-sigma uncertainties in
     mm and degrees, keys as in :mod:`pmcal.mechanism.planar.geometry`."""
     conv = [(180.0 / math.pi if u == "rad" else 1.0) for u in result.units]
     std = result.std

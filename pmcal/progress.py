@@ -10,12 +10,23 @@ from tqdm.auto import tqdm
 T = TypeVar("T")
 
 _QUIET = False
+_VERBOSE = False
 
 
 def set_quiet(quiet: bool) -> None:
     """Switch progress output off (``pmcal --quiet``)."""
     global _QUIET
     _QUIET = bool(quiet)
+
+
+def set_verbose(verbose: bool) -> None:
+    """More detail (``pmcal --verbose``): status lines also when stderr is not a terminal."""
+    global _VERBOSE
+    _VERBOSE = bool(verbose)
+
+
+def quiet() -> bool:
+    return _QUIET
 
 
 def enabled() -> bool:
@@ -31,5 +42,5 @@ def progress(iterable: Iterable[T] | None = None, *, total: int | None = None, d
 
 def status(message: str) -> None:
     """One status line on stderr for a long step (suppressed like the bars)."""
-    if enabled():
+    if enabled() or (_VERBOSE and not _QUIET):
         tqdm.write(message, file=sys.stderr)

@@ -47,8 +47,15 @@ def test_measure_identify_evaluate_round_trip(campaign, tmp_path):
     assert doc["params"]["dtheta1"] == pytest.approx(np.rad2deg(expected.x[0]), abs=1e-3)
     assert doc["params"]["drMy"] == pytest.approx(expected.x[3], abs=1e-3)
     full = tmp_path / "full.json"
-    assert run("identify", str(campaign), "-o", str(full), "--model", "full", "--method", "tsvd") == 0
-    assert json.loads(full.read_text())["rank"] == 9
+    # the full model's G has rank 9 of 12 (translating the base with O1, turning about O1 change no reading):
+    # success is refused unless the user accepts it, and the null space is reported either way
+    assert run("identify", str(campaign), "-o", str(full), "--model", "full", "--method", "tsvd") == 1
+    doc = json.loads(full.read_text())
+    assert doc["rank"] == 9 and doc["success"] is False and len(doc["null_space"]) == 3
+    assert run("identify", str(campaign), "-o", str(full), "--model", "full", "--method", "tsvd",
+               "--allow-rank-deficient") == 0
+    doc = json.loads(full.read_text())
+    assert doc["success"] is True and len(doc["null_space"]) == 3
     # evaluate: the true parameters explain the readings, the nominal machine does not
     truth = tmp_path / "truth.json"
     truth.write_text(json.dumps({"mechanism": "planar_2dof", "params": err.as_interface()}))

@@ -24,7 +24,7 @@ predicted orientation (pointing coordinates ``theta (cos phi, sin phi)``, rad) a
 ``H = -J_p^{-1} E`` from the nominal motor Jacobian ``J_p = d beta / d p`` and the error coefficient
 matrix ``E = d(beta - dtheta) / d eps`` at the nominal pose (eq. 7 position). See docs/identification.md.
 
-Units: mm and rad inside; frames as in MECHANISM.md §1.
+Units: mm and rad inside; frames as in docs/formats.md §1.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Nominal geometry of the over-constrained PM, loaded from ``mjcf/ocpm_2dof/machine.toml``.
 
-Frames (MECHANISM.md §1): base frame O-xyz at the SS limb's base sphere centre, z up; platform frame
+Frames (docs/formats.md §1): base frame O-xyz at the SS limb's base sphere centre, z up; platform frame
 C_E-uvw defined by the tracker targets. Limb j sits at azimuth psi_j. Units: mm, radians, kg.
 """
 

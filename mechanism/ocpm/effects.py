@@ -1,4 +1,4 @@
-"""The effect vocabulary (INTERFACES.md) as numerics: parameters, context functions and signatures.
+"""The effect vocabulary (docs/formats.md) as numerics: parameters, context functions and signatures.
 
 An *effect* is a physical behaviour the geometric model leaves out. Each has a name from the vocabulary,
 one value at the interface (:data:`VOCABULARY`, units there) and a few internal parameters (radians,

@@ -1,6 +1,6 @@
 """Closed-form kinematics of the over-constrained PM (paper 000 eq. 4-13), vectorised over poses.
 
-Frames and conventions: MECHANISM.md §1. Base frame O-xyz; limb j at azimuth psi_j with local frame
+Frames and conventions: docs/formats.md and docs/ocpm_2dof.md. Base frame O-xyz; limb j at azimuth psi_j with local frame
 x_j radial, y_j along the base revolute axis, z_j up; the error tilts turn it by Rz(dgamma)·Rx(dalpha).
 The first link points along ``Q_j Ry(beta) e_1 = Q_j (cos beta, 0, -sin beta)``. Platform frame C_E-uvw
 (the frame the tracker targets define); A_j and the platform revolute axes are given in it.

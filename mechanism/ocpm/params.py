@@ -1,4 +1,4 @@
-"""Geometric error parameters of the over-constrained PM (MECHANISM.md §1, paper Table 1).
+"""Geometric error parameters of the over-constrained PM (docs/formats.md §1, paper Table 1).
 
 Keys at every interface: ``L<j>.<name>`` for limb j = 1..4 and ``SS.<name>``; mm and degrees. Inside
 :class:`ErrorSet` the angles are radians. A missing key means zero error (nominal).

@@ -17,6 +17,7 @@ ROUTES = {
     "compensate": "pmcal.apps.ocpm_calib",
     "evaluate": "pmcal.apps.ocpm_calib",
     "demo": "pmcal.apps.ocpm_calib",
+    "targets": "pmcal.apps.ocpm_twin",
     "diagnose": "pmcal.apps.ocpm_diagnose",
 }
 

@@ -125,7 +125,7 @@ def evaluate(args) -> int:
 
 # ====================================================================== demo
 def demo(args) -> int:
-    if getattr(args, "hidden_effect", None):           # the discrepancy workflow's demo
+    if getattr(args, "hidden_effect", None):           # the discrepancy workflow's demo: its own folder
         from pmcal.apps.ocpm_diagnose import hidden_effect_demo
 
         return hidden_effect_demo(args)

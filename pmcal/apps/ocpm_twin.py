@@ -39,6 +39,23 @@ def stiffness_ratio(args) -> float | None:
     return ratio
 
 
+def targets(args) -> int:
+    """``pmcal targets -o TARGETS.csv``: ``--count`` orientations spread over the tilt cap (deg)."""
+    from pmcal.csvio import write_csv
+    from pmcal.twin.campaign import THETA_LIMIT_DEG, plan_orientations
+
+    if not 1 <= args.count <= 100_000:
+        raise InputError(f"count must be 1..100000, got {args.count}", field="--count")
+    theta_max = 60.0 if args.theta_max is None else args.theta_max
+    if not 0 < theta_max <= THETA_LIMIT_DEG:
+        raise InputError(f"tilt limit {theta_max:g} deg is outside 0..{THETA_LIMIT_DEG:g} deg", field="--theta-max")
+    phi, theta = plan_orientations(args.count, theta_max, np.random.default_rng(args.seed))
+    write_csv(args.output, ["phi_deg", "theta_deg"], ([f"{p:.4f}", f"{t:.4f}"] for p, t in zip(phi, theta)),
+              [f"pmcal targets: machine ocpm_2dof, {args.count} orientations up to {theta_max:g} deg tilt, "
+               f"seed {args.seed}", "units: deg; phi = azimuth of the tilt axis, theta = tilt (docs/formats.md)"])
+    return 0
+
+
 def twin_measure(args) -> int:
     from pmcal.twin.campaign import THETA_LIMIT_DEG, CampaignPlan, plan_campaign, run_campaign
     from pmcal.twin.tracker import LaserTracker
@@ -47,6 +64,8 @@ def twin_measure(args) -> int:
     sigma = geom.sigma_mm if args.noise is None else args.noise
     if not np.isfinite(sigma) or sigma < 0:
         raise InputError(f"noise must be a non-negative number of mm, got {args.noise}", field="--noise")
+    if args.poses is None:
+        args.poses = 24
     if args.poses < 1:
         raise InputError(f"number of poses must be at least 1, got {args.poses}", field="--poses")
     theta_max = np.rad2deg(geom.theta_max) if args.theta_max is None else args.theta_max

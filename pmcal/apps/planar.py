@@ -18,6 +18,11 @@ from pmcal.errors import InputError, RunError
 MODEL_CHOICES = {None: "simplified", "paper": "simplified", "simplified": "simplified", "full": "full"}
 
 
+def _status(text: str) -> None:
+    from pmcal import progress
+    progress.status(text)
+
+
 def _machine():
     from pmcal.twin.planar.config import default_machine
     return default_machine()
@@ -56,14 +61,43 @@ def identify(args) -> int:
     doc = params_document(res, {"n_positions": len(meas.ids), "source": str(args.measurements),
                                 "noise": {"scale_sigma_mm": noise.scale,
                                           "servo_sigma_deg": math.degrees(noise.servo)}})
+    deficient = rank_deficiency(machine.geometry, meas, model, doc)
+    if deficient and not getattr(args, "allow_rank_deficient", False):
+        doc["success"] = False
+        doc["message"] = (f"{deficient}; the parameters along the null space are not identified (values and "
+                          "uncertainties hold only for the identifiable combinations). --allow-rank-deficient "
+                          "accepts the minimum-norm solution")
     write_json(args.output, doc)
     p = doc["params"]
     print(f"{model} model, {method}: dtheta1 = {p['dtheta1']:.4f} deg, dtheta2 = {p['dtheta2']:.4f} deg, "
           f"drM = ({p['drMx']:.3f}, {p['drMy']:.3f}) mm; rank {doc['rank']}, "
           f"cond {doc['condition_number']:.1f} -> {args.output}")
-    if not res.success:
-        print(f"warning: {res.message}", file=sys.stderr)
+    if deficient and not getattr(args, "allow_rank_deficient", False):
+        raise RunError(f"{args.output} written with success false: {deficient} (--allow-rank-deficient "
+                       "accepts it)")
+    if not doc["success"]:
+        print(f"warning: {doc['message']}", file=sys.stderr)
     return 0
+
+
+def rank_deficiency(geom, meas, model: str, doc: dict) -> str:
+    """Describe the null space of the identification matrix ``G`` (eq. 24/28) in ``doc`` ("null_space": one
+    unit vector per missing rank, keyed by parameter, in the scaled unknowns of eq. 29: mm, and mm per
+    link length for the zero offsets); return a one-line summary, or "" when ``G`` has full column rank."""
+    from pmcal.calib.planar.identification import MODELS, system
+
+    G, _ = system(geom, meas.r, meas.readings, model, None, meas.segments)
+    _, s, Vt = np.linalg.svd(G)
+    rank = int(doc.get("rank") or 0)
+    n = G.shape[1]
+    if rank >= n:
+        return ""
+    keys = list(MODELS[model])
+    null = [{k: round(float(v), 6) for k, v in zip(keys, vec) if abs(v) > 1e-6} for vec in Vt[rank:]]
+    doc["null_space"] = null
+    biggest = [max(vec, key=lambda k: abs(vec[k])) for vec in null]
+    return (f"rank {rank} of {n}: the readings cannot tell {n - rank} combination(s) of the parameters "
+            f"apart (largest in {', '.join(dict.fromkeys(biggest))})")
 
 
 def compensate(args) -> int:
@@ -86,7 +120,7 @@ def compensate(args) -> int:
         raise InputError("out of reach of the identified machine", file=args.targets, row=row, field="y_mm")
     write_setpoints(args.output, header, rows, theta, comments=[
         f"pmcal compensate, machine planar_2dof, parameters {args.params}", "units: mm, deg"])
-    print(f"{len(r)} setpoints -> {args.output}")
+    _status(f"{len(r)} setpoints -> {args.output}")
     return 0
 
 
@@ -128,6 +162,24 @@ def _errors_from_args(args, machine):
     return machine.preset(name), f"preset {name}"
 
 
+def targets(args) -> int:
+    """``pmcal --machine planar_2dof targets -o TARGETS.csv``: ``--count`` positions (mm, seed frame) on the
+    boundary of the paper's workspace (Fig. 7), the layout the identification uses."""
+    from pmcal.calib.planar.design import boundary_positions
+    from pmcal.csvio import write_csv
+
+    if not 2 <= args.count <= 100_000:
+        raise InputError(f"count must be 2..100000, got {args.count}", field="--count")
+    if args.theta_max is not None:
+        raise InputError("--theta-max is for ocpm_2dof; planar targets are positions", field="--theta-max")
+    machine = _machine()
+    r = boundary_positions(machine.workspace, (args.count + 1) // 2)[: args.count]
+    write_csv(args.output, ["x_mm", "y_mm"], ([f"{x:.4f}", f"{y:.4f}"] for x, y in r),
+              [f"pmcal targets: machine planar_2dof, {len(r)} positions on the workspace boundary",
+               "units: mm; seed frame O-xy, y up, the platform below the base (y < 0); docs/formats.md"])
+    return 0
+
+
 def twin_measure(args) -> int:
     """A virtual campaign: ``--poses K`` positions (paper Fig. 7, K even) or ``--targets``; scale noise
     ``--noise`` (mm, default eq. 34) and servo noise (eq. 35); readings as in the measurement CSV."""
@@ -155,7 +207,7 @@ def twin_measure(args) -> int:
         if len(r) < 2:
             raise InputError("a campaign needs at least two positions", file=args.targets, field="x_mm")
     else:
-        K = int(getattr(args, "poses", 6))
+        K = int(getattr(args, "poses", None) or 6)
         if K < 6 or K % 2:
             raise InputError(f"number of poses must be even and at least 6 (K = 2n > 5), got {K}",
                              field="--poses")
@@ -169,7 +221,7 @@ def twin_measure(args) -> int:
         f"scale sigma {noise.scale:.4g} mm, servo sigma {math.degrees(noise.servo):.4g} deg, "
         f"seed {getattr(args, 'seed', 1)}",
         "units: mm, deg; seed frame O-xy (y up); scale_change_mm = change since the previous row"])
-    print(f"{len(r)} positions -> {args.output}")
+    _status(f"{len(r)} positions -> {args.output}")
     return 0
 
 
@@ -199,7 +251,7 @@ def twin_render(args) -> int:
         raise RunError(str(exc)) from None
     with atomic_write(args.output, "wb") as fh:
         fh.write(png)
-    print(f"picture -> {args.output}")
+    _status(f"picture -> {args.output}")
     return 0
 
 

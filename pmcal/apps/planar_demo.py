@@ -26,7 +26,7 @@ def _fig8(ns, k1, km, paper_fig8):
     ax.plot(ns, km, "s--", label="κm (MAEMM-corrected, eq. 30)")
     ax.plot([paper_fig8["n"]] * 2, [paper_fig8["kappa1"], paper_fig8["kappam"]], "k*", ms=12,
             label="paper Fig. 8 at n = 3")
-    ax.set_xlabel("n (positions per boundary, K = 2n; odd n as in the seed)")
+    ax.set_xlabel("n (positions per boundary, K = 2n; odd n as in the paper)")
     ax.set_ylabel("condition number of G")
     ax.grid(alpha=0.3)
     ax.legend()
@@ -37,7 +37,7 @@ def _fig_positions(machine, paper_pos, ours_pos):
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
     ws, reg = machine.workspace, machine.design.region
-    fig, ax = plt.subplots(figsize=(6.4, 4.6))
+    fig, ax = plt.subplots(figsize=(8.4, 4.6))
     ax.add_patch(Rectangle((reg.x[0], reg.y[0]), reg.x[1] - reg.x[0], reg.y[1] - reg.y[0], fill=False,
                            ls=":", color="gray", label="calibration region (machine.toml [design])"))
     ax.add_patch(Rectangle((-ws.b / 2, ws.y_lower), ws.b, ws.h, alpha=0.2, color="tab:blue", label="workspace W"))
@@ -50,14 +50,15 @@ def _fig_positions(machine, paper_pos, ours_pos):
     ax.set_xlabel("x, mm")
     ax.set_ylabel("y, mm")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="upper right")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0)
+    fig.tight_layout()
     return fig
 
 
 def _fig9(fig9, groups):
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(2, 3, figsize=(11, 6), sharex=True)
-    styles = {"seed": ("tab:blue", "seed, eq. 34-35"), "paper_scale_only": ("tab:green", "seed, scale only"),
+    styles = {"seed": ("tab:blue", "paper, eq. 34-35"), "paper_scale_only": ("tab:green", "paper, scale only"),
               "ours": ("tab:red", "ours")}
     for ax, grp in zip(axes.ravel(), groups):
         for name, (col, lab) in styles.items():
@@ -67,14 +68,14 @@ def _fig9(fig9, groups):
             ax.plot(m, dev[:, 1], "--", color=col, label=f"{lab}: Δθ2")
         ax.axhspan(-0.1, 0.1, color="gray", alpha=0.12)
         ax.set_title(grp)
-        ax.set_ylim(-1.2, 1.2)
         ax.grid(alpha=0.3)
     for ax in axes[1]:
         ax.set_xlabel("m (compensation number)")
     for ax in axes[:, 0]:
         ax.set_ylabel("compensation − set value, deg")
-    axes[0, 0].legend(fontsize=6)
-    fig.tight_layout()
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
     return fig
 
 
@@ -95,6 +96,7 @@ def _fig_delta(studies, groups, names):
     ax.axhline(0.02, color="k", ls=":", lw=1, label="goal 0.02°")
     ax.set_xticks(np.arange(len(groups)) * (len(names) + 1) + 1, groups)
     ax.set_ylabel("max(δ1, δ2), deg")
+    ax.set_xlabel("error group (paper Table 3)")
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3, which="both")
     return fig
@@ -280,7 +282,7 @@ def _report(machine, results, studies, fig9, dpmax_paperpos, PAPER, ns, k1, km, 
     R.heading("Measurement positions and condition numbers (paper section 5, Fig. 7-8)")
     R.figure(_fig8(ns, k1, km, PAPER["fig8"]), "Fig. 8 reproduced: κ1 and κm of the simplified model vs n "
              "(κm with the mechanism corrected by ΔrM = (1, 0.5) mm).")
-    R.table(["n", "κ1 ours", "κ1 seed", "κm ours", "κm seed", "|κ1-κm|/κ1"],
+    R.table(["n", "κ1 ours", "κ1 paper", "κm ours", "κm paper", "|κ1-κm|/κ1"],
             [[3, k1[0], PAPER["fig8"]["kappa1"], km[0], PAPER["fig8"]["kappam"], abs(k1[0] - km[0]) / k1[0]]]
             + [[int(n), a, "", b, "", abs(a - b) / a] for n, a, b in zip(ns[1:], k1[1:], km[1:])])
     R.paragraph(f"Eq. 31 with ε0 = {machine.calibration.eps0} picks n = {results['condition']['n_chosen']} "
@@ -290,7 +292,7 @@ def _report(machine, results, studies, fig9, dpmax_paperpos, PAPER, ns, k1, km, 
     R.figure(_fig_positions(machine, paper_pos, ours_pos), "Paper positions (Fig. 7) and this project's "
              "noise-optimal positions (A-optimal for Δθ, GLS, scale range and transmission constraints).")
 
-    R.heading("Table 3: zero offsets and Δp0 (seed vs this twin)")
+    R.heading("Table 3: zero offsets and Δp0 (paper vs this twin)")
     rows = []
     for grp in GROUPS:
         s3 = PAPER["table3"][grp]
@@ -304,21 +306,21 @@ def _report(machine, results, studies, fig9, dpmax_paperpos, PAPER, ns, k1, km, 
                          med(grp, "seed", "dp0_after_median_mm") if i == 0 else "",
                          med(grp, "paper_scale_only", "dp0_after_median_mm") if i == 0 else "",
                          med(grp, "ours", "dp0_after_median_mm") if i == 0 else ""])
-    R.table(["group", "", "set °", "seed comp. °", "seed δ °", "δ seed-method °", "δ scale-only °", "δ ours °",
-             "Δp0 before seed", "Δp0 before ours", "Δp0 after seed", "after seed-method", "after scale-only",
+    R.table(["group", "", "set °", "paper comp. °", "paper δ °", "δ paper-method °", "δ scale-only °", "δ ours °",
+             "Δp0 before paper", "Δp0 before ours", "Δp0 after paper", "after paper-method", "after scale-only",
              "after ours"], rows, left_cols=2,
             caption="δ: |compensation − set value|, median over the runs; Δp0 in mm (after: median).")
 
     R.heading("Table 4: Δp_max at the six paper positions, before and after (mm)")
-    R.table(["group", "before seed", "before ours", "after seed", "after seed-method", "after scale-only",
+    R.table(["group", "before paper", "before ours", "after paper", "after paper-method", "after scale-only",
              "after ours"],
             [[grp, PAPER["table4"][grp][0], results["groups"][grp]["seed"]["dpmax_paper_positions_before_mm"],
               PAPER["table4"][grp][1]] + [float(np.median(dpmax_paperpos[grp][n])) for n in
                                           ("seed", "paper_scale_only", "ours")] for grp in GROUPS])
 
     R.heading("Table 5: MAEMM identification error δM (mm) and Table 6: mean κ")
-    R.table(["group", "δMx seed", "δMy seed", "δMx/δMy seed-method", "δMx/δMy scale-only", "δMx/δMy ours",
-             "κ mean seed", "κ mean ours"],
+    R.table(["group", "δMx paper", "δMy paper", "δMx/δMy paper-method", "δMx/δMy scale-only", "δMx/δMy ours",
+             "κ mean paper", "κ mean ours"],
             [[grp, PAPER["table5"][grp][0], PAPER["table5"][grp][1]]
              + ["{:.3f} / {:.3f}".format(*med(grp, n, "delta_M_median_mm")) for n in
                 ("seed", "paper_scale_only", "ours")]

@@ -12,25 +12,45 @@ def _cmd(name: str):
     return lambda args: dispatch(name, args)
 
 
+def _demo_defaults(args) -> None:
+    """The demo's folder: ``pmcal-demo``, or ``pmcal-demo-hidden`` for the hidden-effect demo, so one
+    never replaces the other's report."""
+    if args.out is None:
+        args.out = "pmcal-demo-hidden" if args.hidden_effect else "pmcal-demo"
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the whole job on the built-in machine, no arguments needed")
-    p.add_argument("--out", default="pmcal-demo", help="output folder (report, tables); default pmcal-demo")
-    p.add_argument("--seed", type=int, default=1, help="random seed of the virtual campaign")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="output folder (report, tables), replaced as a whole; default pmcal-demo, "
+                        "pmcal-demo-hidden with --hidden-effect. A folder pmcal did not write is refused")
+    p.add_argument("--force", action="store_true",
+                   help="replace the output folder even if pmcal did not write it (its content is lost)")
+    p.add_argument("--seed", type=int, default=1, help="random seed of the virtual campaign (default 1)")
     p.add_argument("--full", action="store_true",
                    help="run the population methods (ga, pso, sa) to their own stopping rules instead of the "
                         "quick demo's capped budgets (about a minute longer)")
     p.add_argument("--hidden-effect", default=None, metavar="NAME",
-                   help="hide a physical effect in the campaign and let the diagnosis find it")
-    p.set_defaults(func=_cmd("demo"))
+                   help="hide a physical effect in the campaign and let the diagnosis find it: an effect name "
+                        "of docs/effects.md or 'random'")
+    p.set_defaults(func=_cmd("demo"), prepare=_demo_defaults)
 
     p = sub.add_parser("identify", help="calibrate from a measurement file")
-    p.add_argument("measurements", metavar="MEAS.csv")
-    p.add_argument("-o", "--output", required=True, metavar="PARAMS.json")
-    p.add_argument("--method", default=None, help="identification method (machine default if omitted)")
-    p.add_argument("--model", default=None, choices=["full", "paper"],
-                   help="error model: whole closed chain (full) or the paper's per-limb real IK (paper)")
+    p.add_argument("measurements", metavar="MEAS.csv", help="measurement CSV (columns: docs/formats.md)")
+    p.add_argument("-o", "--output", required=True, metavar="PARAMS.json", help="parameters file to write")
+    p.add_argument("--method", default=None,
+                   help="identification method. ocpm_2dof --model paper: hga (default), ga, pso, sa, lm, "
+                        "tikhonov, tsvd; --model full: the whole-chain least squares. planar_2dof: tsvd "
+                        "(default), ls, gls")
+    p.add_argument("--model", default=None, choices=["full", "paper", "simplified"],
+                   help="error model. ocpm_2dof: whole closed chain (full, default) or the paper's per-limb "
+                        "real IK (paper). planar_2dof: the paper's 4-parameter model (simplified = paper, "
+                        "default) or all 12 parameters (full)")
     p.add_argument("--sigma", type=float, default=None, help="tracker noise, mm (machine default)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods")
+    p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods (default 0)")
+    p.add_argument("--allow-rank-deficient", action="store_true",
+                   help="planar_2dof --model full: accept a rank-deficient fit (null space reported in the "
+                        "file) as success; without it the file says success false and the exit status is 1")
     p.add_argument("--frame", default="base", metavar="base|tracker|tracker:T.json",
                    help="frame of the measured targets: the machine's base frame (default) or the tracker's "
                         "own frame (registration and nest offsets identified; T.json: start registration "
@@ -43,27 +63,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd("identify"))
 
     p = sub.add_parser("compensate", help="corrected motor commands for target orientations")
-    p.add_argument("params", metavar="PARAMS.json")
-    p.add_argument("--targets", required=False, metavar="TARGETS.csv")
-    p.add_argument("-o", "--output", required=False, metavar="SETPOINTS.csv")
+    p.add_argument("params", metavar="PARAMS.json", help="parameters file written by identify")
+    p.add_argument("--targets", required=False, metavar="TARGETS.csv",
+                   help="targets CSV (phi_deg, theta_deg; planar: x_mm, y_mm); 'pmcal targets' writes one")
+    p.add_argument("-o", "--output", required=False, metavar="SETPOINTS.csv",
+                   help="setpoints CSV to write: the targets with m1_deg, m2_deg appended")
     p.add_argument("--table", default=None, metavar="TABLE.json",
                    help="also write the 2-D compensation table (JSON; CSV beside it)")
-    p.add_argument("--grid", default=None, metavar="NPHI,NTHETA", help="table grid size")
+    p.add_argument("--grid", default=None, metavar="NPHI,NTHETA",
+                   help="table grid: points in phi (0..360 deg) and theta (0..theta_max); default 73,31")
     p.add_argument("--table-version", type=int, default=None, metavar="N",
                    help="table version (1..2**32-1, must increase on the PLC); default: Unix time")
     p.set_defaults(func=_cmd("compensate"))
 
     p = sub.add_parser("evaluate", help="pointing error of a parameter set against a measurement file")
-    p.add_argument("params", metavar="PARAMS.json")
-    p.add_argument("measurements", metavar="MEAS.csv")
-    p.add_argument("--json", default=None, metavar="OUT.json")
+    p.add_argument("params", metavar="PARAMS.json", help="parameters file written by identify")
+    p.add_argument("measurements", metavar="MEAS.csv", help="measurement CSV (docs/formats.md)")
+    p.add_argument("--json", default=None, metavar="OUT.json", help="also write the result as JSON")
     p.set_defaults(func=_cmd("evaluate"))
 
     p = sub.add_parser("diagnose", help="find, name and add the effect the model misses")
-    p.add_argument("measurements", metavar="MEAS.csv")
-    p.add_argument("--json", required=True, metavar="OUT.json")
-    p.add_argument("--params", default=None, metavar="P.json")
-    p.add_argument("--model", default="full", choices=["full", "paper"])
-    p.add_argument("--report", default=None, metavar="DIR")
+    p.add_argument("measurements", metavar="MEAS.csv", help="measurement CSV (docs/formats.md)")
+    p.add_argument("--json", required=True, metavar="OUT.json", help="diagnosis JSON to write (docs/formats.md)")
+    p.add_argument("--params", default=None, metavar="P.json",
+                   help="start from this parameters file (default: identify from the measurements)")
+    p.add_argument("--model", default="full", choices=["full", "paper"],
+                   help="baseline model: whole closed chain (full, default) or the paper's (paper)")
+    p.add_argument("--report", default=None, metavar="DIR",
+                   help="also write an HTML report into this folder (replaced as a whole; a folder pmcal "
+                        "did not write is refused without --force)")
+    p.add_argument("--force", action="store_true",
+                   help="replace the --report folder even if pmcal did not write it")
     p.add_argument("--sigma", type=float, default=None, help="tracker noise, mm (else estimated)")
     p.set_defaults(func=_cmd("diagnose"))

@@ -4,7 +4,19 @@ from __future__ import annotations
 
 import argparse
 
+from pmcal.errors import InputError
 from pmcal.machines import dispatch
+
+#: image size limits of ``twin render`` (pixels): the offscreen buffer of the MJCF models
+IMAGE_LIMITS = {"width": 1280, "height": 960}
+
+
+def _render(args) -> int:
+    for name, most in IMAGE_LIMITS.items():
+        value = getattr(args, name)
+        if not 16 <= value <= most:
+            raise InputError(f"image {name} must be 16..{most} pixels, got {value}", field=f"--{name}")
+    return dispatch("twin_render", args)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -13,11 +25,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     m = tsub.add_parser("measure", help="measure a virtual campaign on the twin and write the CSV")
     _machine_errors(m)
-    m.add_argument("--poses", type=int, default=24, help="number of poses (default 24)")
+    m.add_argument("--poses", type=int, default=None, metavar="N",
+                   help="number of poses (default: ocpm_2dof 24; planar_2dof 6, the paper's, even and >= 6)")
     m.add_argument("--targets", default=None, metavar="TARGETS.csv",
                    help="explicit target orientations (phi_deg, theta_deg) instead of planned poses")
     m.add_argument("--noise", type=float, default=None, metavar="MM",
                    help="tracker noise, standard deviation per coordinate, mm (default from the machine)")
+    m.add_argument("--servo-noise", type=float, default=None, metavar="DEG",
+                   help="planar_2dof only: servo noise, standard deviation per motor, deg (default eq. 35)")
     m.add_argument("--seed", type=int, default=1, help="random seed (poses, approach, noise)")
     m.add_argument("--theta-max", type=float, default=None, metavar="DEG",
                    help="largest tilt of planned poses, deg (default from the machine, 60)")
@@ -43,7 +58,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="probability that a row has one target blocked (its three cells left empty)")
     m.add_argument("--outliers", default=None, metavar="N[:MM]",
                    help="N rows with a gross error in one coordinate of one target (default 2 mm)")
-    m.add_argument("-o", "--output", required=True, metavar="MEAS.csv")
+    m.add_argument("-o", "--output", required=True, metavar="MEAS.csv",
+                   help="measurement CSV to write (columns: docs/formats.md)")
     m.set_defaults(func=lambda a: dispatch("twin_measure", a))
 
     pl = tsub.add_parser("plan", help="write the command list of a campaign (poses in measurement order)")
@@ -60,15 +76,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     r = tsub.add_parser("render", help="write a PNG of the machine at a pose")
     _machine_errors(r)
     r.add_argument("--pose", default="0,0", metavar="PHI,THETA", help="orientation in deg (default 0,0)")
-    r.add_argument("--width", type=int, default=800)
-    r.add_argument("--height", type=int, default=600)
-    r.add_argument("-o", "--output", required=True, metavar="IMAGE.png")
-    r.set_defaults(func=lambda a: dispatch("twin_render", a))
+    r.add_argument("--width", type=int, default=800, metavar="PX", help="image width, pixels, 16..1280 (default 800)")
+    r.add_argument("--height", type=int, default=600, metavar="PX",
+                   help="image height, pixels, 16..960 (default 600)")
+    r.add_argument("-o", "--output", required=True, metavar="IMAGE.png", help="PNG file to write")
+    r.set_defaults(func=_render)
 
 
 def _machine_errors(p: argparse.ArgumentParser) -> None:
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--preset", default=None, help="built-in error set (e.g. paper-table2, nominal)")
-    g.add_argument("--errors", default=None, metavar="PARAMS.json", help="error set of the real machine")
-    p.add_argument("--stiffness-ratio", type=float, default=None,
-                   help="actuated-closure/SS over passive-closure stiffness (default from the machine)")
+    g.add_argument("--preset", default=None, metavar="NAME",
+                   help="built-in error set: ocpm_2dof nominal (default) or paper-table2; planar_2dof nominal "
+                        "or group1..group6 (the paper's error groups)")
+    g.add_argument("--errors", default=None, metavar="PARAMS.json",
+                   help="error set of the real machine: a parameters file (docs/formats.md)")
+    p.add_argument("--stiffness-ratio", type=float, default=None, metavar="RATIO",
+                   help="ocpm_2dof only: actuated-closure/SS over passive-closure stiffness, > 0 (default "
+                        "from the machine)")

@@ -64,9 +64,10 @@ def demo_report(st, pool=None):
                  f"seed {st.seed}. Method: paper 000 (Sun et al. 2018) sections IV-VI.")
     resolve = _parallel_figures(rep, pool) if pool is not None else (lambda: None)
     b, a = st.before["pointing"], st.after["pointing"]
-    rep.card("Result", [f"pointing error before: {_stats(b)} deg", f"after (paper HGA method): {_stats(a)} deg",
+    rep.card("Result: the paper's HGA method (with the fitted position map) and the whole closed chain",
+             [f"pointing error before: {_stats(b)} deg", f"after (paper HGA method): {_stats(a)} deg",
                         f"after (whole closed chain): {_stats(st.full_after)} deg",
-                        f"improvement of the mean: {100 * (1 - a.mean() / b.mean()):.1f} % (seed, experiment: "
+                        f"improvement of the mean, paper HGA method: {100 * (1 - a.mean() / b.mean()):.1f} % (seed, experiment: "
                         "93.96 % in theta, 90.38 % in phi)",
                         f"HGA identification of both limbs: {st.cal.wall_time:.2f} s; whole demo "
                         f"{st.timings.get('total', 0):.0f} s"], css="ok")
@@ -78,7 +79,7 @@ def demo_report(st, pool=None):
     cl = st.closure
     rep.paragraph(f"Over-constraint: on the calibration poses the passive limbs' closures miss by up to "
                   f"{cl[:, 2:].max():.2f} mm (absorbed by compliance), the actuated ones by "
-                  f"{1000 * cl[:, :2].max():.1f} um: the paper's per-limb model is nearly exact for these data.")
+                  f"{1000 * cl[:, :2].max():.1f} µm: the paper's per-limb model is nearly exact for these data.")
 
     # ---- Table 2
     rep.heading("Identified vs predefined errors (paper Table 2)")
@@ -96,14 +97,15 @@ def demo_report(st, pool=None):
 
     # ---- Fig. 5
     rep.heading("Pointing before and after compensation (paper Fig. 5)")
-    fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.6), layout="constrained")
     idx = np.arange(1, st.N_TEST + 1)
     for k, (key, lab) in enumerate((("dtheta", "theta deviation, deg"), ("dphi", "phi deviation, deg"),
                                     ("pointing", "pointing error, deg"))):
         ax[k].plot(idx, st.before[key], "o-", label="before")
         ax[k].plot(idx, st.after[key], "s-", label="after (pmcal)")
         ax[k].set_xlabel("test point")
-        ax[k].set_title(lab)
+        ax[k].set_ylabel(lab)
+        ax[k].set_title(lab.split(",")[0])
         ax[k].grid(alpha=.3)
     ax[0].legend()
     rep.figure(fig, "Tilt, azimuth and pointing deviations of the 24 test points")
@@ -124,7 +126,7 @@ def demo_report(st, pool=None):
               left_cols=2, caption="Same 24 calibration poses and 24 held-out test poses for every method. The "
               "whole-chain model (docs/fullchain.md) fits all four limbs, the SS limb and the closure stiffness "
               "ratio to the raw target coordinates; the tracker's own noise floor is ~0.006 deg.")
-    fig, ax = plt.subplots(1, len(st.fullchain), figsize=(13, 3.8), sharey=True)
+    fig, ax = plt.subplots(1, len(st.fullchain), figsize=(13, 3.8), sharey=True, layout="constrained")
     for a_, (case, d) in zip(np.atleast_1d(ax), st.fullchain.items()):
         for m, v in d.items():
             if not m.startswith("_"):
@@ -160,7 +162,7 @@ def demo_report(st, pool=None):
                          + "; `pmcal demo --full` runs them to their own stopping rules)")
                       + "; clean timings: benchmarks/identify_bench.py.")
     keys = list(st.methods["hga"]["dev"])
-    fig, ax = plt.subplots(2, 1, figsize=(13, 6.5))
+    fig, ax = plt.subplots(2, 1, figsize=(13, 6.5), layout="constrained")
     width = 0.8 / len(st.methods)
     for i, (m, d) in enumerate(st.methods.items()):
         for row, is_ang in enumerate((False, True)):
@@ -177,7 +179,7 @@ def demo_report(st, pool=None):
     # ---- Fig. 6
     rep.heading("Regularisation (paper Fig. 6, eq. 18-20)")
     lams, res, sol, corner = st.lcurve
-    fig, ax = plt.subplots(1, 2, figsize=(12, 3.8))
+    fig, ax = plt.subplots(1, 2, figsize=(12, 3.8), layout="constrained")
     ax[0].loglog(res, sol, "-")
     k = int(np.argmin(np.abs(lams - corner)))
     ax[0].loglog(res[k], sol[k], "ro", label=f"corner, lambda = {corner:.3g}")
@@ -210,35 +212,40 @@ def demo_report(st, pool=None):
     for k in st.cal.unidentifiable:
         lines.append(f"{k} is unidentifiable: {pm.explain(k)}. Held at 0.")
     rep.card("Identification Jacobian (whitened, column-normalised)", lines, css="warn")
-    fig, ax = plt.subplots(1, 3, figsize=(14, 4))
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.6), layout="constrained")
     for j in (1, 2):
         ax[0].semilogy(st.ident[j].singular_values, "o-", label=f"limb {j}")
     ax[0].set_title("singular values")
+    ax[0].set_xlabel("index")
+    ax[0].set_ylabel("singular value (whitened, column-normalised)")
     ax[0].legend()
     corr = st.ident[1].correlation
     im = ax[1].imshow(corr, vmin=-1, vmax=1, cmap="RdBu_r")
     ax[1].set_xticks(range(len(st.ident[1].names)), st.ident[1].names, rotation=90, fontsize=7)
     ax[1].set_yticks(range(len(st.ident[1].names)), st.ident[1].names, fontsize=7)
     ax[1].set_title("correlations, limb 1")
-    fig.colorbar(im, ax=ax[1])
+    fig.colorbar(im, ax=ax[1], shrink=0.8, label="correlation coefficient")
     ps = st.pose_sel
     n = ps["names"]
-    ax[2].semilogy(range(len(n)), ps["random (median of 200)"]["crlb"], "o", label="random 24")
-    ax[2].semilogy(range(len(n)), ps["D-optimal (identification)"]["crlb"], "s", label="D-optimal 24")
+    to_deg = np.array([np.rad2deg(1.0) if unit(k) == "deg" else 1.0 for k in n])   # CRLBs: mm and rad
+    ax[2].semilogy(range(len(n)), ps["random (median of 200)"]["crlb"] * to_deg, "o", label="random 24")
+    ax[2].semilogy(range(len(n)), ps["D-optimal (identification)"]["crlb"] * to_deg, "s", label="D-optimal 24")
     ax[2].set_xticks(range(len(n)), n, rotation=90, fontsize=7)
-    ax[2].set_title("CRLB std (mm or rad)")
+    ax[2].set_title("Cramér-Rao standard deviation")
+    ax[2].set_ylabel("CRLB std: mm (positions), deg (angles)")
     ax[2].legend()
     rep.figure(fig, "Singular values, correlations, and Cramer-Rao bounds for random vs D-optimal poses")
     rep.heading("Pose selection (paper 003 section 5, generalised)")
+    is_mm = np.array([unit(k) == "mm" for k in n])
     mm_dev = lambda dev: max(abs(v) for k, v in dev.items() if unit(k) == "mm")  # noqa: E731
     rows = [["random (median of 200 draws)", ps["random (median of 200)"]["cond"],
-             np.max(ps["random (median of 200)"]["crlb"]), "", ""],
+             np.max(ps["random (median of 200)"]["crlb"][is_mm]), "", ""],
             ["the demo's campaign (spread, random jitter)", st.ident[1].condition_number, "",
              st.after["pointing"].mean(), mm_dev(st.methods["hga"]["dev"])]]
     for label in ("D-optimal (identification)", "D-optimal (identification + position map)"):
         d = ps[label]
-        rows.append([label, d["cond"], np.max(d["crlb"]), d["held_out"].mean(), mm_dev(d["dev"])])
-    rep.table(["24 poses", "condition number", "max CRLB (mm / rad)", "held-out pointing, deg",
+        rows.append([label, d["cond"], np.max(d["crlb"][is_mm]), d["held_out"].mean(), mm_dev(d["dev"])])
+    rep.table(["24 poses", "condition number", "max CRLB of a position, mm", "held-out pointing, deg",
                "max |pos. dev|, mm"], rows,
               caption="Chosen from 600 candidates over theta <= 60 deg on the nominal design (both limbs). "
                       "Identification-only D-optimal poses cluster at the workspace edge: best CRLBs, but the "

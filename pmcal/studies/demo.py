@@ -341,15 +341,14 @@ def run_demo(out: Path, seed: int, full: bool = False) -> int:
     The population methods' comparison and the picture run in two worker processes started at once;
     without ``full`` the population methods get the budgets :data:`QUICK_BUDGETS` (the report says so).
     """
-    from concurrent.futures import ProcessPoolExecutor
-
     from pmcal.fileio import atomic_directory
     from pmcal.io_ocpm import write_measurements
+    from pmcal.studies.workers import worker_pool
 
     t0 = time.perf_counter()
     steps = ["campaign", "identify", "compensate", "fullchain", "regularisation", "identifiability",
              "table", "pose", "algorithms", "render"]
-    with ProcessPoolExecutor(max_workers=2) as pool, atomic_directory(out) as tmp:
+    with worker_pool(2) as pool, atomic_directory(out) as tmp:     # Ctrl-C: workers killed, not waited for
         study = DemoStudy(seed, full, pool)
         with progress.progress(total=len(steps) + 1, desc="pmcal demo", unit="step") as bar:
             for name in steps:

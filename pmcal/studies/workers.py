@@ -1,0 +1,33 @@
+"""Worker processes that never delay Ctrl-C: :func:`worker_pool`.
+
+A plain :class:`concurrent.futures.ProcessPoolExecutor` waits for its running tasks on the way out of the
+``with`` block, and each worker prints its own ``KeyboardInterrupt`` traceback: Ctrl-C in the demo took
+19-29 s and 30-70 lines. Here the workers ignore SIGINT (the parent decides) and, when the block is left
+by an exception, the parent kills them at once and cancels what is queued.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+from concurrent.futures import ProcessPoolExecutor
+from typing import Iterator
+
+
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def worker_pool(max_workers: int) -> Iterator[ProcessPoolExecutor]:
+    """A process pool whose workers ignore Ctrl-C and are killed if the block raises (e.g. on Ctrl-C)."""
+    pool = ProcessPoolExecutor(max_workers=max_workers, initializer=_ignore_sigint)
+    try:
+        yield pool
+    except BaseException:
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            with contextlib.suppress(Exception):
+                proc.kill()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
