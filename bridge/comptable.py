@@ -412,7 +412,7 @@ class CompTable(GridLimits):
         """Read and check the JSON file (structure, grid shape, checksums); values not validated."""
         src = str(path)
         try:
-            doc = json.loads(Path(path).read_text(encoding="utf-8"))
+            doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
         except FileNotFoundError:
             raise InputError("file not found", file=src) from None
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -446,7 +446,7 @@ class CompTable(GridLimits):
         """Read and check the CSV file (header comments, node coordinates, checksums)."""
         src = str(path)
         try:
-            lines = Path(path).read_text(encoding="utf-8").splitlines()
+            lines = Path(path).read_text(encoding="utf-8-sig").splitlines()
         except FileNotFoundError:
             raise InputError("file not found", file=src) from None
         except UnicodeDecodeError:

@@ -32,7 +32,7 @@ DEFAULT_MACHINE = "ocpm_2dof"
 #: (command, attribute) of every file the commands write; folders in :data:`FOLDER_OUTPUTS`
 FILE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "identify": ("output",), "compensate": ("output", "table"), "evaluate": ("json",),
-    "diagnose": ("json",), "twin measure": ("output",), "twin render": ("output",), "targets": ("output",),
+    "diagnose": ("json",), "twin measure": ("output",), "twin plan": ("output",), "twin render": ("output",), "targets": ("output",),
     "push": ("json", "audit"), "loop": ("json",),
 }
 FOLDER_OUTPUTS: dict[str, tuple[str, ...]] = {"demo": ("out",), "diagnose": ("report",)}

@@ -253,8 +253,6 @@ def test_utf8_bom_is_accepted_in_parameter_files(work, capsys, tmp_path):
     assert run(capsys, "--machine", "planar_2dof", "evaluate", pbom, work / "planar.csv")[0] == 0
 
 
-@pytest.mark.xfail(reason="the table reader is bridge/comptable.py (issue 12): reads utf-8 without BOM",
-                   strict=False)
 def test_utf8_bom_is_accepted_in_a_table(work, capsys, tmp_path):
     table = tmp_path / "bom_table.json"
     table.write_bytes(b"\xef\xbb\xbf" + (work / "table.json").read_bytes())

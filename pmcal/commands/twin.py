@@ -70,7 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--seed", type=int, default=1, help="random seed of the poses and their order")
     pl.add_argument("--from", dest="from_diagnosis", default=None, metavar="DIAG.json",
                     help="a diagnosis JSON: list what it could not identify and how to fix it")
-    pl.add_argument("-o", "--output", required=True, metavar="PLAN.csv")
+    pl.add_argument("-o", "--output", required=True, metavar="PLAN.csv",
+                    help="the campaign's command list to write (CSV: pose_id, m1_cmd_deg, m2_cmd_deg, ...)")
     pl.set_defaults(func=lambda a: dispatch("twin_plan", a))
 
     r = tsub.add_parser("render", help="write a PNG of the machine at a pose")
