@@ -21,6 +21,10 @@ f. The named effects with value ± 95 % interval are written into the model; ``g
 g. Structure left after that (omnibus test, also robust to heavy-tailed noise) is flagged unexplained.
 
 Units: mm, rad inside (interface values of effects in :data:`VOCABULARY` units).
+
+Longer than the project's ~400 lines on purpose: the steps a-g share one problem state (:class:`_Problem`)
+and read top to bottom as the algorithm of docs/diagnose.md; the parts with a life of their own already
+live beside it (linear tests, noise estimate, effect values, residual context, result type).
 """
 
 from __future__ import annotations

@@ -25,6 +25,9 @@ predicted orientation (pointing coordinates ``theta (cos phi, sin phi)``, rad) a
 matrix ``E = d(beta - dtheta) / d eps`` at the nominal pose (eq. 7 position). See docs/identification.md.
 
 Units: mm and rad inside; frames as in docs/formats.md §1.
+
+At ~400 lines: the eq. 14 model, its Jacobians and the linearised pose model share the per-limb
+vector layout; the procedure that uses them is :mod:`pmcal.calib.ocpm.paper_calibration`.
 """
 
 from __future__ import annotations
