@@ -65,11 +65,12 @@ def load_calibration(path: str | Path) -> Calibration:
 
 
 def open_link(ads: str | None = None, modbus: str | None = None, *, ams_port: int | None = None,
-              timeout_s: float = 2.0, writes=None) -> PlcLink:
+              timeout_s: float = 2.0, writes=None, local_netid: str | None = None) -> PlcLink:
     """The link to a PLC: ``ads="NETID@HOST[:PORT]"`` (TwinCAT ADS) or ``modbus="HOST:PORT"``.
 
     ``writes`` limits the variables the link may write (``frozenset()``: read only; default: what a push
-    writes). Raises InputError naming ``--ads``/``--modbus``/``--timeout`` for a malformed target.
+    writes). ``local_netid`` sets this client's AMS NetID (ADS; the PLC needs a route back to it).
+    Raises InputError naming ``--ads``/``--modbus``/``--timeout``/``--local-netid`` for a malformed value.
     """
     from pmcal.bridge.plc_types import PUSH_WRITES
 
@@ -80,9 +81,14 @@ def open_link(ads: str | None = None, modbus: str | None = None, *, ams_port: in
         raise InputError(f"time-out must be positive, got {timeout_s}", field="--timeout")
     writes = PUSH_WRITES if writes is None else writes
     if ads is not None:
-        from pmcal.bridge.ads import AdsLink
+        from pmcal.bridge.ads import AdsLink, set_local_netid
         from pmcal.bridge.ads_map import AdsMap, AdsTarget
 
+        if local_netid:
+            try:
+                set_local_netid(local_netid)
+            except ValueError as exc:
+                raise InputError(str(exc), field="--local-netid") from None
         try:
             target = AdsTarget.parse(ads)
         except ValueError as exc:

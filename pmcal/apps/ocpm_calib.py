@@ -14,7 +14,7 @@ import numpy as np
 
 from pmcal import progress
 from pmcal.calibration import Calibration, identify as identify_campaign
-from pmcal.compensators import DEFAULT_GRID, PaperCompensation, build_table, checked_commands
+from pmcal.compensators import DEFAULT_GRID, PaperCompensation, build_table, check_grid, checked_commands
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
 from pmcal.io_ocpm import MECHANISM, read_measurements, read_targets, write_setpoints
@@ -24,14 +24,14 @@ from pmcal.mechanism.rotations import pointing_error, tilt_torsion, tilt_torsion
 
 
 def parse_grid(text: str | None) -> tuple[int, int]:
-    """``NPHI,NTHETA`` of ``--grid`` (default 73,31)."""
+    """``NPHI,NTHETA`` of ``--grid`` (default 73,31), within the PLC's array size."""
     if text is None:
         return DEFAULT_GRID
     try:
-        n_phi, n_theta = (int(v) for v in text.split(","))
+        grid = tuple(int(v) for v in text.split(","))
     except ValueError:
         raise InputError(f"expected NPHI,NTHETA (two integers), got '{text}'", field="--grid") from None
-    return n_phi, n_theta
+    return check_grid(grid)
 
 
 # ====================================================================== identify

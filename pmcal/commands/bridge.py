@@ -103,34 +103,11 @@ def _quiet_libraries() -> None:
 
 
 def make_link(args, writes=None):
-    """The link named by ``--ads`` / ``--modbus`` (InputError for a malformed target)."""
-    from pmcal.bridge.plc_types import PUSH_WRITES
+    """The link named by ``--ads`` / ``--modbus`` (InputError for a malformed target): :func:`pmcal.api.open_link`."""
+    from pmcal.api import open_link
 
-    writes = PUSH_WRITES if writes is None else writes
-    if not (args.timeout > 0):
-        raise InputError(f"time-out must be positive, got {args.timeout}", field="--timeout")
-    if args.ads:
-        from pmcal.bridge.ads import AdsLink, set_local_netid
-        from pmcal.bridge.ads_map import AdsMap, AdsTarget
-
-        if getattr(args, "local_netid", None):
-            try:
-                set_local_netid(args.local_netid)
-            except ValueError as exc:
-                raise InputError(str(exc), field="--local-netid") from None
-
-        try:
-            target = AdsTarget.parse(args.ads)
-        except ValueError as exc:
-            raise InputError(str(exc), field="--ads") from None
-        return AdsLink(target, amap=AdsMap(ams_port=args.ams_port), writes=writes, timeout_s=args.timeout)
-    from pmcal.bridge.modbus import ModbusLink, parse_host_port
-
-    try:
-        host, port = parse_host_port(args.modbus)
-    except ValueError as exc:
-        raise InputError(str(exc), field="--modbus") from None
-    return ModbusLink(host, port, writes=writes, timeout_s=args.timeout)
+    return open_link(args.ads, args.modbus, ams_port=args.ams_port, timeout_s=args.timeout, writes=writes,
+                     local_netid=getattr(args, "local_netid", None))
 
 
 def cmd_push(args) -> int:
