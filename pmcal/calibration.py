@@ -27,7 +27,7 @@ from pmcal.compensators import (DEFAULT_GRID, Compensator, FullCompensation, Pap
                                 checked_commands)
 from pmcal.errors import InputError
 from pmcal.threads import blas_policy
-from pmcal.io_ocpm import paper_keys_only, read_params, write_params
+from pmcal.io_ocpm import PARAM_MODELS, paper_keys_only, read_params, write_params
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import limb_ik
@@ -35,7 +35,8 @@ from pmcal.mechanism.ocpm.params import LOG_RATIO, ErrorSet, describe, is_angula
 from pmcal.tracker_frame import identify_result, tracker_document
 from pmcal.twin.forward import FullChainModel
 
-MODELS = ("full", "paper")
+#: Calibration models: the one list, shared with the parameters-file schema.
+MODELS = PARAM_MODELS
 DEFAULT_MODEL = "full"
 DEFAULT_METHOD = "hga"
 #: Fewest poses the whole-chain fit accepts: ~40 effective parameters, 6 pose coordinates a pose.
@@ -145,17 +146,10 @@ class Calibration:
     def load(cls, path: str | Path, geometry: Geometry | None = None) -> "Calibration":
         """Read a parameters file written by :meth:`save` or ``pmcal identify``."""
         geom = geometry or default_geometry()
-        params, doc = read_params(path, geom)
+        params, doc = read_params(path, geom)           # validates model name and stiffness ratio
         model = doc.get("model")
         if model is None:            # a file without "model": the paper's if it holds only the paper's keys
             model = "paper" if "position_map" in doc or paper_keys_only(params) else DEFAULT_MODEL
-        if model not in MODELS:
-            raise InputError(f"unknown model '{model}' (known: {', '.join(MODELS)})", file=str(path), field="model")
-        ratio = doc.get("stiffness_ratio")
-        if model == "full" and ratio is not None and not (
-                isinstance(ratio, (int, float)) and not isinstance(ratio, bool) and np.isfinite(ratio) and ratio > 0):
-            raise InputError(f"stiffness ratio {ratio!r} is not a positive number", file=str(path),
-                             field="stiffness_ratio")
         pmap = doc.get("position_map")
         if model == "paper" and pmap is not None:
             try:
