@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
-from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full, setpoints  # noqa: E402
+from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full, chain_commands_deg  # noqa: E402
 from pmcal.mechanism.ocpm.params import errors_and_ratio  # noqa: E402
 from pmcal.twin.forward import FullChainModel  # noqa: E402
 from pmcal.mechanism.ocpm.kinematics import nominal_pose, real_ik_commands  # noqa: E402
@@ -90,12 +90,12 @@ def run_case(name, draws, n_train, where, ratio_truth, fit_ratio, with_paper, ro
             t = time.perf_counter() - t
             results["paper-hga"] = pointing(twin, seed_commands(e_paper, test.phi_deg, test.theta_deg),
                                             test.phi_deg, test.theta_deg, ev) + (t,)
-            m_map = np.rad2deg(comp.setpoints(np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg), e_paper,
+            m_map = np.rad2deg(comp.ik_commands_rad(np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg), e_paper,
                                               position_map=pmap))
             results["paper-hga + position map"] = pointing(twin, m_map, test.phi_deg, test.theta_deg, ev) + (t,)
         res = identify_full(meas, model, FullChainOptions(fit_stiffness_ratio=fit_ratio))
         e, _ = errors_and_ratio(res.names, res.x)
-        cmd = setpoints(model, e, test.phi_deg, test.theta_deg, stiffness_ratio=res.info["stiffness_ratio"])
+        cmd = chain_commands_deg(model, e, test.phi_deg, test.theta_deg, stiffness_ratio=res.info["stiffness_ratio"])
         results["full"] = pointing(twin, cmd, test.phi_deg, test.theta_deg, ev) + (res.wall_time,)
         for k, v in results.items():
             agg.setdefault(k, []).append(v)

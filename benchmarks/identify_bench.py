@@ -136,8 +136,8 @@ def one_draw(args) -> dict:
     model = pm.from_measurements(meas, (1, 2), sigma_mm=SIGMA)
     pmap = comp.fit_position_map(model.r, model.R)
     out = {"scenario": scenario, "draw": d, "redrawn": redrawn, "before_deg": point(nominal_commands(test.phi_deg, test.theta_deg)),
-           "true_map_deg": point(np.rad2deg(comp.setpoints(ph, th, E_true, position_map=pmap))),
-           "true_eq7_deg": point(np.rad2deg(comp.setpoints(ph, th, E_true))), "methods": {}}
+           "true_map_deg": point(np.rad2deg(comp.ik_commands_rad(ph, th, E_true, position_map=pmap))),
+           "true_eq7_deg": point(np.rad2deg(comp.ik_commands_rad(ph, th, E_true))), "methods": {}}
     problems, refs = {}, {}
     for j in (1, 2):
         prob = pm.from_measurements(meas, (j,), sigma_mm=SIGMA).problem()
@@ -167,8 +167,8 @@ def one_draw(args) -> dict:
             "mm_rms": float(np.sqrt(np.mean(np.square(mm)))), "wall_s": wall,
             "n_eval": int(sum(res[j].n_eval for j in (1, 2))),
             "chi_rms": float(np.sqrt(np.mean(np.concatenate([res[j].residuals for j in (1, 2)]) ** 2))),
-            "held_out_deg": point(np.rad2deg(comp.setpoints(ph, th, e_hat, position_map=pmap))),
-            "held_out_eq7_deg": point(np.rad2deg(comp.setpoints(ph, th, e_hat)))}
+            "held_out_deg": point(np.rad2deg(comp.ik_commands_rad(ph, th, e_hat, position_map=pmap))),
+            "held_out_eq7_deg": point(np.rad2deg(comp.ik_commands_rad(ph, th, e_hat)))}
     return out
 
 
@@ -206,7 +206,7 @@ def pose_draw(args) -> dict:
         pmap = comp.fit_position_map(cal.model.r, cal.model.R)
         keep = [i for i, k in enumerate(cal.names) if k not in cal.unidentifiable and pm.param_units([k])[0] == "mm"]
         dev = cal.x[keep] - np.array([E_true.get(cal.names[i]) for i in keep])
-        m = np.rad2deg(comp.setpoints(ph, th, cal.errors(), position_map=pmap))
+        m = np.rad2deg(comp.ik_commands_rad(ph, th, cal.errors(), position_map=pmap))
         out[label] = {"mm_rms": float(np.sqrt(np.mean(dev**2))),
                       "held_out_deg": float(np.mean(np.rad2deg(pointing_error(twin.reach(m).R, tilt_torsion(ph, th))))),
                       "cond": float(max(a.condition_number for a in cal.identifiability.values()))}

@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
-from pmcal.calib.ocpm.fullchain import identify_full, setpoints  # noqa: E402
+from pmcal.calib.ocpm.fullchain import identify_full, chain_commands_deg  # noqa: E402
 from pmcal.calib.ocpm.registration import GAUGE_KEYS  # noqa: E402
 from pmcal.calib.ocpm.tracker_fit import identify_tracker  # noqa: E402
 from pmcal.mechanism.ocpm.params import errors_and_ratio, random_errors  # noqa: E402
@@ -45,7 +45,7 @@ SIGMA = 0.01
 def held_out_pointing(twin: Twin, model: FullChainModel, res, test) -> float:
     """Mean true pointing error (deg) of the compensated held-out poses."""
     e, _ = errors_and_ratio(res.names, res.x)
-    cmd = setpoints(model, e, test.phi_deg, test.theta_deg, stiffness_ratio=res.info["stiffness_ratio"])
+    cmd = chain_commands_deg(model, e, test.phi_deg, test.theta_deg, stiffness_ratio=res.info["stiffness_ratio"])
     st = twin.reach(cmd)
     Rt = tilt_torsion(np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg))
     return float(np.rad2deg(pointing_error(st.R, Rt)).mean())

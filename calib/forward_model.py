@@ -49,6 +49,17 @@ class ForwardModel(Protocol):
 
 
 @runtime_checkable
+class AimingModel(ForwardModel, Protocol):
+    """A :class:`ForwardModel` that solves compensation directly: the commands whose pose points the
+    platform normal at target orientations, without an outer Newton on :meth:`predict`."""
+
+    def aim_commands_deg(self, phi_deg: np.ndarray, theta_deg: np.ndarray) -> np.ndarray | None:
+        """Commands (N, 2) deg at the current parameters that point the platform normal at the tilt-torsion
+        orientations (phi, theta) deg, converged tighter than 1e-10 deg; NaN where out of reach. None when
+        the model's current physics has no direct solve (the caller then runs Newton on :meth:`predict`)."""
+
+
+@runtime_checkable
 class EffectModel(ForwardModel, Protocol):
     """A :class:`ForwardModel` that also carries the effect terms of the vocabulary
     (:mod:`pmcal.mechanism.ocpm.effects`): parameter keys ``"<effect>.<param>"`` in internal units, context

@@ -20,7 +20,7 @@ import numpy as np
 
 from pmcal.bridge.comptable import CompTable
 from pmcal.calib.ocpm import compensation as comp
-from pmcal.calib.ocpm.fullchain import setpoints
+from pmcal.calib.ocpm.fullchain import chain_commands_deg
 from pmcal.errors import InputError
 from pmcal.mechanism.ocpm.config import Geometry
 from pmcal.mechanism.ocpm.params import ErrorSet
@@ -56,7 +56,7 @@ class PaperCompensation:
 
     def commands_deg(self, phi_deg, theta_deg) -> np.ndarray:
         phi, theta = np.deg2rad(np.atleast_1d(phi_deg)), np.deg2rad(np.atleast_1d(theta_deg))
-        return np.rad2deg(comp.setpoints(phi, theta, self.errors, self.geom, self.pmap))
+        return np.rad2deg(comp.ik_commands_rad(phi, theta, self.errors, self.geom, self.pmap))
 
     def orientation(self, m_cmd_deg) -> tuple[np.ndarray, np.ndarray]:
         return comp.predict_orientation(np.deg2rad(m_cmd_deg), self.errors, self.geom, self.pmap)
@@ -82,7 +82,7 @@ class FullCompensation:
         phi_deg, theta_deg = np.atleast_1d(phi_deg), np.atleast_1d(theta_deg)
         out = np.full((len(phi_deg), 2), np.nan)
         ok = theta_deg >= 0
-        out[ok] = setpoints(self.model, self.errors, phi_deg[ok], theta_deg[ok], self.ratio)
+        out[ok] = chain_commands_deg(self.model, self.errors, phi_deg[ok], theta_deg[ok], self.ratio)
         self.unreachable = np.flatnonzero(~np.isfinite(out).all(axis=1))
         self._last_targets = (phi_deg, theta_deg)
         return out

@@ -20,7 +20,7 @@ TABLE2 = ErrorSet.from_dict(PAPER_TABLE2)
 
 
 def test_no_errors_gives_the_nominal_ik():
-    np.testing.assert_allclose(comp.setpoints(PHI, THETA, ErrorSet()), nominal_ik(PHI, THETA), atol=1e-12)
+    np.testing.assert_allclose(comp.ik_commands_rad(PHI, THETA, ErrorSet()), nominal_ik(PHI, THETA), atol=1e-12)
 
 
 def test_linearised_eq15_is_first_order():
@@ -31,7 +31,7 @@ def test_linearised_eq15_is_first_order():
 
     def gap(scale):
         e = pm.errors_from_vector(names, scale * x)
-        return np.max(np.abs(comp.setpoints_linear(PHI, THETA, e) - comp.setpoints(PHI, THETA, e)))
+        return np.max(np.abs(comp.linear_commands_rad(PHI, THETA, e) - comp.ik_commands_rad(PHI, THETA, e)))
 
     g1, g01 = gap(1.0), gap(0.1)
     assert g1 < np.deg2rad(0.02)
@@ -56,7 +56,7 @@ def test_position_map_recovers_a_known_field():
 def test_calibrated_forward_kinematics_inverts_the_setpoints():
     r0, R = nominal_pose(PHI, THETA)
     pmap = comp.fit_position_map(r0 + np.array([0.3, -0.2, 0.5]), R, max_degree=1)
-    m = comp.setpoints(PHI, THETA, TABLE2, position_map=pmap)
+    m = comp.ik_commands_rad(PHI, THETA, TABLE2, position_map=pmap)
     phi, theta = comp.predict_orientation(m, TABLE2, position_map=pmap)
     err = pointing_error(tilt_torsion(phi, theta), tilt_torsion(PHI, THETA))
     assert np.max(err) < 1e-9
@@ -79,7 +79,7 @@ def test_compensation_on_held_out_poses(campaign):
     ph, th = np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg)
     target = tilt_torsion(ph, th)
     before = pointing_error(twin.reach(nominal_commands(test.phi_deg, test.theta_deg)).R, target)
-    after = pointing_error(twin.reach(np.rad2deg(comp.setpoints(ph, th, cal.errors(), position_map=pmap))).R,
+    after = pointing_error(twin.reach(np.rad2deg(comp.ik_commands_rad(ph, th, cal.errors(), position_map=pmap))).R,
                            target)
     assert after.mean() < before.mean() / 10
 
@@ -91,5 +91,5 @@ def test_eq7_position_limits_the_seed_compensation(campaign):
     ph, th = np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg)
     target = tilt_torsion(ph, th)
     before = pointing_error(twin.reach(nominal_commands(test.phi_deg, test.theta_deg)).R, target)
-    after = pointing_error(twin.reach(np.rad2deg(comp.setpoints(ph, th, TABLE2))).R, target)
+    after = pointing_error(twin.reach(np.rad2deg(comp.ik_commands_rad(ph, th, TABLE2))).R, target)
     assert 0.4 < 1 - after.mean() / before.mean() < 0.75

@@ -6,7 +6,7 @@ import pytest
 from pmcal.mechanism.ocpm.params import LOG_RATIO, errors_and_ratio
 from pmcal.twin.forward import FullChainModel
 from pmcal.calib.ocpm.fullchain import (FullChainOptions,
-                                  identify_full, setpoints)
+                                  identify_full, chain_commands_deg)
 from pmcal.mechanism.ocpm.params import ErrorSet, all_keys, is_angular, random_errors
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.twin.campaign import nominal_commands, plan_campaign, run_campaign
@@ -67,7 +67,7 @@ def test_inversion_points_the_identified_machine_exactly():
     params = random_errors(rng, 0.5, 0.1)
     twin = Twin(params)
     phi, theta = rng.uniform(0, 360, 20), rng.uniform(0, 60, 20)
-    cmd = setpoints(FullChainModel(), ErrorSet.from_dict(params), phi, theta)
+    cmd = chain_commands_deg(FullChainModel(), ErrorSet.from_dict(params), phi, theta)
     err = np.rad2deg(pointing_error(twin.reach(cmd).R, tilt_torsion(np.deg2rad(phi), np.deg2rad(theta))))
     assert err.max() < 1e-6
 
@@ -83,7 +83,7 @@ def test_whole_chain_calibration_reaches_the_noise_floor_on_held_out_poses():
     test = plan_campaign(24, 60, seed=99)
     Rt = tilt_torsion(np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg))
     before = np.rad2deg(pointing_error(twin.reach(nominal_commands(test.phi_deg, test.theta_deg)).R, Rt))
-    after = np.rad2deg(pointing_error(twin.reach(setpoints(FullChainModel(), e, test.phi_deg, test.theta_deg)).R, Rt))
+    after = np.rad2deg(pointing_error(twin.reach(chain_commands_deg(FullChainModel(), e, test.phi_deg, test.theta_deg)).R, Rt))
     # noise floor of one pose measured with sigma = 0.01 mm on this target layout: ~0.006 deg mean
     assert after.mean() < 0.006 and after.mean() < 0.05 * before.mean()
 
@@ -110,10 +110,10 @@ def test_on_consistent_data_both_methods_compensate_exactly():
     ph, th = np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg)
     Rt = tilt_torsion(ph, th)
     cal = paper_calibration.calibrate(meas, "hga", (1, 2), seed=0)
-    m_seed = np.rad2deg(comp.setpoints(ph, th, cal.errors()))
+    m_seed = np.rad2deg(comp.ik_commands_rad(ph, th, cal.errors()))
     res = identify_full(meas, FullChainModel())
     e, _ = errors_and_ratio(res.names, res.x)
-    m_full = setpoints(FullChainModel(), e, test.phi_deg, test.theta_deg)
+    m_full = chain_commands_deg(FullChainModel(), e, test.phi_deg, test.theta_deg)
     before = np.rad2deg(pointing_error(twin.reach(nominal_commands(test.phi_deg, test.theta_deg)).R, Rt))
     for m in (m_seed, m_full):
         after = np.rad2deg(pointing_error(twin.reach(m).R, Rt))

@@ -124,36 +124,55 @@ class _ChainJacobian:
         self.site, self.dof, self.jnt, self.kind, self.body, self.k = c.T
         self.ball = self.kind == 2
         self.slide = self.kind == 1
+        half = self.n_sites // 2
+        self.sign = np.where(self.site < half, 1.0, -1.0)
+        # flat positions of column c, component i in a (3 half, nv) gap Jacobian: row 3 (site % half) + i
+        self._flat = ((3 * (self.site % half))[:, None] + np.arange(3)) * self.nv + self.dof[:, None]
+        # one-hot (C, nv): sums per-column terms into their degree of freedom
+        self._to_dof = np.zeros((len(c), self.nv))
+        self._to_dof[np.arange(len(c)), self.dof] = 1.0
 
     def gap(self, site_pos: np.ndarray, xanchor: np.ndarray, xaxis: np.ndarray,
-            xmat: np.ndarray) -> np.ndarray:
-        """Jacobians (N, 3 n, nv) of the gaps ``site[j] - site[n + j]`` for sites given as 2n rows.
+            xmat: np.ndarray, col: np.ndarray | None = None) -> np.ndarray:
+        """Jacobians (N, 3 n, nv) of the gaps ``site[j] - site[n + j]`` for sites given as 2n rows
+        (``col``: the :meth:`columns` at these kinematics, if already computed).
 
         The two sites of a gap must not share a degree of freedom (true for a closure of a loop
         whose two halves hang on different branches of the tree).
         """
         N, half = site_pos.shape[0], self.n_sites // 2
-        col = self._columns(site_pos, xanchor, xaxis, xmat)
-        sign = np.where(self.site < half, 1.0, -1.0)
-        J = np.zeros((N, half, self.nv, 3))
-        J[:, self.site % half, self.dof] = col * sign[None, :, None]
-        return np.swapaxes(J, 2, 3).reshape(N, 3 * half, self.nv)
+        if col is None:
+            col = self.columns(site_pos, xanchor, xaxis, xmat)
+        J = np.zeros((N, 3 * half * self.nv))
+        J[:, self._flat] = col * self.sign[None, :, None]
+        return J.reshape(N, 3 * half, self.nv)
+
+    def gap_gradient(self, col: np.ndarray, force: np.ndarray) -> np.ndarray:
+        """``J_gap^T f`` (N, nv) for gap-space vectors ``force`` (N, n, 3) from the :meth:`columns`
+        ``col``, without forming the Jacobian."""
+        half = self.n_sites // 2
+        per_col = np.einsum("nci,nci->nc", col, force[:, self.site % half]) * self.sign
+        return per_col @ self._to_dof
 
     def sites(self, site_pos: np.ndarray, xanchor: np.ndarray, xaxis: np.ndarray,
               xmat: np.ndarray) -> np.ndarray:
         """Jacobians (N, n_sites, 3, nv) of the sites' positions."""
         N = site_pos.shape[0]
         J = np.zeros((N, self.n_sites, self.nv, 3))
-        J[:, self.site, self.dof] = self._columns(site_pos, xanchor, xaxis, xmat)
+        J[:, self.site, self.dof] = self.columns(site_pos, xanchor, xaxis, xmat)
         return np.swapaxes(J, 2, 3)
 
-    def _columns(self, site_pos, xanchor, xaxis, xmat) -> np.ndarray:
+    def columns(self, site_pos, xanchor, xaxis, xmat) -> np.ndarray:
+        """Jacobian columns (N, C, 3), one per (site, dof that moves it) pair, world frame."""
         N = site_pos.shape[0]
         axis = xaxis[:, self.jnt]                                         # (N, C, 3)
         frames = xmat[:, self.body[self.ball]].reshape(N, -1, 3, 3)
         axis[:, self.ball] = np.take_along_axis(
             frames, self.k[self.ball][None, :, None, None], axis=3)[..., 0]
-        col = np.cross(axis, site_pos[:, self.site] - xanchor[:, self.jnt])
+        d = site_pos[:, self.site] - xanchor[:, self.jnt]
+        a0, a1, a2 = axis[..., 0], axis[..., 1], axis[..., 2]
+        d0, d1, d2 = d[..., 0], d[..., 1], d[..., 2]
+        col = np.stack([a1 * d2 - a2 * d1, a2 * d0 - a0 * d2, a0 * d1 - a1 * d0], axis=-1)
         col[:, self.slide] = axis[:, self.slide]
         return col
 
@@ -321,15 +340,20 @@ class BatchAssembler:
         site, anchor, axis, xmat, bias = self._kinematics(qpos, ids)
         res, Jw, _ = self._residual(site, anchor, axis, xmat, qpos, self._rest_of(qpos))
         return Linearization(site_xpos=self._b_site[:N].copy(), xpos=self._b_xpos[:N].copy(),
-                             xmat=self._b_xmat[:N].reshape(N, -1, 3, 3).copy(), xanchor=anchor,
-                             xaxis=axis, res=res, J=Jw, free=self.free,
+                             xmat=self._b_xmat[:N].reshape(N, -1, 3, 3).copy(), xanchor=anchor.copy(),
+                             xaxis=axis.copy(), res=res, J=Jw, free=self.free,
                              bias=bias.copy() if self.gravity else np.zeros((N, self.m.nv)))
 
     def _kinematics(self, qpos: np.ndarray, ids: np.ndarray):
         batch = self._ensure_batch(len(qpos))
-        self._b_qpos[ids] = qpos[ids]
         stage = mujoco.mjtStage.mjSTAGE_VEL if self.gravity else mujoco.mjtStage.mjSTAGE_POS
-        batch.forward(ids=ids, stage=stage)
+        if len(ids) == len(qpos) and (len(ids) == 0 or ids[-1] == len(ids) - 1):
+            ids = slice(0, len(qpos))                     # every row, in order: views, not copies
+            self._b_qpos[ids] = qpos
+            batch.forward(ids=np.arange(len(qpos)), stage=stage)
+        else:
+            self._b_qpos[ids] = qpos[ids]
+            batch.forward(ids=ids, stage=stage)
         return (self._b_site[ids][:, self._sites], self._b_anchor[ids], self._b_axis[ids],
                 self._b_xmat[ids], self._b_bias[ids])
 
@@ -339,9 +363,9 @@ class BatchAssembler:
             return self._rest
         return qpos[:, self.idx.qadr_base[:2]]
 
-    def _residual(self, site, anchor, axis, xmat, qpos_ids, rest=None):
+    def _residual(self, site, anchor, axis, xmat, qpos_ids, rest=None, col=None):
         n = len(self.idx.site_s1)
-        Jg = self._jac.gap(site, anchor, axis, xmat)                  # (M, 3n, nv)
+        Jg = self._jac.gap(site, anchor, axis, xmat, col)             # (M, 3n, nv)
         gap = site[:, :n] - site[:, n:]                               # (M, n, 3)
         res = np.concatenate([gap.reshape(len(site), 3 * n) * self._w,
                               self._w_ss * qpos_ids[:, [self.idx.qadr_slide]]], axis=1)

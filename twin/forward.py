@@ -14,6 +14,7 @@ import numpy as np
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.params import ErrorSet, errors_and_ratio
+from pmcal.twin.aiming import aim
 from pmcal.twin.assembly import integrate_pos
 from pmcal.twin.machine import Twin
 from pmcal.twin.sensitivity import target_sensitivity
@@ -101,6 +102,22 @@ class FullChainModel:
             self.twin.merge_state(state, again, redo)
         state.targets[~state.converged] = np.nan
         return state
+
+    def aim_commands_deg(self, phi_deg, theta_deg) -> np.ndarray | None:
+        """Commands (N, 2) deg whose equilibrium points the platform normal at (phi, theta) deg at the
+        current parameters (:func:`pmcal.twin.aiming.aim`: equilibrium and pointing solved together,
+        converged to ~1e-13 rad); NaN where out of reach. None while the twin carries gravity or motor
+        springs (the caller then runs Newton on :meth:`predict`). The equilibria become the warm start
+        of the next :meth:`solve`."""
+        asm = self.twin.assembler
+        if asm.gravity or asm.motor_stiffness is not None:
+            return None
+        phi, theta = np.deg2rad(np.atleast_1d(phi_deg)), np.deg2rad(np.atleast_1d(theta_deg))
+        joint, qpos = aim(self.twin, phi, theta)
+        cmd = np.rad2deg(joint - self.twin.errors.dtheta[:2])
+        ok = np.isfinite(cmd).all(axis=1)
+        self._qpos, self._cmd, self._cmd_key, self._tangent = qpos[ok], cmd[ok], cmd[ok].tobytes(), None
+        return cmd
 
     def set_vector(self, keys: list[str], x: np.ndarray, ratio0: float) -> None:
         """Set the model from a parameter vector (internal units); ``ratio0`` if the ratio is not in it."""

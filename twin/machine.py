@@ -111,12 +111,22 @@ class Twin:
             raise ValueError(f"pose {bad}: motor angles {np.rad2deg(joint[bad]).round(3)} deg are outside "
                              "the workspace of the machine")
         r, R = nominal_pose(phi, theta, geom)
-        N = len(joint)
+        q = self.pose_qpos(r, R, joint)
+        q[~np.isfinite(theta)] = np.nan
+        return q
+
+    def pose_qpos(self, r: np.ndarray, R: np.ndarray, joint: np.ndarray | None = None) -> np.ndarray:
+        """Configurations (N, nq) that put the platform at poses (r (N, 3) mm, R (N, 3, 3)): every limb's
+        base angle from this machine's real IK (``joint`` (N, 2) rad, if given, for the motors instead),
+        the SS limb and the links to match. Limbs whose IK has no solution there start at home."""
+        geom, idx = self.geom, self.index
+        N = len(r)
         q = np.tile(self.model.qpos0, (N, 1))
         ik = limb_ik(r, R, self.errors, geom, limbs=tuple(range(1, geom.n_limbs + 1)))
         beta = np.where(np.isfinite(ik.beta), ik.beta, np.deg2rad(-39.351))
         q[:, idx.qadr_base] = beta
-        q[:, idx.qadr_base[:2]] = joint
+        if joint is not None:
+            q[:, idx.qadr_base[:2]] = joint
         # Universal joint at O: Rx(u1) Ry(u2) e_z = r / |r|; the ball takes the rest of R.
         n = r / np.linalg.norm(r, axis=1, keepdims=True)
         u2 = np.arcsin(np.clip(n[:, 0], -1, 1))
@@ -131,7 +141,6 @@ class Twin:
         v = np.einsum("nji,nkj->nki", R, ik.S - ik.A)        # platform coordinates
         v = np.einsum("kji,nkj->nki", Q2, v)                  # link-2 local coordinates
         q[:, idx.qadr_plat] = np.arctan2(-v[..., 2], v[..., 0])
-        q[~np.isfinite(theta)] = np.nan
         return q
 
     # ------------------------------------------------------------------ driving

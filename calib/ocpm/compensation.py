@@ -10,7 +10,8 @@ orientation R, which the per-limb model does not determine (the SS and passive l
   ``r(p) = r_eq7(p) + sum_k c_k b_k(p)`` with a polynomial basis ``b_k`` in the pointing coordinates
   ``p = theta (cos phi, sin phi)``, degree chosen by leave-one-out cross-validation.
 
-:func:`setpoints_linear` is the paper's first-order compensation (eq. 15) for comparison.
+:func:`ik_commands_rad` is the exact compensation (commands in rad, from orientations in rad);
+:func:`linear_commands_rad` is the paper's first-order compensation (eq. 15) for comparison.
 :func:`predict_orientation` is the forward kinematics of the calibrated model (where commands take the
 platform), used to evaluate a parameter set against measurements.
 
@@ -112,23 +113,27 @@ def target_pose(phi: np.ndarray, theta: np.ndarray, geom: Geometry | None = None
     return r, tilt_torsion(phi, theta)
 
 
-def setpoints(phi: np.ndarray, theta: np.ndarray, errors: ErrorSet, geom: Geometry | None = None,
-              position_map: PositionMap | None = None) -> np.ndarray:
-    """Exact compensation: motor commands (N, 2) rad through the identified real IK (NaN: out of reach)."""
-    r, R = target_pose(phi, theta, geom, position_map)
+def ik_commands_rad(phi_rad: np.ndarray, theta_rad: np.ndarray, errors: ErrorSet, geom: Geometry | None = None,
+                    position_map: PositionMap | None = None) -> np.ndarray:
+    """Exact compensation: motor commands (N, 2) rad that put the machine with ``errors`` (mm, rad) at the
+    tilt-torsion orientations (``phi_rad``, ``theta_rad``), through the identified real IK at the
+    platform position of ``position_map`` (None: paper eq. 7). NaN: out of reach."""
+    r, R = target_pose(phi_rad, theta_rad, geom, position_map)
     return real_ik_commands(r, R, errors, geom)
 
 
-def setpoints_linear(phi: np.ndarray, theta: np.ndarray, errors: ErrorSet,
-                     geom: Geometry | None = None) -> np.ndarray:
-    """Paper eq. 15, first order: ``m = m_nominal + E eps`` (= ``m_nom - J_p^{-1} E_ac eps_ac - dtheta``
-    with the motor-side Jacobian), E the error coefficient matrix at the nominal pose (eq. 7)."""
+def linear_commands_rad(phi_rad: np.ndarray, theta_rad: np.ndarray, errors: ErrorSet,
+                        geom: Geometry | None = None) -> np.ndarray:
+    """Paper eq. 15, first order: motor commands (N, 2) rad ``m = m_nominal + E eps`` (= ``m_nom - J_p^{-1}
+    E_ac eps_ac - dtheta`` with the motor-side Jacobian), E the error coefficient matrix at the nominal
+    pose (eq. 7), for orientations (``phi_rad``, ``theta_rad``)."""
+    phi, theta = phi_rad, theta_rad
     geom = geom or default_geometry()
     names = param_names((1, 2), tilts=True)
     eps = np.array([errors.get(k) for k in names])
     p = pointing_coords(np.atleast_1d(phi), np.atleast_1d(theta))
     _, E = pose_sensitivity(p, names, geom)
-    m_nom = setpoints(phi, theta, ErrorSet(), geom)
+    m_nom = ik_commands_rad(phi, theta, ErrorSet(), geom)
     return m_nom + E @ eps
 
 
@@ -136,12 +141,12 @@ def predict_orientation(m_cmd: np.ndarray, errors: ErrorSet, geom: Geometry | No
                         position_map: PositionMap | None = None, tol: float = 1e-12,
                         max_iter: int = 30) -> tuple[np.ndarray, np.ndarray]:
     """Forward kinematics of the calibrated model: orientations (phi, theta) rad the commands
-    ``m_cmd`` (N, 2) rad lead to, i.e. :func:`setpoints` solved for the orientation (Newton in pointing
+    ``m_cmd`` (N, 2) rad lead to, i.e. :func:`ik_commands_rad` solved for the orientation (Newton in pointing
     coordinates from the nominal forward kinematics). NaN where it does not converge."""
     geom = geom or default_geometry()
     m_cmd = np.atleast_2d(np.asarray(m_cmd, float))
     start = pointing_coords(*nominal_fk(m_cmd, geom))
-    return invert_in_pointing_coords(lambda phi, theta: setpoints(phi, theta, errors, geom, position_map),
+    return invert_in_pointing_coords(lambda phi, theta: ik_commands_rad(phi, theta, errors, geom, position_map),
                                      m_cmd, start, tol=tol, max_iter=max_iter)
 
 

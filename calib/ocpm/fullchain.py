@@ -13,8 +13,10 @@ with ``s_i`` the manufacturing tolerance of each parameter (the prior regularise
 data cannot see, instead of a hard truncation). Solved with ``scipy.optimize.least_squares`` (trust
 region, analytic Jacobian). Covariance: ``(J^T J / sigma^2 + diag(1/s^2))^-1``.
 
-Compensation: Newton on the forward model for the motor commands that make the identified machine point
-at each target orientation.
+Compensation (:func:`chain_commands_deg`): the motor commands that make the identified machine point at
+each target orientation, solved by the model itself when it can
+(:class:`pmcal.calib.forward_model.AimingModel`), else by Newton
+on the forward model.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_ik
 from pmcal.mechanism.ocpm.params import LOG_RATIO, ErrorSet, all_keys, is_angular
 from pmcal.mechanism.rotations import tilt_torsion
-from pmcal.calib.forward_model import ForwardModel
+from pmcal.calib.forward_model import AimingModel, ForwardModel
 from pmcal.calib.solvers.result import IdentResult
 
 
@@ -158,18 +160,27 @@ def platform_normals(targets: np.ndarray, X: np.ndarray) -> np.ndarray:
     return R[:, :, 2]
 
 
-def setpoints(model: ForwardModel, errors: ErrorSet, phi_deg, theta_deg, stiffness_ratio: float | None = None,
-              tol_deg: float = 1e-7, max_iter: int = 20) -> np.ndarray:
-    """Motor commands (N, 2) deg that make the machine described by ``errors`` point at (phi, theta).
+def chain_commands_deg(model: ForwardModel, errors: ErrorSet, phi_deg, theta_deg,
+                       stiffness_ratio: float | None = None, tol_deg: float = 1e-10, max_iter: int = 20
+                       ) -> np.ndarray:
+    """Motor commands (N, 2) deg that make the machine described by ``errors`` (internal units: mm, rad)
+    and the closure ``stiffness_ratio`` point its platform normal at the tilt-torsion orientations
+    (``phi_deg``, ``theta_deg``) deg (base frame). Targets out of reach come back as NaN: outside the
+    nominal workspace, not assembled by the model, or not converged.
 
-    Newton on the forward model: the residual is the platform normal's offset from the target normal in
-    the target's tangent plane (2 equations, 2 motors); derivatives from the implicit function theorem.
-    Starts from the nominal IK; vectorised across targets, and each step predicts only the targets not yet
-    converged (a model that keeps its last equilibria, like the twin's, warm-starts from them). Targets
-    out of reach come back as NaN: outside the nominal workspace, not assembled by the model, or not
-    converged within ``max_iter`` steps.
+    A model that solves this directly (:class:`pmcal.calib.forward_model.AimingModel`, e.g. the twin's
+    :class:`pmcal.twin.forward.FullChainModel`) does. Otherwise: Newton on the forward model, the residual
+    the platform normal's offset from the target normal in the target's tangent plane (2 equations, 2
+    motors), derivatives from the implicit function theorem, stopped when the offset is below
+    ``tol_deg`` or after ``max_iter`` steps. It starts from the nominal IK, vectorised across targets,
+    and each step predicts only the targets not yet converged (a model that keeps its last equilibria,
+    like the twin's, warm-starts from them).
     """
     model.set(errors, stiffness_ratio)
+    if isinstance(model, AimingModel):
+        cmd = model.aim_commands_deg(phi_deg, theta_deg)
+        if cmd is not None:
+            return cmd
     phi, theta = np.deg2rad(np.atleast_1d(phi_deg)), np.deg2rad(np.atleast_1d(theta_deg))
     Rt = tilt_torsion(phi, theta)                          # target frames: normal = third column
     cmd = np.rad2deg(nominal_ik(phi, theta, model.geom)) - np.rad2deg(errors.dtheta[:2])

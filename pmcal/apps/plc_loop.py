@@ -81,12 +81,12 @@ def nominal_table(grid: tuple[int, int], geom: Geometry | None = None, version: 
 def compensation_table(errors: ErrorSet, grid: tuple[int, int], version: int, geom: Geometry | None = None,
                        max_step_deg: float = 15.0) -> CompTable:
     """Whole-closed-chain compensation of the machine with ``errors`` on the grid (deg), validated."""
-    from pmcal.calib.ocpm.fullchain import setpoints
+    from pmcal.calib.ocpm.fullchain import chain_commands_deg
     from pmcal.twin.forward import FullChainModel
 
     geom = geom or default_geometry()
     model = FullChainModel(geom)
-    return _table(lambda p, t: setpoints(model, errors, p, t), grid, geom, version, max_step_deg)
+    return _table(lambda p, t: chain_commands_deg(model, errors, p, t), grid, geom, version, max_step_deg)
 
 
 def _table(fill, grid, geom: Geometry, version: int, max_step_deg: float) -> CompTable:
@@ -136,7 +136,7 @@ def run_loop(mock, errors: dict | ErrorSet, table: CompTable | None = None, *, n
     ``table``: what to push (default: the whole-chain compensation of ``errors`` on ``grid``).
     ``link_factory(mock, writes)`` makes the client links (default: the mock's own transport).
     """
-    from pmcal.calib.ocpm.fullchain import setpoints
+    from pmcal.calib.ocpm.fullchain import chain_commands_deg
     from pmcal.twin.forward import FullChainModel
     from pmcal.twin.campaign import plan_orientations
     from pmcal.twin.machine import Twin
@@ -163,7 +163,7 @@ def run_loop(mock, errors: dict | ErrorSet, table: CompTable | None = None, *, n
         cmd, version = plc_commands(link, phi, theta)
     after = measure(twin, tracker, cmd, phi, theta)
     exact = table.interpolate(phi, theta)
-    direct = measure(twin, tracker, setpoints(FullChainModel(geom), errors, phi, theta), phi, theta)
+    direct = measure(twin, tracker, chain_commands_deg(FullChainModel(geom), errors, phi, theta), phi, theta)
     return LoopResult(mock.transport, phi, theta, before, after, direct, report, version,
                       (table.n_phi, table.n_theta),
                       extra={"plc_equals_table_interpolation": bool(np.array_equal(cmd, exact))})

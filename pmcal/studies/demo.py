@@ -202,9 +202,9 @@ class DemoStudy:
         m_after = checked_commands(PaperCompensation(e_hat, self.pmap, self.geom), ph, th, self.geom)
         write_setpoints(out / "test_setpoints.csv", ph, th, m_after,
                         comments=["pmcal demo: compensated commands of the 24 test poses"])
-        lin = np.rad2deg(comp.setpoints_linear(np.deg2rad(ph), np.deg2rad(th), e_hat, self.geom))
-        eq7 = np.rad2deg(comp.setpoints(np.deg2rad(ph), np.deg2rad(th), e_hat, self.geom))
-        eq7_true = np.rad2deg(comp.setpoints(np.deg2rad(ph), np.deg2rad(th), e_true, self.geom))
+        lin = np.rad2deg(comp.linear_commands_rad(np.deg2rad(ph), np.deg2rad(th), e_hat, self.geom))
+        eq7 = np.rad2deg(comp.ik_commands_rad(np.deg2rad(ph), np.deg2rad(th), e_hat, self.geom))
+        eq7_true = np.rad2deg(comp.ik_commands_rad(np.deg2rad(ph), np.deg2rad(th), e_true, self.geom))
         self.variants = {
             "before (nominal commands)": reached(self.twin, ph, th, m_before),
             "HGA + real IK + fitted position map (pmcal)": reached(self.twin, ph, th, m_after),
