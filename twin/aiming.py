@@ -16,7 +16,10 @@ rotational Jacobian) and takes the bordered Gauss-Newton step
 
 by block elimination (12x12 normal equations, then 2x2 for the motors). The fixed point is the
 assembly's equilibrium at commands that point exactly: the same commands as a Newton on the assembled
-forward model, in one loop of ~6 linearisations instead of ~40. The platform normal is the third
+forward model, in one loop of ~3 kinematics passes per target instead of ~40. The first two steps of a
+target use its fresh bordered matrix; later steps (chord steps) keep it and re-evaluate only the
+residual ``g`` (``J^T r`` from the Jacobian's columns, without forming ``J``) and ``e``, unless the steps
+stop shrinking fast. The platform normal is the third
 column of the platform body's frame (the platform frame is the target frame, :mod:`pmcal.twin.model`),
 which a rigid fit of the noise-free targets returns exactly.
 
@@ -65,7 +68,16 @@ class _BodyRotation:
         return J
 
 
-def aim(twin, phi: np.ndarray, theta: np.ndarray, tol: float = 1e-13, max_iter: int = 40,
+def _inverse(H: np.ndarray) -> np.ndarray:
+    """Inverses of a stack of square matrices (M, k, k); NaN for the singular ones (numpy's batched
+    inverse fails as a whole, :func:`solve_stacked` then goes row by row)."""
+    try:
+        return np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return solve_stacked(H, np.broadcast_to(np.eye(H.shape[1]), H.shape).copy())
+
+
+def aim(twin, phi: np.ndarray, theta: np.ndarray, tol: float = 1e-12, max_iter: int = 40,
         chunk: int = 1024) -> tuple[np.ndarray, np.ndarray]:
     """True motor joint angles (N, 2) rad whose equilibrium points the platform at (phi, theta) rad.
 
@@ -75,8 +87,8 @@ def aim(twin, phi: np.ndarray, theta: np.ndarray, tol: float = 1e-13, max_iter: 
     error (last step times ``rho / (1 - rho)``, ``rho`` the ratio of its last two steps) or its last
     step is below ``tol`` (rad, or m for the SS slide); rows out of reach (outside the nominal
     workspace, no real IK of a limb at the start pose, a singular step, or not solved within
-    ``max_iter`` steps) are NaN. Targets are solved
-    ``chunk`` at a time (arrays that stay in the cache).
+    ``max_iter`` steps, judged from the rate of the steps after :data:`GIVE_UP_AFTER`) are NaN.
+    Targets are solved ``chunk`` at a time (arrays that stay in the cache).
     """
     asm = twin.assembler
     if asm.gravity or asm.motor_stiffness is not None:
@@ -101,6 +113,9 @@ def aim(twin, phi: np.ndarray, theta: np.ndarray, tol: float = 1e-13, max_iter: 
 #: Steps after which the bordered matrix is kept (chord steps: only the residual is re-evaluated) while
 #: a target's steps shrink at least this fast.
 FRESH_STEPS, CHORD_RATE = 2, 0.05
+#: Steps before a target whose convergence is too slow to finish within ``max_iter`` is given up (near
+#: the singular bands at the workspace edge steps can grow before they shrink).
+GIVE_UP_AFTER = 6
 
 
 def _aim_chunk(twin, qpos: np.ndarray, uv: np.ndarray, tol: float, max_iter: int) -> np.ndarray:
@@ -141,7 +156,7 @@ def _aim_chunk(twin, qpos: np.ndarray, uv: np.ndarray, tol: float, max_iter: int
             JF, Jc = J[:, :, free], J[:, :, motors]
             JFt = np.swapaxes(JF, 1, 2)
             H = JFt @ JF
-            Hi = solve_stacked(H, np.broadcast_to(np.eye(len(free)), H.shape))
+            Hi = _inverse(H)
             Ef = np.einsum("nki,nid->nkd", np.cross(w[f][:, None, :], uv[active[f]]),
                            rot(axis[f], xmat[f]))[:, :, free]                 # d(u.w)/dq = omega.(w x u)
             Xcf = Hi @ (JFt @ Jc)
@@ -169,6 +184,10 @@ def _aim_chunk(twin, qpos: np.ndarray, uv: np.ndarray, tol: float, max_iter: int
         with np.errstate(divide="ignore", invalid="ignore"):
             remaining = np.where(np.isfinite(prev[a]) & (rate < 0.5), size * rate / (1.0 - rate), np.inf)
         done = ~bad & ((size < tol) | (remaining < tol))
+        # give a target up once its steps, shrinking at their last rate, would not reach tol in time
+        with np.errstate(divide="ignore", invalid="ignore"):
+            needed = np.where(rate < 1.0, np.log(tol / size) / np.log(rate), np.inf)
+        bad |= ~done & (age[a] + 1 >= GIVE_UP_AFTER) & (age[a] + 1 + needed > max_iter)
         out[a[done]] = q[done]
         refresh[a] = rate > CHORD_RATE                                       # the matrix is stale
         prev[a] = size
