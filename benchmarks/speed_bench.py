@@ -1,7 +1,8 @@
 """Speed where a user waits, before/after in one run (issue 15): compensation, small twin calls,
 identification next to a busy pmcal job, the demo.
 
-"before" is the code at ``--before`` (default c5c40e8: main before the speed-up), extracted with
+"before" is the code at ``--before`` (default ad1de20: main before the bordered-Newton compensation;
+c5c40e8 is main before the first speed-up), extracted with
 ``git archive`` into a temporary folder and imported from there; "after" is this working tree. Every
 figure is measured in a child process of each version, alternating, so both see the same machine load
 (the reference machine has 2 cores shared with other jobs: compare the ratios, not the absolute times).
@@ -9,7 +10,11 @@ figure is measured in a child process of each version, alternating, so both see 
 "before" children run with the libraries' default threads, as before.
 
 Run: python benchmarks/speed_bench.py [--only compensation,twin,identify,demo] [--demo-repeat 3]
-                                      [--before REF] [--json PATH]
+                                      [--repeat 3] [--before REF] [--json PATH]
+
+Each compensation and twin figure is the median over ``--repeat`` alternating child runs; the 200-target
+calls with one target out of reach are themselves interleaved with the clean call (median of 9). The
+load average (``uptime``) at each figure is printed beside it.
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 SUBPACKAGES = ("mechanism", "twin", "calib", "bridge", "mjcf", "plc")
+#: Interleaved repeats of the 200-target calls (clean / one target out of reach), median reported.
+UNREACHABLE_REPEAT = 9
 
 
 # ------------------------------------------------------------------------------------------ versions
@@ -92,20 +99,29 @@ def measure_compensation() -> dict:
         comp.commands_deg(phi[i:i + 1], theta[i:i + 1])
     single = (time.perf_counter() - t) / 30
     pp, tt = np.meshgrid(np.linspace(0, 360, 100), np.linspace(0, 60, 100), indexing="ij")
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     comp.commands_deg(pp.ravel(), tt.ravel())
-    table = time.perf_counter() - t
+    table, table_cpu = time.perf_counter() - t, time.process_time() - c
+    # 200 targets, clean and with one target out of reach, interleaved so that the load hits both alike
     p2, t2 = phi[:200].copy(), theta[:200].copy()
-    t = time.perf_counter()
-    comp.commands_deg(p2, t2)
-    clean = time.perf_counter() - t
-    p2[100], t2[100] = 200.0, 130.0                        # one target beyond the workspace
-    t = time.perf_counter()
-    comp.commands_deg(p2, t2)
-    one_bad = time.perf_counter() - t
+    beyond, band = (p2.copy(), t2.copy()), (p2.copy(), t2.copy())
+    beyond[0][100], beyond[1][100] = 200.0, 130.0          # beyond the workspace
+    band[0][100], band[1][100] = 40.0, 75.0                # inside it, on a band no solver assembles
+    runs = {"clean": [], "beyond": [], "band": []}
+    for _ in range(UNREACHABLE_REPEAT):
+        for name, (pa, ta) in (("clean", (p2, t2)), ("beyond", beyond), ("band", band)):
+            t = time.perf_counter()
+            comp.commands_deg(pa, ta)
+            runs[name].append(time.perf_counter() - t)
+    med = {k: statistics.median(v) for k, v in runs.items()}
     return {"batch_1000_ms_per_target": 1e3 * batch, "single_call_ms_per_target": 1e3 * single,
-            "table_100x100_s": table, "200_targets_s": clean, "200_with_1_unreachable_s": one_bad,
-            "unreachable_extra_percent": 100 * (one_bad / clean - 1)}
+            "table_100x100_s": table, "table_100x100_cpu_s": table_cpu,
+            "200_targets_median_s": med["clean"],
+            "200_with_1_beyond_workspace_median_s": med["beyond"],
+            "200_with_1_on_singular_band_median_s": med["band"],
+            "unreachable_beyond_extra_percent": 100 * (med["beyond"] / med["clean"] - 1),
+            "unreachable_band_extra_percent": 100 * (med["band"] / med["clean"] - 1),
+            "load_average": os.getloadavg()[0]}
 
 
 def measure_twin() -> dict:
@@ -122,12 +138,14 @@ def measure_twin() -> dict:
     for n in (1, 24, 100):
         calls = 40 if n < 100 else 10
         cmds = [nominal_commands(rng.uniform(0, 360, n), rng.uniform(0, 60, n)) for _ in range(calls)]
-        t = time.perf_counter()
+        t, c0 = time.perf_counter(), time.process_time()
         for c in cmds:
             twin.reach(c)
-        dt = (time.perf_counter() - t) / calls
+        dt, cpu = (time.perf_counter() - t) / calls, (time.process_time() - c0) / calls
         out[f"reach_{n}_ms_per_call"] = 1e3 * dt
+        out[f"reach_{n}_cpu_ms_per_call"] = 1e3 * cpu
         out[f"reach_{n}_poses_per_s"] = n / dt
+    out["load_average"] = os.getloadavg()[0]
     return out
 
 
@@ -190,8 +208,10 @@ def run_measure(args) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--only", default="compensation,twin,identify,demo")
-    ap.add_argument("--before", default="c5c40e8", help="git ref of the 'before' code (default c5c40e8)")
+    ap.add_argument("--before", default="ad1de20", help="git ref of the 'before' code (default ad1de20)")
     ap.add_argument("--demo-repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=3,
+                    help="alternating runs of the compensation and twin measures (median reported)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--measure", help=argparse.SUPPRESS)
     ap.add_argument("--version", help=argparse.SUPPRESS)
@@ -210,9 +230,16 @@ def main() -> None:
         versions = {"before": before_tree(args.before, tmp), "after": None}
         for what in ("compensation", "twin"):
             if what in only:
-                res = {v: child(v, p, what) for v, p in versions.items()}
-                results[what] = res
-                rows += [[f"{what}: {k}", res["before"][k], res["after"][k]] for k in res["after"] if k != "code"]
+                runs = {v: [] for v in versions}
+                for _ in range(args.repeat):                 # alternating, so both see the same load
+                    for v, p in versions.items():
+                        runs[v].append(child(v, p, what))
+                res = {v: {k: (r[0][k] if k == "code" else statistics.median(x[k] for x in r)) for k in r[0]}
+                       for v, r in runs.items()}
+                results[what] = {v: {**res[v], "runs": runs[v]} for v in res}
+                rows += [[f"{what}: {k}", res["before"].get(k, float("nan")), res["after"][k],
+                          f'{res["before"]["load_average"]:.1f} / {res["after"]["load_average"]:.1f}']
+                         for k in res["after"] if k not in ("code", "load_average")]
         if "identify" in only:
             res = {}
             for v, p in versions.items():
@@ -229,22 +256,28 @@ def main() -> None:
                     job.kill()
                     job.wait()
                 res[v] = {"identify_48_idle_s": idle, "identify_48_beside_busy_pmcal_s": loaded,
-                          "busy_over_idle": loaded / idle}
+                          "busy_over_idle": loaded / idle, "load_average": os.getloadavg()[0]}
             results["identify"] = res
-            rows += [[f"identification: {k}", res["before"][k], res["after"][k]] for k in res["after"]]
+            rows += [[f"identification: {k}", res["before"][k], res["after"][k],
+                      f'{res["before"]["load_average"]:.1f} / {res["after"]["load_average"]:.1f}']
+                     for k in res["after"] if k != "load_average"]
         if "demo" in only:
             walls = {v: [] for v in versions}
+            loads = {v: [] for v in versions}
             for _ in range(args.demo_repeat):
                 for v, p in versions.items():
                     walls[v].append(child(v, p, "demo")["demo_wall_s"])
-            results["demo"] = {v: {"walls_s": w, "median_s": statistics.median(w)} for v, w in walls.items()}
+                    loads[v].append(os.getloadavg()[0])
+            results["demo"] = {v: {"walls_s": w, "median_s": statistics.median(w), "load_averages": loads[v]}
+                               for v, w in walls.items()}
             rows.append([f"demo: median wall of {args.demo_repeat}, s", results["demo"]["before"]["median_s"],
-                         results["demo"]["after"]["median_s"]])
+                         results["demo"]["after"]["median_s"],
+                         f'{statistics.median(loads["before"]):.1f} / {statistics.median(loads["after"]):.1f}'])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     results["load_average"] = os.getloadavg()
     print_table(f"Speed before ({args.before}) / after (this tree); load average {os.getloadavg()[0]:.1f} on "
-                f"{os.cpu_count()} cores", ["figure", "before", "after"], rows)
+                f"{os.cpu_count()} cores", ["figure", "before", "after", "load before / after"], rows)
     write_json("speed_bench", results, args.json)
 
 

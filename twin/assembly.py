@@ -184,29 +184,39 @@ def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], -1)
 
 
-def _joint_layout(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
-    """(qpos addresses, dof addresses) of the hinge and slide joints and (qpos, dof) of the balls of ``m``."""
-    q1, d1, balls = [], [], []
+_layouts: dict[int, tuple] = {}
+
+
+def _joint_layout(m: mujoco.MjModel):
+    """(qpos addresses, dof addresses) of the hinge and slide joints and (qpos, dof) addresses (nb,) of the
+    balls of ``m``; read once per model (the joint structure of a compiled model does not change)."""
+    key = id(m)
+    if key in _layouts and _layouts[key][0] is m:
+        return _layouts[key][1]
+    q1, d1, qb, db = [], [], [], []
     for jnt in range(m.njnt):
         qa, da, kind = int(m.jnt_qposadr[jnt]), int(m.jnt_dofadr[jnt]), int(m.jnt_type[jnt])
         if kind == mujoco.mjtJoint.mjJNT_BALL:
-            balls.append((qa, da))
+            qb.append(qa)
+            db.append(da)
         elif kind in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
             q1.append(qa)
             d1.append(da)
         else:
             raise ValueError("free joints are not expected inside the closed chain")
-    return np.array(q1, int), np.array(d1, int), balls
+    layout = (np.array(q1, int), np.array(d1, int), np.array(qb, int), np.array(db, int))
+    if len(_layouts) > 64:                                # models of finished studies
+        _layouts.clear()
+    _layouts[key] = (m, layout)
+    return layout
 
 
 def integrate_pos(m: mujoco.MjModel, qpos: np.ndarray, dv: np.ndarray) -> None:
     """Vectorised ``mj_integratePos(m, qpos, dv, 1)`` for hinge, slide and ball joints (in place)."""
-    q1, d1, balls = _joint_layout(m)
+    q1, d1, qa, da = _joint_layout(m)
     qpos[:, q1] += dv[:, d1]
-    if not balls:
+    if not len(qa):
         return
-    qa = np.array([b[0] for b in balls])
-    da = np.array([b[1] for b in balls])
     w = dv[:, da[:, None] + np.arange(3)]                              # (N, nb, 3)
     ang = np.linalg.norm(w, axis=-1)
     half = 0.5 * ang
