@@ -6,8 +6,9 @@ machine there, and predicts where commands take it. Two implementations:
 - :class:`PaperCompensation` — the paper's per-limb model (Sun et al. 2018): exact real inverse
   kinematics of the identified limbs 1 and 2, with the platform position from the fitted position map
   (or the paper's eq. 7 when no map was fitted).
-- :class:`FullCompensation` — the whole closed chain: Newton on the twin's forward model with every limb,
-  the SS limb and the closure stiffness ratio.
+- :class:`FullCompensation` — the whole closed chain with every limb, the SS limb and the closure
+  stiffness ratio: the twin solves its equilibrium and the pointing together
+  (:func:`pmcal.calib.ocpm.fullchain.chain_commands_deg`, :mod:`pmcal.twin.aiming`).
 
 Units: orientations (phi azimuth, theta tilt; tilt-torsion angles) and commands in degrees.
 """
@@ -65,7 +66,7 @@ class PaperCompensation:
 class FullCompensation:
     """The whole closed chain with parameters ``params`` (mm, deg) and closure stiffness ratio."""
 
-    description = "whole closed chain, Newton on the forward model"
+    description = "whole closed chain, equilibrium and pointing solved together on the twin"
 
     def __init__(self, params: dict[str, float], stiffness_ratio: float | None, geom: Geometry):
         self.errors = ErrorSet.from_dict(params, geom.n_limbs, geom.actuated)

@@ -19,9 +19,9 @@ assembly's equilibrium at commands that point exactly: the same commands as a Ne
 forward model, in one loop of ~3 kinematics passes per target instead of ~40. The first two steps of a
 target use its fresh bordered matrix; later steps (chord steps) keep it and re-evaluate only the
 residual ``g`` (``J^T r`` from the Jacobian's columns, without forming ``J``) and ``e``, unless the steps
-stop shrinking fast. The platform normal is the third
-column of the platform body's frame (the platform frame is the target frame, :mod:`pmcal.twin.model`),
-which a rigid fit of the noise-free targets returns exactly.
+stop shrinking fast. The platform normal is the third column of the platform body's frame (the
+platform frame is the target frame, :mod:`pmcal.twin.model`), which a rigid fit of the noise-free
+targets returns exactly.
 
 Held motors only (no motor springs, no gravity): the geometric twin of :class:`pmcal.twin.forward.FullChainModel`.
 Units: SI inside (rad, m), angles in rad at the interface.
