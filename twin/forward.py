@@ -106,7 +106,7 @@ class FullChainModel:
     def aim_commands_deg(self, phi_deg, theta_deg) -> np.ndarray | None:
         """Commands (N, 2) deg whose equilibrium points the platform normal at (phi, theta) deg at the
         current parameters (:func:`pmcal.twin.aiming.aim`: equilibrium and pointing solved together,
-        converged to ~1e-13 rad); NaN where out of reach. None while the twin carries gravity or motor
+        estimated error below 1e-12 rad); NaN where out of reach. None while the twin carries gravity or motor
         springs (the caller then runs Newton on :meth:`predict`). The equilibria become the warm start
         of the next :meth:`solve`."""
         asm = self.twin.assembler

@@ -15,8 +15,7 @@ region, analytic Jacobian). Covariance: ``(J^T J / sigma^2 + diag(1/s^2))^-1``.
 
 Compensation (:func:`chain_commands_deg`): the motor commands that make the identified machine point at
 each target orientation, solved by the model itself when it can
-(:class:`pmcal.calib.forward_model.AimingModel`), else by Newton
-on the forward model.
+(:class:`pmcal.calib.forward_model.AimingModel`), else by Newton on the forward model.
 """
 
 from __future__ import annotations
