@@ -104,3 +104,13 @@ def test_newton_on_the_forward_model_gives_the_same_commands():
     assert not isinstance(model, AimingModel) and isinstance(model._m, AimingModel)
     m = chain_commands_deg(model, e, d["phi_deg"], d["theta_deg"], 1000.0)
     assert np.abs(m - ref).max() < 1e-9
+
+
+def test_the_twin_declines_to_aim_under_gravity():
+    """With gravity (or motor springs) the bordered solve does not hold: the model says so and
+    chain_commands_deg runs Newton on its predictions instead."""
+    from pmcal.twin.forward import FullChainModel
+
+    model = FullChainModel(default_geometry())
+    model.twin.assembler.gravity = True
+    assert model.aim_commands_deg([10.0], [20.0]) is None
