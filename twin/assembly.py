@@ -131,6 +131,7 @@ class _ChainJacobian:
         # one-hot (C, nv): sums per-column terms into their degree of freedom
         self._to_dof = np.zeros((len(c), self.nv))
         self._to_dof[np.arange(len(c)), self.dof] = 1.0
+        self._axis_index: tuple[int, np.ndarray] | None = None    # gather of the axes, set on first use
 
     def gap(self, site_pos: np.ndarray, xanchor: np.ndarray, xaxis: np.ndarray,
             xmat: np.ndarray, col: np.ndarray | None = None) -> np.ndarray:
@@ -165,10 +166,14 @@ class _ChainJacobian:
     def columns(self, site_pos, xanchor, xaxis, xmat) -> np.ndarray:
         """Jacobian columns (N, C, 3), one per (site, dof that moves it) pair, world frame."""
         N = site_pos.shape[0]
-        axis = xaxis[:, self.jnt]                                         # (N, C, 3)
-        frames = xmat[:, self.body[self.ball]].reshape(N, -1, 3, 3)
-        axis[:, self.ball] = np.take_along_axis(
-            frames, self.k[self.ball][None, :, None, None], axis=3)[..., 0]
+        xaxis, xmat = xaxis.reshape(N, -1), xmat.reshape(N, -1)
+        # a hinge's or slide's axis is xaxis[jnt]; a ball's k-th axis the k-th column of its body's xmat
+        if self._axis_index is None or self._axis_index[0] != xaxis.shape[1]:
+            idx = 3 * self.jnt[:, None] + np.arange(3)
+            ball = xaxis.shape[1] + 9 * self.body + self.k
+            idx[self.ball] = ball[self.ball, None] + 3 * np.arange(3)
+            self._axis_index = (xaxis.shape[1], idx)
+        axis = np.concatenate([xaxis, xmat], axis=1)[:, self._axis_index[1]]   # (N, C, 3)
         d = site_pos[:, self.site] - xanchor[:, self.jnt]
         a0, a1, a2 = axis[..., 0], axis[..., 1], axis[..., 2]
         d0, d1, d2 = d[..., 0], d[..., 1], d[..., 2]
