@@ -143,13 +143,13 @@ def _big_csv(src: Path, dst: Path, n: int, id_col: str = "pose_id") -> Path:
 
 def test_huge_inputs_are_refused_with_a_clear_message(work, capsys, tmp_path):
     big = _big_csv(work / "m.csv", tmp_path / "big.csv", 100_000)
-    one_line_error(capsys, "identify", big, "-o", tmp_path / "p.json", says="more than 2000 data rows")
-    one_line_error(capsys, "diagnose", big, "--json", tmp_path / "d.json", says="more than 2000 data rows")
+    one_line_error(capsys, "identify", big, "-o", tmp_path / "p.json", says="100000 data rows, more than the 2000 this command reads")
+    one_line_error(capsys, "diagnose", big, "--json", tmp_path / "d.json", says="100000 data rows, more than the 2000 this command reads")
     pbig = _big_csv(work / "planar.csv", tmp_path / "pbig.csv", 100_000)
     one_line_error(capsys, "--machine", "planar_2dof", "identify", pbig, "-o", tmp_path / "p.json",
-                   says="more than 2000 data rows")
+                   says="100000 data rows, more than the 2000 this command reads")
     one_line_error(capsys, "--machine", "planar_2dof", "evaluate", work / "planar.json", pbig,
-                   says="more than 2000 data rows")
+                   says="100000 data rows, more than the 2000 this command reads")
     assert not list(tmp_path.glob("*.json"))
 
 

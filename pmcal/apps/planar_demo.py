@@ -211,10 +211,10 @@ def demo(args) -> int:
             bar.update(2)
     t = time.perf_counter() - t0
     s = results["groups"]
-    print(f"planar_2dof demo: {runs} runs per group and setting, {t:.1f} s -> {out}/report.html")
-    for name in ("seed", "paper_scale_only", "ours"):
-        med = max(max(s[grp][name]["delta_deg_median"]) for grp in GROUPS)
-        print(f"  {name:16s} worst-group median zero-offset error {med:.4f} deg")
+    worst = {label: max(max(s[grp][name]["delta_deg_median"]) for grp in GROUPS) for name, label in
+             (("seed", "paper"), ("paper_scale_only", "paper, scale only"), ("ours", "pmcal"))}
+    progress.status(f"planar_2dof demo: {runs} runs per group and setting, {t:.1f} s -> {out}/report.html; "
+                    "worst-group median zero-offset error: " + ", ".join(f"{k} {v:.4f} deg" for k, v in worst.items()))
     return 0
 
 
