@@ -243,7 +243,8 @@ def context_figures(rep: Report, d) -> None:
                   "compliance the gravity torque, thermal expansion the temperature.", "note")
     panels, missing = context_panels(d)
     if missing:
-        rep.paragraph(f"No data: this campaign does not vary {', '.join(missing)}, so "
+        which = missing[0] if len(missing) == 1 else f"{', '.join(missing[:-1])} or {missing[-1]}"
+        rep.paragraph(f"No data: this campaign does not vary {which}, so "
                       f"{'that panel is' if len(missing) == 1 else 'those panels are'} left out "
                       "(docs/formats.md: the optional measurement columns).", "note")
     N = len(d.meas)
