@@ -213,6 +213,17 @@ def _mtime(path: str) -> float | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one pmcal command line; returns the exit status. The display settings (``--quiet``,
+    ``--verbose``, a long job) last for this call only."""
+    try:
+        return _main(argv)
+    finally:
+        progress.set_quiet(False)
+        progress.set_verbose(False)
+        progress.set_long(False)
+
+
+def _main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(_machine_from_argv(argv))
     try:

@@ -22,6 +22,7 @@ from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full
 from pmcal.calib.ocpm.linear_tests import Linearization, fit, nested_test, predict
 from pmcal.mechanism.ocpm.params import is_angular, random_errors
 from pmcal.apps.ocpm_diagnose import hidden_effect_demo
+from pmcal import progress
 from pmcal.cli import main
 from pmcal.io_ocpm import write_measurements
 from pmcal.apps.effect_scenarios import hidden_effect_campaign
@@ -228,7 +229,7 @@ def backlash_csv(tmp_path_factory):
 
 def test_cli_diagnose_writes_json_report_and_model(tmp_path, capsys, backlash_csv):
     out, rep = tmp_path / "out.json", tmp_path / "report"
-    rc = main(["--quiet", "diagnose", str(backlash_csv), "--json", str(out), "--report", str(rep)])
+    rc = main(["diagnose", str(backlash_csv), "--json", str(out), "--report", str(rep)])
     cap = capsys.readouterr()
     assert rc == 0, cap.err
     doc = json.loads(out.read_text())
@@ -240,7 +241,16 @@ def test_cli_diagnose_writes_json_report_and_model(tmp_path, capsys, backlash_cs
     params = json.loads((rep / "params.json").read_text())
     assert "backlash" in params["effects"] and params["params"]["L1.dtheta"] != 0.0
     assert json.loads((rep / "diagnosis.json").read_text()) == doc
-    assert "backlash" in cap.out
+    # stdout: the result line, then one line per output (docs/formats.md, "What the commands print")
+    lines = cap.out.splitlines()
+    assert len(lines) == 3 and lines[0].startswith("backlash = ") and "held-out gap" in lines[0], lines
+    assert lines[1:] == [f"pmcal: wrote {out}", f"pmcal: wrote {rep}/"]
+    # --quiet: nothing but errors, the same files
+    out2, rep2 = tmp_path / "quiet.json", tmp_path / "quiet"
+    assert main(["diagnose", str(backlash_csv), "--json", str(out2), "--report", str(rep2), "--quiet"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err == ""
+    assert json.loads(out2.read_text())["effects"] == ["backlash"] and (rep2 / "index.html").exists()
 
 
 def _bad_files(tmp, src):
@@ -285,10 +295,12 @@ def test_cli_diagnose_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, bac
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
-def test_hidden_effect_demo_diagnoses_blind(tmp_path, capsys):
+def test_hidden_effect_demo_diagnoses_blind(tmp_path, capsys, monkeypatch):
     out = tmp_path / "demo"
+    monkeypatch.setattr(progress, "_VERBOSE", True)       # the summary is a status line (--verbose, terminal)
     assert hidden_effect_demo(SimpleNamespace(hidden_effect="thermal_expansion", seed=3, out=str(out), poses=64)) == 0
-    assert "hidden: thermal_expansion" in capsys.readouterr().out
+    cap = capsys.readouterr()
+    assert cap.out == "" and "hidden: thermal_expansion; diagnosed: thermal_expansion" in cap.err
     answer = json.loads((out / "answer.json").read_text())
     doc = json.loads((out / "diagnosis.json").read_text())
     assert answer["hidden_effect"] == "thermal_expansion" and doc["effect"] == "thermal_expansion"
