@@ -319,3 +319,39 @@ def test_naming_rate_over_seeds(name):
     runs = [run([name], seed=s, n=128)[0] for s in range(10)]
     assert np.mean([r.effects == [name] for r in runs]) >= 0.9
     assert np.mean([set(r.effects) <= {name} for r in runs]) >= 0.95
+
+
+def _sections(html: str) -> dict[str, str]:
+    """The report's sections by heading."""
+    parts = html.split("<h2>")[1:]
+    return {p.split("</h2>")[0]: p.split("</h2>", 1)[1] for p in parts}
+
+
+def test_report_one_figure_when_nothing_is_named_and_no_empty_panels(tmp_path, capsys):
+    """docs/reports.md: baseline = result drawn once; contexts the campaign does not vary get a note, not
+    an empty panel; the headline box names the method; axes in mm and deg."""
+    m = tmp_path / "m.csv"
+    assert main(["--quiet", "twin", "measure", "--preset", "paper-table2", "--poses", "24", "--seed", "1",
+                 "-o", str(m)]) == 0
+    assert main(["--quiet", "diagnose", str(m), "--json", str(tmp_path / "d.json"), "--report",
+                 str(tmp_path / "rep")]) == 0
+    assert json.loads((tmp_path / "d.json").read_text())["effects"] == []
+    html = (tmp_path / "rep" / "index.html").read_text()
+    sec = _sections(html)
+    assert "Held-out disagreement" in sec and "Held-out disagreement, before and after" not in sec
+    for name in ("Held-out disagreement", "Residual against context", "Per-pose residuals"):
+        assert sec[name].count("<img") == 1, name
+    assert "baseline = result (nothing named)" in html
+    assert "No data: this campaign does not vary temperature or payload" in sec["Residual against context"]
+    assert "method: discrepancy diagnosis against the baseline, whole closed chain" in sec["Verdict"]
+    assert "mm or rad" not in html and " um" not in html and "µm" not in html
+
+
+def test_report_named_effect_before_and_after(tmp_path, backlash_csv):
+    main(["--quiet", "diagnose", str(backlash_csv), "--json", str(tmp_path / "d.json"), "--report",
+          str(tmp_path / "rep")])
+    sec = _sections((tmp_path / "rep" / "index.html").read_text())
+    assert "Held-out disagreement, before and after" in sec
+    assert sec["Residual against context"].count("<img") == 2 and sec["Per-pose residuals"].count("<img") == 1
+    assert "with backlash" in sec["Per-pose residuals"] or "with backlash" in sec["Residual against context"]
+    assert "Named: backlash" in sec["Verdict"] and "method: discrepancy diagnosis" in sec["Verdict"]

@@ -27,8 +27,9 @@ METHODS = {"full-chain-map": "least squares with the tolerance priors (maximum a
 def effect_label(v) -> str:
     """``family`` or ``family (member)`` of a named effect (an EffectValue or anything with ``name``
     and optionally ``member``)."""
+    name = getattr(v, "family", None) or v.name
     member = getattr(v, "member", "") or ""
-    return f"{v.name} ({member})" if member else str(v.name)
+    return f"{name} ({member})" if member else str(name)
 
 
 def named_labels(d) -> str:
