@@ -115,7 +115,7 @@ def aim(twin, phi: np.ndarray, theta: np.ndarray, tol: float = 1e-12, max_iter: 
 FRESH_STEPS, CHORD_RATE = 2, 0.05
 #: Steps before a target whose convergence is too slow to finish within ``max_iter`` is given up (near
 #: the singular bands at the workspace edge steps can grow before they shrink).
-GIVE_UP_AFTER = 4
+GIVE_UP_AFTER = 3
 
 
 def _aim_chunk(twin, qpos: np.ndarray, uv: np.ndarray, tol: float, max_iter: int) -> np.ndarray:
