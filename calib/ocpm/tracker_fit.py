@@ -154,22 +154,13 @@ def initial_registration(meas: Measurements, model: ForwardModel) -> tuple[np.nd
     return rigid_fit(meas.targets, T0)
 
 
-def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChainOptions | None = None,
-                     tracker: TrackerOptions | None = None) -> IdentResult:
-    """Identify machine parameters, registration and nest offsets from a campaign (module docstring).
-
-    Returns an :class:`IdentResult` over the machine keys (internal units, as ``identify_full``) with
-    ``info["registration"]`` (``R``, ``t_mm``, ``rotvec_deg``, their standard deviations ``std_rot_deg``
-    about the tracker axes and ``std_t_mm``), ``info["nests"]`` (offsets (k, 3) mm in platform
-    coordinates and their standard deviations) and ``info["rejected"]`` (row index from 0, pose id,
-    target number from 1, residual mm).
-    """
-    opt = options or FullChainOptions()
-    topt = tracker or TrackerOptions()
+def build_problem(meas: Measurements, model: ForwardModel, opt: FullChainOptions, topt: TrackerOptions
+                  ) -> _Problem:
+    """The unknowns of a tracker-frame fit (machine keys without the gauge, registration, nest shape)
+    for a campaign, at the prior mean; also used to design campaigns (:mod:`.tracker_design`)."""
     geom = model.geom
     if opt.stiffness_ratio is not None:
         model.set(ErrorSet(), opt.stiffness_ratio)
-    sigma = opt.sigma_mm or geom.sigma_mm
     is_tracker = topt.frame == "tracker"
     keys = list(opt.keys or all_keys(geom.n_limbs, geom.actuated))
     if is_tracker:
@@ -183,8 +174,26 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
     R0, t0 = (np.eye(3), np.zeros(3))
     if is_tracker:
         R0, t0 = topt.registration0 if topt.registration0 is not None else initial_registration(meas, model)
-    prob = _Problem(meas, model, keys, s, x_prior, ratio0, np.asarray(R0, float), np.asarray(t0, float),
+    return _Problem(meas, model, keys, s, x_prior, ratio0, np.asarray(R0, float), np.asarray(t0, float),
                     shape_basis(geom.targets[:k_t]), topt.nest_std_mm, is_tracker, topt.fit_nests)
+
+
+def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChainOptions | None = None,
+                     tracker: TrackerOptions | None = None) -> IdentResult:
+    """Identify machine parameters, registration and nest offsets from a campaign (module docstring).
+
+    Returns an :class:`IdentResult` over the machine keys (internal units, as ``identify_full``) with
+    ``info["registration"]`` (``R``, ``t_mm``, ``rotvec_deg``, their standard deviations ``std_rot_deg``
+    about the tracker axes and ``std_t_mm``), ``info["nests"]`` (offsets (k, 3) mm in platform
+    coordinates and their standard deviations) and ``info["rejected"]`` (row index from 0, pose id,
+    target number from 1, residual mm).
+    """
+    opt = options or FullChainOptions()
+    topt = tracker or TrackerOptions()
+    sigma = opt.sigma_mm or model.geom.sigma_mm
+    is_tracker = topt.frame == "tracker"
+    prob = build_problem(meas, model, opt, topt)
+    keys, s, x_prior, ratio0 = prob.keys, prob.s, prob.x_prior, prob.ratio0
     p, g, m = prob.sizes
     y = meas.targets
     keep = meas.visible.copy()
