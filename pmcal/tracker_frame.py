@@ -8,6 +8,7 @@ Units at the interface: mm and degrees. See docs/tracker_frame.md.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -95,3 +96,59 @@ def tracker_document(res, meas: Measurements) -> dict:
             "meaning": "nest offsets from the drawing in platform coordinates, shape part only (their rigid "
                        "part is platform geometry: SS.dc*, L*.da*, L*.dmu/dnu); compensation does not use them"}
     return doc
+
+
+def register_for_diagnosis(meas: Measurements, model, sigma: float, baseline_keys: list[str],
+                           fit_stiffness_ratio: bool = True, registration0=None, nest_std_mm: float = 0.5,
+                           source: str | None = None) -> tuple[Measurements, dict, list[str]]:
+    """Tracker-frame data brought into the base frame for ``pmcal diagnose`` (docs/tracker_frame.md).
+
+    The registration, the nest offsets and the outliers come from the robust tracker-frame fit with the
+    diagnosis' own baseline (``baseline_keys``: limbs 1-2 and SS; the passive limbs held nominal fix the
+    base frame's rotation, so no motor-axis angle is held); the measured targets are then carried into
+    that base frame (``R^T (y - t)``) and moved from the nests to the drawing coordinates
+    (``- R_p,i d_k``, ``R_p,i`` the row's platform orientation from its measured targets). The baseline
+    at the fit is a point of the base-frame problem with the same residuals, so nothing the diagnosis
+    looks for is lost. The diagnosis takes complete rows: a row with a blocked or a rejected target is
+    left out, and named. Returns (complete base-frame rows, the frame part of the JSON, notes).
+    """
+    from pmcal.calib.ocpm.registration import inverse
+    from pmcal.mechanism.ocpm.effects import approach_from_order
+    from pmcal.mechanism.rigid import fit_pose
+
+    opt = FullChainOptions(keys=list(baseline_keys), fit_stiffness_ratio=fit_stiffness_ratio, sigma_mm=sigma)
+    topt = TrackerOptions(frame="tracker", registration0=registration0, nest_std_mm=nest_std_mm, gauge=())
+    try:
+        res = identify_tracker(meas, model, opt, topt)
+    except BadCampaignError as exc:
+        raise InputError(str(exc), file=source) from None
+    doc = tracker_document(res, meas)
+    doc["gauge"] = {"held_at_zero": [], "meaning": "the diagnosis baseline's base frame: the passive limbs "
+                    "(not in the baseline) are nominal in it; fitted keys: " + ", ".join(res.names)}
+    notes: list[str] = []
+    if meas.approach is None and len(meas) > 1:       # the order is the full campaign's: infer it here
+        meas = replace(meas, approach=approach_from_order(meas.m_cmd_deg))
+        first = [0]
+        notes.append("approach inferred from the row order of the whole campaign before rows were left out; "
+                     "the first row, whose approach is unknown, is left out")
+    else:
+        first = []
+    reg, nests = res.info["registration"], res.info["nests"]["offsets_mm"]
+    y = inverse(reg["R"], reg["t_mm"], meas.targets)
+    drop = ~meas.visible.all(axis=1)
+    for r in res.info["rejected"]:
+        drop[r["row"] - 1] = True
+    X = model.geom.targets[: y.shape[1]]
+    keep = np.flatnonzero(~drop)
+    keep = keep[~np.isin(keep, first)]
+    _, Rp, _ = fit_pose(y[keep], X + nests)
+    y[keep] = y[keep] - np.einsum("nij,kj->nki", Rp, nests)
+    out = replace(meas, targets=y).subset(keep)
+    left = sorted(set(np.flatnonzero(drop).tolist()))
+    if left:
+        notes.append(f"{len(left)} row(s) left out (blocked or rejected target): rows "
+                     + ", ".join(str(i + 1) for i in left))
+    doc["rows_left_out"] = [{"row": i + 1, "pose_id": meas.pose_id[i],
+                             "why": "rejected outlier" if any(r["row"] == i + 1 for r in res.info["rejected"])
+                             else "blocked target"} for i in left]
+    return out, doc, notes

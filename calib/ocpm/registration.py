@@ -66,3 +66,23 @@ def read_registration(doc: dict) -> tuple[np.ndarray, np.ndarray]:
     if abs(np.linalg.det(R) - 1) > 1e-3 or np.abs(R.T @ R - np.eye(3)).max() > 1e-3:
         raise ValueError("field 'R' is not a rotation matrix (orthonormal, det +1)")
     return Rotation.from_matrix(R).as_matrix(), t
+
+
+def motor_axes_frame(errors, geom) -> np.ndarray:
+    """The machine's base frame as the motor axes define it, in the frame its ``errors`` are given in.
+
+    Columns x, y, z (3, 3): y along motor 1's axis, z along motor 1's axis x motor 2's axis (normal to
+    both), x = y x z; the origin (the SS joint) is common. It is the identity when ``L1.dalpha``,
+    ``L1.dgamma`` and ``L2.dalpha`` are zero, and otherwise what a tracker-frame calibration calls the
+    base frame: an orientation ``R`` in that frame is ``Q R`` in the errors' frame, and the true
+    registration of a tracker at pose ``(R_t, t_t)`` of the errors' frame is ``(R_t Q, t_t)``.
+
+    errors : :class:`pmcal.mechanism.ocpm.params.ErrorSet`; geom : the machine's geometry.
+    """
+    from pmcal.mechanism.ocpm.kinematics import limb_frames
+
+    a = [limb_frames(geom.psi[j], errors.dalpha[j], errors.dgamma[j])[:, 1] for j in range(2)]
+    z = np.cross(a[0], a[1])
+    z /= np.linalg.norm(z)
+    y = a[0] / np.linalg.norm(a[0])
+    return np.column_stack([np.cross(y, z), y, z])

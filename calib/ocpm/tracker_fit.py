@@ -61,6 +61,10 @@ class TrackerOptions:
     max_reject_fraction: float = 0.2        # more rows than this rejected: bad campaign
     max_scale_ratio: float = 5.0            # robust residual scale over tracker sigma beyond which: bad
     max_nfev: int = 60
+    #: Machine keys held at zero in the tracker frame (the base frame's definition, the motor axes). Empty
+    #: when the key set itself fixes the frame's rotation (e.g. the diagnosis baseline, passive limbs
+    #: held nominal: docs/tracker_frame.md).
+    gauge: tuple[str, ...] = GAUGE_KEYS
 
     def __post_init__(self) -> None:
         if self.frame not in ("base", "tracker"):
@@ -164,7 +168,7 @@ def build_problem(meas: Measurements, model: ForwardModel, opt: FullChainOptions
     is_tracker = topt.frame == "tracker"
     keys = list(opt.keys or all_keys(geom.n_limbs, geom.actuated))
     if is_tracker:
-        keys = [k for k in keys if k not in GAUGE_KEYS]
+        keys = [k for k in keys if k not in topt.gauge]
     ratio0 = model.stiffness_ratio if opt.stiffness_ratio is None else opt.stiffness_ratio
     if opt.fit_stiffness_ratio:
         keys = keys + [LOG_RATIO]
@@ -262,7 +266,7 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
             "singular_values": np.linalg.svd(A[:, :p], compute_uv=False),
             "rejected": rejected, "robust_scale_mm": scale, "n_targets_used": int(keep.sum()),
             "n_targets_blocked": int((~meas.visible).sum()),
-            "gauge_fixed": list(GAUGE_KEYS) if is_tracker else []}
+            "gauge_fixed": list(topt.gauge) if is_tracker else []}
     if is_tracker:
         Rg, tg = prob.registration(z)
         C = cov_z[p:p + 6, p:p + 6]

@@ -38,17 +38,13 @@ def check_sigma(sigma: float | None) -> float | None:
 
 
 def load(args, geom: Geometry):
-    """Measurements and options from the command line; InputError naming file, row and field."""
+    """Measurements (base frame, complete rows), options and (frame part of the JSON, notes) from the
+    command line; InputError naming file, row and field."""
     sigma = check_sigma(args.sigma)
     model = args.model or "full"
     if model not in BASELINES:
         raise InputError(f"unknown model '{model}' (known: {', '.join(BASELINES)})", field="--model")
-    meas = read_measurements(args.measurements, geom)
-    if not meas.visible.all():                 # docs/tracker_frame.md: the diagnosis takes complete rows
-        i, k = (int(v) for v in np.argwhere(~meas.visible)[0])
-        raise InputError(f"target t{k + 1} is blocked: the diagnosis needs every target in every row (leave "
-                         "the row out, or identify with 'pmcal identify')", file=args.measurements, row=i + 1,
-                         field=f"t{k + 1}_x")
+    meas, frame_doc, frame_notes = frame_input(args, geom, sigma)
     if len(meas) < MIN_POSES:
         raise InputError(f"{len(meas)} poses are too few to tell an effect from the geometry: measure at least "
                          f"{MIN_POSES} (the diagnosis campaign has 128)", file=args.measurements, field="pose_id")
@@ -71,7 +67,52 @@ def load(args, geom: Geometry):
     if args.params:
         initial, _ = read_params(args.params, geom)
     return meas, DiagnoseOptions(baseline_keys=BASELINES[model], sigma_mm=sigma, initial=initial,
-                                 fit_stiffness_ratio=model == "full")
+                                 fit_stiffness_ratio=model == "full"), (frame_doc, frame_notes)
+
+
+def frame_input(args, geom: Geometry, sigma: float | None):
+    """The measurements as the diagnosis takes them, in the base frame with complete rows, the frame part
+    of the JSON and notes (docs/tracker_frame.md). ``--frame tracker``: registered first with the
+    geometric baseline (:func:`pmcal.tracker_frame.register_for_diagnosis`). A row with a blocked target
+    is left out and named, in either frame."""
+    from pmcal.tracker_frame import check_nest_tolerance, parse_frame, register_for_diagnosis
+
+    frame, reg0 = parse_frame(getattr(args, "frame", None))
+    nest_std = check_nest_tolerance(getattr(args, "nest_tolerance", None))
+    meas = read_measurements(args.measurements, geom, frame=frame)
+    if frame == "tracker":
+        from pmcal.twin.forward import FullChainModel
+
+        if len(meas) < MIN_POSES:
+            raise InputError(f"{len(meas)} poses are too few to tell an effect from the geometry: measure at "
+                             f"least {MIN_POSES} (the diagnosis campaign has 128)", file=args.measurements,
+                             field="pose_id")
+        progress.status(f"registering the tracker frame with the baseline ({len(meas)} poses)")
+        model = args.model or "full"
+        meas, doc, notes = register_for_diagnosis(meas, FullChainModel(geom), sigma or geom.sigma_mm,
+                                                  BASELINES[model], model == "full", reg0,
+                                                  nest_std, str(args.measurements))
+        for r in doc.get("rejected", []):
+            progress.status(f"rejected outlier: row {r['row']} ({r['pose_id']}) target t{r['target']}, "
+                            f"residual {r['residual_mm']:.3g} mm")
+        return meas, doc, notes
+    blocked = np.flatnonzero(~meas.visible.all(axis=1))
+    if not blocked.size:
+        return meas, {}, []
+    keep = np.flatnonzero(meas.visible.all(axis=1))
+    note = (f"{blocked.size} row(s) left out (blocked target; the diagnosis takes complete rows): rows "
+            + ", ".join(str(i + 1) for i in blocked))
+    doc = {"frame": "base", "rows_left_out": [{"row": int(i) + 1, "pose_id": meas.pose_id[i],
+                                               "why": "blocked target"} for i in blocked]}
+    if meas.approach is None:                         # the order is the whole campaign's
+        from dataclasses import replace
+
+        from pmcal.mechanism.ocpm.effects import approach_from_order
+
+        meas = replace(meas, approach=approach_from_order(meas.m_cmd_deg))
+        keep = keep[keep > 0]
+        note += "; approach inferred from the whole campaign's row order first (row 1 left out, unknown)"
+    return meas.subset(keep), doc, [note]
 
 
 def run(meas, options: DiagnoseOptions, geom: Geometry) -> Diagnosis:
@@ -124,9 +165,12 @@ def summary_line(d: Diagnosis) -> str:
 
 def diagnose(args) -> int:
     geom = default_geometry()
-    meas, options = load(args, geom)
+    meas, options, (frame_doc, frame_notes) = load(args, geom)
     d = run(meas, options, geom)
+    d.notes[:0] = frame_notes
     doc = document(d, str(args.measurements), args.model or "full")
+    if frame_doc:
+        doc["measurement_frame"] = frame_doc
     write_outputs(d, doc, args.json, args.report, f"Discrepancy diagnosis: {Path(args.measurements).name}")
     print(summary_line(d))
     return 0
