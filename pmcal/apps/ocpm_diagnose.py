@@ -15,6 +15,7 @@ import numpy as np
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.calib.ocpm.diagnose import BASELINES, DiagnoseOptions, diagnose as run_diagnosis
 from pmcal.calib.ocpm.diagnosis_result import Diagnosis
+from pmcal.calib.ocpm.registration import FRAME_KEYS, FrameCorrected
 from pmcal.mechanism.ocpm.effects import EFFECT_NAMES, VOCABULARY
 from pmcal.mechanism.ocpm.params import errors_and_ratio
 from pmcal.twin.effect_model import EffectChainModel
@@ -66,8 +67,13 @@ def load(args, geom: Geometry):
     initial = None
     if args.params:
         initial, _ = read_params(args.params, geom)
-    return meas, DiagnoseOptions(baseline_keys=BASELINES[model], sigma_mm=sigma, initial=initial,
-                                 fit_stiffness_ratio=model == "full"), (frame_doc, frame_notes)
+    options = DiagnoseOptions(baseline_keys=BASELINES[model], sigma_mm=sigma, initial=initial,
+                              fit_stiffness_ratio=model == "full")
+    if frame_doc.get("frame") == "tracker":
+        from pmcal.tracker_frame import with_frame_correction
+
+        options = with_frame_correction(options)
+    return meas, options, (frame_doc, frame_notes)
 
 
 def frame_input(args, geom: Geometry, sigma: float | None):
@@ -124,7 +130,10 @@ def run(meas, options: DiagnoseOptions, geom: Geometry) -> Diagnosis:
             if text in steps:
                 bar.update(1)
         try:
-            return run_diagnosis(meas, EffectChainModel(geom), options, on_step)
+            model = EffectChainModel(geom)
+            if any(k in FRAME_KEYS for k in options.baseline_keys):
+                model = FrameCorrected(model)          # tracker frame: the registration stays in the baseline
+            return run_diagnosis(meas, model, options, on_step)
         except (RuntimeError, np.linalg.LinAlgError) as exc:
             raise RunError(f"the diagnosis failed: {exc}") from None
 
@@ -144,7 +153,8 @@ def write_outputs(d: Diagnosis, doc: dict, json_path: str, report_dir: str | Non
         return
     with atomic_directory(report_dir) as tmp:
         report(d, title, extra).write(tmp / "index.html")
-        write_params(tmp / "params.json", d.params(), model="full-chain + effects",
+        write_params(tmp / "params.json", {k: v for k, v in d.params().items() if k not in FRAME_KEYS},
+                     model="full-chain + effects",
                      stiffness_ratio=d.final.info["stiffness_ratio"],
                      effects={v.name: {"value": v.value, "interval": list(v.interval), "unit": v.unit,
                                        "params": {k: p[0] for k, p in v.params.items()}} for v in d.named},
@@ -168,6 +178,10 @@ def diagnose(args) -> int:
     meas, options, (frame_doc, frame_notes) = load(args, geom)
     d = run(meas, options, geom)
     d.notes[:0] = frame_notes
+    if frame_doc.get("frame") == "tracker":
+        from pmcal.tracker_frame import final_registration
+
+        frame_doc = final_registration(frame_doc, d.final)
     doc = document(d, str(args.measurements), args.model or "full")
     if frame_doc:
         doc["measurement_frame"] = frame_doc

@@ -49,6 +49,6 @@ def tracker_plan(args) -> int:
                  "identify with pmcal identify --frame tracker\n")
         fh.write(",".join(HEADER) + "\n")
         for i in range(len(phi)):
-            fh.write(f"{i + 1},{phi[i]:.4f},{theta[i]:.4f},{cmd[i, 0]:.6f},{cmd[i, 1]:.6f}\n")
+            fh.write(f"{i + 1},{phi[i]:.6f},{theta[i]:.6f},{cmd[i, 0]:.6f},{cmd[i, 1]:.6f}\n")
     progress.status(f"predicted base-frame uncertainty {std:.4f} deg; written {args.output}")
     return 0
