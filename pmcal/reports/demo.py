@@ -283,7 +283,7 @@ def _tracker_section(rep, st) -> None:
         f"gross outlier planted (2 mm): {planted}; rejected by the robust fit: {rej}"
         + ("" if sm["outliers_named"] else " (NOT all named)"),
         f"blocked targets in rows: {', '.join(map(str, sm['blocked_rows'])) or 'none'}; nests 0.3 mm off the "
-        f"drawing, identified (params_tracker.json); fit {sm['wall_time_s']:.1f} s"])
+        f"drawing, identified (params_tracker.json); tracker run (design, campaign, fit) {sm['wall_time_s']:.1f} s"])
     off = np.array(list(doc["nests"]["offsets_mm"].values()))
     std = np.array(list(doc["nests"]["std_mm"].values()))
     true = st.tracker["nest_offsets"]
