@@ -3,17 +3,21 @@
 For each random draw: every-limb errors (0.5 mm / 0.1 deg, uniform), a random tracker pose (1-3 m away,
 any yaw, +-2 deg tilt), nests 0.3 mm off the drawing (1 sigma per coordinate, shape part: the rigid part
 is platform geometry by definition, docs/tracker_frame.md), 5 % of rows with one target blocked, one 2 mm
-outlier in one coordinate, 48 training poses (theta <= 60 deg), sigma 0.01 mm. The same draw is also
-measured in the base frame with exact nests, no blocking and no outlier, and identified with
-``identify_full`` (today's path). Both compensations are judged on 24 held-out poses by the twin's true
-platform orientation (pointing error = angle between platform normal and target normal).
+outlier in one coordinate, 48 training poses, sigma 0.01 mm. Training poses: ``--design tracker``
+(default) the campaign ``pmcal twin plan --frame tracker`` writes (D-optimal for the tracker fit, to
+``--theta-max``, default 80 deg); ``--design uniform`` spread evenly over the cap. The same draw is also
+measured in the base frame at the same poses with exact nests, no blocking and no outlier, and identified
+with ``identify_full`` (today's path). Both compensations are judged on 24 held-out poses to 60 deg by
+the twin's true platform orientation (pointing error = angle between platform normal and target normal);
+the tracker-frame fit also as seen by the same tracker (target carried by the identified registration).
 
 The draws hold L1.dalpha, L1.dgamma, L2.dalpha at zero: they fix the base frame to the motor axes (the
 gauge), so the twin's base frame is the frame the tracker fit recovers and the two pointing errors are
 measured in the same frame. A draw with those angles non-zero is the same machine in a rotated base frame,
 i.e. a different (equally random) tracker pose.
 
-Run: python benchmarks/tracker_bench.py [--draws 10] [--poses 48] [--theta-max 60] [--json PATH]
+Run: python benchmarks/tracker_bench.py [--draws 10] [--poses 48] [--theta-max 80] [--design tracker|uniform]
+[--json PATH]
 """
 
 from __future__ import annotations
