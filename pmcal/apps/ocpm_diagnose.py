@@ -131,7 +131,7 @@ def run(meas, options: DiagnoseOptions, geom: Geometry) -> Diagnosis:
                 bar.update(1)
         try:
             model = EffectChainModel(geom)
-            if any(k in FRAME_KEYS for k in options.baseline_keys):
+            if any(k in FRAME_KEYS for k in options.baseline_keys or ()):
                 model = FrameCorrected(model)          # tracker frame: the registration stays in the baseline
             return run_diagnosis(meas, model, options, on_step)
         except (RuntimeError, np.linalg.LinAlgError) as exc:
