@@ -22,6 +22,7 @@ from pmcal.calibration import identify
 from pmcal.compensators import DEFAULT_GRID, PaperCompensation, build_table, checked_commands, deg
 from pmcal.fileio import write_json
 from pmcal.reports.demo import demo_report
+from pmcal.studies.demo_tracker import tracker_run
 from pmcal.io_ocpm import write_setpoints
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.params import ErrorSet
@@ -125,51 +126,6 @@ def _pose_study(seed: int, theta_max: float, unidentifiable: list[str], truth: d
     return pose_sel
 
 
-#: Largest tilt of the demo's tracker-frame campaign, deg (the designed campaign's default).
-TRACKER_THETA_MAX = 80.0
-
-
-def _tracker_run(truth: dict, plan, seed: int, geom: Geometry, test_phi, test_theta, params_path: Path) -> dict:
-    """A tracker-frame campaign and its calibration (docs/tracker_frame.md): as many poses as ``plan``,
-    designed for the tracker frame (D-optimal to 80 deg), the tracker somewhere around the machine, the
-    nests 0.3 mm off the drawing, 5 % of the rows with a blocked target and one row with a 2 mm outlier; identified with ``frame="tracker"`` and saved to
-    ``params_path``. Returns the params document, the truth (the registration of the motor axes' frame)
-    and the held-out pointing (deg) in the base frame as the motor axes define it; a worker-process entry
-    point (about as costly as one whole-chain fit)."""
-    from pmcal.calib.ocpm.registration import motor_axes_frame, rotation_error_deg
-    from pmcal.calib.ocpm.tracker_design import tracker_campaign
-    from pmcal.threads import apply_blas_policy
-    from pmcal.twin.campaign import CampaignPlan, MeasurementFaults, run_campaign
-    from pmcal.twin.forward import FullChainModel
-    from pmcal.twin.machine import Twin
-    from pmcal.twin.tracker import LaserTracker, random_tracker_pose
-
-    apply_blas_policy()
-    t0 = time.perf_counter()
-    twin = Twin(truth, geom)
-    # the campaign a tracker-frame calibration is told to use (docs/tracker_frame.md), the demo's size;
-    # a small candidate set keeps its design cheap (~0.6 s)
-    phi, theta = tracker_campaign(FullChainModel(geom), len(plan), TRACKER_THETA_MAX, seed, geom.sigma_mm,
-                                  n_candidates=150)
-    plan = CampaignPlan(phi_deg=phi, theta_deg=theta, approach=plan.approach, time_s=plan.time_s)
-    rng = np.random.default_rng(seed + 6000)
-    pose = random_tracker_pose(rng)
-    faults = MeasurementFaults(nest_error_mm=0.3, blocked=0.05, outliers=1, outlier_mm=2.0, seed=seed + 6001)
-    meas = run_campaign(twin, plan, LaserTracker(geom.sigma_mm, rng, pose=pose), faults=faults)
-    cal = identify(meas, frame="tracker", source="demo tracker-frame campaign")
-    outliers = [(int(i) + 1, int(k) + 1) for i, k in np.argwhere(np.abs(meas.extra["outlier"]).max(axis=2) > 0)]
-    # Table 2 tilts the motor axes (L2.dalpha, L1.dgamma): the base frame the tracker fit finds, and the
-    # targets are meant in, is the motor axes' frame Q of the twin's frame
-    Q = motor_axes_frame(twin.errors, geom)
-    st = twin.reach(cal.compensator.commands_deg(test_phi, test_theta))
-    target = Q @ tilt_torsion(np.deg2rad(test_phi), np.deg2rad(test_theta))
-    pointing = np.rad2deg(pointing_error(st.R, target))
-    cal.save(params_path)
-    return {"document": cal.document, "pose": (pose[0] @ Q, pose[1]), "motor_axes_deg": rotation_error_deg(Q, np.eye(3)), "nest_offsets": meas.extra["nest_offsets"][0],
-            "outliers": outliers, "blocked_rows": [int(i) + 1 for i in np.flatnonzero(~meas.visible.all(axis=1))],
-            "pointing": pointing, "wall": time.perf_counter() - t0}
-
-
 class DemoStudy:
     """The demo's computations, one method per step; results kept for the report (mm, deg)."""
 
@@ -218,7 +174,7 @@ class DemoStudy:
         self._timed("campaign", t0)
         if self.pool is not None:                              # the slowest method first
             self._submit_methods(SLOW_FIRST[:1])
-            self._futures["tracker"] = self.pool.submit(_tracker_run, *self._tracker_args(out))
+            self._futures["tracker"] = self.pool.submit(tracker_run, *self._tracker_args(out))
 
     def _submit_methods(self, methods) -> None:
         for m in methods:
@@ -359,10 +315,10 @@ class DemoStudy:
 
     def step_tracker(self, out: Path) -> None:
         """The demo's campaign measured by a tracker in its own frame (nests off, blocked targets, one
-        outlier), identified with the registration: :func:`_tracker_run`."""
+        outlier), identified with the registration: :func:`pmcal.studies.demo_tracker.tracker_run`."""
         t0 = time.perf_counter()
         f = self._futures.pop("tracker", None)
-        self.tracker = f.result() if f is not None else _tracker_run(*self._tracker_args(out))
+        self.tracker = f.result() if f is not None else tracker_run(*self._tracker_args(out))
         self._timed("tracker frame", t0)
 
     def step_render(self, out: Path) -> None:
@@ -395,23 +351,10 @@ class DemoStudy:
 
 
     def tracker_summary(self) -> dict:
-        """The tracker-frame run in figures (deg, mm): pointing, registration error and its std, the
-        outliers planted and the targets the fit rejected (row, target)."""
-        from pmcal.calib.ocpm.registration import rotation_error_deg
+        """The tracker-frame run in figures (:func:`pmcal.studies.demo_tracker.summary`)."""
+        from pmcal.studies.demo_tracker import summary
 
-        tr = self.tracker
-        reg = tr["document"]["registration"]
-        R, t = np.asarray(reg["R"]), np.asarray(reg["t_mm"])
-        rejected = [(r["row"], r["target"]) for r in tr["document"].get("rejected", [])]
-        return {"after_mean_deg": float(tr["pointing"].mean()), "after_max_deg": float(tr["pointing"].max()),
-                "registration_rotation_error_deg": rotation_error_deg(R, tr["pose"][0]),
-                "registration_rotation_std_deg": float(np.linalg.norm(reg["std_rot_deg"])),
-                "registration_translation_error_mm": float(np.linalg.norm(t - tr["pose"][1])),
-                "registration_translation_std_mm": float(np.linalg.norm(reg["std_t_mm"])),
-                "motor_axes_vs_twin_frame_deg": tr["motor_axes_deg"],
-                "outliers_planted": tr["outliers"], "rejected": rejected,
-                "outliers_named": set(tr["outliers"]) <= set(rejected), "blocked_rows": tr["blocked_rows"],
-                "wall_time_s": tr["wall"]}
+        return summary(self.tracker)
 
 
 def run_demo(out: Path, seed: int, full: bool = False) -> int:
