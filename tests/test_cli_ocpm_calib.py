@@ -238,13 +238,15 @@ def test_evaluate_missing_params(files, tmp_path, capsys):
     assert "none.json" in capsys.readouterr().err and not out.exists()
 
 
-def test_demo_small(tmp_path, monkeypatch):
+def test_demo_small(tmp_path, monkeypatch, capsys):
     """The demo end to end with the fast methods only (the full demo: `pmcal demo`, benchmarked)."""
     from pmcal.studies import demo as demo_study
 
     monkeypatch.setattr(demo_study.DemoStudy, "METHODS_COMPARED", ("hga", "lm", "tikhonov", "tsvd"))
     out = tmp_path / "demo"
-    assert main(["--quiet", "demo", "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["demo", "--out", str(out)]) == 0
+    assert capsys.readouterr().out.splitlines() == [f"pmcal: wrote {out}/"]    # piped: one line per output
     html = (out / "report.html").read_text()
     for heading in ("Identified vs predefined", "paper Fig. 5", "Algorithm comparison", "Regularisation",
                     "Identifiability", "Pose selection", "Compensation table"):

@@ -17,7 +17,7 @@ from pmcal.calibration import Calibration, identify as identify_campaign
 from pmcal.compensators import DEFAULT_GRID, PaperCompensation, build_table, check_grid, checked_commands
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
-from pmcal.io_ocpm import MECHANISM, read_measurements, read_targets, write_setpoints
+from pmcal.io_ocpm import LONG_POSES, MECHANISM, read_measurements, read_targets, write_setpoints
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.kinematics import real_ik_commands
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion, tilt_torsion_angles
@@ -46,6 +46,7 @@ def identify(args) -> int:
     frame, reg0 = parse_frame(getattr(args, "frame", None))
     nest_std = check_nest_tolerance(getattr(args, "nest_tolerance", None))
     meas = read_measurements(args.measurements, default_geometry(), frame=frame)
+    progress.set_long(len(meas) > LONG_POSES)
     if (args.model or "full") == "full" and args.method is None:
         progress.status(f"identifying the whole closed chain from {len(meas)} poses ({frame} frame)")
     cal = identify_campaign(meas, model=args.model or "full", method=args.method, sigma_mm=args.sigma,
@@ -64,7 +65,7 @@ def identify(args) -> int:
     quality = (f"chi2/dof {fit['chi2_per_dof']:.3g}" if cal.model == "full" else
                f"residual {fit['residual_rms_sigma']:.3g} sigma")
     progress.status(f"identified {len(cal.params)} parameters "
-                    f"({'whole chain' if cal.model == 'full' else cal.method}); {quality}; written {args.output}")
+                    f"({'whole chain' if cal.model == 'full' else cal.method}); {quality}")
     return 0
 
 

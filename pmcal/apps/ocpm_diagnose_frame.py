@@ -8,7 +8,7 @@ import numpy as np
 
 from pmcal import progress
 from pmcal.errors import InputError
-from pmcal.io_ocpm import read_measurements
+from pmcal.io_ocpm import LONG_POSES, read_measurements
 from pmcal.calib.ocpm.diagnose import BASELINES
 from pmcal.mechanism.ocpm.config import Geometry
 
@@ -24,6 +24,7 @@ def frame_input(args, geom: Geometry, sigma: float | None, min_poses: int):
     frame, reg0 = parse_frame(getattr(args, "frame", None))
     nest_std = check_nest_tolerance(getattr(args, "nest_tolerance", None))
     meas = read_measurements(args.measurements, geom, frame=frame)
+    progress.set_long(len(meas) > LONG_POSES)
     if frame == "tracker":
         from pmcal.twin.forward import FullChainModel
 
