@@ -16,12 +16,14 @@ import numpy as np
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.calib.ocpm.diagnose import BASELINES, DiagnoseOptions, diagnose as run_diagnosis
 from pmcal.calib.ocpm.diagnosis_result import Diagnosis
+from pmcal.calib.ocpm.registration import FRAME_KEYS, FrameCorrected
+from pmcal.apps.ocpm_diagnose_frame import frame_input
 from pmcal.mechanism.ocpm.effects import EFFECT_NAMES
 from pmcal.twin.effect_model import EffectChainModel
 from pmcal import progress
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_directory, write_json
-from pmcal.io_ocpm import LONG_POSES, MECHANISM, read_measurements, read_params, write_measurements, write_params
+from pmcal.io_ocpm import MECHANISM, read_params, write_measurements, write_params
 from pmcal.reports.diagnose import effect_label, report
 
 #: Fewest poses the diagnosis accepts: the baseline has 31 parameters and cross-validation holds out
@@ -39,18 +41,13 @@ def check_sigma(sigma: float | None) -> float | None:
 
 
 def load(args, geom: Geometry):
-    """Measurements and options from the command line; InputError naming file, row and field."""
+    """Measurements (base frame, complete rows), options and (frame part of the JSON, notes) from the
+    command line; InputError naming file, row and field."""
     sigma = check_sigma(args.sigma)
     model = args.model or "full"
     if model not in BASELINES:
         raise InputError(f"unknown model '{model}' (known: {', '.join(BASELINES)})", field="--model")
-    meas = read_measurements(args.measurements, geom)
-    progress.set_long(len(meas) > LONG_POSES)
-    if not meas.visible.all():                 # docs/tracker_frame.md: the diagnosis takes complete rows
-        i, k = (int(v) for v in np.argwhere(~meas.visible)[0])
-        raise InputError(f"target t{k + 1} is blocked: the diagnosis needs every target in every row (leave "
-                         "the row out, or identify with 'pmcal identify')", file=args.measurements, row=i + 1,
-                         field=f"t{k + 1}_x")
+    meas, frame_doc, frame_notes = frame_input(args, geom, sigma, MIN_POSES)
     if len(meas) < MIN_POSES:
         raise InputError(f"{len(meas)} poses are too few to tell an effect from the geometry: measure at least "
                          f"{MIN_POSES} (the diagnosis campaign has 128)", file=args.measurements, field="pose_id")
@@ -72,8 +69,13 @@ def load(args, geom: Geometry):
     initial = None
     if args.params:
         initial, _ = read_params(args.params, geom)
-    return meas, DiagnoseOptions(baseline_keys=BASELINES[model], sigma_mm=sigma, initial=initial,
-                                 fit_stiffness_ratio=model == "full")
+    options = DiagnoseOptions(baseline_keys=BASELINES[model], sigma_mm=sigma, initial=initial,
+                              fit_stiffness_ratio=model == "full")
+    if frame_doc.get("frame") == "tracker":
+        from pmcal.tracker_frame import with_frame_correction
+
+        options = with_frame_correction(options)
+    return meas, options, (frame_doc, frame_notes)
 
 
 def run(meas, options: DiagnoseOptions, geom: Geometry) -> Diagnosis:
@@ -85,7 +87,10 @@ def run(meas, options: DiagnoseOptions, geom: Geometry) -> Diagnosis:
             if text in steps:
                 bar.update(1)
         try:
-            return run_diagnosis(meas, EffectChainModel(geom), options, on_step)
+            model = EffectChainModel(geom)
+            if any(k in FRAME_KEYS for k in options.baseline_keys or ()):
+                model = FrameCorrected(model)          # tracker frame: the registration stays in the baseline
+            return run_diagnosis(meas, model, options, on_step)
         except (RuntimeError, np.linalg.LinAlgError) as exc:
             raise RunError(f"the diagnosis failed: {exc}") from None
 
@@ -105,7 +110,8 @@ def write_outputs(d: Diagnosis, doc: dict, json_path: str, report_dir: str | Non
         return
     with atomic_directory(report_dir) as tmp:
         report(d, title, extra).write(tmp / "index.html")          # pmcal.reports.diagnose
-        write_params(tmp / "params.json", d.params(), model="full-chain + effects",
+        write_params(tmp / "params.json", {k: v for k, v in d.params().items() if k not in FRAME_KEYS},
+                     model="full-chain + effects",
                      stiffness_ratio=d.final.info["stiffness_ratio"],
                      effects={v.name: {"value": v.value, "interval": list(v.interval), "unit": v.unit,
                                        "params": {k: p[0] for k, p in v.params.items()}} for v in d.named},
@@ -126,9 +132,16 @@ def summary_line(d: Diagnosis) -> str:
 
 def diagnose(args) -> int:
     geom = default_geometry()
-    meas, options = load(args, geom)
+    meas, options, (frame_doc, frame_notes) = load(args, geom)
     d = run(meas, options, geom)
+    d.notes[:0] = frame_notes
+    if frame_doc.get("frame") == "tracker":
+        from pmcal.tracker_frame import final_registration
+
+        frame_doc = final_registration(frame_doc, d.final)
     doc = document(d, str(args.measurements), args.model or "full")
+    if frame_doc:
+        doc["measurement_frame"] = frame_doc
     write_outputs(d, doc, args.json, args.report, f"Discrepancy diagnosis: {Path(args.measurements).name}")
     print(summary_line(d))
     return 0
