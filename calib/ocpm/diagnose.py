@@ -229,8 +229,8 @@ class _Problem:
         return effect_value(name, keys, res.x[idx], cov, self.time_unit)
 
     def polish(self, res: IdentResult, max_steps: int = 4) -> IdentResult:
-        """Gauss-Newton steps with a forward-difference Jacobian after a fit with compliance in the model,
-        and the covariance from it. The analytic sensitivities of the preloaded spring model are 5-15 %
+        """Gauss-Newton (chord) steps with a forward-difference Jacobian after a fit with compliance in the
+        model, and the covariance from it. The analytic sensitivities of the preloaded spring model are 5-15 %
         off: the trust-region fit stopped short (steps of ~0.4 sigma left) and its covariance made the
         intervals of K ~35 % too narrow."""
         names, ratio = list(res.names), res.info["stiffness_ratio"]
@@ -246,19 +246,20 @@ class _Problem:
 
         x = res.x.copy()
         c0, T0 = cost(x)
-        J = None
+        J = np.empty((T0.size, len(names)))
+        for i in range(len(names)):
+            xi = x.copy()
+            h = 1e-3 * max(abs(x[i] - mean[i]), 1e-2 * s[i])
+            xi[i] += h
+            J[:, i] = (cost(xi)[1] - T0) / h
+        if not np.all(np.isfinite(J)):                      # no finite difference Jacobian: keep the fit
+            return res
+        # Chord steps with that one Jacobian: the steps left are below ~0.5 std, over which the Jacobian
+        # changes to second order only (a fresh one per step cost len(names) equilibria each, the bulk
+        # of a compliance diagnosis, for the same steps and intervals).
+        A = J / self.sigma
+        M = A.T @ A + np.diag(1.0 / s**2)
         for _ in range(max_steps):
-            Jx = np.empty((T0.size, len(names)))
-            for i in range(len(names)):
-                xi = x.copy()
-                h = 1e-3 * max(abs(x[i] - mean[i]), 1e-2 * s[i])
-                xi[i] += h
-                Jx[:, i] = (cost(xi)[1] - T0) / h
-            if not np.all(np.isfinite(Jx)):
-                break
-            J = Jx
-            A = J / self.sigma
-            M = A.T @ A + np.diag(1.0 / s**2)
             step = np.linalg.solve(M, A.T @ ((y - T0) / self.sigma) - (x - mean) / s**2)
             c1, T1 = cost(x + step)
             if not c1 < c0:
@@ -266,10 +267,7 @@ class _Problem:
             x, c0, T0 = x + step, c1, T1
             if np.max(np.abs(step) * np.sqrt(np.diag(M))) < 0.01:     # below 1 % of a std
                 break
-        if J is None:                                       # no finite difference Jacobian: keep the fit
-            return res
-        A = J / self.sigma
-        cov = np.linalg.inv(A.T @ A + np.diag(1.0 / s**2))
+        cov = np.linalg.inv(M)
         resid = y - T0
         p_eff = float(np.trace(cov @ (A.T @ A)))
         info = dict(res.info, chi2_per_dof=float(resid @ resid / self.sigma**2 / (len(y) - p_eff)),
