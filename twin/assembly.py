@@ -225,11 +225,18 @@ class BatchAssembler:
     Near the limbs' stretched-link singularity a full Gauss-Newton step can leave the basin (a strained
     machine at 80 deg tilt, or a fit trying large parameters): steps are capped at ``MAX_STEP`` (rad, or
     m for the SS slide) per coordinate, and a pose whose normal equations are singular stops, not
-    converged, instead of filling its state with NaN. A pose whose steps bounce back and forth (the
-    normal equations lack gravity's curvature) takes shorter, secant-scaled steps (:meth:`_overshoots`).
+    converged, instead of filling its state with NaN. With ``secant_steps`` a pose whose steps bounce back
+    and forth (the normal equations lack gravity's curvature) takes shorter, secant-scaled steps
+    (:meth:`_overshoots`).
     """
 
     MAX_STEP = 0.2
+    #: Secant step lengths for poses whose steps bounce (:meth:`_overshoots`); off by default: the twin
+    #: generating a campaign skips such a pose as an operator skips one where the machine binds (from a
+    #: bouncing start it converged, in the twin's campaigns, to equilibria 0.1-13 mm from its neighbours'
+    #: trend); the diagnosis' model (:class:`pmcal.twin.effect_model.EffectChainModel`) turns them on to
+    #: reproduce poses another machine did measure.
+    secant_steps = False
 
     def __init__(self, m: mujoco.MjModel, index: ModelIndex, stiffness: Stiffness,
                  gravity: bool = False, held_dofs: np.ndarray | None = None,
@@ -405,7 +412,7 @@ class BatchAssembler:
             size = np.max(np.abs(step), axis=1)
             bad = ~np.isfinite(size)                      # a singular configuration: give the pose up
             step[bad] = 0.0
-            shaky[active] |= self._overshoots(step, last[active])
+            shaky[active] |= self.secant_steps & self._overshoots(step, last[active])
             damp[active] = np.where(shaky[active], self._secant_damping(step, last[active], taken[active]), 1.0)
             last[active] = step
             step *= np.minimum(1.0, self.MAX_STEP / np.where(bad, 1.0, np.maximum(size, 1e-300)))[:, None]
