@@ -47,7 +47,7 @@ def test_model_free_noise_estimate():
     assert res.shape == meas.targets.shape
     est = estimate_noise(meas, G)
     tol = 3 * SIGMA / np.sqrt(2 * est.dof)                       # 3 std of the estimate
-    assert est.source == "estimated" and est.dof == 2 * 200
+    assert est.source == "estimated" and est.dof == 2 * len(meas)         # a skipped pose leaves fewer rows
     assert abs(est.free_mm - SIGMA) < tol and abs(est.free_robust_mm - SIGMA) < 3 * tol
     assert estimate_noise(meas, G, 0.02).sigma_mm == 0.02
 
