@@ -11,7 +11,7 @@ effect                   layer         model (per motor j = 1, 2; joint = comman
 ``encoder_eccentricity`` joint angle   offset_j = s_j sin(theta_j) + c_j cos(theta_j) = a_j sin(theta_j + phi_j)
 ``zero_offset_drift``    joint angle   offset_j = r_j (t - t_0), t in hours (or pose index without time_s)
 ``joint_compliance``     physics       a series spring K_j = 1/c_j behind each motor, loaded by gravity (the
-                                       spec's inertia + payload) and the internal over-constraint forces:
+                                       MJCF inertia + payload) and the internal over-constraint forces:
                                        to first order offset_j = -c_j tau_j (tau_j the motor torque)
 ``thermal_expansion``    geometry      lengths grow linearly with dT = temp_c - 20: the whole machine by alpha (targets
                                        scale about O) and the links (l1, l2 of every RSR limb, SS
@@ -182,7 +182,7 @@ def thermal_delta(temp_c: np.ndarray | None) -> np.ndarray | None:
 def approach_from_order(cmd_deg: np.ndarray) -> np.ndarray:
     """Approach signs (N, 2) from the row order: the sign of each motor's last change of command (a row
     that does not move a motor keeps its previous sign; the first row, whose history is unknown, is 0).
-    Rows must be in measurement (time) order, as INTERFACES.md requires."""
+    Rows must be in measurement (time) order, as docs/formats.md requires."""
     cmd = np.atleast_2d(np.asarray(cmd_deg, float))
     s = np.zeros_like(cmd)
     s[1:] = np.sign(np.diff(cmd, axis=0))
