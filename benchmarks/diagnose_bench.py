@@ -3,8 +3,10 @@
 For each case (every effect of the vocabulary at a realistic size, no effect with Gaussian and with
 heavy-tailed noise, two effects at once, an effect outside the vocabulary) and each seed: a campaign on
 the twin with random geometric errors (limbs 1-2, SS) and the hidden effect(s)
-(:func:`pmcal.apps.effect_scenarios.hidden_effect_campaign`, 128 poses up to 80 deg, payloads 0/10 kg, 18 -> 28 degC,
-random order and approach, sigma 0.01 mm), diagnosed without being told (sigma given).
+(:func:`pmcal.apps.effect_scenarios.hidden_effect_campaign`: the ``pmcal twin plan --for-diagnosis``
+campaign, 128 poses up to 80 deg in random time order, each motor approaching from the side of its last
+move, payloads 0/10 kg in blocks of 32 rows, warm-up then cool-down 18 -> 28 -> 18 degC, sigma 0.01 mm,
+logged without approach columns), diagnosed without being told (sigma given).
 
 With ``--source xsim`` (or ``both``) the campaigns come from the independent simulator in
 ``tests/crosssim`` instead (shares no code with pmcal; its own forms of every effect: thermal expansion of
@@ -87,9 +89,10 @@ def run_one(job: tuple[str, int, int]) -> dict:
     names, n_case, ecc, theta_max = CASES[case]
     if ecc is not None:
         effects.REALISTIC["encoder_eccentricity"] = ecc
-    plan = effects.diagnosis_plan(n_case or n, seed, **({"theta_max_deg": theta_max} if theta_max else {}))
     meas, twin = effects.hidden_effect_campaign(names, seed, n_case or n, SIGMA, heavy_tails="heavy" in case,
-                                                plan=plan, joint_jitter_deg=0.004 if "jitter" in case else 0.0)
+                                                joint_jitter_deg=0.004 if "jitter" in case else 0.0,
+                                                theta_max_deg=theta_max or 80.0)
+    assert meas.approach is None                  # logged as a user logs it: the approach is inferred
     effects.REALISTIC["encoder_eccentricity"] = 0.01
     t0 = time.perf_counter()
     d = diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA))

@@ -12,6 +12,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pmcal.apps.effect_scenarios import hidden_effect_campaign
+from pmcal.twin.effects import plan_effect_campaign
 from pmcal.calib.ocpm.registration import motor_axes_frame
 from pmcal.calib.ocpm.tracker_design import (PASSIVE_REACH, candidate_orientations, design_blocks,
                                              frame_std_deg, tracker_campaign)
@@ -93,7 +94,11 @@ def test_twin_plan_frame_tracker_cli(tmp_path, capsys):
 def backlash(tmp_path_factory):
     """A base-frame campaign with backlash, and the same campaign seen by a tracker at a known pose, with
     one target blocked in row 7 and a 2 mm outlier in row 20."""
-    meas, _ = hidden_effect_campaign(["backlash"], 6, 48, SIGMA)
+    # The stratified campaign with approach columns this test was written on (the default diagnosis
+    # campaign, logged without approach columns, makes the tracker registration start from a pose the
+    # model cannot assemble: "Residuals are not finite in the initial point", reported, not fixed here).
+    plan = plan_effect_campaign(48, 80.0, 6, payloads=(0.0, 10.0), temp_c=(18.0, 28.0))
+    meas, _ = hidden_effect_campaign(["backlash"], 6, 48, SIGMA, plan=plan)
     tmp = tmp_path_factory.mktemp("trdiag")
     base = tmp / "base.csv"
     write_measurements(base, meas)

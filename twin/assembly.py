@@ -259,10 +259,18 @@ class BatchAssembler:
     Near the limbs' stretched-link singularity a full Gauss-Newton step can leave the basin (a strained
     machine at 80 deg tilt, or a fit trying large parameters): steps are capped at ``MAX_STEP`` (rad, or
     m for the SS slide) per coordinate, and a pose whose normal equations are singular stops, not
-    converged, instead of filling its state with NaN.
+    converged, instead of filling its state with NaN. With ``secant_steps`` a pose whose steps bounce back
+    and forth (the normal equations lack gravity's curvature) takes shorter, secant-scaled steps
+    (:meth:`_overshoots`).
     """
 
     MAX_STEP = 0.2
+    #: Secant step lengths for poses whose steps bounce (:meth:`_overshoots`); off by default: the twin
+    #: generating a campaign skips such a pose as an operator skips one where the machine binds (from a
+    #: bouncing start it converged, in the twin's campaigns, to equilibria 0.1-13 mm from its neighbours'
+    #: trend); the diagnosis' model (:class:`pmcal.twin.effect_model.EffectChainModel`) turns them on to
+    #: reproduce poses another machine did measure.
+    secant_steps = False
 
     def __init__(self, m: mujoco.MjModel, index: ModelIndex, stiffness: Stiffness,
                  gravity: bool = False, held_dofs: np.ndarray | None = None,
@@ -395,6 +403,29 @@ class BatchAssembler:
             Jw = np.concatenate([Jw, Jk], axis=1)
         return res, Jw, gap
 
+    @staticmethod
+    def _overshoots(step: np.ndarray, last: np.ndarray) -> np.ndarray:
+        """Poses (bool per row) whose Gauss-Newton step turns back on the previous one without shrinking
+        much (cosine < -0.5, length > half): an overshoot that does not die out. Under gravity the normal
+        equations lack the load's curvature, and a soft spring (joint compliance, a strained pose with
+        10 kg) can then bounce between two configurations for ever (the refit of a compliant machine
+        stalled on such poses). From then on that pose takes secant step lengths
+        (:meth:`_secant_damping`); the equilibrium, where the step is zero, is unchanged."""
+        a, b = np.linalg.norm(step, axis=1), np.linalg.norm(last, axis=1)
+        dot = np.einsum("nf,nf->n", step, last)
+        return (dot < -0.5 * a * b) & (a > 0.5 * b) & (b > 0)
+
+    @staticmethod
+    def _secant_damping(step: np.ndarray, last: np.ndarray, taken: np.ndarray) -> np.ndarray:
+        """Step length (per row, 1/16 .. 1) from the curvature along the step just taken relative to the
+        Gauss-Newton matrix: ``lam = -(step - last) . taken / |taken|^2`` (1 where the normal equations
+        hold the whole curvature, ~2 for a bouncing pose), length ``1 / lam`` (a Barzilai-Borwein step in
+        the Gauss-Newton metric). Rows with no step taken yet get 1/2."""
+        tt = np.einsum("nf,nf->n", taken, taken)
+        lam = -np.einsum("nf,nf->n", step - last, taken) / np.where(tt > 0, tt, 1.0)
+        length = np.clip(1.0 / np.where(lam > 0, lam, 1.0), 1.0 / 16.0, 1.0)
+        return np.where(tt > 0, length, 0.5)
+
     def solve(self, qpos: np.ndarray) -> AssemblyResult:
         """Assemble every row of ``qpos`` (N, nq) in place; held joints stay at their values."""
         qpos = np.atleast_2d(qpos)
@@ -404,6 +435,10 @@ class BatchAssembler:
         active = np.arange(N)
         free = self.free
         self._rest = qpos[:, self.idx.qadr_base[:2]].copy()
+        last = np.zeros((N, len(free)))                   # each pose's previous Gauss-Newton step
+        taken = np.zeros((N, len(free)))                  # and the step it took
+        damp = np.ones(N)
+        shaky = np.zeros(N, bool)                         # poses that overshot: secant step lengths
         for it in range(1, self.max_iter + 1):
             site, anchor, axis, xmat, bias = self._kinematics(qpos, active)
             res, Jw, _ = self._residual(site, anchor, axis, xmat, qpos[active], self._rest[active])
@@ -416,7 +451,12 @@ class BatchAssembler:
             size = np.max(np.abs(step), axis=1)
             bad = ~np.isfinite(size)                      # a singular configuration: give the pose up
             step[bad] = 0.0
+            shaky[active] |= self.secant_steps & self._overshoots(step, last[active])
+            damp[active] = np.where(shaky[active], self._secant_damping(step, last[active], taken[active]), 1.0)
+            last[active] = step
             step *= np.minimum(1.0, self.MAX_STEP / np.where(bad, 1.0, np.maximum(size, 1e-300)))[:, None]
+            step *= damp[active, None]
+            taken[active] = step
             dv = np.zeros((len(active), self.m.nv))
             dv[:, free] = step
             q = qpos[active]

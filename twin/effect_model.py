@@ -42,6 +42,7 @@ class EffectChainModel(FullChainModel):
 
         super().__init__(geom, stiffness_ratio)
         self.twin.assembler.max_iter = MAX_ITER
+        self.twin.assembler.secant_steps = True     # reproduce the strained poses another machine measured
         self.gravity = gravity
         self.effect_x: dict[str, float] = {}
         self._warm: tuple[bytes, np.ndarray] | None = None

@@ -14,8 +14,10 @@ d. Forward selection: the most significant candidate (F test, Bonferroni over th
    whose fitted value is physically plausible and large enough is added, the whole model is refitted
    (nonlinear, the effect's physics in the forward model), the others are re-tested there, named ones
    are re-checked.
-e. Cross-validation: the same selection runs inside each fold (training poses only); a name is kept if
-   a majority of folds select it.
+e. Cross-validation: the same selection runs inside each fold (training poses only), every round
+   linearised at the full-data fit of the model the fold has already named (refitted linearly on the
+   fold's training poses), so a large first effect does not block a second; a name is kept if enough
+   folds select it.
 f. The named effects with value ± 95 % interval are written into the model; ``gap_before`` and
    ``gap_after`` are RMS held-out disagreements (folds refitted, linearised at the full-data fits).
 g. Structure left after that (omnibus test, also robust to heavy-tailed noise) is flagged unexplained.
@@ -114,11 +116,12 @@ def linearize(model: EffectModel, meas: Measurements, res: IdentResult, extra_ke
     model.set_vector(list(res.names), res.x, res.info["stiffness_ratio"])
     T, dT = model.predict_meas(meas, keys)
     n = T.size
+    dT = dT.reshape(n, len(keys))
     z0 = np.zeros(len(keys))
     z0[:n_fit] = (res.x - mean[:n_fit]) / scale[:n_fit]
     pose = np.repeat(np.arange(len(meas)), n // len(meas))
     return Linearization(r=(meas.targets.reshape(-1) - T.reshape(-1)) / sigma,
-                         J=dT.reshape(n, len(keys)) * scale / sigma, keys=keys, z0=z0, pose=pose,
+                         J=dT * scale / sigma, keys=keys, z0=z0, pose=pose,
                          sigma=sigma, scale=scale, mean=mean)
 
 
@@ -158,6 +161,35 @@ class _Problem:
                           for keys in self.candidates.values() for k in keys}
 
         self.folds = stratified_folds(self.meas, opt.folds, geom)
+        #: full-data fits met so far: frozenset of effect names -> (fit, Huber-weighted linearisation or
+        #: None when the fit does not assemble every pose); filled by the selection, read by the folds
+        self.fits: dict[frozenset, tuple[IdentResult, Linearization | None]] = {}
+
+    def remember(self, names: list[str], res: IdentResult, lin: Linearization) -> Linearization | None:
+        """Keep the full-data fit of baseline + ``names`` and its Huber-weighted linearisation."""
+        ok = bool(np.all(np.isfinite(lin.r)) and np.all(np.isfinite(lin.J)))
+        linw = huber_weighted(lin, lin.cols(list(res.names))) if ok else None
+        self.fits[frozenset(names)] = (res, linw)
+        return linw
+
+    def at(self, names: list[str]) -> Linearization | None:
+        """Huber-weighted linearisation at the full-data fit of baseline + ``names`` (None if that fit cannot
+        assemble every pose). Fits the selection made are reused; another combination (a fold that
+        chose differently) is refitted once, warm-started from the largest remembered subset.
+
+        Why the full-data fit serves every fold: a fold's training fit differs from it by the influence
+        of a tenth of the poses, a small step the fold's linear refit takes; the linearisation error is
+        second order in that step, whereas at the baseline it is second order in the whole effect."""
+        key = frozenset(names)
+        if key not in self.fits:
+            starts = [k for k in self.fits if k <= key and self.fits[k][1] is not None]
+            if not starts:
+                return None
+            start = max(starts, key=len)
+            ordered = [n for n in self.candidates if n in key]
+            res = self.refit(self.fits[start][0], ordered)
+            self.remember(ordered, res, self.linearize(res, ordered))
+        return self.fits[key][1]
 
     def _missing_context(self, name: str) -> str:
         m = self.meas
@@ -198,8 +230,8 @@ class _Problem:
         return effect_value(name, keys, res.x[idx], cov, self.time_unit)
 
     def polish(self, res: IdentResult, max_steps: int = 4) -> IdentResult:
-        """Gauss-Newton steps with a forward-difference Jacobian after a fit with compliance in the model,
-        and the covariance from it. The analytic sensitivities of the preloaded spring model are 5-15 %
+        """Gauss-Newton (chord) steps with a forward-difference Jacobian after a fit with compliance in the
+        model, and the covariance from it. The analytic sensitivities of the preloaded spring model are 5-15 %
         off: the trust-region fit stopped short (steps of ~0.4 sigma left) and its covariance made the
         intervals of K ~35 % too narrow."""
         names, ratio = list(res.names), res.info["stiffness_ratio"]
@@ -215,19 +247,20 @@ class _Problem:
 
         x = res.x.copy()
         c0, T0 = cost(x)
-        J = None
+        J = np.empty((T0.size, len(names)))
+        for i in range(len(names)):
+            xi = x.copy()
+            h = 1e-3 * max(abs(x[i] - mean[i]), 1e-2 * s[i])
+            xi[i] += h
+            J[:, i] = (cost(xi)[1] - T0) / h
+        if not np.all(np.isfinite(J)):                      # no finite difference Jacobian: keep the fit
+            return res
+        # Chord steps with that one Jacobian: the steps left are below ~0.5 std, over which the Jacobian
+        # changes to second order only (a fresh one per step cost len(names) equilibria each, the bulk
+        # of a compliance diagnosis, for the same steps and intervals).
+        A = J / self.sigma
+        M = A.T @ A + np.diag(1.0 / s**2)
         for _ in range(max_steps):
-            Jx = np.empty((T0.size, len(names)))
-            for i in range(len(names)):
-                xi = x.copy()
-                h = 1e-3 * max(abs(x[i] - mean[i]), 1e-2 * s[i])
-                xi[i] += h
-                Jx[:, i] = (cost(xi)[1] - T0) / h
-            if not np.all(np.isfinite(Jx)):
-                break
-            J = Jx
-            A = J / self.sigma
-            M = A.T @ A + np.diag(1.0 / s**2)
             step = np.linalg.solve(M, A.T @ ((y - T0) / self.sigma) - (x - mean) / s**2)
             c1, T1 = cost(x + step)
             if not c1 < c0:
@@ -235,10 +268,7 @@ class _Problem:
             x, c0, T0 = x + step, c1, T1
             if np.max(np.abs(step) * np.sqrt(np.diag(M))) < 0.01:     # below 1 % of a std
                 break
-        if J is None:                                       # no finite difference Jacobian: keep the fit
-            return res
-        A = J / self.sigma
-        cov = np.linalg.inv(A.T @ A + np.diag(1.0 / s**2))
+        cov = np.linalg.inv(M)
         resid = y - T0
         p_eff = float(np.trace(cov @ (A.T @ A)))
         info = dict(res.info, chi2_per_dof=float(resid @ resid / self.sigma**2 / (len(y) - p_eff)),
@@ -304,16 +334,36 @@ def _best(tests: dict[str, tuple]) -> str | None:
     return min(ok, key=lambda n: (tests[n][0].p_value, -tests[n][0].F)) if ok else None
 
 
-def _linear_selection(pb: _Problem, lin: Linearization, rows: np.ndarray) -> list[str]:
-    """Greedy forward selection with backward re-checks, linearised at the baseline (inside a fold)."""
+def _fold_selection(pb: _Problem, rows: np.ndarray) -> list[str]:
+    """Greedy forward selection with backward re-checks on the training ``rows`` of a fold, each round
+    linearised at the model already named in that fold (:meth:`_Problem.at`: the full-data nonlinear fit
+    of baseline + the fold's names; the fold refits all of it linearly from there). A large nonlinear
+    first effect is then part of the model the second one is tested against, not leftover structure."""
     chosen: list[str] = []
     while len(chosen) < pb.opt.max_effects:
+        lin = pb.at(chosen)
+        if lin is None:
+            break
         model = pb.model_keys0 + [k for n in chosen for k in pb.candidates[n]]
         rest = [n for n in pb.candidates if n not in chosen]
-        best = _best(_test_round(pb, lin, model, rest, rows)) if rest else None
+        if not rest:
+            break
+        tests = _test_round(pb, lin, model, rest, rows)
+        for n in rest:
+            # As in the selection on all poses: a strongly nonlinear effect that the linear test at the
+            # current model misses is tested at its nonlinear refit (when the selection made one)
+            # against the model without it.
+            tried = pb.fits.get(frozenset(chosen + [n]), (None, None))[1]
+            if not tests[n][2] and tried is not None:
+                tests[n] = _test_round(pb, tried, model, [n], rows, len(rest))[n]
+        best = _best(tests)
         if best is None:
             break
         chosen.append(best)
+        lin = pb.at(chosen)
+        if lin is None:                              # the refit left the workspace: not this fold's name
+            chosen.pop()
+            break
         for name in chosen[:-1]:
             others = pb.model_keys0 + [k for n in chosen if n != name for k in pb.candidates[n]]
             if not _test_round(pb, lin, others, [name], rows, len(rest))[name][2]:
@@ -429,6 +479,7 @@ def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[st
         for best in order[:2]:
             trial = pb.refit(res, named + [best], lin, tests[best][0].fit)
             lin_t = pb.linearize(trial, named + [best])
+            pb.remember(named + [best], trial, lin_t)
             if not (np.all(np.isfinite(lin_t.r)) and np.all(np.isfinite(lin_t.J))):
                 rejected.add(best)                   # the refit left the model's workspace
                 board[best].reason = "the nonlinear refit could not assemble every measured pose"
@@ -455,6 +506,7 @@ def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[st
                 board[n].reason = f"absorbed once {best} was added"
                 res = pb.refit(res, named)
                 lin = pb.linearize(res, named)
+                pb.remember(named, res, lin)
     return named, res, lin, history
 
 
@@ -509,9 +561,8 @@ def _confirm(pb: _Problem, lin0: Linearization, named: list[str], res: IdentResu
     counts = {n: 0 for n in pb.candidates}
     if not named:                                    # nothing named: nothing to confirm
         return counts, named, res, lin
-    lin0w = huber_weighted(lin0, lin0.cols(pb.model_keys0))
     for f in range(n_folds):
-        for n in _linear_selection(pb, lin0w, ~lin0.rows(np.flatnonzero(pb.folds == f))):
+        for n in _fold_selection(pb, ~lin0.rows(np.flatnonzero(pb.folds == f))):
             counts[n] += 1
     need = int(np.ceil(pb.opt.min_folds * n_folds))
     confirmed = [n for n in named if counts[n] >= need]
@@ -562,6 +613,7 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     base = pb.baseline = pb.identify([], x0)
     pb.model_keys0 = list(base.names)
     lin0 = pb.linearize(base, [])
+    pb.remember([], base, lin0)
     board = _scoreboard(pb, lin0)                                    # b, c
     om0 = omnibus(lin0, fit(lin0, lin0.cols(pb.model_keys0)), pb.noise, opt)
 

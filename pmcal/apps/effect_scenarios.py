@@ -5,10 +5,13 @@ lives in :mod:`pmcal.twin.effects`.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.effects import EFFECT_NAMES, VOCABULARY
+from pmcal.mechanism.ocpm.effects import EFFECT_NAMES, VOCABULARY, approach_from_order
+from pmcal.mechanism.ocpm.kinematics import HOME_BETA
 from pmcal.mechanism.ocpm.params import random_errors
 from pmcal.twin.campaign import CampaignPlan, nominal_commands
 from pmcal.twin.effects import PER_MOTOR, EffectTwin, Effects, HeavyTailedTracker, plan_effect_campaign
@@ -50,8 +53,10 @@ REALISTIC: dict[str, float] = {"joint_compliance": 5.0e4, "backlash": 0.0125, "e
 
 
 def diagnosis_plan(n: int = 128, seed: int | None = 0, theta_max_deg: float = 80.0) -> CampaignPlan:
-    """The campaign the diagnosis is designed for: poses in random order up to 80 deg, random approach per
-    motor, payloads 0 and 10 kg, a 18 -> 28 degC warm-up, 30 s a pose.
+    """The campaign the diagnosis is designed for, as ``pmcal twin plan --for-diagnosis`` writes it
+    (:func:`pmcal.apps.ocpm_diagnosis_plan.diagnosis_campaign`): poses uniform on the cap up to 80 deg in
+    random time order, each motor's approach the sign of its last move (the machine starts at home),
+    payloads 0 and 10 kg in blocks of 32 rows, a warm-up then cool-down 18 -> 28 -> 18 degC, 30 s a pose.
 
     The tilt range sets the motor range, and the motor range decides whether a first harmonic of the motor
     angle (encoder eccentricity) differs from what the geometry absorbs: at 70 deg the motors span ~110 deg
@@ -59,7 +64,12 @@ def diagnosis_plan(n: int = 128, seed: int | None = 0, theta_max_deg: float = 80
     span ~126 deg, 99.59 % is absorbed and 0.01 deg is named in >= 90 % (docs/diagnose.md). 80 deg keeps
     7.5 deg from the limbs' stretched-link singularity; a strained machine skips ~1 % of such poses.
     """
-    return plan_effect_campaign(n, theta_max_deg, seed, payloads=(0.0, 10.0), temp_c=(18.0, 28.0))
+    from pmcal.apps.ocpm_diagnosis_plan import diagnosis_campaign
+
+    c = diagnosis_campaign(n, theta_max_deg, 0 if seed is None else seed)
+    return CampaignPlan(phi_deg=c["phi_deg"], theta_deg=c["theta_deg"],
+                        approach=np.stack([c["m1_approach"], c["m2_approach"]], 1), time_s=c["time_s"],
+                        temp_c=c["temp_c_planned"], payload_kg=c["payload_kg"])
 
 
 def realistic_effects(names: list[str], plan: CampaignPlan, rng: np.random.Generator) -> Effects:
@@ -79,25 +89,50 @@ def realistic_effects(names: list[str], plan: CampaignPlan, rng: np.random.Gener
 
 def hidden_effect_campaign(names: list[str], seed: int, n: int = 128, sigma_mm: float = 0.01,
                            heavy_tails: bool = False, plan: CampaignPlan | None = None,
-                           joint_jitter_deg: float = 0.0) -> tuple[Measurements, EffectTwin]:
+                           joint_jitter_deg: float = 0.0, theta_max_deg: float = 80.0
+                           ) -> tuple[Measurements, EffectTwin]:
     """Measurements of a machine with random geometric errors in limbs 1-2 and SS (0.5 mm / 0.1 deg) and the
     effects ``names`` at realistic sizes, hidden from whoever analyses them. ``heavy_tails``: Student-t
     (3 dof) tracker noise; ``joint_jitter_deg``: random joint-angle scatter per pose (stick-slip, an effect
     outside the vocabulary). Poses where the strained machine does not assemble are skipped (about 1 % up
-    to 80 deg; the file then has fewer rows)."""
+    to 80 deg; the file then has fewer rows).
+
+    Without ``plan``: the :func:`diagnosis_plan` campaign (``n`` poses up to ``theta_max_deg``) driven and
+    logged as a user does: in time order, each motor approaching every pose from the side of its last
+    move (skipped poses are left out of the drive, so the order is that of the poses measured), and no
+    approach columns in the measurements (the diagnosis infers them from the order). With a ``plan``: its
+    approach signs are driven and logged as given."""
     rng = np.random.default_rng([seed, 11])
     errors = random_errors(rng, 0.5, 0.1, limbs=(1, 2))
-    plan = plan or diagnosis_plan(n, seed)
+    logged = plan is None
+    plan = plan or diagnosis_plan(n, seed, theta_max_deg)
     twin = EffectTwin(errors, realistic_effects(names, plan, rng), seed=seed)
     noise_rng = np.random.default_rng([seed, 12])
     tracker = (HeavyTailedTracker(sigma_mm, rng=noise_rng) if heavy_tails else LaserTracker(sigma_mm, noise_rng))
     cmd = nominal_commands(plan.phi_deg, plan.theta_deg, twin.geom)
-    if joint_jitter_deg:
-        jitter = rng.normal(0.0, joint_jitter_deg, cmd.shape)
-        meas = twin.measure(plan, tracker, cmd + jitter, skip_unassembled=True)
-        meas.m_cmd_deg = cmd[_rows(meas)]
-        return meas, twin
-    return twin.measure(plan, tracker, cmd, skip_unassembled=True), twin
+    drive = cmd + rng.normal(0.0, joint_jitter_deg, cmd.shape) if joint_jitter_deg else cmd
+    keep = np.arange(len(plan))
+    while True:
+        sub = _subplan(plan, keep, drive[keep] if logged else None)
+        meas = twin.measure(sub, tracker, drive[keep], skip_unassembled=True)
+        rows = _rows(meas)
+        if not logged or len(rows) == len(keep):
+            break
+        keep = keep[rows]                            # drive again without the poses the machine skipped
+    meas.m_cmd_deg = cmd[keep[rows]]                 # the commands logged (without the jitter)
+    if logged:
+        meas = dataclasses.replace(meas, approach=None)
+    return meas, twin
+
+
+def _subplan(plan: CampaignPlan, rows: np.ndarray, drive_deg: np.ndarray | None) -> CampaignPlan:
+    """The plan's ``rows``; with ``drive_deg`` (commands in that order, deg) the approach of every motor is
+    the sign of its last move, from home."""
+    pick = lambda a: None if a is None else np.asarray(a)[rows]  # noqa: E731
+    approach = pick(plan.approach) if drive_deg is None else \
+        approach_from_order(np.vstack([[HOME_BETA, HOME_BETA], drive_deg]))[1:]
+    return CampaignPlan(phi_deg=plan.phi_deg[rows], theta_deg=plan.theta_deg[rows], approach=approach,
+                        time_s=plan.time_s[rows], temp_c=pick(plan.temp_c), payload_kg=pick(plan.payload_kg))
 
 
 def _rows(meas: Measurements) -> np.ndarray:

@@ -16,6 +16,7 @@ import numpy as np
 from pmcal.errors import InputError
 from pmcal.fileio import atomic_write
 from pmcal.mechanism.ocpm.effects import VOCABULARY, approach_from_order
+from pmcal.mechanism.ocpm.kinematics import HOME_BETA
 
 HEADER = ["step", "phi_deg", "theta_deg", "m1_cmd_deg", "m2_cmd_deg", "m1_approach", "m2_approach",
           "payload_kg", "time_s", "temp_c_planned"]
@@ -35,7 +36,7 @@ def diagnosis_campaign(n: int, theta_max_deg: float, seed: int, seconds_per_pose
     t = np.arange(n) * seconds_per_pose
     temp = temps[0] + (temps[1] - temps[0]) * np.sin(np.pi * t / max(t[-1], 1.0))
     pay = np.array([payloads[(i // block) % len(payloads)] for i in range(n)], float)
-    appr = approach_from_order(np.vstack([[-39.351, -39.351], cmd]))[1:]   # from home
+    appr = approach_from_order(np.vstack([[HOME_BETA, HOME_BETA], cmd]))[1:]   # from home
     return dict(phi_deg=phi, theta_deg=theta, m1_cmd_deg=cmd[:, 0], m2_cmd_deg=cmd[:, 1], m1_approach=appr[:, 0],
                 m2_approach=appr[:, 1], payload_kg=pay, time_s=t, temp_c_planned=temp)
 
