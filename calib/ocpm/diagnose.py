@@ -368,10 +368,11 @@ def _typical_draws(pb: _Problem, name: str, n: int = 64) -> np.ndarray:
         return x / s
     if name == "joint_compliance":
         t = np.full(2, 1.0 / info.typical)
-    elif name == "thermal_expansion":
-        t = np.array([info.typical])
-    elif name == "zero_offset_drift" and pb.time_unit == "pose":
-        t = np.full(2, np.deg2rad(info.typical) / 120.0)  # 30 s a pose
+    elif name == "thermal_expansion":                      # the uniform member: every group at alpha
+        t = np.array([info.typical if k.endswith(".alpha") else 0.0 for k in keys])
+    elif name == "zero_offset_drift":                      # the linear member (30 s a pose)
+        rate = np.deg2rad(info.typical) / (120.0 if pb.time_unit == "pose" else 1.0)
+        t = np.array([rate if k.split(".")[1][0] == "r" else 0.0 for k in keys])
     else:
         t = np.full(len(keys), np.deg2rad(info.typical))
     return (t / s)[None]

@@ -7,11 +7,12 @@ stiffness K = 1/c), the interval by the delta method. Also the effects' prior st
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import stats
 
-from pmcal.mechanism.ocpm.effects import VOCABULARY, effect_of_key, thermal_member
+from pmcal.mechanism.ocpm.effects import THERMAL_GROUP_STD, VOCABULARY, effect_of_key, member_maps, member_values
 from pmcal.calib.ocpm.fullchain import Priors
 from pmcal.mechanism.ocpm.params import is_angular
 
@@ -28,10 +29,13 @@ def effect_prior_std(key: str, priors: Priors, time_unit: str = "h") -> float:
     hi = max(abs(info.plausible[0]), abs(info.plausible[1]))
     if name == "joint_compliance":
         return 3.0 / info.plausible[0]                      # c = 1/K up to 1/(1e3 N m/rad)
-    if name == "thermal_expansion":   # the links' extra rate regularised to the plausible size
-        return hi if key.endswith(".links") else 3.0 * hi
-    if name == "zero_offset_drift" and time_unit == "pose":
-        return np.deg2rad(0.05)                            # deg per pose
+    if name == "thermal_expansion":   # the groups' deviations from the common rate: the ridge
+        return 3.0 * hi if key.endswith(".alpha") else THERMAL_GROUP_STD
+    if name == "zero_offset_drift":
+        quad = key[-2] == "q"
+        if time_unit == "pose":     # deg per pose; the curvature weakly informative over ~100 poses
+            return np.deg2rad(0.05) / (100.0 if quad else 1.0)
+        return np.deg2rad(3.0 * hi)                        # deg/h and deg/h^2
     return np.deg2rad(3.0 * hi)
 
 
@@ -48,7 +52,8 @@ class EffectValue:
     big_enough: bool
     why: str = ""
     note: str = ""                        # e.g. unexpected sign: check a convention
-    member: str = ""                      # the family member that fits (thermal: uniform / links only / two rates)
+    member: str = ""                      # the family member that fits best (:func:`select_member`)
+    member_params: dict[str, tuple[float, float]] = field(default_factory=dict)   # its values and stds
 
 
 def _interface(key: str, v: float) -> float:
@@ -67,10 +72,11 @@ def _summary(name: str, keys: list[str], x: np.ndarray) -> float:
         return float(np.rad2deg(np.mean(x)))
     if name == "encoder_eccentricity":
         return float(np.rad2deg(np.mean(np.hypot(x[0::2], x[1::2]))))
-    if name == "zero_offset_drift":
-        return float(np.rad2deg(np.sqrt(np.mean(x * x))))
-    if name == "thermal_expansion":                                 # the links' rate
-        return float(sum(v for k, v in zip(keys, x) if k in ("thermal_expansion.alpha", "thermal_expansion.links")))
+    if name == "zero_offset_drift":                                 # the rates at the first pose
+        return float(np.rad2deg(np.sqrt(np.mean(x[:2] ** 2))))
+    if name == "thermal_expansion":                                 # the fastest group's rate
+        rates = x[0] + x[1:]
+        return float(rates[np.argmax(np.abs(rates))])
     lengths = [i for i, k in enumerate(keys) if not is_angular(k)]
     return float(np.sqrt(np.mean(x[lengths] ** 2)))
 
@@ -117,9 +123,49 @@ def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, tim
                 "convention (+1 = last move upwards) and the encoder side")
     if not big:
         note = (note + "; " if note else "") + f"{name}: smaller than {info.minimum:g} {unit} (named all the same)"
-    member = ""
-    if name == "thermal_expansion" and len(keys) == 2:
-        member = thermal_member(x[0], std[0], x[1], std[1])
-    return EffectValue(name, float(value), interval, unit, params, bool(plausible), bool(big), why, note, member)
+    ev = EffectValue(name, float(value), interval, unit, params, bool(plausible), bool(big), why, note)
+    maps = member_maps(name)
+    if maps and len(keys) == maps[next(iter(maps))].shape[0]:
+        member, z, cov_z = select_member(x, cov, maps)
+        A = maps[member]
+        ev.member = member
+        s_z = np.sqrt(np.clip(np.diag(cov_z), 0, None))
+        v, sv = member_values(name, member, z), member_values(name, member, s_z)
+        if name == "thermal_expansion":
+            G = A[1:, 1:]
+            # std of each group's rate G z_y (the rates share the member's parameters)
+            cov_r = G @ cov_z[1:, 1:] @ G.T
+            sv = dict(zip(v, np.sqrt(np.clip(np.diag(cov_r)[G.any(axis=1)], 0, None))))
+            ev.member_params = {g: (float(v[g]), float(sv[g])) for g in v}
+            g = max(v, key=lambda k: abs(v[k]))                   # the value: the member's fastest group
+            ev.value, ev.interval = v[g], (v[g] - Z95 * sv[g], v[g] + Z95 * sv[g])
+        else:
+            ev.member_params = {k: (float(np.rad2deg(v[k])), float(np.rad2deg(sv[k]))) for k in v}
+    return ev
 
 
+#: Level of the test that rejects a simpler member of a family against the whole family.
+MEMBER_ALPHA = 0.01
+
+
+def select_member(x: np.ndarray, cov: np.ndarray, maps: dict[str, np.ndarray]) -> tuple[str, np.ndarray, np.ndarray]:
+    """The member of a family that fits: the simplest (fewest parameters, then smallest misfit) whose
+    constraint ``x = A z`` the family fit (``x``, covariance ``cov``) does not reject at
+    :data:`MEMBER_ALPHA` (Wald test, ``min_z (x - A z)^T cov^-1 (x - A z) ~ chi2(rank)`` with the rank
+    the family has beyond the member); the whole family when every simpler member is rejected. Returns
+    the member's name, its parameters z (generalised least squares) and their covariance."""
+    W = np.linalg.pinv(cov)
+    n = len(x)
+    best = None
+    for name, A in maps.items():
+        M = A.T @ W @ A
+        cov_z = np.linalg.pinv(M)
+        z = cov_z @ A.T @ W @ x
+        d = x - A @ z
+        chi2 = float(d @ W @ d)
+        k = n - np.linalg.matrix_rank(A)
+        ok = k == 0 or stats.chi2.sf(chi2, k) >= MEMBER_ALPHA
+        cand = (not ok, A.shape[1], chi2, name, z, cov_z)
+        if best is None or cand[:3] < best[:3]:
+            best = cand
+    return best[3], best[4], best[5]
