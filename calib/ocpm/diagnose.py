@@ -564,6 +564,7 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     pb.model_keys0 = list(base.names)
     lin0 = pb.linearize(base, [])
     board = _scoreboard(pb, lin0)                                    # b, c
+    pre_notes = _confounding_share(pre_notes, pb, lin0)
     om0 = omnibus(lin0, fit(lin0, lin0.cols(pb.model_keys0)), pb.noise, opt)
 
     step("testing candidate effects")                                # d
@@ -608,6 +609,24 @@ def _confounding(meas: Measurements) -> list[str]:
     return [f"temperature follows time monotonically (Spearman {rho:.2f}): thermal expansion and zero-offset "
             "drift are confounded in this campaign; a warm-up then cool-down (or a constant-temperature run) "
             "separates them"]
+
+
+def _confounding_share(notes: list[str], pb: _Problem, lin: Linearization) -> list[str]:
+    """Add to the confounding note how much of a linear drift's signature the thermal family absorbs beyond
+    the baseline (1 - trace ratio of the drift's conditional information without and with it); a campaign
+    whose temperature is not monotone in time but where that share is over a half gets the note too."""
+    if not {"thermal_expansion", "zero_offset_drift"} <= set(pb.candidates):
+        return notes
+    base = lin.cols(pb.model_keys0)
+    drift = lin.cols(["zero_offset_drift.r1", "zero_offset_drift.r2"])
+    both = np.concatenate([base, lin.cols(pb.candidates["thermal_expansion"])])
+    i0 = np.trace(conditional_information(lin, base, drift))
+    share = 1.0 - np.trace(conditional_information(lin, both, drift)) / i0 if i0 > 0 else 0.0
+    text = f"the thermal family absorbs {100 * share:.0f} % of a linear drift's signature here"
+    out = [n + f" ({text})" if "confounded" in n else n for n in notes]
+    if out == notes and share > 0.5:
+        out.append(f"thermal expansion and zero-offset drift are confounded in this campaign: {text}")
+    return out
 
 
 def _added_variable(pb: _Problem, lin: Linearization, res: IdentResult) -> dict[str, tuple[np.ndarray, np.ndarray]]:
