@@ -39,7 +39,7 @@ from scipy import stats
 from pmcal.calib.forward_model import EffectModel
 from pmcal.mechanism.ocpm.config import Geometry
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, approach_from_order, VOCABULARY, effect_of_key,
+from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, T_REL, approach_from_order, VOCABULARY, effect_of_key,
                                           thermal_delta, with_context)
 from pmcal.calib.ocpm.diagnosis_result import Candidate, Diagnosis, Omnibus
 from pmcal.calib.ocpm.effect_values import EffectValue, effect_prior_std, effect_value
@@ -139,6 +139,7 @@ class _Problem:
         geom = model.geom
         self.geom, self.opt = geom, opt
         self.meas, self.time_unit = with_context(meas)
+        self.t_span = float(np.max(self.meas.extra[T_REL])) if len(meas) else 0.0   # duration, time_unit
         self.noise = estimate_noise(meas, geom, opt.sigma_mm)
         self.sigma = self.noise.sigma_mm
         self.base_keys = list(opt.baseline_keys or BASELINES["full"])
@@ -188,14 +189,15 @@ class _Problem:
         vals = lin.values(sub)
         x = np.array([vals[k] for k in keys])
         cov_z = np.linalg.inv(sub.info + np.eye(len(sub.cols)))[np.ix_(pos, pos)] * max(sub.rss / sub.dof, 1.0)
-        return effect_value(name, keys, x, cov_z * np.outer(lin.scale[cols], lin.scale[cols]), self.time_unit)
+        return effect_value(name, keys, x, cov_z * np.outer(lin.scale[cols], lin.scale[cols]), self.time_unit,
+                            self.t_span)
 
     def value_final(self, res: IdentResult, name: str) -> EffectValue:
         """Effect value from a nonlinear fit (covariance inflated by the residual variance if above 1)."""
         keys = self.candidates[name]
         idx = [res.names.index(k) for k in keys]
         cov = res.covariance[np.ix_(idx, idx)] * max(res.info["chi2_per_dof"], 1.0)
-        return effect_value(name, keys, res.x[idx], cov, self.time_unit)
+        return effect_value(name, keys, res.x[idx], cov, self.time_unit, self.t_span)
 
     def polish(self, res: IdentResult, max_steps: int = 4) -> IdentResult:
         """Gauss-Newton steps with a forward-difference Jacobian after a fit with compliance in the model,
@@ -486,6 +488,8 @@ def _verdicts(pb: _Problem, board: dict[str, Candidate], history: dict, named: l
                 c.verdict = "explains only part of the structure"
                 c.reason = (f"significant, but explains {100 * c.share:.2g} % of the structure left beyond the "
                             "noise: not forced onto this name")
+            elif c.reason.startswith("leaves structure"):
+                c.verdict = "explains only part of the structure"
             elif cv_ran and (counts.get(n, 0) < need or c.reason.startswith("does not predict")):
                 c.verdict = "not confirmed on held-out poses"
                 c.reason = c.reason or f"selected in {counts.get(n, 0)} of {n_folds} cross-validation folds"
@@ -526,6 +530,37 @@ def _confirm(pb: _Problem, lin0: Linearization, named: list[str], res: IdentResu
         res = pb.refit(res, confirmed) if confirmed else pb.baseline
         lin = pb.linearize(res, confirmed)
     return counts, confirmed, res, lin
+
+
+#: The context that defines a family (residual_context names, first one recorded).
+FAMILY_CONTEXT = {"thermal_expansion": ("temperature",), "zero_offset_drift": ("time", "row order")}
+
+
+def _own_context_left(pb: _Problem, named: list[str], res: IdentResult, lin: Linearization,
+                      board: dict[str, Candidate]):
+    """A family defined by a context must leave nothing that follows that context: when structure is left
+    after the named model and its held-out residual still follows the family's own context (F test per
+    pose, p < ``gate_alpha``), the family explains only part of an effect it does not contain (e.g. a
+    tracker stand creeping with the temperature, which per-group expansion mimics in part). It is then
+    not named, and the residual context says what the structure follows. Returns (named, fit, lin)."""
+    ctx_named = [n for n in named if n in FAMILY_CONTEXT]
+    if not ctx_named or not omnibus(lin, fit(lin, lin.cols(list(res.names))), pb.noise, pb.opt).structure:
+        return named, res, lin
+    cv = _cv(lin, lin.cols(list(res.names)), pb.folds) * pb.sigma
+    links = {c.context: c for c in characterise(pb.meas, cv.reshape(pb.meas.targets.shape), top=100)}
+    drop = []
+    for n in ctx_named:
+        c = next((links[k] for k in FAMILY_CONTEXT[n] if k in links), None)
+        if c is not None and c.p_value < pb.opt.gate_alpha:
+            drop.append(n)
+            board[n].reason = (f"leaves structure that still follows the {c.context} ({100 * c.share:.0f} % of it, "
+                               f"p = {c.p_value:.2g}): it explains only part of a {c.context}-driven effect "
+                               "outside the family, not forced onto it")
+    if not drop:
+        return named, res, lin
+    keep = [n for n in named if n not in drop]
+    res = pb.refit(res, keep) if keep else pb.baseline
+    return keep, res, pb.linearize(res, keep)
 
 
 def _notes(board: dict[str, Candidate], named: list[str], om: Omnibus, opt: DiagnoseOptions) -> list[str]:
@@ -574,6 +609,7 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     cv_before = _cv(lin0, lin0.cols(pb.model_keys0), pb.folds)
     cv_ran = bool(named)
     counts, named, res, lin = _confirm(pb, lin0, named, res, lin, board, cv_before)
+    named, res, lin = _own_context_left(pb, named, res, lin, board)
 
     cv_after = _cv(lin, lin.cols(list(res.names)), pb.folds)       # f
     om1 = omnibus(lin, fit(lin, lin.cols(list(res.names))), pb.noise, opt)

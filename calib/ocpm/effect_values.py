@@ -81,9 +81,11 @@ def _summary(name: str, keys: list[str], x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(x[lengths] ** 2)))
 
 
-def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, time_unit: str = "h") -> EffectValue:
+def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, time_unit: str = "h",
+                 t_span: float | None = None) -> EffectValue:
     """Value, 95 % interval (delta method), plausibility and size of an effect's fitted parameters
-    (internal units, covariance ``cov``)."""
+    (internal units, covariance ``cov``). ``t_span``: the campaign's duration in ``time_unit`` (the drift's
+    monotonicity check, :func:`drift_reversal`)."""
     info = VOCABULARY[name]
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     params = {k: (_interface(k, v), _interface(k, s)) for k, v, s in zip(keys, x, std)}
@@ -117,6 +119,9 @@ def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, tim
         big = abs(f0) >= info.minimum if unit == info.unit else True   # the minimum is in info.unit only
         if not plausible:
             why = f"value {f0:.3g} {unit} outside the plausible range {lo_p:g} .. {hi_p:g}"
+        elif name == "zero_offset_drift" and t_span and len(keys) == 4:
+            why = drift_reversal(x, cov, t_span, unit)
+            plausible = not why
     note = ""
     if name == "backlash" and np.any(x < -3 * std):
         note = ("backlash: negative lost motion fitted (the drive leads its command): check the approach sign "
@@ -142,6 +147,23 @@ def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, tim
         else:
             ev.member_params = {k: (float(np.rad2deg(v[k])), float(np.rad2deg(sv[k]))) for k in v}
     return ev
+
+
+def drift_reversal(x: np.ndarray, cov: np.ndarray, t_span: float, unit: str) -> str:
+    """Why a fitted drift (r1, r2, q1, q2) is implausible: a motor whose rate at the first pose (r) and at
+    the last (r + 2 q t_span) are both beyond 3 std and of opposite signs reverses within the campaign.
+    A zero offset that rises and falls back within one campaign is no creep of the drive; with a warm-up
+    then cool-down it follows the temperature (a tracker stand, an encoder's thermal zero shift). Empty
+    string when the drift is monotone within the noise."""
+    for m in range(2):
+        g0, g1 = np.eye(4)[m], np.eye(4)[m] + 2.0 * t_span * np.eye(4)[m + 2]
+        d0, d1 = g0 @ x, g1 @ x
+        s0, s1 = np.sqrt(max(g0 @ cov @ g0, 0.0)), np.sqrt(max(g1 @ cov @ g1, 0.0))
+        if d0 * d1 < 0 and abs(d0) > 3 * s0 and abs(d1) > 3 * s1:
+            return (f"motor {m + 1}'s drift reverses within the campaign ({np.rad2deg(d0):.3g} then "
+                    f"{np.rad2deg(d1):.3g} {unit}): no creep of the drive; a zero offset that rises and falls "
+                    "back follows something else (with a warm-up then cool-down: the temperature)")
+    return ""
 
 
 #: Level of the test that rejects a simpler member of a family against the whole family.
