@@ -166,7 +166,7 @@ def _xsim(tmp_path, names, seed, **kw):
 
 @pytest.mark.parametrize("name, form", [("thermal_expansion", "invar links"), ("zero_offset_drift", "sine")])
 def test_crosssim_forms_are_named_by_family(tmp_path, name, form):
-    """The independent simulator's other forms (base and platform steel under invar links; a 6-hour
+    """The independent simulator's other forms (base and platform steel under invar links; a 3-hour
     sinusoidal drift): the family is named and the held-out gap closes to the noise (1.2 sigma)."""
     d = _xsim(tmp_path, [name], 2, forms={name: form})
     assert d.effects == [name]

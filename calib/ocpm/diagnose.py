@@ -139,7 +139,7 @@ class _Problem:
         geom = model.geom
         self.geom, self.opt = geom, opt
         self.meas, self.time_unit = with_context(meas)
-        self.t_span = float(np.max(self.meas.extra[T_REL])) if len(meas) else 0.0   # duration, time_unit
+        self.t_rel, self.dtemp = self.meas.extra[T_REL], thermal_delta(self.meas.temp_c)
         self.noise = estimate_noise(meas, geom, opt.sigma_mm)
         self.sigma = self.noise.sigma_mm
         self.base_keys = list(opt.baseline_keys or BASELINES["full"])
@@ -190,14 +190,14 @@ class _Problem:
         x = np.array([vals[k] for k in keys])
         cov_z = np.linalg.inv(sub.info + np.eye(len(sub.cols)))[np.ix_(pos, pos)] * max(sub.rss / sub.dof, 1.0)
         return effect_value(name, keys, x, cov_z * np.outer(lin.scale[cols], lin.scale[cols]), self.time_unit,
-                            self.t_span)
+                            self.t_rel, self.dtemp)
 
     def value_final(self, res: IdentResult, name: str) -> EffectValue:
         """Effect value from a nonlinear fit (covariance inflated by the residual variance if above 1)."""
         keys = self.candidates[name]
         idx = [res.names.index(k) for k in keys]
         cov = res.covariance[np.ix_(idx, idx)] * max(res.info["chi2_per_dof"], 1.0)
-        return effect_value(name, keys, res.x[idx], cov, self.time_unit, self.t_span)
+        return effect_value(name, keys, res.x[idx], cov, self.time_unit, self.t_rel, self.dtemp)
 
     def polish(self, res: IdentResult, max_steps: int = 4) -> IdentResult:
         """Gauss-Newton steps with a forward-difference Jacobian after a fit with compliance in the model,

@@ -82,10 +82,11 @@ def _summary(name: str, keys: list[str], x: np.ndarray) -> float:
 
 
 def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, time_unit: str = "h",
-                 t_span: float | None = None) -> EffectValue:
+                 t_rel: np.ndarray | None = None, dtemp: np.ndarray | None = None) -> EffectValue:
     """Value, 95 % interval (delta method), plausibility and size of an effect's fitted parameters
-    (internal units, covariance ``cov``). ``t_span``: the campaign's duration in ``time_unit`` (the drift's
-    monotonicity check, :func:`drift_reversal`)."""
+    (internal units, covariance ``cov``). ``t_rel`` (N,): each pose's time since the first in ``time_unit``
+    and ``dtemp`` (N,) K its temperature above 20 degC (None: not recorded), for the drift's check
+    :func:`drift_reversal`."""
     info = VOCABULARY[name]
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     params = {k: (_interface(k, v), _interface(k, s)) for k, v, s in zip(keys, x, std)}
@@ -119,8 +120,8 @@ def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, tim
         big = abs(f0) >= info.minimum if unit == info.unit else True   # the minimum is in info.unit only
         if not plausible:
             why = f"value {f0:.3g} {unit} outside the plausible range {lo_p:g} .. {hi_p:g}"
-        elif name == "zero_offset_drift" and t_span and len(keys) == 4:
-            why = drift_reversal(x, cov, t_span, unit)
+        elif name == "zero_offset_drift" and t_rel is not None and len(keys) == 4:
+            why = drift_reversal(x, cov, np.asarray(t_rel, float), unit, dtemp)
             plausible = not why
     note = ""
     if name == "backlash" and np.any(x < -3 * std):
@@ -149,20 +150,31 @@ def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, tim
     return ev
 
 
-def drift_reversal(x: np.ndarray, cov: np.ndarray, t_span: float, unit: str) -> str:
+#: Correlation with the temperature above which a reversing drift's time course follows the temperature.
+FOLLOWS_TEMPERATURE = 0.9
+
+
+def drift_reversal(x: np.ndarray, cov: np.ndarray, t_rel: np.ndarray, unit: str,
+                   dtemp: np.ndarray | None = None) -> str:
     """Why a fitted drift (r1, r2, q1, q2) is implausible: a motor whose rate at the first pose (r) and at
-    the last (r + 2 q t_span) are both beyond 3 std and of opposite signs reverses within the campaign.
-    A zero offset that rises and falls back within one campaign is no creep of the drive; with a warm-up
-    then cool-down it follows the temperature (a tracker stand, an encoder's thermal zero shift). Empty
-    string when the drift is monotone within the noise."""
+    the last (r + 2 q t_end) are both beyond 3 std and of opposite signs, and whose time course
+    r t + q t^2 follows the temperature (|correlation| >= :data:`FOLLOWS_TEMPERATURE` with ``dtemp``),
+    rises and falls back with a warm-up then cool-down: that is something following the temperature (a
+    tracker stand, a thermal zero shift), not a creep of the drive. A reversal that does not follow the
+    temperature (a climate cycle of the drive cabinet), or without temperatures, is kept. Empty string
+    when the drift is plausible."""
+    t_end = float(np.max(t_rel)) if t_rel.size else 0.0
     for m in range(2):
-        g0, g1 = np.eye(4)[m], np.eye(4)[m] + 2.0 * t_span * np.eye(4)[m + 2]
+        g0, g1 = np.eye(4)[m], np.eye(4)[m] + 2.0 * t_end * np.eye(4)[m + 2]
         d0, d1 = g0 @ x, g1 @ x
         s0, s1 = np.sqrt(max(g0 @ cov @ g0, 0.0)), np.sqrt(max(g1 @ cov @ g1, 0.0))
-        if d0 * d1 < 0 and abs(d0) > 3 * s0 and abs(d1) > 3 * s1:
+        if not (d0 * d1 < 0 and abs(d0) > 3 * s0 and abs(d1) > 3 * s1) or dtemp is None or np.ptp(dtemp) == 0:
+            continue
+        rho = float(np.corrcoef(x[m] * t_rel + x[m + 2] * t_rel**2, dtemp)[0, 1])
+        if abs(rho) >= FOLLOWS_TEMPERATURE:
             return (f"motor {m + 1}'s drift reverses within the campaign ({np.rad2deg(d0):.3g} then "
-                    f"{np.rad2deg(d1):.3g} {unit}): no creep of the drive; a zero offset that rises and falls "
-                    "back follows something else (with a warm-up then cool-down: the temperature)")
+                    f"{np.rad2deg(d1):.3g} {unit}) in step with the temperature (correlation {rho:.2f}): "
+                    "it follows the temperature, not the time")
     return ""
 
 

@@ -168,7 +168,7 @@ REALISTIC = {"backlash": 0.02, "encoder_eccentricity": 0.01, "thermal_expansion"
 #: variants of an effect's form (``hidden_campaign(forms=)``): name -> form -> SimEffects fields set
 FORMS = {"thermal_expansion": {"links": {}, "steel body": {"thermal_body": 12e-6},
                                "invar links": {"thermal_body": 12e-6, "thermal": 1.2e-6}},
-         "zero_offset_drift": {"creep": {}, "sine": {"drift_period_s": 6 * 3600.0}}}
+         "zero_offset_drift": {"creep": {}, "sine": {"drift_period_s": 3 * 3600.0}}}
 
 
 def hidden_campaign(names: list[str], seed: int, n: int = 128, theta_max_deg: float = 80.0,
@@ -177,7 +177,7 @@ def hidden_campaign(names: list[str], seed: int, n: int = 128, theta_max_deg: fl
     """A campaign with random errors (0.5 mm / 0.1 deg in limbs 1-2 and SS) and the named effects (the
     pmcal vocabulary names) at their realistic sizes (or ``sizes[name]``) in their default form or
     ``forms[name]`` (:data:`FORMS`: thermal "steel body": aluminium links 23e-6 on a steel base and
-    platform 12e-6/K, "invar links": links 1.2e-6 on a steel base and platform; drift "sine": a 6-hour
+    platform 12e-6/K, "invar links": links 1.2e-6 on a steel base and platform; drift "sine": a 3-hour
     oscillation); ``temp_range`` (start/peak, end) of the warm-up/cool-down, or a monotone ramp when given
     as ("ramp", start, end). Returns (measured campaign, errors, effects)."""
     rng = np.random.default_rng(seed)
