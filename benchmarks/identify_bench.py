@@ -6,7 +6,7 @@ the machine is compensated (exact real IK + fitted position map) and driven to 2
 
 Scenarios
   limbs12 : errors only in limbs 1-2 (+-1.5 mm, +-0.3 deg, the size of paper Table 2): the paper's setting.
-  all     : errors in every limb and the SS limb (+-0.5 mm, +-0.1 deg, MECHANISM.md): over-constraint.
+  all     : errors in every limb and the SS limb (+-0.5 mm, +-0.1 deg, docs/identification.md): over-constraint.
 
 Per method: success rate (chi-square within max(1, 1 %) of the bounded least-squares optimum found from
 the true parameters, both limbs), parameter error normalised by the Cramer-Rao bound at the truth (RMS

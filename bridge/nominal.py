@@ -6,7 +6,7 @@ carries the strongly curved kinematics exactly; the table only has to carry the 
 smooth correction, so bilinear interpolation on the default 5 deg x 2 deg grid loses ~1/150 of what
 interpolating absolute commands loses (docs/compensation_table.md, "Choice of the interpolant").
 
-Geometry (seed eq. 4, 7, 12-13 with every error zero; MECHANISM.md §1): base and platform points of
+Geometry (seed eq. 4, 7, 12-13 with every error zero; docs/ocpm_2dof.md): base and platform points of
 limb j at azimuth psi_j on a circle of radius ``a``; platform centre at ``h`` above the base centre
 at home; both links of an RSR limb ``l`` long. Orientation by tilt-torsion angles (phi, theta),
 ``R = Rz(phi) Ry(theta) Rz(-phi)``, ``r = h (cos phi sin(theta/2), sin phi sin(theta/2), cos(theta/2))``.

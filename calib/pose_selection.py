@@ -51,10 +51,12 @@ def crlb_std(blocks: np.ndarray, idx=None) -> np.ndarray:
 
 
 def select_poses(blocks: np.ndarray, k: int, criterion: str = "D", max_sweeps: int = 30,
-                 start=None) -> np.ndarray:
+                 start=None, prior: np.ndarray | None = None) -> np.ndarray:
     """Indices of ``k`` candidate poses chosen by ``criterion`` (see module docstring).
 
-    ``start`` optionally gives the initial subset (default: greedy forward selection).
+    ``start`` optionally gives the initial subset (default: greedy forward selection). ``prior``
+    (n, n), optional: information the fit has besides the poses (its priors, in the blocks' units),
+    added to every candidate set (Bayesian D-optimality).
     """
     if criterion not in CRITERIA:
         raise ValueError(f"unknown criterion {criterion!r} (known: {', '.join(CRITERIA)})")
@@ -64,8 +66,10 @@ def select_poses(blocks: np.ndarray, k: int, criterion: str = "D", max_sweeps: i
     info = information(blocks)
     ridge = 1e-9 * np.diag(np.einsum("kii->i", info))   # per-parameter (scale-free): defines the first
                                                           # greedy steps, negligible afterwards
+    if prior is not None:
+        ridge = ridge + prior
     if start is None and criterion == "condition":
-        start = select_poses(blocks, k, "D", max_sweeps)      # the greedy condition start is poor
+        start = select_poses(blocks, k, "D", max_sweeps, prior=prior)   # the greedy condition start is poor
     if start is None:
         chosen: list[int] = []
         M = ridge.copy()

@@ -7,7 +7,12 @@ status). This module owns what every command shares:
 - ``--quiet`` / ``--verbose`` (accepted before or after the subcommand) and ``--version``;
 - one output check before any work (:func:`check_outputs`): unwritable, missing folder, a folder where
   a file goes, a read-only file, a folder pmcal did not write -> exit 2 with one line;
-- one line per written file on stdout (``pmcal: wrote PATH``), also when piped, silenced by ``--quiet``;
+- one line per output on stdout (``pmcal: wrote PATH``), also when piped. An output is a file or folder
+  named by an output option or its default (:data:`FILE_OUTPUTS`, :data:`FOLDER_OUTPUTS`, plus the CSV
+  written beside a compensation table); a folder (``demo --out``, ``diagnose --report``) is one output,
+  ``PATH/``. Analysis commands print their result line before it (``evaluate``, ``diagnose``, ``push``,
+  ...); the demos print only the wrote-lines (their summary is a status line: terminal or ``--verbose``);
+- ``--quiet`` prints nothing but errors: no result lines, no wrote-lines, no progress (stdout is empty);
 - no traceback reaches the user: bad input -> exit 2, failures -> exit 1 with one line (``--verbose``
   adds the traceback), Ctrl-C -> exit 130 with one line.
 
@@ -17,6 +22,7 @@ File formats: ``docs/formats.md``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import pkgutil
@@ -36,6 +42,8 @@ FILE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "push": ("json", "audit"), "loop": ("json",),
 }
 FOLDER_OUTPUTS: dict[str, tuple[str, ...]] = {"demo": ("out",), "diagnose": ("report",)}
+#: (command, attribute) of a file output that brings a second file beside it: suffix of that file
+COMPANIONS: dict[tuple[str, str], str] = {("compensate", "table"): ".csv"}
 
 EPILOG = ("File formats (measurement, targets, setpoints, parameters, diagnosis JSON, compensation table): "
           "docs/formats.md. Units at every interface: mm and degrees.")
@@ -116,7 +124,8 @@ def _named_subparsers(parser: argparse.ArgumentParser, prefix: str = ""):
 def _common_options(p: argparse.ArgumentParser, top: bool) -> None:
     """``--quiet``/``--verbose`` on the top parser and, defaults suppressed, on every subcommand."""
     kw = {} if top else {"default": argparse.SUPPRESS}
-    p.add_argument("--quiet", "-q", action="store_true", help="print nothing but errors", **kw)
+    p.add_argument("--quiet", "-q", action="store_true",
+                   help="print nothing but errors: no results, no 'wrote' lines, no progress", **kw)
     p.add_argument("--verbose", "-v", action="store_true",
                    help="more detail (and the traceback of an unexpected failure)", **kw)
 
@@ -133,7 +142,7 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
                         help=f"machine: ocpm_2dof or planar_2dof (a folder under mjcf/); default "
                              f"{DEFAULT_MACHINE}. 'pmcal --machine NAME COMMAND --help' shows that machine's "
                              "options and defaults")
-    _common_options(parser, top=True)       # --quiet: no progress and no wrote-lines; results still print
+    _common_options(parser, top=True)       # --quiet: nothing on stdout, errors only on stderr
     parser.add_argument("--blas-threads", type=int, default=None, metavar="N",
                         help="BLAS threads per process (default: $PMCAL_BLAS_THREADS, else 1; 0 = the "
                              "libraries' own default); see docs/speed.md")
@@ -166,7 +175,11 @@ def output_paths(args) -> list[tuple[str, str, bool]]:
         for attr in attrs:
             value = getattr(args, attr, None)
             if value:
-                out.append(("--" + attr.replace("_", "-") if attr != "output" else "-o", str(value), folder))
+                option = "--" + attr.replace("_", "-") if attr != "output" else "-o"
+                out.append((option, str(value), folder))
+                suffix = COMPANIONS.get((name, attr))
+                if suffix and not folder:
+                    out.append((option, str(Path(str(value)).with_suffix(suffix)), False))
     return out
 
 
@@ -200,6 +213,17 @@ def _mtime(path: str) -> float | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one pmcal command line; returns the exit status. The display settings (``--quiet``,
+    ``--verbose``, a long job) last for this call only."""
+    try:
+        return _main(argv)
+    finally:
+        progress.set_quiet(False)
+        progress.set_verbose(False)
+        progress.set_long(False)
+
+
+def _main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(_machine_from_argv(argv))
     try:
@@ -211,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     quiet = bool(getattr(args, "quiet", False))
     progress.set_quiet(quiet)
     progress.set_verbose(verbose and not quiet)
+    progress.set_long(False)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
@@ -225,7 +250,9 @@ def main(argv: list[str] | None = None) -> int:
             prepare(args)
         check_outputs(args)
         before = {path: _mtime(path) for _, path, _ in output_paths(args)}
-        status = int(args.func(args) or 0)
+        with open(os.devnull, "w") if quiet else contextlib.nullcontext() as sink:
+            with contextlib.redirect_stdout(sink) if quiet else contextlib.nullcontext():
+                status = int(args.func(args) or 0)
         if status == 0 and not quiet:
             _report_written(args, before)
         return status

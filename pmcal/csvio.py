@@ -81,8 +81,9 @@ def read_csv(path: str | Path, max_rows: int | None = None) -> CsvTable:
     p = str(path)
     try:
         if Path(path).is_file() and Path(path).stat().st_size > MAX_CSV_BYTES:
-            raise InputError(f"{Path(path).stat().st_size / 2**20:.0f} MiB is larger than the "
-                             f"{MAX_CSV_BYTES // 2**20} MiB a pmcal CSV may have", file=p)
+            raise InputError(f"{Path(path).stat().st_size / 2**20:.0f} MiB, larger than the "
+                             f"{MAX_CSV_BYTES // 2**20} MiB a pmcal CSV may have (docs/formats.md, 'Size "
+                             "limits'): split the file or thin it out", file=p)
         raw = Path(path).read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise InputError("file not found", file=p) from None
@@ -104,8 +105,10 @@ def read_csv(path: str | Path, max_rows: int | None = None) -> CsvTable:
         if not any(c.strip() for c in row):
             continue
         if max_rows is not None and len(rows) >= max_rows:
-            raise InputError(f"more than {max_rows} data rows: too many for this command (split the file or "
-                             "thin it out)", file=p, row=max_rows + 1)
+            n = len(rows) + 1 + sum(1 for r in reader if any(c.strip() for c in r))
+            raise InputError(f"{n} data rows, more than the {max_rows} this command reads "
+                             f"(docs/formats.md, 'Size limits'): split the file or thin it out to at most "
+                             f"{max_rows} rows", file=p)
         if len(row) != len(header):
             raise InputError(f"{len(row)} fields where the header has {len(header)}", file=p, row=len(rows) + 1)
         rows.append(row)

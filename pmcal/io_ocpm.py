@@ -29,6 +29,9 @@ PLAUSIBLE_POINTING_DEG = 5.0
 #: Most poses a measurement file may hold: identification and diagnosis solve dense problems whose cost
 #: grows with the poses (a campaign has 24..128; 2000 take minutes).
 MAX_POSES = 2000
+#: Above this many poses identify and diagnose take long (tens of seconds to minutes): they report their
+#: steps on stderr also when piped (:func:`pmcal.progress.set_long`).
+LONG_POSES = 200
 #: Largest plausible error of a measured distance between two targets (mm).
 PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
 #: The same in the tracker frame, where gross outliers are expected and rejected (named) by the robust fit:

@@ -8,17 +8,21 @@ Units at the interface: mm and degrees. See docs/tracker_frame.md.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full
-from pmcal.calib.ocpm.registration import read_registration
+from pmcal.calib.ocpm.fullchain import FullChainOptions, Priors, identify_full
+from pmcal.calib.ocpm.registration import FRAME_KEYS, read_registration
 from pmcal.calib.ocpm.tracker_fit import BadCampaignError, TrackerOptions, identify_tracker
 from pmcal.errors import InputError
 
 FRAMES = ("base", "tracker")
+#: Robust residual scale (in tracker sigmas) beyond which the diagnosis' registration calls the campaign
+#: bad: far above the identification's 5, since an unmodelled effect of a few sigma is the diagnosis' subject.
+DIAGNOSIS_SCALE_RATIO = 30.0
 
 
 def parse_frame(text: str | None) -> tuple[str, tuple[np.ndarray, np.ndarray] | None]:
@@ -95,3 +99,107 @@ def tracker_document(res, meas: Measurements) -> dict:
             "meaning": "nest offsets from the drawing in platform coordinates, shape part only (their rigid "
                        "part is platform geometry: SS.dc*, L*.da*, L*.dmu/dnu); compensation does not use them"}
     return doc
+
+
+def register_for_diagnosis(meas: Measurements, model, sigma: float, baseline_keys: list[str],
+                           fit_stiffness_ratio: bool = True, registration0=None, nest_std_mm: float = 0.5,
+                           source: str | None = None) -> tuple[Measurements, dict, list[str]]:
+    """Tracker-frame data brought into the base frame for ``pmcal diagnose`` (docs/tracker_frame.md).
+
+    The registration, the nest offsets and the outliers come from the robust tracker-frame fit with the
+    diagnosis' own baseline (``baseline_keys``: limbs 1-2 and SS; the passive limbs held nominal fix the
+    base frame's rotation, so no motor-axis angle is held); the measured targets are then carried into
+    that base frame (``R^T (y - t)``) and moved from the nests to the drawing coordinates
+    (``- R_p,i d_k``, ``R_p,i`` the row's platform orientation from its measured targets). The baseline
+    at the fit is a point of the base-frame problem with the same residuals, so nothing the diagnosis
+    looks for is lost. The diagnosis takes complete rows: a row with a blocked or a rejected target is
+    left out, and named. Returns (complete base-frame rows, the frame part of the JSON, notes).
+    """
+    from pmcal.calib.ocpm.registration import inverse
+    from pmcal.mechanism.ocpm.effects import approach_from_order
+    from pmcal.mechanism.rigid import fit_pose
+
+    opt = FullChainOptions(keys=list(baseline_keys), fit_stiffness_ratio=fit_stiffness_ratio, sigma_mm=sigma)
+    # the effect the diagnosis looks for is in these residuals: a residual scale of a few sigma is what it
+    # is there to explain, not a bad campaign (outliers are still rejected at 6 robust sigmas)
+    topt = TrackerOptions(frame="tracker", registration0=registration0, nest_std_mm=nest_std_mm, gauge=(),
+                          max_scale_ratio=DIAGNOSIS_SCALE_RATIO)
+    try:
+        res = identify_tracker(meas, model, opt, topt)
+    except BadCampaignError as exc:
+        raise InputError(str(exc), file=source) from None
+    doc = tracker_document(res, meas)
+    doc["gauge"] = {"held_at_zero": [], "meaning": "the diagnosis baseline's base frame: the passive limbs "
+                    "(not in the baseline) are nominal in it; fitted keys: " + ", ".join(res.names)}
+    notes: list[str] = []
+    if meas.approach is None and len(meas) > 1:       # the order is the full campaign's: infer it here
+        meas = replace(meas, approach=approach_from_order(meas.m_cmd_deg))
+        first = [0]
+        notes.append("approach inferred from the row order of the whole campaign before rows were left out; "
+                     "the first row, whose approach is unknown, is left out")
+    else:
+        first = []
+    reg, nests = res.info["registration"], res.info["nests"]["offsets_mm"]
+    y = inverse(reg["R"], reg["t_mm"], meas.targets)
+    drop = ~meas.visible.all(axis=1)
+    for r in res.info["rejected"]:
+        drop[r["row"] - 1] = True
+    X = model.geom.targets[: y.shape[1]]
+    keep = np.flatnonzero(~drop)
+    keep = keep[~np.isin(keep, first)]
+    _, Rp, _ = fit_pose(y[keep], X + nests)
+    y[keep] = y[keep] - np.einsum("nij,kj->nki", Rp, nests)
+    out = replace(meas, targets=y).subset(keep)
+    left = sorted(set(np.flatnonzero(drop).tolist()))
+    if left:
+        notes.append(f"{len(left)} row(s) left out (blocked or rejected target): rows "
+                     + ", ".join(str(i + 1) for i in left))
+    doc["rows_left_out"] = [{"row": i + 1, "pose_id": meas.pose_id[i],
+                             "why": "rejected outlier" if any(r["row"] == i + 1 for r in res.info["rejected"])
+                             else "blocked target"} for i in left]
+    return out, doc, notes
+
+
+class _FramePriors(Priors):
+    """The diagnosis' priors plus those of the base-frame correction (:data:`FRAME_PRIOR`)."""
+
+    def std(self, key: str) -> float:
+        if key in FRAME_KEYS:
+            return FRAME_PRIOR[0] if FRAME_KEYS.index(key) < 3 else FRAME_PRIOR[1]
+        return super().std(key)
+
+
+#: Prior std of the base-frame correction the diagnosis fits after a registration (rad, mm): several
+#: times what an unmodelled effect moved the registration in the tests (0.04 deg).
+FRAME_PRIOR = (np.deg2rad(0.2), 2.0)
+
+
+def with_frame_correction(options):
+    """Diagnosis options whose baseline also carries the base-frame correction :data:`FRAME_KEYS`
+    (fitted with every candidate effect: the registration is part of the baseline)."""
+    from dataclasses import fields
+
+    pri = _FramePriors(**{f.name: getattr(options.priors, f.name) for f in fields(options.priors)})
+    return replace(options, baseline_keys=list(options.baseline_keys) + list(FRAME_KEYS), priors=pri)
+
+
+def final_registration(doc: dict, res) -> dict:
+    """The frame part of a diagnosis JSON with the registration the diagnosis ends with: the first one
+    (``doc["registration"]``, kept as ``registration_before_effects``) composed with the base-frame
+    correction of the final fit ``res`` (:data:`FRAME_KEYS`): ``R = R1 dR``, ``t = R1 dt + t1``; standard
+    deviations from the final fit, about the tracker axes."""
+    from scipy.spatial.transform import Rotation
+
+    idx = [res.names.index(k) for k in FRAME_KEYS]
+    v, C = np.asarray(res.x)[idx], np.asarray(res.covariance)[np.ix_(idx, idx)]
+    first = doc["registration"]
+    R1, t1 = np.asarray(first["R"]), np.asarray(first["t_mm"])
+    R = R1 @ Rotation.from_rotvec(v[:3]).as_matrix()
+    t = R1 @ v[3:] + t1
+    Cr, Ct = R1 @ C[:3, :3] @ R1.T, R1 @ C[3:, 3:] @ R1.T
+    out = dict(doc, registration_before_effects=first)
+    out["registration"] = dict(first, R=R.tolist(), t_mm=t.tolist(),
+                               rotvec_deg=np.rad2deg(Rotation.from_matrix(R).as_rotvec()).tolist(),
+                               std_rot_deg=np.rad2deg(np.sqrt(np.diag(Cr))).tolist(),
+                               std_t_mm=np.sqrt(np.diag(Ct)).tolist())
+    return out

@@ -143,14 +143,30 @@ def _big_csv(src: Path, dst: Path, n: int, id_col: str = "pose_id") -> Path:
 
 def test_huge_inputs_are_refused_with_a_clear_message(work, capsys, tmp_path):
     big = _big_csv(work / "m.csv", tmp_path / "big.csv", 100_000)
-    one_line_error(capsys, "identify", big, "-o", tmp_path / "p.json", says="more than 2000 data rows")
-    one_line_error(capsys, "diagnose", big, "--json", tmp_path / "d.json", says="more than 2000 data rows")
+    one_line_error(capsys, "identify", big, "-o", tmp_path / "p.json", says="100000 data rows, more than the 2000 this command reads")
+    one_line_error(capsys, "diagnose", big, "--json", tmp_path / "d.json", says="100000 data rows, more than the 2000 this command reads")
     pbig = _big_csv(work / "planar.csv", tmp_path / "pbig.csv", 100_000)
     one_line_error(capsys, "--machine", "planar_2dof", "identify", pbig, "-o", tmp_path / "p.json",
-                   says="more than 2000 data rows")
+                   says="100000 data rows, more than the 2000 this command reads")
     one_line_error(capsys, "--machine", "planar_2dof", "evaluate", work / "planar.json", pbig,
-                   says="more than 2000 data rows")
+                   says="100000 data rows, more than the 2000 this command reads")
     assert not list(tmp_path.glob("*.json"))
+
+
+def test_a_large_input_reports_its_steps_also_when_piped(work, capsys, tmp_path):
+    """Above LONG_POSES poses identify says what it does on stderr (captured = not a terminal)."""
+    from pmcal.io_ocpm import LONG_POSES
+
+    big = _big_csv(work / "m.csv", tmp_path / "long.csv", LONG_POSES + 16)
+    capsys.readouterr()
+    assert main(["identify", str(big), "-o", str(tmp_path / "p.json")]) == 0
+    cap = capsys.readouterr()
+    assert f"identifying the whole closed chain from {LONG_POSES + 16} poses" in cap.err
+    assert cap.out.splitlines() == [f"pmcal: wrote {tmp_path / 'p.json'}"]
+    assert main(["identify", str(work / "m.csv"), "-o", str(tmp_path / "q.json")]) == 0    # 24 poses: silent
+    assert capsys.readouterr().err == ""
+    assert main(["--quiet", "identify", str(big), "-o", str(tmp_path / "r.json")]) == 0
+    assert capsys.readouterr() == ("", "")
 
 
 # ---------------------------------------------------------------- planar plausibility
@@ -281,6 +297,45 @@ def test_every_argument_has_help(machine):
                if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction)) and not a.help]
     assert not missing
     assert "--version" in parser.format_help()
+
+
+def _commands(work, d):
+    """Successful calls of every kind of command: (argv, number of result lines, outputs written)."""
+    w = work
+    return [
+        (["targets", "-o", d / "t.csv"], 0, [d / "t.csv"]),
+        (["twin", "measure", "--poses", "24", "--seed", "2", "-o", d / "m.csv"], 0, [d / "m.csv"]),
+        (["identify", w / "m.csv", "-o", d / "p.json"], 0, [d / "p.json"]),
+        (["compensate", w / "params.json", "--targets", w / "targets.csv", "-o", d / "s.csv", "--table",
+          d / "tab.json"], 0, [d / "s.csv", d / "tab.json", d / "tab.csv"]),
+        (["evaluate", w / "params.json", w / "m.csv", "--json", d / "e.json"], 1, [d / "e.json"]),
+        (["diagnose", w / "m.csv", "--json", d / "d.json", "--report", d / "rep"], 1, [d / "d.json", d / "rep"]),
+        (["--machine", "planar_2dof", "identify", w / "planar.csv", "-o", d / "pl.json"], 1, [d / "pl.json"]),
+        (["--machine", "planar_2dof", "evaluate", w / "planar.json", w / "planar.csv"], 1, []),
+    ]
+
+
+def test_each_command_prints_its_result_then_one_line_per_output(work, capsys, tmp_path):
+    """docs/formats.md, "What the commands print"; a folder is one output (PATH/), a table brings its CSV."""
+    for argv, results, outputs in _commands(work, tmp_path):
+        capsys.readouterr()
+        assert main([str(a) for a in argv]) == 0, argv
+        lines = capsys.readouterr().out.splitlines()
+        wrote = [f"pmcal: wrote {p}{'/' if p.name == 'rep' else ''}" for p in outputs]
+        assert len(lines) == results + len(wrote) and lines[results:] == wrote, (argv, lines)
+        assert not any(line.startswith("pmcal: wrote") for line in lines[:results]), lines
+
+
+def test_quiet_prints_nothing_but_errors_for_every_command(work, capsys, tmp_path):
+    for argv, _, outputs in _commands(work, tmp_path):
+        capsys.readouterr()
+        assert main([str(a) for a in argv] + ["--quiet"]) == 0, argv
+        cap = capsys.readouterr()
+        assert cap.out == "" and cap.err == "", (argv, cap)
+        assert all(p.exists() for p in outputs), argv
+    one_line_error(capsys, "--quiet", "identify", tmp_path / "nope.csv", "-o", tmp_path / "x.json",
+                   says="file not found")
+    assert capsys.readouterr().out == ""
 
 
 def test_quiet_and_verbose_are_accepted_after_the_subcommand(work, capsys, tmp_path):

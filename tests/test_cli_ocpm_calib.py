@@ -238,13 +238,15 @@ def test_evaluate_missing_params(files, tmp_path, capsys):
     assert "none.json" in capsys.readouterr().err and not out.exists()
 
 
-def test_demo_small(tmp_path, monkeypatch):
+def test_demo_small(tmp_path, monkeypatch, capsys):
     """The demo end to end with the fast methods only (the full demo: `pmcal demo`, benchmarked)."""
     from pmcal.studies import demo as demo_study
 
     monkeypatch.setattr(demo_study.DemoStudy, "METHODS_COMPARED", ("hga", "lm", "tikhonov", "tsvd"))
     out = tmp_path / "demo"
-    assert main(["--quiet", "demo", "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["demo", "--out", str(out)]) == 0
+    assert capsys.readouterr().out.splitlines() == [f"pmcal: wrote {out}/"]    # piped: one line per output
     html = (out / "report.html").read_text()
     for heading in ("Identified vs predefined", "paper Fig. 5", "Algorithm comparison", "Regularisation",
                     "Identifiability", "Pose selection", "Compensation table"):
@@ -252,5 +254,13 @@ def test_demo_small(tmp_path, monkeypatch):
     assert html.count("data:image/png;base64") >= 4 and "http" not in html.split("<body>")[1].split("Generated")[0]
     s = json.loads((out / "summary.json").read_text())
     assert s["after_mean_deg"] < s["before_mean_deg"] / 10
+    # the tracker-frame run: outlier named, registration within its reported uncertainty, pointing of the
+    # order the frame uncertainty allows (mean 1.25 sigma per axis, docs/tracker_frame.md)
+    tr = s["tracker_frame"]
+    assert "Tracker in its own frame" in html and tr["outliers_named"] and tr["outliers_planted"]
+    assert tr["registration_rotation_error_deg"] < 4 * tr["registration_rotation_std_deg"]
+    assert tr["registration_translation_error_mm"] < 4 * tr["registration_translation_std_mm"]
+    assert tr["after_mean_deg"] < 4 * tr["registration_rotation_std_deg"] + 0.003
+    assert json.loads((out / "params_tracker.json").read_text())["frame"] == "tracker"
     CompTable.load(out / "comp_table.json").validate()
     assert json.loads((out / "params.json").read_text())["mechanism"] == "ocpm_2dof"

@@ -85,7 +85,7 @@ def test_compensation_on_held_out_poses(campaign):
 
 
 def test_eq7_position_limits_the_seed_compensation(campaign):
-    """MECHANISM.md: with the nominal eq. 7 position even the true limb 1-2 errors remove only ~58 % of the
+    """docs/fullchain.md: with the nominal eq. 7 position even the true limb 1-2 errors remove only ~58 % of the
     pointing error (the passive limbs move the platform)."""
     twin, _, test = campaign
     ph, th = np.deg2rad(test.phi_deg), np.deg2rad(test.theta_deg)

@@ -58,7 +58,7 @@ def test_crc_covers_the_little_endian_lreal_layout():
 def test_valid_nominal_table_passes_and_covers_the_workspace():
     table = make_table(version=3, n_phi=37, n_theta=13).validate(active_version=2)
     assert table.values.shape == (37, 13, 2)
-    # home pose (theta = 0): both motors at the nominal home angle -39.351 deg (spec/MECHANISM.md)
+    # home pose (theta = 0): both motors at the nominal home angle -39.351 deg (docs/ocpm_2dof.md)
     np.testing.assert_allclose(table.commands_at_nodes()[:, 0, :], -39.351, atol=5e-4)
 
 

@@ -22,6 +22,7 @@ from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full
 from pmcal.calib.ocpm.linear_tests import Linearization, fit, nested_test, predict
 from pmcal.mechanism.ocpm.params import is_angular, random_errors
 from pmcal.apps.ocpm_diagnose import hidden_effect_demo
+from pmcal import progress
 from pmcal.cli import main
 from pmcal.io_ocpm import write_measurements
 from pmcal.apps.effect_scenarios import hidden_effect_campaign
@@ -228,7 +229,7 @@ def backlash_csv(tmp_path_factory):
 
 def test_cli_diagnose_writes_json_report_and_model(tmp_path, capsys, backlash_csv):
     out, rep = tmp_path / "out.json", tmp_path / "report"
-    rc = main(["--quiet", "diagnose", str(backlash_csv), "--json", str(out), "--report", str(rep)])
+    rc = main(["diagnose", str(backlash_csv), "--json", str(out), "--report", str(rep)])
     cap = capsys.readouterr()
     assert rc == 0, cap.err
     doc = json.loads(out.read_text())
@@ -240,7 +241,16 @@ def test_cli_diagnose_writes_json_report_and_model(tmp_path, capsys, backlash_cs
     params = json.loads((rep / "params.json").read_text())
     assert "backlash" in params["effects"] and params["params"]["L1.dtheta"] != 0.0
     assert json.loads((rep / "diagnosis.json").read_text()) == doc
-    assert "backlash" in cap.out
+    # stdout: the result line, then one line per output (docs/formats.md, "What the commands print")
+    lines = cap.out.splitlines()
+    assert len(lines) == 3 and lines[0].startswith("backlash = ") and "held-out gap" in lines[0], lines
+    assert lines[1:] == [f"pmcal: wrote {out}", f"pmcal: wrote {rep}/"]
+    # --quiet: nothing but errors, the same files
+    out2, rep2 = tmp_path / "quiet.json", tmp_path / "quiet"
+    assert main(["diagnose", str(backlash_csv), "--json", str(out2), "--report", str(rep2), "--quiet"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err == ""
+    assert json.loads(out2.read_text())["effects"] == ["backlash"] and (rep2 / "index.html").exists()
 
 
 def _bad_files(tmp, src):
@@ -285,10 +295,12 @@ def test_cli_diagnose_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, bac
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
-def test_hidden_effect_demo_diagnoses_blind(tmp_path, capsys):
+def test_hidden_effect_demo_diagnoses_blind(tmp_path, capsys, monkeypatch):
     out = tmp_path / "demo"
+    monkeypatch.setattr(progress, "_VERBOSE", True)       # the summary is a status line (--verbose, terminal)
     assert hidden_effect_demo(SimpleNamespace(hidden_effect="thermal_expansion", seed=3, out=str(out), poses=64)) == 0
-    assert "hidden: thermal_expansion" in capsys.readouterr().out
+    cap = capsys.readouterr()
+    assert cap.out == "" and "hidden: thermal_expansion; diagnosed: thermal_expansion" in cap.err
     answer = json.loads((out / "answer.json").read_text())
     doc = json.loads((out / "diagnosis.json").read_text())
     assert answer["hidden_effect"] == "thermal_expansion" and doc["effect"] == "thermal_expansion"
@@ -307,3 +319,39 @@ def test_naming_rate_over_seeds(name):
     runs = [run([name], seed=s, n=128)[0] for s in range(10)]
     assert np.mean([r.effects == [name] for r in runs]) >= 0.9
     assert np.mean([set(r.effects) <= {name} for r in runs]) >= 0.95
+
+
+def _sections(html: str) -> dict[str, str]:
+    """The report's sections by heading."""
+    parts = html.split("<h2>")[1:]
+    return {p.split("</h2>")[0]: p.split("</h2>", 1)[1] for p in parts}
+
+
+def test_report_one_figure_when_nothing_is_named_and_no_empty_panels(tmp_path, capsys):
+    """docs/reports.md: baseline = result drawn once; contexts the campaign does not vary get a note, not
+    an empty panel; the headline box names the method; axes in mm and deg."""
+    m = tmp_path / "m.csv"
+    assert main(["--quiet", "twin", "measure", "--preset", "paper-table2", "--poses", "24", "--seed", "1",
+                 "-o", str(m)]) == 0
+    assert main(["--quiet", "diagnose", str(m), "--json", str(tmp_path / "d.json"), "--report",
+                 str(tmp_path / "rep")]) == 0
+    assert json.loads((tmp_path / "d.json").read_text())["effects"] == []
+    html = (tmp_path / "rep" / "index.html").read_text()
+    sec = _sections(html)
+    assert "Held-out disagreement" in sec and "Held-out disagreement, before and after" not in sec
+    for name in ("Held-out disagreement", "Residual against context", "Per-pose residuals"):
+        assert sec[name].count("<img") == 1, name
+    assert "baseline = result (nothing named)" in html
+    assert "No data: this campaign does not vary temperature or payload" in sec["Residual against context"]
+    assert "method: discrepancy diagnosis against the baseline, whole closed chain" in sec["Verdict"]
+    assert "mm or rad" not in html and " um" not in html and "µm" not in html
+
+
+def test_report_named_effect_before_and_after(tmp_path, backlash_csv):
+    main(["--quiet", "diagnose", str(backlash_csv), "--json", str(tmp_path / "d.json"), "--report",
+          str(tmp_path / "rep")])
+    sec = _sections((tmp_path / "rep" / "index.html").read_text())
+    assert "Held-out disagreement, before and after" in sec
+    assert sec["Residual against context"].count("<img") == 2 and sec["Per-pose residuals"].count("<img") == 1
+    assert "with backlash" in sec["Per-pose residuals"] or "with backlash" in sec["Residual against context"]
+    assert "Named: backlash" in sec["Verdict"] and "method: discrepancy diagnosis" in sec["Verdict"]

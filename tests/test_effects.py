@@ -30,7 +30,7 @@ def commands(n, theta_max=60.0, seed=0):
 
 def potential(theta_rad, payload_kg):
     """Gravity potential (J) of the nominal machine at motor angles (N, 2) rad, from the closed-form
-    kinematics and the spec's inertia: platform 6 kg at (0, 0, 40) mm, payload at the top centre, every
+    kinematics and the MJCF model's inertia: platform 6 kg at (0, 0, 40) mm, payload at the top centre, every
     link 0.5 kg at its middle, the SS link at the middle of O-C_E."""
     phi, th = nominal_fk(theta_rad, G)
     r, R = nominal_pose(phi, th, G)

@@ -32,7 +32,7 @@ def design(n, theta_max, seed=0, **kw):
 
 
 def test_seed_model_facts():
-    """MECHANISM.md: the A_j offset along its own platform revolute axis has no first-order effect;
+    """docs/identification.md: the A_j offset along its own platform revolute axis has no first-order effect;
     24 poses over 60 deg leave CRLBs of several mm; 96 poses over 85 deg bring all below ~0.5 mm."""
     a = analyse(design(24, 60.0))
     assert a.unidentifiable == ["L1.day", "L2.dax"]

@@ -30,7 +30,7 @@ def exact_twin():
 
 @pytest.fixture(scope="module")
 def rich(exact_twin):
-    """96 poses up to 85 deg tilt: well conditioned (CRLB below 0.5 mm, MECHANISM.md)."""
+    """96 poses up to 85 deg tilt: well conditioned (CRLB below 0.5 mm, docs/identification.md)."""
     return run_campaign(exact_twin, plan_campaign(96, 85.0, seed=11), LaserTracker(SIGMA, np.random.default_rng(5)))
 
 
@@ -76,7 +76,7 @@ def test_hga_reaches_noise_floor_and_recovers_within_3_crlb(rich, limb):
     free = [i for i, k in enumerate(res.names) if k not in res.fixed]
     z = (res.x[free] - truth(res.names)[free]) / res.std[free]
     assert np.all(np.abs(z) < 3), dict(zip(np.array(res.names)[free], z.round(2)))
-    assert np.max(res.std[free][[not pm.param_units([res.names[i]])[0] == "rad" for i in free]]) < 0.6   # MECHANISM.md: ~0.5 mm
+    assert np.max(res.std[free][[not pm.param_units([res.names[i]])[0] == "rad" for i in free]]) < 0.6   # docs/identification.md: ~0.5 mm
     assert res.fixed == [f"L{limb}.{'day' if limb == 1 else 'dax'}"]          # unidentifiable, reported
 
 
@@ -109,7 +109,7 @@ def test_seed_case_24_poses(exact_twin):
 
 @pytest.mark.parametrize("ratio, fits", [(1000.0, True), (10.0, False)])
 def test_all_limb_errors_and_closure_stiffness(ratio, fits):
-    """The over-constraint (MECHANISM.md) with errors in every limb. At the reference stiffness ratio
+    """The over-constraint (docs/ocpm_2dof.md) with errors in every limb. At the reference stiffness ratio
     (actuated closures 1000x stiffer than passive) the actuated closures still hold to a few um and the
     paper's per-limb model fits to the noise level; with a soft chain (ratio 10: actuated gaps ~0.4 mm)
     it cannot."""

@@ -43,7 +43,7 @@ def test_elementary_rotations_are_right_handed():
 
 def test_nominal_machine_mirror_symmetry_oracle():
     """On the nominal machine every S_j lies on the plane bisecting O-C_E and on the platform
-    revolute's plane (MECHANISM.md: the test oracle of any nominal model)."""
+    revolute's plane (docs/ocpm_2dof.md: the test oracle of any nominal model)."""
     phi, theta = random_orientations(300)
     r, R = nominal_pose(phi, theta)
     ik = limb_ik(r, R, limbs=(1, 2, 3, 4))

@@ -125,7 +125,7 @@ def test_assembly_steps_are_capped_and_singular_poses_give_up():
 
 
 def test_table2_passive_loops_miss_closing_by_about_1p5_mm():
-    """MECHANISM.md: Table 2 errors in limbs 1-2, perfect passive limbs -> ~1.5 mm at the passive loops."""
+    """docs/fullchain.md: Table 2 errors in limbs 1-2, perfect passive limbs -> ~1.5 mm at the passive loops."""
     st = Twin(PAPER_TABLE2).reach([[-39.351, -39.351]])
     assert st.closure_residual[0, 2:] == pytest.approx([1.5, 1.5], abs=0.1)
     assert st.closure_residual[0, :2].max() < 0.01

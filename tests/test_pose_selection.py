@@ -39,3 +39,14 @@ def test_bad_requests():
         select_poses(B, 6)
     with pytest.raises(ValueError, match="unknown criterion"):
         select_poses(B, 2, "A")
+
+
+def test_prior_information_steers_the_choice_to_what_is_not_known():
+    """Straight line y = a + b x: without a prior the D-optimal pair is the two ends of the range; with
+    the intercept known (a strong prior on it) D-optimality is max sum x^2, the two largest |x|."""
+    from pmcal.calib.pose_selection import select_poses
+
+    x = np.array([-1.0, -0.5, 0.0, 0.5, 1.0, 2.0, 2.5, 3.0])
+    blocks = np.stack([np.ones_like(x), x], axis=-1)[:, None, :]      # (N, 1 row, 2 params)
+    assert list(select_poses(blocks, 2, "D")) == [0, 7]
+    assert list(select_poses(blocks, 2, "D", prior=np.diag([1e6, 0.0]))) == [6, 7]

@@ -53,7 +53,27 @@ def screenshot(html: Path, png: Path) -> None:
         subprocess.run([browser, *FLAGS, f"--user-data-dir={profile}", f"--window-size={WIDTH},{height}",
                         f"--screenshot={png.resolve()}", html.resolve().as_uri()], check=True,
                        capture_output=True, timeout=180)
-    print(f"{html} -> {png} ({WIDTH} x {height} px)")
+    shrink(png)
+    print(f"{html} -> {png} ({WIDTH} x {height} px, {png.stat().st_size // 1024} KiB)")
+
+
+def shrink(png: Path, max_error: int = 24) -> None:
+    """Store the screenshot with a 256-colour palette (a third of the size) if no pixel's colour moves by
+    more than ``max_error`` (of 255) in any channel; else keep it in full colour."""
+    try:
+        import numpy as np
+        from PIL import Image          # Pillow comes with matplotlib
+    except ImportError:
+        return
+    with Image.open(png) as im:
+        rgb = im.convert("RGB")
+    ref = np.asarray(rgb, dtype=np.int16)
+    for method in (Image.Quantize.MAXCOVERAGE, Image.Quantize.FASTOCTREE):
+        small = rgb.quantize(colors=256, method=method, dither=Image.Dither.NONE)
+        if np.abs(np.asarray(small.convert("RGB"), dtype=np.int16) - ref).max() <= max_error:
+            small.save(png, optimize=True)
+            return
+    rgb.save(png, optimize=True)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ gravity potential) is least::
 
 ``k_j`` is the closure stiffness at the spherical joint S_j (N/m), ``k_ss`` the axial stiffness of the
 SS limb (joint ``ss_slide``, displacement ``s``). Reference: passive closures k_p, actuated closures and
-the SS limb ``ratio * k_p`` (ratio 1000, MECHANISM.md). On a consistent machine every closure closes and
+the SS limb ``ratio * k_p`` (ratio 1000, docs/ocpm_2dof.md). On a consistent machine every closure closes and
 the solution is exact (Gauss-Newton on a zero-residual problem converges quadratically to ~1e-16 m);
 on an inconsistent one the misfit is shared in proportion to compliance, which is what a real
 over-constrained machine does.

@@ -43,7 +43,7 @@ class DynamicTwin:
         m.opt.disableflags = 0               # the twin's own model is set up for kinematics only
         m.opt.timestep = timestep
         # Euler (implicit joint damping) is stable with stiff servos and hard equalities; implicitfast
-        # oscillates or diverges with that combination (MUJOCO_NOTES.md).
+        # oscillates or diverges with that combination (tried on this model).
         m.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
         idx = twin.index
         passive = [j for j in range(len(idx.site_s1)) if (j + 1) not in twin.geom.actuated]

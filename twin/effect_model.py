@@ -20,7 +20,7 @@ class EffectChainModel(FullChainModel):
 
     Effect parameters are keys ``"<effect>.<param>"`` (internal units); the passive-limb keys of
     ``overconstraint`` are ordinary geometric keys. With ``gravity`` (default) the machine carries the
-    gravity load of the spec's inertia plus each pose's payload (per-pose models), as a real machine
+    gravity load of the MJCF model's inertia plus each pose's payload (per-pose models), as a real machine
     does: at the reference closure stiffness that moves the targets by up to ~0.013 mm (0.025 mm with
     10 kg) at tilts near 80 deg. Joint-angle effects shift the joint angles (analytic derivatives through
     the motor-angle sensitivities); ``joint_compliance`` adds series springs K = 1/c behind the motors

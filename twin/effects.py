@@ -1,9 +1,9 @@
 """Physical effects in the twin: a "real" machine with drive, thermal and over-constraint effects.
 
-Each effect of the vocabulary (INTERFACES.md; models and units in :mod:`pmcal.mechanism.ocpm.effects`
+Each effect of the vocabulary (docs/formats.md, docs/effects.md; models and units in :mod:`pmcal.mechanism.ocpm.effects`
 and docs/effects.md) is switchable and lives in one of three places:
 
-- **physics** (MuJoCo): gravity always acts (qfrc_bias of the spec's inertia) with each pose's payload
+- **physics** (MuJoCo): gravity always acts (qfrc_bias of the MJCF model's inertia, mjcf/ocpm_2dof) with each pose's payload
   added to the platform at the centre of its top surface (per-pose models); ``joint_compliance`` frees
   the motor joints and ties each to its command with a torsional spring of stiffness K (N m/rad) in
   series (:class:`pmcal.twin.assembly.BatchAssembler` motor springs), loaded by gravity and by the internal
@@ -43,7 +43,7 @@ PER_MOTOR = ("joint_compliance", "backlash", "encoder_eccentricity", "zero_offse
 #: Gauss-Newton iteration limit of strained machines (springs, gravity, mm-size closure gaps).
 MAX_ITER = 200
 #: Angular size of the random passive-limb errors per mm of ``overconstraint`` (0.5 mm <-> 0.1 deg,
-#: the tolerance pair of MECHANISM.md).
+#: the tolerance pair of docs/effects.md, ``overconstraint``).
 OVERCONSTRAINT_DEG_PER_MM = 0.2
 
 
@@ -318,8 +318,8 @@ class EffectTwin:
 
 def motor_torques(errors: ErrorSet, m_cmd_deg: np.ndarray, payload_kg=None, stiffness_ratio: float | None = None,
                   geom: Geometry | None = None) -> np.ndarray:
-    """Torques (N, 2) N m the motors exert to hold each pose of a machine under gravity (spec inertia
-    plus ``payload_kg`` on the platform) with the motors held: ``dE/dq_motor`` of the elastic and gravity
+    """Torques (N, 2) N m the motors exert to hold each pose of a machine under gravity (MJCF
+    inertia plus ``payload_kg`` on the platform) with the motors held: ``dE/dq_motor`` of the elastic and gravity
     energy at equilibrium. A series spring K deflects its joint by ``-tau / K`` (first order)."""
     et = EffectTwin(errors, Effects(joint_compliance=(1.0, 1.0)), geom, stiffness_ratio)
     tw = et.twin

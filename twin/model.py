@@ -2,7 +2,7 @@
 
 Editing ``body_pos`` / ``body_quat`` / ``site_pos`` / ``jnt_pos`` of the compiled model followed by
 ``mj_setConst`` gives the same model as an ``MjSpec`` edit and recompile, about 100 times faster
-(MUJOCO_NOTES.md): this is what identification loops and Monte Carlo studies use.
+(measured on the reference machine): this is what identification loops and Monte Carlo studies use.
 
 The MuJoCo model is in SI units; :class:`pmcal.mechanism.ocpm.params.ErrorSet` is in mm and radians. This module
 and :mod:`pmcal.twin.assembly` are the only places that convert.

@@ -1,5 +1,5 @@
 """The result of a discrepancy diagnosis (:func:`pmcal.calib.ocpm.diagnose.diagnose`) and its JSON form
-(INTERFACES.md ``pmcal diagnose`` document, extended). Units: mm, effect values as in the vocabulary."""
+(docs/formats.md, "Diagnosis JSON"). Units: mm, effect values as in the vocabulary."""
 
 from __future__ import annotations
 
@@ -88,7 +88,7 @@ class Diagnosis:
                 and k != LOG_RATIO}
 
     def to_json(self) -> dict:
-        """The INTERFACES.md document (plus details)."""
+        """The diagnosis JSON document (docs/formats.md, "Diagnosis JSON")."""
         def val(e: EffectValue) -> dict:
             return {"name": e.name, "value": _num(e.value), "interval": [_num(v) for v in e.interval],
                     "unit": e.unit, "layer": VOCABULARY[e.name].layer, "member": e.member or None,

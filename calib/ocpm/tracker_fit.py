@@ -61,6 +61,10 @@ class TrackerOptions:
     max_reject_fraction: float = 0.2        # more rows than this rejected: bad campaign
     max_scale_ratio: float = 5.0            # robust residual scale over tracker sigma beyond which: bad
     max_nfev: int = 60
+    #: Machine keys held at zero in the tracker frame (the base frame's definition, the motor axes). Empty
+    #: when the key set itself fixes the frame's rotation (e.g. the diagnosis baseline, passive limbs
+    #: held nominal: docs/tracker_frame.md).
+    gauge: tuple[str, ...] = GAUGE_KEYS
 
     def __post_init__(self) -> None:
         if self.frame not in ("base", "tracker"):
@@ -154,6 +158,30 @@ def initial_registration(meas: Measurements, model: ForwardModel) -> tuple[np.nd
     return rigid_fit(meas.targets, T0)
 
 
+def build_problem(meas: Measurements, model: ForwardModel, opt: FullChainOptions, topt: TrackerOptions
+                  ) -> _Problem:
+    """The unknowns of a tracker-frame fit (machine keys without the gauge, registration, nest shape)
+    for a campaign, at the prior mean; also used to design campaigns (:mod:`.tracker_design`)."""
+    geom = model.geom
+    if opt.stiffness_ratio is not None:
+        model.set(ErrorSet(), opt.stiffness_ratio)
+    is_tracker = topt.frame == "tracker"
+    keys = list(opt.keys or all_keys(geom.n_limbs, geom.actuated))
+    if is_tracker:
+        keys = [k for k in keys if k not in topt.gauge]
+    ratio0 = model.stiffness_ratio if opt.stiffness_ratio is None else opt.stiffness_ratio
+    if opt.fit_stiffness_ratio:
+        keys = keys + [LOG_RATIO]
+    s = np.array([opt.extra_prior_std.get(k, opt.priors.std(k)) for k in keys])
+    x_prior = np.array([np.log(ratio0) if k == LOG_RATIO else 0.0 for k in keys])
+    k_t = meas.targets.shape[1]
+    R0, t0 = (np.eye(3), np.zeros(3))
+    if is_tracker:
+        R0, t0 = topt.registration0 if topt.registration0 is not None else initial_registration(meas, model)
+    return _Problem(meas, model, keys, s, x_prior, ratio0, np.asarray(R0, float), np.asarray(t0, float),
+                    shape_basis(geom.targets[:k_t]), topt.nest_std_mm, is_tracker, topt.fit_nests)
+
+
 def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChainOptions | None = None,
                      tracker: TrackerOptions | None = None) -> IdentResult:
     """Identify machine parameters, registration and nest offsets from a campaign (module docstring).
@@ -166,25 +194,10 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
     """
     opt = options or FullChainOptions()
     topt = tracker or TrackerOptions()
-    geom = model.geom
-    if opt.stiffness_ratio is not None:
-        model.set(ErrorSet(), opt.stiffness_ratio)
-    sigma = opt.sigma_mm or geom.sigma_mm
+    sigma = opt.sigma_mm or model.geom.sigma_mm
     is_tracker = topt.frame == "tracker"
-    keys = list(opt.keys or all_keys(geom.n_limbs, geom.actuated))
-    if is_tracker:
-        keys = [k for k in keys if k not in GAUGE_KEYS]
-    ratio0 = model.stiffness_ratio if opt.stiffness_ratio is None else opt.stiffness_ratio
-    if opt.fit_stiffness_ratio:
-        keys = keys + [LOG_RATIO]
-    s = np.array([opt.extra_prior_std.get(k, opt.priors.std(k)) for k in keys])
-    x_prior = np.array([np.log(ratio0) if k == LOG_RATIO else 0.0 for k in keys])
-    k_t = meas.targets.shape[1]
-    R0, t0 = (np.eye(3), np.zeros(3))
-    if is_tracker:
-        R0, t0 = topt.registration0 if topt.registration0 is not None else initial_registration(meas, model)
-    prob = _Problem(meas, model, keys, s, x_prior, ratio0, np.asarray(R0, float), np.asarray(t0, float),
-                    shape_basis(geom.targets[:k_t]), topt.nest_std_mm, is_tracker, topt.fit_nests)
+    prob = build_problem(meas, model, opt, topt)
+    keys, s, x_prior, ratio0 = prob.keys, prob.s, prob.x_prior, prob.ratio0
     p, g, m = prob.sizes
     y = meas.targets
     keep = meas.visible.copy()
@@ -253,7 +266,7 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
             "singular_values": np.linalg.svd(A[:, :p], compute_uv=False),
             "rejected": rejected, "robust_scale_mm": scale, "n_targets_used": int(keep.sum()),
             "n_targets_blocked": int((~meas.visible).sum()),
-            "gauge_fixed": list(GAUGE_KEYS) if is_tracker else []}
+            "gauge_fixed": list(topt.gauge) if is_tracker else []}
     if is_tracker:
         Rg, tg = prob.registration(z)
         C = cov_z[p:p + 6, p:p + 6]

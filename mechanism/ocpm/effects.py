@@ -12,7 +12,7 @@ effect                   layer         model (per motor j = 1, 2; joint = comman
 ``zero_offset_drift``    joint angle   offset_j = r_j t + q_j t^2, t = time since the first pose in hours
                                        (pose index without time_s): members linear (q = 0), quadratic
 ``joint_compliance``     physics       a series spring K_j = 1/c_j behind each motor, loaded by gravity (the
-                                       spec's inertia + payload) and the internal over-constraint forces:
+                                       MJCF inertia + payload) and the internal over-constraint forces:
                                        to first order offset_j = -c_j tau_j (tau_j the motor torque)
 ``thermal_expansion``    geometry      lengths grow linearly with dT = temp_c - 20, each group g of
                                        :data:`THERMAL_GROUPS` at its own rate alpha + delta_g: the
@@ -197,7 +197,7 @@ def thermal_delta(temp_c: np.ndarray | None) -> np.ndarray | None:
 def approach_from_order(cmd_deg: np.ndarray) -> np.ndarray:
     """Approach signs (N, 2) from the row order: the sign of each motor's last change of command (a row
     that does not move a motor keeps its previous sign; the first row, whose history is unknown, is 0).
-    Rows must be in measurement (time) order, as INTERFACES.md requires."""
+    Rows must be in measurement (time) order, as docs/formats.md requires."""
     cmd = np.atleast_2d(np.asarray(cmd_deg, float))
     s = np.zeros_like(cmd)
     s[1:] = np.sign(np.diff(cmd, axis=0))

@@ -1,6 +1,6 @@
 """Target nests: where the reflectors really sit on the platform, and the gauge of their offsets.
 
-The platform frame is defined by the targets (MECHANISM: the rigid fit of the measured targets to their
+The platform frame is defined by the targets (docs/ocpm_2dof.md, docs/tracker_frame.md: the rigid fit of the measured targets to their
 drawing coordinates X). A common translation or rotation of all nests therefore moves the platform frame
 itself: it is the same machine as a platform geometry error (``SS.dc*``, ``L*.da*``, ``L*.dmu/dnu``) and
 no measurement can tell the two apart. So nest offsets are written in the *shape* subspace: the offsets

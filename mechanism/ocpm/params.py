@@ -34,9 +34,9 @@ DESCRIPTIONS: dict[str, str] = {
     "dcy": "moves the SS platform joint centre along v", "dcz": "moves the SS platform joint centre along w",
 }
 
-#: Paper 000 Table 2, "Predefined" column (mm, deg), mapped by name onto the spec's keys. Decision
-#: (docs/ocpm_2dof.md): the values keep the spec's frames (B in base axes, A in platform axes) for both
-#: limbs; the paper's appendix expresses limb 2 in a frame turned by 90 deg, the spec does not.
+#: Paper 000 Table 2, "Predefined" column (mm, deg), mapped by name onto pmcal's keys (docs/formats.md). Decision
+#: (docs/ocpm_2dof.md): the values keep pmcal's frames (B in base axes, A in platform axes) for both
+#: limbs; the paper's appendix expresses limb 2 in a frame turned by 90 deg, pmcal does not.
 PAPER_TABLE2: dict[str, float] = {
     "L1.dbx": -1.5, "L1.dby": 1.3, "L1.dbz": -1.0, "L1.dalpha": 0.0, "L1.dgamma": -0.1,
     "L1.dl1": 0.382, "L1.dl2": 1.214, "L1.dax": 1.4, "L1.day": 1.3, "L1.daz": 1.2, "L1.dtheta": -0.28,

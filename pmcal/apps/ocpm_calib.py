@@ -17,7 +17,7 @@ from pmcal.calibration import Calibration, identify as identify_campaign
 from pmcal.compensators import DEFAULT_GRID, PaperCompensation, build_table, check_grid, checked_commands
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
-from pmcal.io_ocpm import MECHANISM, read_measurements, read_targets, write_setpoints
+from pmcal.io_ocpm import LONG_POSES, MECHANISM, read_measurements, read_targets, write_setpoints
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.kinematics import real_ik_commands
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion, tilt_torsion_angles
@@ -35,12 +35,18 @@ def parse_grid(text: str | None) -> tuple[int, int]:
 
 
 # ====================================================================== identify
+#: Base-frame (motor axes) uncertainty of a tracker-frame fit above which identify points to the
+#: designed campaign (48 designed poses to 80 deg give ~0.003 deg, docs/tracker_frame.md).
+FRAME_HINT_DEG = 0.004
+
+
 def identify(args) -> int:
     from pmcal.tracker_frame import check_nest_tolerance, parse_frame
 
     frame, reg0 = parse_frame(getattr(args, "frame", None))
     nest_std = check_nest_tolerance(getattr(args, "nest_tolerance", None))
     meas = read_measurements(args.measurements, default_geometry(), frame=frame)
+    progress.set_long(len(meas) > LONG_POSES)
     if (args.model or "full") == "full" and args.method is None:
         progress.status(f"identifying the whole closed chain from {len(meas)} poses ({frame} frame)")
     cal = identify_campaign(meas, model=args.model or "full", method=args.method, sigma_mm=args.sigma,
@@ -49,12 +55,17 @@ def identify(args) -> int:
     for r in cal.document.get("rejected", []):
         progress.status(f"rejected outlier: row {r['row']} ({r['pose_id']}) target t{r['target']}, "
                         f"residual {r['residual_mm']:.3g} mm")
+    if "registration" in cal.document:
+        std = float(np.linalg.norm(cal.document["registration"]["std_rot_deg"]))
+        progress.status(f"base frame (motor axes) determined to {std:.4f} deg (1 sigma)" + (
+            "; a campaign from 'pmcal twin plan --frame tracker' fixes it better (docs/tracker_frame.md)"
+            if std > FRAME_HINT_DEG else ""))
     cal.save(args.output)
     fit = cal.document["fit"]
     quality = (f"chi2/dof {fit['chi2_per_dof']:.3g}" if cal.model == "full" else
                f"residual {fit['residual_rms_sigma']:.3g} sigma")
     progress.status(f"identified {len(cal.params)} parameters "
-                    f"({'whole chain' if cal.model == 'full' else cal.method}); {quality}; written {args.output}")
+                    f"({'whole chain' if cal.model == 'full' else cal.method}); {quality}")
     return 0
 
 

@@ -57,8 +57,12 @@ def unidentified(path: str) -> list[tuple[str, str]]:
 
 def twin_plan(args) -> int:
     """Write the diagnosis campaign's command list (module docstring)."""
+    if getattr(args, "frame", "base") == "tracker":
+        from pmcal.apps.ocpm_tracker_plan import tracker_plan
+
+        return tracker_plan(args)
     if not args.for_diagnosis:
-        raise InputError("only --for-diagnosis plans are available", field="--for-diagnosis")
+        raise InputError("give --for-diagnosis or --frame tracker (the two kinds of plan)", field="--for-diagnosis")
     if not 24 <= args.poses <= 10000:
         raise InputError(f"poses must be 24 .. 10000, got {args.poses}", field="--poses")
     if not 10.0 <= args.theta_max <= 85.0:

@@ -1,4 +1,4 @@
-"""Application of the planar 2-DOF robot with its measuring mechanism (``--machine planar_2dof``, paper 003).
+"""Application of the planar 2-DOF robot with its measuring mechanism (``--machine planar_2dof``, Mei et al. 2017).
 
 Commands: ``identify`` (zero offsets and MAEMM from a measurement CSV), ``compensate`` (motor commands for
 target positions), ``evaluate`` (a parameter set against a measurement CSV), ``twin_measure`` and

@@ -95,4 +95,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace the --report folder even if pmcal did not write it")
     p.add_argument("--sigma", type=float, default=None, help="tracker noise, mm (else estimated)")
+    p.add_argument("--frame", default="base", metavar="base|tracker|tracker:T.json",
+                   help="frame of the measured targets (as for identify): tracker: registration, nest offsets "
+                        "and outliers identified with the baseline first, docs/tracker_frame.md")
+    p.add_argument("--nest-tolerance", type=float, default=None, metavar="MM",
+                   help="with --frame tracker: prior of the nests' offsets from the drawing, mm (default 0.5)")
     p.set_defaults(func=_cmd("diagnose"))

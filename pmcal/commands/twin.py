@@ -65,6 +65,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl = tsub.add_parser("plan", help="write the command list of a campaign (poses in measurement order)")
     pl.add_argument("--for-diagnosis", action="store_true",
                     help="the campaign pmcal diagnose needs (random order, payloads, warm-up/cool-down)")
+    pl.add_argument("--frame", choices=["base", "tracker"], default="base",
+                    help="tracker: the campaign a tracker-frame calibration should measure (D-optimal for the "
+                         "machine, registration and nests; 48 poses to 80 deg recommended), docs/tracker_frame.md")
     pl.add_argument("--poses", type=int, default=128, help="number of poses (default 128)")
     pl.add_argument("--theta-max", type=float, default=80.0, metavar="DEG", help="largest tilt, deg (default 80)")
     pl.add_argument("--seed", type=int, default=1, help="random seed of the poses and their order")

@@ -22,6 +22,7 @@ from pmcal.calibration import identify
 from pmcal.compensators import DEFAULT_GRID, PaperCompensation, build_table, checked_commands, deg
 from pmcal.fileio import write_json
 from pmcal.reports.demo import demo_report
+from pmcal.studies.demo_tracker import tracker_run
 from pmcal.io_ocpm import write_setpoints
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.params import ErrorSet
@@ -173,6 +174,7 @@ class DemoStudy:
         self._timed("campaign", t0)
         if self.pool is not None:                              # the slowest method first
             self._submit_methods(SLOW_FIRST[:1])
+            self._futures["tracker"] = self.pool.submit(tracker_run, *self._tracker_args(out))
 
     def _submit_methods(self, methods) -> None:
         for m in methods:
@@ -307,6 +309,18 @@ class DemoStudy:
         self.full_after = first["whole closed chain"]
         self._timed("whole chain", t0)
 
+    def _tracker_args(self, out: Path) -> tuple:
+        return (self.truth, self.meas_plan, self.seed, self.geom, self.test.phi_deg, self.test.theta_deg,
+                out / "params_tracker.json")
+
+    def step_tracker(self, out: Path) -> None:
+        """The demo's campaign measured by a tracker in its own frame (nests off, blocked targets, one
+        outlier), identified with the registration: :func:`pmcal.studies.demo_tracker.tracker_run`."""
+        t0 = time.perf_counter()
+        f = self._futures.pop("tracker", None)
+        self.tracker = f.result() if f is not None else tracker_run(*self._tracker_args(out))
+        self._timed("tracker frame", t0)
+
     def step_render(self, out: Path) -> None:
         f = self._futures.pop("render", None)
         self.render_png, self.render_note = f.result() if f is not None else _render(self.truth, self.geom)
@@ -331,8 +345,16 @@ class DemoStudy:
                                         for c, d in self.fullchain.items()},
                 "methods": {m: {"wall_time_s": d["wall"], "held_out_mean_deg": float(d["held_out"].mean()),
                                 "residual_rms_sigma": d["chi_rms"]} for m, d in self.methods.items()},
+                "tracker_frame": self.tracker_summary(),
                 "population_method_budgets": self.budgets or "full",
                 "timings_s": self.timings, "table_crc16": f"0x{self.table.crc16():04X}"}
+
+
+    def tracker_summary(self) -> dict:
+        """The tracker-frame run in figures (:func:`pmcal.studies.demo_tracker.summary`)."""
+        from pmcal.studies.demo_tracker import summary
+
+        return summary(self.tracker)
 
 
 def run_demo(out: Path, seed: int, full: bool = False) -> int:
@@ -347,7 +369,7 @@ def run_demo(out: Path, seed: int, full: bool = False) -> int:
 
     t0 = time.perf_counter()
     steps = ["campaign", "identify", "compensate", "fullchain", "regularisation", "identifiability",
-             "table", "pose", "algorithms", "render"]
+             "table", "tracker", "pose", "algorithms", "render"]
     with worker_pool(2) as pool, atomic_directory(out) as tmp:     # Ctrl-C: workers killed, not waited for
         study = DemoStudy(seed, full, pool)
         with progress.progress(total=len(steps) + 1, desc="pmcal demo", unit="step") as bar:
@@ -363,7 +385,7 @@ def run_demo(out: Path, seed: int, full: bool = False) -> int:
             demo_report(study, pool).write(tmp / "report.html")
             write_json(tmp / "summary.json", summary)
             bar.update(1)
-    print(f"pmcal demo: wrote {out}/report.html in {time.perf_counter() - t0:.0f} s; mean pointing error on "
+    progress.status(f"pmcal demo: {out}/report.html in {time.perf_counter() - t0:.0f} s; mean pointing error on "
           f"{DemoStudy.N_TEST} test poses {summary['before_mean_deg']:.4f} -> {summary['after_mean_deg']:.4f} deg "
           f"({summary['improvement_percent']:.1f} % better, whole closed chain; paper HGA method "
           f"{summary['hga_paper_after_mean_deg']:.4f} deg)")

@@ -1,0 +1,130 @@
+"""Tracker-frame campaigns and the tracker frame in the diagnosis (docs/tracker_frame.md).
+
+References: the motor axes' frame from the limb-frame convention of MECHANISM written out by hand; the
+Cramér-Rao bound of the frame rotation of an evenly spread campaign; a base-frame campaign carried into
+a tracker frame by a known rigid transform (closed form), which the diagnosis must undo.
+"""
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pmcal.apps.effect_scenarios import hidden_effect_campaign
+from pmcal.calib.ocpm.registration import motor_axes_frame
+from pmcal.calib.ocpm.tracker_design import (PASSIVE_REACH, candidate_orientations, design_blocks,
+                                             frame_std_deg, tracker_campaign)
+from pmcal.cli import main
+from pmcal.io_ocpm import write_measurements
+from pmcal.mechanism.ocpm.config import default_geometry
+from pmcal.mechanism.ocpm.kinematics import limb_ik, nominal_pose
+from pmcal.mechanism.ocpm.params import ErrorSet, random_errors
+from pmcal.twin.campaign import nominal_commands, plan_orientations
+from pmcal.twin.forward import FullChainModel
+from pmcal.twin.machine import Twin
+
+G = default_geometry()
+SIGMA = 0.01
+
+
+def test_motor_axes_frame_by_hand():
+    """y along motor 1's axis Rz(g1) Rx(a1) e_y, z normal to both axes (MECHANISM's limb frames)."""
+    a1, g1, a2, g2 = np.deg2rad([0.05, -0.1, 0.2, 0.17])
+    e = ErrorSet.from_dict({"L1.dalpha": 0.05, "L1.dgamma": -0.1, "L2.dalpha": 0.2, "L2.dgamma": 0.17})
+    Q = motor_axes_frame(e, G)
+    ax1 = np.array([-np.sin(g1) * np.cos(a1), np.cos(g1) * np.cos(a1), np.sin(a1)])
+    # limb 2 sits at psi = 90 deg: Rz(90) maps (x, y, z) to (-y, x, z)
+    ax2 = np.array([-np.cos(g2) * np.cos(a2), -np.sin(g2) * np.cos(a2), np.sin(a2)])
+    assert np.allclose(Q.T @ Q, np.eye(3), atol=1e-12) and np.linalg.det(Q) == pytest.approx(1.0)
+    assert np.allclose(Q[:, 1], ax1, atol=1e-12)
+    assert abs(Q[:, 2] @ ax2) < 1e-12 and Q[2, 2] > 0
+    assert np.allclose(motor_axes_frame(ErrorSet(), G), np.eye(3), atol=1e-15)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return FullChainModel()
+
+
+def test_designed_campaign_fixes_the_frame_and_stays_assemblable(model):
+    """48 designed poses to 80 deg fix the motor axes' frame at least 2.5 times better (Cramér-Rao) than
+    48 spread evenly to 60 deg, the campaign of the issue; the designed poses avoid the wedge where both
+    passive limbs are near stretched, and a machine with 0.5 mm / 0.1 deg errors reaches every one."""
+    phi, theta = tracker_campaign(model, 48, 80.0, seed=3, sigma_mm=SIGMA)
+    assert len(phi) == 48 and theta.max() <= 80.0 and np.all(np.diff(phi) >= 0)
+    B, P, reg = design_blocks(model, phi, theta, SIGMA)
+    designed = np.linalg.norm(frame_std_deg(B, P, reg))
+    pu, tu = plan_orientations(48, 60.0, np.random.default_rng(3))
+    Bu, Pu, _ = design_blocks(model, pu, tu, SIGMA)
+    uniform = np.linalg.norm(frame_std_deg(Bu, Pu, reg))
+    assert designed < uniform / 2.5, (designed, uniform)
+    r, R = nominal_pose(np.deg2rad(phi), np.deg2rad(theta))
+    assert np.all(np.abs(limb_ik(r, R, limbs=(3, 4)).reach).min(axis=1) <= PASSIVE_REACH)
+    cmd = nominal_commands(phi, theta)
+    for d in range(3):
+        twin = Twin(random_errors(np.random.default_rng(40 + d), 0.5, 0.1))
+        assert twin.reach(cmd).converged.all()
+
+
+def test_candidates_cover_the_cap_outside_the_wedge():
+    phi, theta = candidate_orientations(400, 80.0, np.random.default_rng(0))
+    assert len(phi) == 400 and theta.max() <= 80.0 and theta.max() > 78.0
+    wedge = (phi > 30) & (phi < 55) & (theta > 75)
+    assert not wedge.any()
+
+
+def test_twin_plan_frame_tracker_cli(tmp_path, capsys):
+    out = tmp_path / "plan.csv"
+    assert main(["--quiet", "twin", "plan", "--frame", "tracker", "--poses", "24", "--seed", "2", "-o", str(out)]) == 0
+    lines = [ln for ln in out.read_text().splitlines() if not ln.startswith("#")]
+    assert lines[0] == "step,phi_deg,theta_deg,m1_cmd_deg,m2_cmd_deg" and len(lines) == 25
+    rows = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]])
+    assert np.allclose(rows[:, 3:], nominal_commands(rows[:, 1], rows[:, 2]), atol=1e-5)
+    meas = tmp_path / "m.csv"       # the plan is a targets file for the twin
+    assert main(["--quiet", "twin", "measure", "--targets", str(out), "--tracker-pose", "random", "-o", str(meas)]) == 0
+    rc = main(["--quiet", "twin", "plan", "--frame", "tracker", "--for-diagnosis", "-o", str(tmp_path / "x.csv")])
+    assert rc == 2 and not (tmp_path / "x.csv").exists()
+    assert "not both" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- diagnosis
+@pytest.fixture(scope="module")
+def backlash(tmp_path_factory):
+    """A base-frame campaign with backlash, and the same campaign seen by a tracker at a known pose, with
+    one target blocked in row 7 and a 2 mm outlier in row 20."""
+    meas, _ = hidden_effect_campaign(["backlash"], 6, 48, SIGMA)
+    tmp = tmp_path_factory.mktemp("trdiag")
+    base = tmp / "base.csv"
+    write_measurements(base, meas)
+    R = Rotation.from_rotvec([0.3, -0.2, 2.1]).as_matrix()
+    t = np.array([1800.0, -650.0, 120.0])
+    tr = meas.subset(np.arange(len(meas)))
+    tr.targets = meas.targets @ R.T + t
+    tr.targets[6, 1] = np.nan
+    tr.targets[19, 2, 0] += 2.0
+    tracker = tmp / "tracker.csv"
+    write_measurements(tracker, tr)
+    return base, tracker, (R, t)
+
+
+def test_diagnose_tracker_frame_gives_the_base_frame_answer(tmp_path, backlash):
+    base, tracker, (R, t) = backlash
+    docs = {}
+    for name, src, extra in (("base", base, []), ("tracker", tracker, ["--frame", "tracker"])):
+        out = tmp_path / f"{name}.json"
+        assert main(["--quiet", "diagnose", str(src), "--json", str(out), *extra]) == 0
+        docs[name] = json.loads(out.read_text())
+    b, tr = docs["base"], docs["tracker"]
+    assert b["effect"] == tr["effect"] == "backlash"
+    vb, vt = b["named"][0], tr["named"][0]
+    width = vb["interval"][1] - vb["interval"][0]
+    assert abs(vt["value"] - vb["value"]) < width, (vb, vt)      # two rows fewer: same within the interval
+    frame = tr["measurement_frame"]
+    left = {r["row"]: r["why"] for r in frame["rows_left_out"]}
+    assert left == {7: "blocked target", 20: "rejected outlier"}
+    assert [(r["row"], r["target"]) for r in frame["rejected"]] == [(20, 3)]
+    reg = frame["registration"]
+    rot = Rotation.from_matrix(np.asarray(reg["R"]) @ R.T).as_rotvec(degrees=True)
+    assert np.all(np.abs(rot) < 5 * np.asarray(reg["std_rot_deg"]) + 1e-4), (rot, reg["std_rot_deg"])
+    assert np.all(np.abs(np.asarray(reg["t_mm"]) - t) < 5 * np.asarray(reg["std_t_mm"]))
