@@ -108,7 +108,13 @@ def run_one(job: tuple[str, int, int]) -> dict:
 
 #: cases the independent simulator makes (name -> hidden effects)
 XSIM_CASES = {n: [n] for n in ("joint_compliance", "backlash", "encoder_eccentricity", "thermal_expansion",
-                               "zero_offset_drift", "overconstraint")} | {"none": []}
+                               "zero_offset_drift", "overconstraint")} | {"none": []} | {
+    "thermal_expansion (steel body)": ["thermal_expansion"], "thermal_expansion (invar links)": ["thermal_expansion"],
+    "zero_offset_drift (sine)": ["zero_offset_drift"]}
+#: the simulator's other forms of an effect (tests/crosssim/campaign.py FORMS) per case
+XSIM_FORMS = {"thermal_expansion (steel body)": {"thermal_expansion": "steel body"},
+              "thermal_expansion (invar links)": {"thermal_expansion": "invar links"},
+              "zero_offset_drift (sine)": {"zero_offset_drift": "sine"}}
 
 
 def run_xsim(case: str, seed: int, n: int) -> dict:
@@ -120,7 +126,7 @@ def run_xsim(case: str, seed: int, n: int) -> dict:
     from pmcal.twin.effect_model import EffectChainModel
     from tests.crosssim.campaign import hidden_campaign, write_csv
 
-    camp, _, _ = hidden_campaign(XSIM_CASES[case], seed, n)
+    camp, _, _ = hidden_campaign(XSIM_CASES[case], seed, n, forms=XSIM_FORMS.get(case))
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "xsim.csv"
         write_csv(path, camp)

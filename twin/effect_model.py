@@ -9,8 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.effects import (DRIVE_EFFECTS, LINK_LENGTH_KEYS, VOCABULARY, effect_of_key,
-                                          meas_basis, thermal_delta)
+from pmcal.mechanism.ocpm.effects import (DRIVE_EFFECTS, THERMAL_GROUPS, VOCABULARY, effect_of_key,
+                                          meas_basis, thermal_delta, thermal_group_weights)
+from pmcal.mechanism.rigid import fit_pose
 from pmcal.twin.forward import FullChainModel
 
 
@@ -26,9 +27,10 @@ class EffectChainModel(FullChainModel):
     (d/dc by a forward difference; for c < 0 the tangent at c = 0 continued linearly);
     ``thermal_expansion`` scales the targets about O by ``1 + alpha dT`` (exact for a uniform expansion
     without gravity: a scaled machine reaches the same joint angles; with gravity the difference is
-    ~1e-4 of the gravity deflection) and lengthens the links by a further ``links dT`` through the
-    targets' sensitivities to the link-length keys (first order: 23e-6/K over 10 K is 0.07 mm on a
-    317 mm link, the second-order term ~1e-6 mm). With ``gravity=False`` and no effect keys it is
+    ~1e-4 of the gravity deflection) and expands each length group g (links, base, platform, nests) by a
+    further ``delta_g dT`` through the targets' sensitivities to the keys the group's lengths change
+    (first order: 23e-6/K over 10 K is 0.07 mm on a 317 mm link, the second-order term ~1e-6 mm); the
+    nests move by ``delta dT R t_k`` about the platform origin. With ``gravity=False`` and no effect keys it is
     :class:`FullChainModel`. Measurements must carry their context (:func:`with_context`).
     """
 
@@ -73,10 +75,12 @@ class EffectChainModel(FullChainModel):
             offset += B @ np.array([self.effect_x.get(k, 0.0) for k in VOCABULARY[name].keys])
         base_keys = [k for k in keys if effect_of_key(k) in (None, "overconstraint")]
         motor = ["L1.dtheta", "L2.dtheta"]
-        links_on = self.uses("thermal_expansion", keys) and (
-            "thermal_expansion.links" in keys or self.effect_x.get("thermal_expansion.links", 0.0) != 0.0)
-        sens = base_keys + motor + (list(LINK_LENGTH_KEYS) if links_on else [])
-        want = derivatives or links_on
+        groups = self._thermal_groups(keys)
+        weights = thermal_group_weights(self.geom, self.twin.errors.to_dict()) if groups else {}
+        extra = list(dict.fromkeys(k for g in groups if g != "nests" for k, _ in weights[g]
+                                   if k not in base_keys and k not in motor))
+        sens = base_keys + motor + extra
+        want = derivatives or bool(groups)
         cmd = meas.m_cmd_deg + np.rad2deg(offset)
         if self.gravity or self.uses("joint_compliance", keys):
             T, dT, d_c = self._physical(meas, cmd, sens, self.uses("joint_compliance", keys), want)
@@ -87,12 +91,9 @@ class EffectChainModel(FullChainModel):
             dtemp = thermal_delta(meas.temp_c)
             if dtemp is None:
                 raise ValueError(f"effect 'thermal_expansion' needs {VOCABULARY['thermal_expansion'].needs}")
-        d_links = None
-        if links_on:                          # the links' extra expansion, first order in the length keys
-            n0 = len(base_keys) + 2
-            length = np.array([self.geom.h if k == "SS.dh" else self.geom.l for k in LINK_LENGTH_KEYS])
-            d_links = np.einsum("nkil,l->nki", dT[..., n0:], length) * dtemp[:, None, None]
-            T = T + self.effect_x.get("thermal_expansion.links", 0.0) * d_links
+        d_group = {g: self._group_signature(g, T, dT, sens, weights) * dtemp[:, None, None] for g in groups}
+        T = T + sum((self.effect_x.get(f"thermal_expansion.{g}", 0.0) * d for g, d in d_group.items()),
+                    np.zeros_like(T))
         scale = 1.0 if dtemp is None else (1.0 + self.effect_x.get("thermal_expansion.alpha", 0.0) * dtemp)[:, None, None]
         if not derivatives:
             return T * scale, None
@@ -107,14 +108,29 @@ class EffectChainModel(FullChainModel):
                 dT_all[..., c] = np.einsum("nkij,nj->nki", d_motor, bases[name][:, :, p])
             elif name == "joint_compliance":
                 dT_all[..., c] = d_c[..., VOCABULARY[name].keys.index(k)]
-            elif k == "thermal_expansion.links":
-                dT_all[..., c] = d_links
+            elif k.split(".", 1)[1] in d_group:
+                dT_all[..., c] = d_group[k.split(".", 1)[1]]
         if dtemp is not None:
             dT_all = dT_all * scale[..., None]
             if "thermal_expansion.alpha" in keys:
                 dT_all[..., keys.index("thermal_expansion.alpha")] = dtemp[:, None, None] * T
             T = T * scale
         return T, dT_all
+
+    def _thermal_groups(self, keys: list[str]) -> list[str]:
+        """The length groups whose own expansion rate is fitted (in ``keys``) or set (non-zero)."""
+        return [g for g in THERMAL_GROUPS if f"thermal_expansion.{g}" in keys
+                or self.effect_x.get(f"thermal_expansion.{g}", 0.0) != 0.0]
+
+    def _group_signature(self, group: str, T: np.ndarray, dT: np.ndarray, sens: list[str],
+                         weights: dict[str, list[tuple[str, float]]]) -> np.ndarray:
+        """d targets / d (strain of ``group``), (N, k, 3) mm: the keys' sensitivities weighted by the lengths
+        they change (first order); the nests: each target's position about the platform origin, R t_k."""
+        if group == "nests":
+            X = self.geom.targets[: T.shape[1]]
+            _, R, _ = fit_pose(T, X)
+            return np.einsum("nij,kj->nki", R, X)
+        return sum(w * dT[..., sens.index(k)] for k, w in weights[group])
 
     # ------------------------------------------------------------------ gravity, payload, springs
     def _physical(self, meas: Measurements, cmd_deg: np.ndarray, keys: list[str], compliant: bool,

@@ -9,8 +9,8 @@ and docs/effects.md) is switchable and lives in one of three places:
   series (:class:`pmcal.twin.assembly.BatchAssembler` motor springs), loaded by gravity and by the internal
   over-constraint forces.
 - **geometry per pose** (MuJoCo): ``thermal_expansion`` scales every length of the compiled model (body,
-  joint and site positions: links, radii, SS limb, target nests) by ``1 + alpha (temp_c - 20)``, one
-  model per pose; ``overconstraint`` inserts random passive-limb (L3, L4) errors into the model.
+  joint and site positions: links, radii, SS limb, target nests) by ``1 + alpha (temp_c - 20)``, or
+  each length group (links, base, platform, nests) at its own rate, one model per pose; ``overconstraint`` inserts random passive-limb (L3, L4) errors into the model.
 - **joint-angle layer** (outside the physics, where MuJoCo's soft limits model badly): ``backlash``,
   ``encoder_eccentricity`` and ``zero_offset_drift`` shift the joint angle the drive delivers:
   joint = command + dtheta + offset(context).
@@ -30,7 +30,7 @@ import numpy as np
 
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, drive_basis, relative_time,
+from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, THERMAL_GROUPS, drive_basis, relative_time,
                                           thermal_delta)
 from pmcal.mechanism.ocpm.params import ErrorSet, random_errors
 from pmcal.twin.campaign import CampaignPlan, nominal_commands, plan_campaign
@@ -54,8 +54,12 @@ class Effects:
     joint_compliance : series spring stiffness K per motor, N m/rad (harmonic drives: 1e4 .. 1e5).
     backlash : half-width of the lost motion per motor, deg (1-2 arcmin of lost motion: 0.008 .. 0.017).
     encoder_eccentricity : first-harmonic amplitude per motor, deg; phase ``encoder_phase_deg``.
-    thermal_expansion : linear expansion coefficient alpha, 1/K (steel 12e-6, aluminium 23e-6).
-    zero_offset_drift : zero-offset drift rate per motor, deg/h.
+    thermal_expansion : linear expansion coefficient alpha, 1/K (steel 12e-6, aluminium 23e-6) of every
+        length; or a dict of per-group rates {group: 1/K} over :data:`THERMAL_GROUPS` (links, base,
+        platform, nests), a group left out does not expand (e.g. aluminium links on a steel base:
+        ``{"links": 23e-6, "base": 12e-6, "platform": 12e-6, "nests": 12e-6}``).
+    zero_offset_drift : zero-offset drift rate per motor at the first pose, deg/h.
+    drift_curvature : per motor, deg/h^2: the drift is ``rate t + curvature t^2`` (None: linear).
     overconstraint : size of random passive-limb errors, mm (angles ``OVERCONSTRAINT_DEG_PER_MM`` deg/mm).
     """
 
@@ -63,8 +67,9 @@ class Effects:
     backlash: tuple[float, float] | None = None
     encoder_eccentricity: tuple[float, float] | None = None
     encoder_phase_deg: tuple[float, float] = (0.0, 0.0)
-    thermal_expansion: float | None = None
+    thermal_expansion: float | dict[str, float] | None = None
     zero_offset_drift: tuple[float, float] | None = None
+    drift_curvature: tuple[float, float] | None = None
     overconstraint: float | None = None
 
     def active(self) -> list[str]:
@@ -75,8 +80,25 @@ class Effects:
         out = {}
         for n in self.active():
             v = getattr(self, n)
-            out[n] = [float(x) for x in v] if isinstance(v, tuple) else float(v)
+            if isinstance(v, dict):
+                out[n] = {k: float(x) for k, x in v.items()}
+            else:
+                out[n] = [float(x) for x in v] if isinstance(v, tuple) else float(v)
+        if self.zero_offset_drift is not None and self.drift_curvature is not None:
+            out["drift_curvature"] = [float(x) for x in self.drift_curvature]
         return out
+
+    def group_rates(self) -> dict[str, float] | None:
+        """Expansion rate of every length group, 1/K (None without thermal expansion)."""
+        t = self.thermal_expansion
+        if t is None:
+            return None
+        if isinstance(t, dict):
+            unknown = set(t) - set(THERMAL_GROUPS)
+            if unknown:
+                raise ValueError(f"unknown thermal groups {sorted(unknown)} (known: {', '.join(THERMAL_GROUPS)})")
+            return {g: float(t.get(g, 0.0)) for g in THERMAL_GROUPS}
+        return {g: float(t) for g in THERMAL_GROUPS}
 
     @classmethod
     def from_named(cls, named: list[dict]) -> "Effects":
@@ -94,10 +116,12 @@ class Effects:
                 e.encoder_eccentricity = (float(np.hypot(p["s1"], p["c1"])), float(np.hypot(p["s2"], p["c2"])))
                 e.encoder_phase_deg = (float(np.rad2deg(np.arctan2(p["c1"], p["s1"]))),
                                        float(np.rad2deg(np.arctan2(p["c2"], p["s2"]))))
-            elif name == "thermal_expansion":
-                e.thermal_expansion = p["alpha"] + p.get("links", 0.0)   # the links' rate
+            elif name == "thermal_expansion":                      # each group's rate
+                e.thermal_expansion = {g: p["alpha"] + p.get(g, 0.0) for g in THERMAL_GROUPS}
             elif name == "zero_offset_drift" and item["unit"] == "deg/h":
                 e.zero_offset_drift = (p["r1"], p["r2"])
+                if "q1" in p:
+                    e.drift_curvature = (p["q1"], p["q2"])
         return e
 
 
@@ -135,23 +159,53 @@ def add_payload(m: mujoco.MjModel, body: int, mass_kg: float, point_m: np.ndarra
     m.body_ipos[body] = c
 
 
+def scale_groups(m: mujoco.MjModel, idx, s: np.ndarray) -> None:
+    """Scale the length groups of a compiled model (in place; call ``mj_setConst`` after) by the factors
+    ``s`` (4,) of :data:`THERMAL_GROUPS`: links (link lengths: the closure sites S1, S2, the links' centres
+    of mass and geoms, the SS length), base (base-joint positions B_j about O), platform (platform-joint
+    positions A_j, the ball-joint offset, the platform's centre of mass and geoms, about the platform
+    origin), nests (target sites about the platform origin). Equal factors equal :func:`scale_model`'s
+    positions (inertias are left as they are: a 1e-4 change of a gravity load of 0.01 mm)."""
+    links, base, plat, nests = (float(v) for v in s)
+    ball = m.jnt_pos[idx.jnt_ball].copy()                   # ball-joint offset dc in the platform frame
+    ss_tip = m.body_pos[idx.platform] + ball                # (0, 0, h + dh): the SS length
+    m.site_pos[idx.site_s1] *= links
+    m.site_pos[idx.site_s2] *= links
+    for b in (*idx.link1, *idx.link2, idx.ss_link):
+        m.body_ipos[b] *= links
+        m.geom_pos[m.geom_bodyid == b] *= links
+    m.body_pos[idx.link1] *= base
+    m.body_pos[idx.link2] *= plat
+    m.jnt_pos[idx.jnt_ball] = ball * plat
+    m.body_ipos[idx.platform] *= plat
+    m.geom_pos[m.geom_bodyid == idx.platform] *= plat
+    m.site_pos[idx.site_ce] *= plat
+    m.body_pos[idx.platform] = ss_tip * links - ball * plat
+    m.site_pos[idx.site_targets] *= nests
+
+
 def pose_models(twin: Twin, n: int, scale: np.ndarray | None = None,
                 payload_kg: np.ndarray | None = None) -> list[mujoco.MjModel] | None:
-    """Per-pose copies of ``pmcal.twin.model``: lengths scaled by ``scale`` (N,) about O and ``payload_kg`` (N,)
-    added at the centre of the platform's top surface. None when every pose would get the twin's own
-    model. Equal contexts share one copy."""
-    scale = np.ones(n) if scale is None else np.broadcast_to(np.asarray(scale, float), (n,))
+    """Per-pose copies of ``pmcal.twin.model``: lengths scaled by ``scale`` about O ((N,): every length; (N, 4):
+    each group of :data:`THERMAL_GROUPS`, :func:`scale_groups`) and ``payload_kg`` (N,) added at the
+    centre of the platform's top surface. None when every pose would get the twin's own model. Equal
+    contexts share one copy."""
+    scale = np.ones(n) if scale is None else np.asarray(scale, float)
+    scale = scale.reshape(n, -1) if scale.size >= n else np.broadcast_to(scale, (n,)).reshape(n, 1)
     pay = np.zeros(n) if payload_kg is None else np.broadcast_to(np.asarray(payload_kg, float), (n,))
     if np.all(scale == 1.0) and not np.any(pay):
         return None
     base, idx, cache, out = twin.model, twin.index, {}, []
     top = np.array([0.0, 0.0, twin.geom.hs]) * MM
     for s, p in zip(scale, pay):
-        key = (float(s), float(p))
+        key = (tuple(s.tolist()), float(p))
         if key not in cache:
             m = copy.copy(base)
-            scale_model(m, s)
-            add_payload(m, idx.platform, p, top * s)
+            if s.size == 1:
+                scale_model(m, s[0])
+            else:
+                scale_groups(m, idx, s)
+            add_payload(m, idx.platform, p, top * s[2 if s.size > 1 else 0])
             mujoco.mj_setConst(m, twin._scratch)
             cache[key] = m
         out.append(cache[key])
@@ -205,7 +259,8 @@ class EffectTwin:
             t, unit = relative_time(time_s, len(cmd))
             if unit != "h":
                 raise ValueError("zero_offset_drift needs the time of every pose")
-            off += drive_basis("zero_offset_drift", cmd, t_rel=t) @ np.deg2rad(e.zero_offset_drift)
+            q = e.drift_curvature or (0.0, 0.0)
+            off += drive_basis("zero_offset_drift", cmd, t_rel=t) @ np.deg2rad([*e.zero_offset_drift, *q])
         return off
 
     # ------------------------------------------------------------------ per-pose models
@@ -216,7 +271,10 @@ class EffectTwin:
             dtemp = thermal_delta(None if temp_c is None else np.broadcast_to(temp_c, (n,)))
             if dtemp is None:
                 raise ValueError("thermal_expansion needs the temperature of every pose")
-            scale = 1.0 + self.effects.thermal_expansion * dtemp
+            t = self.effects.thermal_expansion
+            rates = (np.array([self.effects.group_rates()[g] for g in THERMAL_GROUPS]) if isinstance(t, dict)
+                     else np.array([t]))
+            scale = 1.0 + dtemp[:, None] * rates[None, :]
         return pose_models(self.twin, n, scale, payload_kg if self.gravity else None)
 
     # ------------------------------------------------------------------ driving

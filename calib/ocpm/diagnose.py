@@ -41,7 +41,7 @@ from scipy import stats
 from pmcal.calib.forward_model import EffectModel
 from pmcal.mechanism.ocpm.config import Geometry
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, approach_from_order, VOCABULARY, effect_of_key,
+from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, T_REL, approach_from_order, VOCABULARY, effect_of_key,
                                           thermal_delta, with_context)
 from pmcal.calib.ocpm.diagnosis_result import Candidate, Diagnosis, Omnibus
 from pmcal.calib.ocpm.effect_values import EffectValue, effect_prior_std, effect_value
@@ -142,6 +142,7 @@ class _Problem:
         geom = model.geom
         self.geom, self.opt = geom, opt
         self.meas, self.time_unit = with_context(meas)
+        self.t_rel, self.dtemp = self.meas.extra[T_REL], thermal_delta(self.meas.temp_c)
         self.noise = estimate_noise(meas, geom, opt.sigma_mm)
         self.sigma = self.noise.sigma_mm
         self.base_keys = list(opt.baseline_keys or BASELINES["full"])
@@ -220,14 +221,15 @@ class _Problem:
         vals = lin.values(sub)
         x = np.array([vals[k] for k in keys])
         cov_z = np.linalg.inv(sub.info + np.eye(len(sub.cols)))[np.ix_(pos, pos)] * max(sub.rss / sub.dof, 1.0)
-        return effect_value(name, keys, x, cov_z * np.outer(lin.scale[cols], lin.scale[cols]), self.time_unit)
+        return effect_value(name, keys, x, cov_z * np.outer(lin.scale[cols], lin.scale[cols]), self.time_unit,
+                            self.t_rel, self.dtemp)
 
     def value_final(self, res: IdentResult, name: str) -> EffectValue:
         """Effect value from a nonlinear fit (covariance inflated by the residual variance if above 1)."""
         keys = self.candidates[name]
         idx = [res.names.index(k) for k in keys]
         cov = res.covariance[np.ix_(idx, idx)] * max(res.info["chi2_per_dof"], 1.0)
-        return effect_value(name, keys, res.x[idx], cov, self.time_unit)
+        return effect_value(name, keys, res.x[idx], cov, self.time_unit, self.t_rel, self.dtemp)
 
     def polish(self, res: IdentResult, max_steps: int = 4) -> IdentResult:
         """Gauss-Newton (chord) steps with a forward-difference Jacobian after a fit with compliance in the
@@ -418,10 +420,11 @@ def _typical_draws(pb: _Problem, name: str, n: int = 64) -> np.ndarray:
         return x / s
     if name == "joint_compliance":
         t = np.full(2, 1.0 / info.typical)
-    elif name == "thermal_expansion":
-        t = np.array([info.typical])
-    elif name == "zero_offset_drift" and pb.time_unit == "pose":
-        t = np.full(2, np.deg2rad(info.typical) / 120.0)  # 30 s a pose
+    elif name == "thermal_expansion":                      # the uniform member: every group at alpha
+        t = np.array([info.typical if k.endswith(".alpha") else 0.0 for k in keys])
+    elif name == "zero_offset_drift":                      # the linear member (30 s a pose)
+        rate = np.deg2rad(info.typical) / (120.0 if pb.time_unit == "pose" else 1.0)
+        t = np.array([rate if k.split(".")[1][0] == "r" else 0.0 for k in keys])
     else:
         t = np.full(len(keys), np.deg2rad(info.typical))
     return (t / s)[None]
@@ -537,6 +540,8 @@ def _verdicts(pb: _Problem, board: dict[str, Candidate], history: dict, named: l
                 c.verdict = "explains only part of the structure"
                 c.reason = (f"significant, but explains {100 * c.share:.2g} % of the structure left beyond the "
                             "noise: not forced onto this name")
+            elif c.reason.startswith("leaves structure"):
+                c.verdict = "explains only part of the structure"
             elif cv_ran and (counts.get(n, 0) < need or c.reason.startswith("does not predict")):
                 c.verdict = "not confirmed on held-out poses"
                 c.reason = c.reason or f"selected in {counts.get(n, 0)} of {n_folds} cross-validation folds"
@@ -578,6 +583,37 @@ def _confirm(pb: _Problem, lin0: Linearization, named: list[str], res: IdentResu
     return counts, confirmed, res, lin
 
 
+#: The context that defines a family (residual_context names, first one recorded).
+FAMILY_CONTEXT = {"thermal_expansion": ("temperature",), "zero_offset_drift": ("time", "row order")}
+
+
+def _own_context_left(pb: _Problem, named: list[str], res: IdentResult, lin: Linearization,
+                      board: dict[str, Candidate]):
+    """A family defined by a context must leave nothing that follows that context: when structure is left
+    after the named model and its held-out residual still follows the family's own context (F test per
+    pose, p < ``gate_alpha``), the family explains only part of an effect it does not contain (e.g. a
+    tracker stand creeping with the temperature, which per-group expansion mimics in part). It is then
+    not named, and the residual context says what the structure follows. Returns (named, fit, lin)."""
+    ctx_named = [n for n in named if n in FAMILY_CONTEXT]
+    if not ctx_named or not omnibus(lin, fit(lin, lin.cols(list(res.names))), pb.noise, pb.opt).structure:
+        return named, res, lin
+    cv = _cv(lin, lin.cols(list(res.names)), pb.folds) * pb.sigma
+    links = {c.context: c for c in characterise(pb.meas, cv.reshape(pb.meas.targets.shape), top=100)}
+    drop = []
+    for n in ctx_named:
+        c = next((links[k] for k in FAMILY_CONTEXT[n] if k in links), None)
+        if c is not None and c.p_value < pb.opt.gate_alpha:
+            drop.append(n)
+            board[n].reason = (f"leaves structure that still follows the {c.context} ({100 * c.share:.0f} % of it, "
+                               f"p = {c.p_value:.2g}): it explains only part of a {c.context}-driven effect "
+                               "outside the family, not forced onto it")
+    if not drop:
+        return named, res, lin
+    keep = [n for n in named if n not in drop]
+    res = pb.refit(res, keep) if keep else pb.baseline
+    return keep, res, pb.linearize(res, keep)
+
+
 def _notes(board: dict[str, Candidate], named: list[str], om: Omnibus, opt: DiagnoseOptions) -> list[str]:
     notes = []
     if om.structure:
@@ -615,6 +651,7 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     lin0 = pb.linearize(base, [])
     pb.remember([], base, lin0)
     board = _scoreboard(pb, lin0)                                    # b, c
+    pre_notes = _confounding_share(pre_notes, pb, lin0)
     om0 = omnibus(lin0, fit(lin0, lin0.cols(pb.model_keys0)), pb.noise, opt)
 
     step("testing candidate effects")                                # d
@@ -624,6 +661,7 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     cv_before = _cv(lin0, lin0.cols(pb.model_keys0), pb.folds)
     cv_ran = bool(named)
     counts, named, res, lin = _confirm(pb, lin0, named, res, lin, board, cv_before)
+    named, res, lin = _own_context_left(pb, named, res, lin, board)
 
     cv_after = _cv(lin, lin.cols(list(res.names)), pb.folds)       # f
     om1 = omnibus(lin, fit(lin, lin.cols(list(res.names))), pb.noise, opt)
@@ -659,6 +697,24 @@ def _confounding(meas: Measurements) -> list[str]:
     return [f"temperature follows time monotonically (Spearman {rho:.2f}): thermal expansion and zero-offset "
             "drift are confounded in this campaign; a warm-up then cool-down (or a constant-temperature run) "
             "separates them"]
+
+
+def _confounding_share(notes: list[str], pb: _Problem, lin: Linearization) -> list[str]:
+    """Add to the confounding note how much of a linear drift's signature the thermal family absorbs beyond
+    the baseline (1 - trace ratio of the drift's conditional information without and with it); a campaign
+    whose temperature is not monotone in time but where that share is over a half gets the note too."""
+    if not {"thermal_expansion", "zero_offset_drift"} <= set(pb.candidates):
+        return notes
+    base = lin.cols(pb.model_keys0)
+    drift = lin.cols(["zero_offset_drift.r1", "zero_offset_drift.r2"])
+    both = np.concatenate([base, lin.cols(pb.candidates["thermal_expansion"])])
+    i0 = np.trace(conditional_information(lin, base, drift))
+    share = 1.0 - np.trace(conditional_information(lin, both, drift)) / i0 if i0 > 0 else 0.0
+    text = f"the thermal family absorbs {100 * share:.0f} % of a linear drift's signature here"
+    out = [n + f" ({text})" if "confounded" in n else n for n in notes]
+    if out == notes and share > 0.5:
+        out.append(f"thermal expansion and zero-offset drift are confounded in this campaign: {text}")
+    return out
 
 
 def _added_variable(pb: _Problem, lin: Linearization, res: IdentResult) -> dict[str, tuple[np.ndarray, np.ndarray]]:

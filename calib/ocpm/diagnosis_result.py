@@ -92,6 +92,7 @@ class Diagnosis:
         def val(e: EffectValue) -> dict:
             return {"name": e.name, "value": _num(e.value), "interval": [_num(v) for v in e.interval],
                     "unit": e.unit, "layer": VOCABULARY[e.name].layer, "member": e.member or None,
+                    "member_params": {k: {"value": _num(v), "std": _num(s)} for k, (v, s) in e.member_params.items()},
                     "params": {k: {"value": _num(v), "std": _num(s)} for k, (v, s) in e.params.items()}}
 
         cands = []

@@ -9,15 +9,17 @@ effect                   layer         model (per motor j = 1, 2; joint = comman
 =======================  ============  =================================================================
 ``backlash``             joint angle   offset_j = -b_j s_j, s_j = approach sign (+1: final motion up)
 ``encoder_eccentricity`` joint angle   offset_j = s_j sin(theta_j) + c_j cos(theta_j) = a_j sin(theta_j + phi_j)
-``zero_offset_drift``    joint angle   offset_j = r_j (t - t_0), t in hours (or pose index without time_s)
+``zero_offset_drift``    joint angle   offset_j = r_j t + q_j t^2, t = time since the first pose in hours
+                                       (pose index without time_s): members linear (q = 0), quadratic
 ``joint_compliance``     physics       a series spring K_j = 1/c_j behind each motor, loaded by gravity (the
                                        MJCF inertia + payload) and the internal over-constraint forces:
                                        to first order offset_j = -c_j tau_j (tau_j the motor torque)
-``thermal_expansion``    geometry      lengths grow linearly with dT = temp_c - 20: the whole machine by alpha (targets
-                                       scale about O) and the links (l1, l2 of every RSR limb, SS
-                                       limb) by a further ``links`` (first order through the length
-                                       sensitivities): uniform (links = 0), links only (alpha = 0),
-                                       two materials (both) are members of one family
+``thermal_expansion``    geometry      lengths grow linearly with dT = temp_c - 20, each group g of
+                                       :data:`THERMAL_GROUPS` at its own rate alpha + delta_g: the
+                                       common rate alpha scales the whole machine about O, the group
+                                       deviations delta_g (links, base, platform, nests) act to first
+                                       order through the length sensitivities; members
+                                       (:data:`MEMBERS`): uniform, links only, base and platform, ...
 ``overconstraint``       geometry      passive-limb (L3, L4) geometric errors, absent from the baseline
 =======================  ============  =================================================================
 
@@ -42,6 +44,16 @@ REFERENCE_TEMP_C = 20.0
 PASSIVE_KEYS: tuple[str, ...] = tuple(f"L{j}.{f}" for j in (3, 4) for f in LIMB_FIELDS if f != "dtheta")
 #: Length keys of the links (RSR links of every limb, SS limb): the ``thermal_expansion.links`` member.
 LINK_LENGTH_KEYS: tuple[str, ...] = tuple(f"L{j}.{f}" for j in (1, 2, 3, 4) for f in ("dl1", "dl2")) + ("SS.dh",)
+#: Groups of lengths that may expand at their own rate (``thermal_expansion.<group>``: the group's deviation
+#: from the common rate ``thermal_expansion.alpha``): the links (l1, l2 of every RSR limb, SS length), the
+#: base (base-joint positions B_j about O), the platform (platform-joint positions A_j and the ball-joint
+#: offset about the platform origin), the target nests (target positions about the platform origin).
+THERMAL_GROUPS: tuple[str, ...] = ("links", "base", "platform", "nests")
+#: Prior std of a group's deviation from the common rate, 1/K: about the spread of the expansion rates of
+#: the metals machines are built from (aluminium 23e-6, steel 12e-6, cast iron 10e-6, invar 1e-6, around a
+#: common rate of ~12e-6). It is the ridge that keeps four group rates identifiable: a group whose
+#: signature the campaign does not determine stays at the common rate.
+THERMAL_GROUP_STD = 1.2e-5
 #: Context column kept in ``Measurements.extra`` (see :func:`with_context`).
 T_REL = "effect_t_rel"
 
@@ -88,17 +100,18 @@ VOCABULARY: dict[str, EffectInfo] = {e.name: e for e in (
                "disconnected, or a second read head, separates it for certain",
                "first-harmonic error of the motor angle: a sin(theta + phi) per motor (encoder disc "
                "mounted off-centre)"),
-    EffectInfo("thermal_expansion", "geometry", "1/K", ("alpha", "links"), 23e-6, (0.0, 5e-5), 1e-7,
+    EffectInfo("thermal_expansion", "geometry", "1/K", ("alpha",) + THERMAL_GROUPS, 23e-6, (0.0, 5e-5), 1e-7,
                "poses at different temperatures (temp_c), or a temperature far from 20 degC",
                "record temp_c and measure over a temperature change of several kelvin (warm-up)",
-               "lengths grow linearly with the temperature: the whole machine (links, radii, SS limb, target "
-               "nests) by alpha (T - 20 degC), the links by a further 'links' rate (value: the links' rate "
-               "alpha + links; member: uniform, links only or two rates)"),
-    EffectInfo("zero_offset_drift", "joint angle", "deg/h", ("r1", "r2"), 0.0125, (-1.0, 1.0), 0.001,
+               "lengths grow linearly with the temperature, each group (links, base, platform, target nests) "
+               "at its own rate around a common one (value: the fastest group's rate in the member that "
+               "fits; members: uniform, links only, base and platform, links and the rest, per group)"),
+    EffectInfo("zero_offset_drift", "joint angle", "deg/h", ("r1", "r2", "q1", "q2"), 0.0125, (-1.0, 1.0), 0.001,
                "poses measured in an order that does not follow the pose (time_s or row order)",
                "measure the poses in random order (or revisit a reference pose) and record time_s: in "
                "tilt order a drift looks like geometry",
-               "motor zero offsets creep linearly in time during the campaign"),
+               "motor zero offsets creep smoothly in time during the campaign: rate r (value, deg/h at the "
+               "first pose) and curvature q (deg/h^2); members: linear (q = 0), quadratic"),
     EffectInfo("overconstraint", "geometry", "mm", (), 0.5, (0.0, 5.0), 0.01,
                "always visible: the passive limbs hold the platform's third rotation",
                "more poses over a wider tilt range (the passive-limb geometry has combinations no pose "
@@ -161,7 +174,9 @@ def drive_basis(name: str, cmd_deg: np.ndarray, approach: np.ndarray | None = No
     elif name == "zero_offset_drift":
         if t_rel is None:
             return None
-        B[:, 0, 0] = B[:, 1, 1] = np.asarray(t_rel, float)
+        t = np.asarray(t_rel, float)
+        B[:, 0, 0] = B[:, 1, 1] = t
+        B[:, 0, 2] = B[:, 1, 3] = t * t
     else:
         raise KeyError(f"'{name}' is not a joint-angle effect")
     return B
@@ -191,11 +206,64 @@ def approach_from_order(cmd_deg: np.ndarray) -> np.ndarray:
     return s
 
 
-def thermal_member(alpha: float, s_alpha: float, links: float, s_links: float) -> str:
-    """Which member of the thermal family a fit is: ``uniform`` (the links' extra rate within 2 sigma of 0),
-    ``links only`` (the uniform rate within 2 sigma of 0) or ``two rates``."""
-    if abs(links) <= 2 * s_links:
-        return "uniform"
-    if abs(alpha) <= 2 * s_alpha:
-        return "links only"
-    return "two rates"
+# ---------------------------------------------------------------------------------------- families
+def thermal_group_weights(geom, errors: dict[str, float] | None = None) -> dict[str, list[tuple[str, float]]]:
+    """How a unit strain of each length group (other than the nests) moves the geometric keys: group ->
+    [(key, mm per unit strain)]. A group that expands by ``e`` changes every key ``k`` listed by ``e w_k``,
+    ``w_k`` the length's current value, nominal plus ``errors`` (mm, interface keys): links: l1, l2 and
+    the SS length; base: the components of B_j about O; platform: those of A_j and of the ball-joint
+    offset C_E in the platform frame. ``geom`` is the nominal
+    :class:`pmcal.mechanism.ocpm.config.Geometry`."""
+    e = errors or {}
+    B, A = geom.base_points(), geom.platform_points()
+    out = {"links": [(k, (geom.h if k == "SS.dh" else geom.l) + e.get(k, 0.0)) for k in LINK_LENGTH_KEYS],
+           "base": [], "platform": [(f"SS.dc{a}", e.get(f"SS.dc{a}", 0.0)) for a in "xyz"]}
+    for j in range(geom.n_limbs):
+        for c, axis in enumerate("xyz"):
+            kb, ka = f"L{j + 1}.db{axis}", f"L{j + 1}.da{axis}"
+            out["base"].append((kb, float(B[j, c]) + e.get(kb, 0.0)))
+            out["platform"].append((ka, float(A[j, c]) + e.get(ka, 0.0)))
+    return {g: [(k, float(w)) for k, w in ws if w != 0.0] for g, ws in out.items()}
+
+
+def _thermal_members() -> dict[str, np.ndarray]:
+    """Members of the thermal family as group-rate structures G (4, k): group rates = G y."""
+    g = {n: i for i, n in enumerate(THERMAL_GROUPS)}
+
+    def cols(*sets):
+        G = np.zeros((len(THERMAL_GROUPS), len(sets)))
+        for c, s in enumerate(sets):
+            G[[g[n] for n in s], c] = 1.0
+        return G
+
+    return {"uniform": cols(THERMAL_GROUPS), "links only": cols(("links",)),
+            "base and platform": cols(("base", "platform")), "links and the rest": cols(("links",), ("base", "platform", "nests")),
+            "links, base and platform": cols(("links", "base", "platform")),
+            "per group": np.eye(len(THERMAL_GROUPS))}
+
+
+def member_maps(name: str) -> dict[str, np.ndarray]:
+    """The members of an effect family as linear maps A (params, m) from a member's own parameters to the
+    family's internal parameters (x = A z), in the order simplest first. Thermal: z = (alpha, group
+    rates y) with deviations G y - alpha (alpha is free: a uniform shift of the rates is the common rate);
+    drift: z = the rates (linear) or rates and curvatures (quadratic). Empty for effects without members."""
+    if name == "thermal_expansion":
+        out = {}
+        for m, G in _thermal_members().items():
+            A = np.zeros((1 + len(THERMAL_GROUPS), 1 + G.shape[1]))
+            A[0, 0], A[1:, 0], A[1:, 1:] = 1.0, -1.0, G
+            out[m] = A
+        return out
+    if name == "zero_offset_drift":
+        return {"linear": np.eye(4)[:, :2], "quadratic": np.eye(4)}
+    return {}
+
+
+def member_values(name: str, member: str, z: np.ndarray) -> dict[str, float]:
+    """A member's own parameters ``z`` (internal units) as named values: thermal group rates (1/K, the
+    groups the member moves), drift rates and curvatures (rad/h, rad/h^2)."""
+    if name == "thermal_expansion":
+        G = _thermal_members()[member]
+        rates = G @ z[1:]
+        return {g: float(r) for g, r, used in zip(THERMAL_GROUPS, rates, G.any(axis=1)) if used}
+    return {k: float(v) for k, v in zip(VOCABULARY[name].params, z)}

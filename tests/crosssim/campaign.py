@@ -2,11 +2,14 @@
 
 Effects are this simulator's own versions (not the twin's forms):
 - ``thermal``: alpha (1/K) of the links only (l1, l2 of every RSR limb and the SS link) about 20 degC; the
-  base and the platform (steel) do not expand;
+  base and the platform (steel) do not expand; or, with ``thermal_body``, base and platform of another
+  material at that rate (B_j about O, A_j and C_E about the platform origin) while the links expand at
+  ``thermal`` (0 for invar links); the target nests never expand;
 - ``backlash``: half-width b (deg) per motor; the drive lags its command by b against the direction of
   the motor's last move, read from the move order (the machine starts at home, beta = -39.351 deg);
 - ``drift``: zero-offset creep with an initial rate (deg/h) per motor that relaxes exponentially with time
-  constant ``drift_tau_s`` (linear for tau = inf);
+  constant ``drift_tau_s`` (linear for tau = inf), or (``drift_period_s``) oscillates as
+  rate·P/(2π)·sin(2π t/P) (a drive cabinet's climate cycle);
 - ``eccentricity``: amplitude (deg) and arbitrary phase (rad) per motor, a·sin(command + phase);
 - ``compliance``: torsional stiffness K (N·m/rad) per motor in the closed-chain solve;
 - passive-limb errors: any `L3.*`/`L4.*` keys in the geometric errors.
@@ -28,9 +31,11 @@ KEYS_LIMB = ["dbx", "dby", "dbz", "dalpha", "dgamma", "dl1", "dl2", "dax", "day"
 @dataclass
 class SimEffects:
     thermal: float = 0.0
+    thermal_body: float = 0.0
     backlash: tuple = (0.0, 0.0)
     drift: tuple = (0.0, 0.0)
     drift_tau_s: float = 7200.0
+    drift_period_s: float | None = None
     eccentricity: tuple = (0.0, 0.0)
     ecc_phase: tuple = (0.0, 0.0)
     compliance: tuple | None = None
@@ -89,6 +94,9 @@ def drive_angles(c: Campaign, geom: Geometry, fx: SimEffects) -> np.ndarray:
     dt = (c.time_s - c.time_s[0])
     tau = fx.drift_tau_s
     creep = dt if not np.isfinite(tau) else tau * (1 - np.exp(-dt / tau))
+    if fx.drift_period_s is not None:
+        w = 2 * np.pi / fx.drift_period_s
+        creep = np.sin(w * dt) / w
     out = cmd + [geom.limb(1)["dtheta"], geom.limb(2)["dtheta"]]
     for m in range(2):
         out[:, m] += np.deg2rad(fx.drift[m] * creep / 3600.0
@@ -109,7 +117,8 @@ def simulate(c: Campaign, errors: dict, fx: SimEffects, sigma_mm: float = 0.01, 
     for i in range(len(c.phi_deg)):
         chain = ClosedChain(geom, motor_stiffness=fx.compliance,
                             link_scale=1 + fx.thermal * (c.temp_c[i] - 20.0), payload_kg=c.payload_kg[i],
-                            gravity=gravity)
+                            gravity=gravity, base_scale=1 + fx.thermal_body * (c.temp_c[i] - 20.0),
+                            platform_scale=1 + fx.thermal_body * (c.temp_c[i] - 20.0))
         try:
             r, R, _, energy = chain.solve(drive[i], (c.phi_deg[i], c.theta_deg[i]))
         except np.linalg.LinAlgError:
@@ -156,11 +165,21 @@ REALISTIC = {"backlash": 0.02, "encoder_eccentricity": 0.01, "thermal_expansion"
              "zero_offset_drift": 0.0094, "joint_compliance": 5e4, "overconstraint": 0.5}
 
 
+#: variants of an effect's form (``hidden_campaign(forms=)``): name -> form -> SimEffects fields set
+FORMS = {"thermal_expansion": {"links": {}, "steel body": {"thermal_body": 12e-6},
+                               "invar links": {"thermal_body": 12e-6, "thermal": 1.2e-6}},
+         "zero_offset_drift": {"creep": {}, "sine": {"drift_period_s": 3 * 3600.0}}}
+
+
 def hidden_campaign(names: list[str], seed: int, n: int = 128, theta_max_deg: float = 80.0,
-                    sigma_mm: float = 0.01, context: bool = True, sizes: dict | None = None
-                    ) -> tuple[Campaign, dict, SimEffects]:
+                    sigma_mm: float = 0.01, context: bool = True, sizes: dict | None = None,
+                    forms: dict | None = None, temp_range=(18.0, 28.0)) -> tuple[Campaign, dict, SimEffects]:
     """A campaign with random errors (0.5 mm / 0.1 deg in limbs 1-2 and SS) and the named effects (the
-    pmcal vocabulary names) at their realistic sizes (or ``sizes[name]``); returns (measured campaign, errors, effects)."""
+    pmcal vocabulary names) at their realistic sizes (or ``sizes[name]``) in their default form or
+    ``forms[name]`` (:data:`FORMS`: thermal "steel body": aluminium links 23e-6 on a steel base and
+    platform 12e-6/K, "invar links": links 1.2e-6 on a steel base and platform; drift "sine": a 3-hour
+    oscillation); ``temp_range`` (start/peak, end) of the warm-up/cool-down, or a monotone ramp when given
+    as ("ramp", start, end). Returns (measured campaign, errors, effects)."""
     rng = np.random.default_rng(seed)
     err = random_errors(rng)
     fx = SimEffects()
@@ -178,6 +197,11 @@ def hidden_campaign(names: list[str], seed: int, n: int = 128, theta_max_deg: fl
             fx.compliance = (v, v)
         elif name == "overconstraint":
             err.update(random_errors(rng, v, limbs=(3, 4), ss=False))
-    c = plan(n, theta_max_deg, rng) if context else plan(n, theta_max_deg, rng, temp_range=(20.0, 20.0),
-                                                          payloads=(0.0,))
+        form = (forms or {}).get(name)
+        for field_, value in (FORMS[name][form] if form else {}).items():
+            setattr(fx, field_, value)
+    c = plan(n, theta_max_deg, rng, temp_range=temp_range[-2:]) if context else plan(
+        n, theta_max_deg, rng, temp_range=(20.0, 20.0), payloads=(0.0,))
+    if context and temp_range[0] == "ramp":          # temperature rising (or falling) steadily with time
+        c.temp_c = np.linspace(temp_range[1], temp_range[2], len(c.time_s))
     return simulate(c, err, fx, sigma_mm, rng), err, fx

@@ -58,8 +58,9 @@ def tilt_torsion(phi: float, theta: float) -> np.ndarray:
 class Geometry:
     """Machine geometry with errors (keys `L<j>.<name>`, `SS.<name>`, mm and deg) and a link scale.
 
-    ``link_scale`` multiplies l1, l2 of every RSR limb and the SS length (thermal expansion of the links;
-    the base and the platform do not expand)."""
+    ``link_scale`` multiplies l1, l2 of every RSR limb and the SS length (thermal expansion of the links),
+    ``base_scale`` the base points B_j (about the base origin O), ``platform_scale`` the platform points A_j
+    and the SS joint centre C_E (about the platform origin); the tracker targets never expand here."""
 
     errors: dict = field(default_factory=dict)
     ratio: float = RATIO
@@ -67,7 +68,7 @@ class Geometry:
     def e(self, key: str) -> float:
         return float(self.errors.get(key, 0.0))
 
-    def limb(self, j: int, link_scale: float = 1.0) -> dict:
+    def limb(self, j: int, link_scale: float = 1.0, base_scale: float = 1.0, platform_scale: float = 1.0) -> dict:
         """Limb j (1..4): base point B, turned local frame F, platform point Ap and axis up (platform
         coordinates), link lengths l1, l2, zero offset dtheta (rad)."""
         p, k = PSI[j - 1], f"L{j}."
@@ -75,15 +76,15 @@ class Geometry:
         base = A_RADIUS * np.array([np.cos(p), np.sin(p), 0.0])
         F = frame @ rot_z(np.deg2rad(self.e(k + "dgamma"))) @ rot_x(np.deg2rad(self.e(k + "dalpha")))
         up = frame @ rot_z(np.deg2rad(self.e(k + "dnu"))) @ rot_x(np.deg2rad(self.e(k + "dmu"))) @ [0, 1, 0]
-        return dict(B=base + [self.e(k + "dbx"), self.e(k + "dby"), self.e(k + "dbz")], F=F,
-                    Ap=base + [self.e(k + "dax"), self.e(k + "day"), self.e(k + "daz")], up=up,
+        return dict(B=(base + [self.e(k + "dbx"), self.e(k + "dby"), self.e(k + "dbz")]) * base_scale, F=F,
+                    Ap=(base + [self.e(k + "dax"), self.e(k + "day"), self.e(k + "daz")]) * platform_scale, up=up,
                     l1=(L_LINK + self.e(k + "dl1")) * link_scale, l2=(L_LINK + self.e(k + "dl2")) * link_scale,
                     dtheta=np.deg2rad(self.e(k + "dtheta")))
 
-    def ss(self, link_scale: float = 1.0) -> tuple[float, np.ndarray]:
+    def ss(self, link_scale: float = 1.0, platform_scale: float = 1.0) -> tuple[float, np.ndarray]:
         """SS length h (mm) and the platform joint centre C_E in platform coordinates."""
-        return (H_SS + self.e("SS.dh")) * link_scale, np.array([self.e("SS.dcx"), self.e("SS.dcy"),
-                                                                 self.e("SS.dcz")])
+        return (H_SS + self.e("SS.dh")) * link_scale, platform_scale * np.array(
+            [self.e("SS.dcx"), self.e("SS.dcy"), self.e("SS.dcz")])
 
 
 def link_dir(F: np.ndarray, beta: float) -> np.ndarray:
@@ -120,10 +121,10 @@ class ClosedChain:
     """Quasi-static pose of the machine for given motor drive angles (rad, zero offsets added here)."""
 
     def __init__(self, geom: Geometry, motor_stiffness=None, link_scale: float = 1.0, payload_kg: float = 0.0,
-                 gravity: bool = True):
+                 gravity: bool = True, base_scale: float = 1.0, platform_scale: float = 1.0):
         self.g = geom
-        self.limbs = [geom.limb(j, link_scale) for j in range(1, 5)]
-        self.h, self.dc = geom.ss(link_scale)
+        self.limbs = [geom.limb(j, link_scale, base_scale, platform_scale) for j in range(1, 5)]
+        self.h, self.dc = geom.ss(link_scale, platform_scale)
         self.k = np.array([K_PASSIVE * geom.ratio] * 2 + [K_PASSIVE] * 2)
         self.K = None if motor_stiffness is None else np.asarray(motor_stiffness, float) * 1e3  # N·mm/rad
         self.payload, self.gravity = payload_kg, gravity
