@@ -232,9 +232,14 @@ class _Problem:
         model: on twin clean seed 1072 the baseline stopped at chi2/dof 1000 (xtol after 25 evaluations,
         the trust region shrunk to nothing) with three poses 2-8 mm off and the others 0.16 mm, while the
         true geometry fits every pose to the noise. Those poses are then fitted out (same start), then all
-        poses from there; the lower MAP cost wins, so a fit that was not stalled is kept."""
+        poses from there. It replaces the fit only when it reaches the noise (chi2/dof within 1 + 3
+        sqrt(2/dof)) at a lower MAP cost: a model that then fits every pose was stalled. With an effect
+        left in the data (a compliance campaign's baseline has the same few strained poses far off) the
+        better baseline started the compliance refit where it stalled (twin compliance seed 1016: gap
+        after 3.2 sigma), so the fit is then left as it was."""
         dof = res.info["dof"]
-        if res.info["chi2_per_dof"] <= 1.0 + 3.0 * np.sqrt(2.0 / dof):
+        level = 1.0 + 3.0 * np.sqrt(2.0 / dof)
+        if res.info["chi2_per_dof"] <= level:
             return res
         norms = np.linalg.norm(res.residuals.reshape(len(self.meas), -1), axis=1)
         out = norms > factor * np.median(norms)
@@ -246,7 +251,7 @@ class _Problem:
                 options, x0={k: float(v) for k, v in zip(part.names, part.x)}))
         except UnassembledError:
             return res
-        return again if self._map_cost(again) < self._map_cost(res) else res
+        return again if again.info["chi2_per_dof"] <= level and self._map_cost(again) < self._map_cost(res) else res
 
     def linearize(self, res: IdentResult, named: list[str]) -> Linearization:
         """Linear model at ``res`` with the columns of every candidate not in ``named``."""
