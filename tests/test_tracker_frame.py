@@ -238,7 +238,12 @@ def test_twin_measure_tracker_campaign_end_to_end(tmp_path, capsys):
     assert ",,," in text
     line = next(x for x in text.splitlines() if x.startswith("# truth outlier"))
     row, target = int(line.split("row ")[1].split()[0]), int(line.split("target t")[1].split()[0])
-    assert main(["--quiet", "identify", str(m), "--frame", "tracker", "-o", str(tmp_path / "p.json")]) == 0
+    capsys.readouterr()
+    assert main(["identify", str(m), "--frame", "tracker", "-o", str(tmp_path / "p.json")]) == 0
+    out, err = capsys.readouterr()            # piped: the rejected target is a warning on stderr
+    warned = [x for x in err.splitlines() if x.startswith("pmcal: warning: rejected outlier")]
+    assert len(warned) == 1 and f"row {row} " in warned[0] and f"target t{target}," in warned[0], err
+    assert "warning" not in out and f"pmcal: wrote {tmp_path / 'p.json'}" in out.splitlines()
     doc = json.loads((tmp_path / "p.json").read_text())
     assert [(r["row"], r["target"]) for r in doc["rejected"]] == [(row, target)]
     assert doc["frame"] == "tracker" and set(doc["gauge"]["held_at_zero"]) == set(GAUGE_KEYS)
@@ -250,6 +255,21 @@ def test_twin_measure_tracker_campaign_end_to_end(tmp_path, capsys):
     assert np.linalg.norm(Rotation.from_matrix(np.array(reg["R"]) @ true_rot.T).as_rotvec(degrees=True)) < 0.5
     assert main(["twin", "measure", "--poses", "5", "--blocked", "2", "-o", str(tmp_path / "x.csv")]) == 2
     assert "--blocked" in capsys.readouterr().err and not (tmp_path / "x.csv").exists()
+
+
+def test_warnings_go_to_stderr_unless_quiet(capsys):
+    """docs/formats.md: warnings (a rejected target) are shown piped, on stderr; --quiet hides them."""
+    from pmcal import progress
+
+    try:
+        progress.set_quiet(False)
+        progress.warning("rejected outlier: row 3")
+        progress.set_quiet(True)
+        progress.warning("rejected outlier: row 4")
+    finally:
+        progress.set_quiet(False)
+    out, err = capsys.readouterr()
+    assert out == "" and err == "pmcal: warning: rejected outlier: row 3\n"
 
 
 def test_api_reads_and_identifies_the_tracker_frame(tracker_case, tmp_path):
