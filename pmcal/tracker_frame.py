@@ -144,12 +144,13 @@ def register_for_diagnosis(meas: Measurements, model, sigma: float, baseline_key
     doc["gauge"] = {"held_at_zero": [], "meaning": "the diagnosis baseline's base frame: the passive limbs "
                     "(not in the baseline) are nominal in it; fitted keys: " + ", ".join(res.names)}
     notes: list[str] = []
-    if res.info["unassembled"]:
-        doc["registration_left_out"] = [dict(r, why="the model cannot assemble it at the registration's "
-                                             "parameters") for r in res.info["unassembled"]]
-        notes.append(f"{len(res.info['unassembled'])} row(s) left out of the registration only (the model "
-                     "cannot assemble them there; kept in the diagnosis): rows "
-                     + ", ".join(str(r["row"]) for r in res.info["unassembled"]))
+    lost = [r for r in res.info["unassembled"] if r["at"] == "fit"]
+    outside = [r["row"] - 1 for r in res.info["unassembled"] if r["at"] == "start"]
+    if lost:
+        doc["registration_left_out"] = [{"row": r["row"], "pose_id": r["pose_id"], "why": "the model cannot "
+                                         "assemble it at the registration's parameters"} for r in lost]
+        notes.append(f"{len(lost)} row(s) left out of the registration only (the model cannot assemble "
+                     "them there; kept in the diagnosis): rows " + ", ".join(str(r["row"]) for r in lost))
     if meas.approach is None and len(meas) > 1:       # the order is the full campaign's: infer it here
         meas = replace(meas, approach=approach_from_order(meas.m_cmd_deg))
         first = [0]
@@ -162,6 +163,7 @@ def register_for_diagnosis(meas: Measurements, model, sigma: float, baseline_key
     drop = ~meas.visible.all(axis=1)
     for r in res.info["rejected"]:
         drop[r["row"] - 1] = True
+    drop[outside] = True
     X = model.geom.targets[: y.shape[1]]
     keep = np.flatnonzero(~drop)
     keep = keep[~np.isin(keep, first)]
@@ -170,10 +172,12 @@ def register_for_diagnosis(meas: Measurements, model, sigma: float, baseline_key
     out = replace(meas, targets=y).subset(keep)
     left = sorted(set(np.flatnonzero(drop).tolist()))
     if left:
-        notes.append(f"{len(left)} row(s) left out (blocked or rejected target): rows "
-                     + ", ".join(str(i + 1) for i in left))
+        notes.append(f"{len(left)} row(s) left out (blocked or rejected target, or outside the workspace): "
+                     "rows " + ", ".join(str(i + 1) for i in left))
+    rejected = {r["row"] - 1 for r in res.info["rejected"]}
     doc["rows_left_out"] = [{"row": i + 1, "pose_id": meas.pose_id[i],
-                             "why": "rejected outlier" if any(r["row"] == i + 1 for r in res.info["rejected"])
+                             "why": "rejected outlier" if i in rejected else
+                             "the nominal model cannot assemble it (outside the workspace?)" if i in outside
                              else "blocked target"} for i in left]
     return out, doc, notes
 

@@ -194,7 +194,9 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
     ``info["registration"]`` (``R``, ``t_mm``, ``rotvec_deg``, their standard deviations ``std_rot_deg``
     about the tracker axes and ``std_t_mm``), ``info["nests"]`` (offsets (k, 3) mm in platform
     coordinates and their standard deviations) and ``info["rejected"]`` (row index from 0, pose id,
-    target number from 1, residual mm).
+    target number from 1, residual mm). With ``leave_out_unassembled``: ``info["unassembled"]`` (row
+    from 1, pose id, ``at``: "start" for a pose the model cannot assemble at the prior mean, "fit" for one
+    lost where the fit went), left out of the fit.
     """
     opt = options or FullChainOptions()
     topt = tracker or TrackerOptions()
@@ -207,7 +209,7 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
     keep = meas.visible.copy()
     t_start = time.perf_counter()
     z = np.zeros(p + g + m)
-    unassembled: list[int] = []                # rows (0-based) left out: the model cannot assemble them
+    unassembled: list[tuple[int, str]] = []    # (row from 0, "start" or "fit"): the model cannot assemble it
     lost: set[int] = set()                     # rows that did not assemble at a point the solver tried
 
     def rows_not_assembled(Y, mask) -> np.ndarray:
@@ -223,12 +225,12 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
                 f"{', '.join(str(i + 1) for i in rows[:5])}{', ...' if len(rows) > 5 else ''}): are they "
                 "inside the workspace?")
         keep[rows] = False
-        unassembled.extend(rows)
+        unassembled.extend((i, "start" if "start" in when else "fit") for i in rows)
         if len(unassembled) > topt.max_reject_fraction * len(meas) or keep.any(axis=1).sum() < 2:
             raise BadCampaignError(
                 f"bad campaign: the model cannot assemble {len(unassembled)} of {len(meas)} measured poses "
                 f"(limit {topt.max_reject_fraction:.0%}; first rows "
-                f"{', '.join(str(i + 1) for i in sorted(unassembled)[:5])}): are they inside the workspace?")
+                f"{', '.join(str(i + 1) for i, _ in sorted(unassembled)[:5])}): are they inside the workspace?")
 
     Y0, _ = prob.evaluate(z)
     leave_out(rows_not_assembled(Y0, keep), "at its starting parameters")
@@ -317,7 +319,8 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
             "singular_values": np.linalg.svd(A[:, :p], compute_uv=False),
             "rejected": rejected, "robust_scale_mm": scale, "n_targets_used": int(keep.sum()),
             "n_targets_blocked": int((~meas.visible).sum()),
-            "unassembled": [{"row": int(i) + 1, "pose_id": meas.pose_id[i]} for i in sorted(unassembled)],
+            "unassembled": [{"row": int(i) + 1, "pose_id": meas.pose_id[i], "at": at}
+                            for i, at in sorted(unassembled)],
             "gauge_fixed": list(topt.gauge) if is_tracker else []}
     if is_tracker:
         Rg, tg = prob.registration(z)

@@ -40,6 +40,9 @@ def frame_input(args, geom: Geometry, sigma: float | None, min_poses: int):
         warn_rejected(doc)
         for r in doc.get("registration_left_out", []):
             progress.warning(f"row {r['row']} ({r['pose_id']}) left out of the registration: {r['why']}")
+        for r in doc.get("rows_left_out", []):
+            if "cannot assemble" in r["why"]:
+                progress.warning(f"row {r['row']} ({r['pose_id']}) left out: {r['why']}")
         return meas, doc, notes
     blocked = np.flatnonzero(~meas.visible.all(axis=1))
     if not blocked.size:
