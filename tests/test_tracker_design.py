@@ -169,3 +169,27 @@ def test_diagnose_tracker_frame_gives_the_base_frame_answer(tmp_path, backlash):
     rot = Rotation.from_matrix(np.asarray(reg["R"]) @ R.T).as_rotvec(degrees=True)
     assert np.all(np.abs(rot) < 5 * np.asarray(reg["std_rot_deg"]) + 1e-4), (rot, reg["std_rot_deg"])
     assert np.all(np.abs(np.asarray(reg["t_mm"]) - t) < 5 * np.asarray(reg["std_t_mm"]))
+
+
+def test_diagnosis_registration_leaves_out_a_pose_outside_the_workspace(backlash, tmp_path, capsys):
+    """A pose no machine reaches is left out of the registration and the diagnosis, named in the JSON's
+    frame part and in a warning line (piped too), never a traceback."""
+    from argparse import Namespace
+
+    from pmcal.apps.ocpm_diagnose_frame import frame_input
+
+    _, tracker, _, blocked, _, _ = backlash
+    lines = tracker.read_text().splitlines()
+    i = [k for k, ln in enumerate(lines) if ln[:1] == "P"][29]            # row 30
+    f = lines[i].split(",")
+    f[1] = f[2] = "60.0"
+    lines[i] = ",".join(f)
+    bad = tmp_path / "outside.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    capsys.readouterr()
+    meas, doc, _ = frame_input(Namespace(measurements=str(bad), frame="tracker", nest_tolerance=None,
+                                         model=None), G, SIGMA, 24)
+    left = {r["row"]: r["why"] for r in doc["rows_left_out"]}
+    assert "cannot assemble" in left[30] and left[blocked + 1] == "blocked target"
+    assert f[0] not in meas.pose_id
+    assert f"pmcal: warning: row 30 ({f[0]}) left out" in capsys.readouterr().err

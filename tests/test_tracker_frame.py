@@ -191,7 +191,8 @@ def rewrite(src, dst, edit):
 
 
 @pytest.mark.parametrize("case, expect", [
-    ("half", "row 3, field 't2_y'"), ("one", "row 5, field 't1_x'"), ("all", "bad campaign")])
+    ("half", "row 3, field 't2_y'"), ("one", "row 5, field 't1_x'"), ("all", "bad campaign"),
+    ("outside", "cannot assemble 1 measured pose(s) at its starting parameters (rows 4)")])
 def test_bad_input_exit_2_one_line_nothing_written(base_campaign, tmp_path, capsys, case, expect):
     d, _ = base_campaign
     bad = tmp_path / "bad.csv"
@@ -203,6 +204,8 @@ def test_bad_input_exit_2_one_line_nothing_written(base_campaign, tmp_path, caps
         elif case == "one":
             for c in ("t1_x", "t1_y", "t1_z", "t2_x", "t2_y", "t2_z"):
                 rows[5][h.index(c)] = ""
+        elif case == "outside":                           # commands no machine reaches
+            rows[4][h.index("m1_cmd_deg")] = rows[4][h.index("m2_cmd_deg")] = "60.0"
         else:                                             # every row has a 1.5 mm outlier
             rng = np.random.default_rng(0)
             for r in rows[1:]:
@@ -211,7 +214,7 @@ def test_bad_input_exit_2_one_line_nothing_written(base_campaign, tmp_path, caps
     rewrite(d / "meas.csv", bad, edit)
     out = tmp_path / "p.json"
     capsys.readouterr()
-    args = ["identify", str(bad), "-o", str(out)] + (["--frame", "tracker"] if case == "all" else [])
+    args = ["identify", str(bad), "-o", str(out)] + (["--frame", "tracker"] if case in ("all", "outside") else [])
     assert main(args) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and expect in err and "Traceback" not in err
