@@ -193,3 +193,33 @@ def test_diagnosis_registration_leaves_out_a_pose_outside_the_workspace(backlash
     assert "cannot assemble" in left[30] and left[blocked + 1] == "blocked target"
     assert f[0] not in meas.pose_id
     assert f"pmcal: warning: row 30 ({f[0]}) left out" in capsys.readouterr().err
+
+
+def test_twin_tracker_frame_with_effects_then_diagnose_cli(tmp_path, capsys):
+    """End to end from the CLI: the diagnosis plan, measured on a twin with backlash by a tracker at a
+    known pose with a blocked target and an outlier (`twin measure --effect ... --tracker-pose ...`), then
+    `diagnose --frame tracker`: backlash named at its planted value, the planted outlier the one rejected,
+    the tracker pose recovered."""
+    plan, m, out = tmp_path / "plan.csv", tmp_path / "m.csv", tmp_path / "d.json"
+    assert main(["--quiet", "twin", "plan", "--for-diagnosis", "-o", str(plan)]) == 0
+    assert main(["--quiet", "twin", "measure", "--targets", str(plan), "--effect", "backlash=0.0125",
+                 "--tracker-pose", "1500,-800,200,1,-1,120", "--blocked", "0.03", "--outliers", "1",
+                 "-o", str(m)]) == 0
+    text = m.read_text()
+    assert "targets in the tracker frame" in text and ",,," in text
+    line = next(x for x in text.splitlines() if x.startswith("# truth outlier"))
+    row, target = int(line.split("row ")[1].split()[0]), int(line.split("target t")[1].split()[0])
+    capsys.readouterr()
+    assert main(["diagnose", str(m), "--frame", "tracker", "--json", str(out)]) == 0
+    assert f"rejected outlier: row {row} " in capsys.readouterr().err
+    doc = json.loads(out.read_text())
+    assert doc["effect"] == "backlash"
+    lo, hi = doc["named"][0]["interval"]
+    assert lo <= 0.0125 <= hi or abs(doc["named"][0]["value"] - 0.0125) < 2 * (hi - lo), doc["named"][0]
+    frame = doc["measurement_frame"]
+    assert [(r["row"], r["target"]) for r in frame["rejected"]] == [(row, target)]
+    reg = frame["registration"]
+    assert np.all(np.abs(np.asarray(reg["t_mm"]) - [1500, -800, 200]) < 5 * np.asarray(reg["std_t_mm"]) + 0.05)
+    R = Rotation.from_rotvec([1, -1, 120], degrees=True).as_matrix()
+    rot = Rotation.from_matrix(np.asarray(reg["R"]) @ R.T).as_rotvec(degrees=True)
+    assert np.all(np.abs(rot) < 5 * np.asarray(reg["std_rot_deg"]) + 1e-4), (rot, reg["std_rot_deg"])
