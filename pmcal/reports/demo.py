@@ -167,7 +167,7 @@ def demo_report(st, pool=None):
                       + ("" if st.full else " with capped budgets ("
                          + ", ".join(f"{m}: {', '.join(f'{k} {v}' for k, v in o.items())}"
                                      for m, o in st.budgets.items())
-                         + "; `pmcal demo --full` runs them to their own stopping rules)")
+                         + "; pmcal demo --full runs them to their own stopping rules)")
                       + "; clean timings: benchmarks/identify_bench.py.")
     keys = list(st.methods["hga"]["dev"])
     fig, ax = plt.subplots(2, 1, figsize=(13, 6.5), layout="constrained")
@@ -277,8 +277,8 @@ def _tracker_section(rep, st) -> None:
     rep.heading("Tracker in its own frame: registration, nests, blocked targets, an outlier")
     rej = ", ".join(f"row {r} target T{k}" for r, k in sm["rejected"]) or "none"
     planted = ", ".join(f"row {r} target T{k}" for r, k in sm["outliers_planted"]) or "none"
-    rep.card(f"{st.N_CAL} poses designed for the tracker frame (`pmcal twin plan --frame tracker`: D-optimal, "
-             "to 80 deg), measured by a tracker 1-3 m away, any yaw; `pmcal identify --frame tracker`", [
+    rep.card(f"{st.N_CAL} poses designed for the tracker frame (pmcal twin plan --frame tracker: D-optimal, "
+             "to 80 deg), measured by a tracker 1-3 m away, any yaw; pmcal identify --frame tracker", [
         f"pointing error after (held-out, in the base frame of the motor axes): {_stats(st.tracker['pointing'])} "
         f"deg; the demo's {st.N_CAL} poses to {st.theta_max:g} deg measured in the twin's base frame: {_stats(base)} deg (Table 2 tilts the motor "
         f"axes {sm['motor_axes_vs_twin_frame_deg']:.3f} deg from it: from tracker data the base frame is the "

@@ -121,7 +121,7 @@ def scoreboard(rep: Report, d) -> None:
                   "named): survival = share of a typical-size signature the geometric parameters cannot "
                   "absorb; power = chance to detect a typical size with this campaign; the test is a "
                   "pose-clustered Wald test (F), Bonferroni-corrected; share = part of the structure left "
-                  "beyond the noise that the effect explains; folds = cross-validation folds whose own "
+                  "beyond the noise that the effect explains (shown for significant candidates only: p below the threshold); folds = cross-validation folds whose own "
                   "selection picked it.", "note")
     folds = len(np.unique(d.folds))
     rows = []
@@ -130,7 +130,7 @@ def scoreboard(rep: Report, d) -> None:
         val = "–" if v is None else f"{_f(v.value)} [{_f(v.interval[0])}, {_f(v.interval[1])}] {v.unit}"
         rows.append([c.name if v is None else effect_label(v), _layer(c.name), c.verdict, _pct(c.survival),
                      _f(c.power_typical, 2), _f(c.delta_chi2, 4), c.nu, _f(c.F, 3), _f(c.p_value, 2),
-                     _f(c.threshold, 2), _pct(c.share), val, f"{c.cv_folds}/{folds}"])
+                     _f(c.threshold, 2), _pct(c.share) if c.p_value < c.threshold else "–", val, f"{c.cv_folds}/{folds}"])
     rep.table(["effect", "layer", "verdict", "survival", "power", "Δχ²", "dir.", "F", "p", "threshold",
                "share", "value [95 %]", "folds"], rows, left_cols=3)
     reasons = [f"{c.name}: {c.reason}" for c in d.candidates.values() if c.reason]
