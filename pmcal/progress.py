@@ -5,6 +5,8 @@
   is large says so before its long steps), whose steps and status lines are printed as plain lines,
   one per step, so a log shows what a long run is doing.
 - ``--quiet``: nothing. ``--verbose``: status lines also when piped.
+- Warnings (:func:`warning`: something the user must know about the result, e.g. a rejected target):
+  always on stderr, piped or not, unless ``--quiet``.
 """
 
 from __future__ import annotations
@@ -110,3 +112,16 @@ def status(message: str) -> None:
         print(message, file=sys.stderr, flush=True)
     elif enabled() or (_VERBOSE and not _QUIET):
         tqdm.write(message, file=sys.stderr)
+
+
+def warning(message: str) -> None:
+    """One ``pmcal: warning: ...`` line on stderr, piped or not, unless ``--quiet`` (docs/formats.md,
+    "What the commands print"): for what the user must know about a result (a rejected target, a row
+    left out), not for progress."""
+    if _QUIET:
+        return
+    line = f"pmcal: warning: {message}"
+    if enabled():
+        tqdm.write(line, file=sys.stderr)
+    else:
+        print(line, file=sys.stderr, flush=True)

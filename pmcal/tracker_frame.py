@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.calib.ocpm.fullchain import FullChainOptions, Priors, identify_full
+from pmcal.calib.ocpm.fullchain import FullChainOptions, Priors, UnassembledError, identify_full
 from pmcal.calib.ocpm.registration import FRAME_KEYS, read_registration
 from pmcal.calib.ocpm.tracker_fit import BadCampaignError, TrackerOptions, identify_tracker
+from pmcal import progress
 from pmcal.errors import InputError
 
 FRAMES = ("base", "tracker")
@@ -68,8 +69,16 @@ def identify_result(meas: Measurements, model, sigma: float, frame: str = "base"
                           fit_nests=frame == "tracker", robust=robust)
     try:
         return identify_tracker(meas, model, opt, topt)
-    except BadCampaignError as exc:
+    except (BadCampaignError, UnassembledError) as exc:
         raise InputError(str(exc), file=source) from None
+
+
+def warn_rejected(doc: dict) -> None:
+    """One warning line on stderr per rejected target of a robust fit (``doc["rejected"]``; shown piped
+    too, unless --quiet: docs/formats.md)."""
+    for r in doc.get("rejected", []):
+        progress.warning(f"rejected outlier: row {r['row']} ({r['pose_id']}) target t{r['target']}, "
+                         f"residual {r['residual_mm']:.3g} mm")
 
 
 def tracker_document(res, meas: Measurements) -> dict:
@@ -122,16 +131,26 @@ def register_for_diagnosis(meas: Measurements, model, sigma: float, baseline_key
     opt = FullChainOptions(keys=list(baseline_keys), fit_stiffness_ratio=fit_stiffness_ratio, sigma_mm=sigma)
     # the effect the diagnosis looks for is in these residuals: a residual scale of a few sigma is what it
     # is there to explain, not a bad campaign (outliers are still rejected at 6 robust sigmas)
+    # a pose the registration's model cannot assemble (at the edge of the workspace, the fit moving the
+    # baseline with an effect still unmodelled) is left out of the registration and named; the
+    # diagnosis, which handles such poses itself, keeps it
     topt = TrackerOptions(frame="tracker", registration0=registration0, nest_std_mm=nest_std_mm, gauge=(),
-                          max_scale_ratio=DIAGNOSIS_SCALE_RATIO)
+                          max_scale_ratio=DIAGNOSIS_SCALE_RATIO, leave_out_unassembled=True)
     try:
         res = identify_tracker(meas, model, opt, topt)
-    except BadCampaignError as exc:
+    except (BadCampaignError, UnassembledError) as exc:
         raise InputError(str(exc), file=source) from None
     doc = tracker_document(res, meas)
     doc["gauge"] = {"held_at_zero": [], "meaning": "the diagnosis baseline's base frame: the passive limbs "
                     "(not in the baseline) are nominal in it; fitted keys: " + ", ".join(res.names)}
     notes: list[str] = []
+    lost = [r for r in res.info["unassembled"] if r["at"] == "fit"]
+    outside = [r["row"] - 1 for r in res.info["unassembled"] if r["at"] == "start"]
+    if lost:
+        doc["registration_left_out"] = [{"row": r["row"], "pose_id": r["pose_id"], "why": "the model cannot "
+                                         "assemble it at the registration's parameters"} for r in lost]
+        notes.append(f"{len(lost)} row(s) left out of the registration only (the model cannot assemble "
+                     "them there; kept in the diagnosis): rows " + ", ".join(str(r["row"]) for r in lost))
     if meas.approach is None and len(meas) > 1:       # the order is the full campaign's: infer it here
         meas = replace(meas, approach=approach_from_order(meas.m_cmd_deg))
         first = [0]
@@ -144,6 +163,7 @@ def register_for_diagnosis(meas: Measurements, model, sigma: float, baseline_key
     drop = ~meas.visible.all(axis=1)
     for r in res.info["rejected"]:
         drop[r["row"] - 1] = True
+    drop[outside] = True
     X = model.geom.targets[: y.shape[1]]
     keep = np.flatnonzero(~drop)
     keep = keep[~np.isin(keep, first)]
@@ -152,10 +172,12 @@ def register_for_diagnosis(meas: Measurements, model, sigma: float, baseline_key
     out = replace(meas, targets=y).subset(keep)
     left = sorted(set(np.flatnonzero(drop).tolist()))
     if left:
-        notes.append(f"{len(left)} row(s) left out (blocked or rejected target): rows "
-                     + ", ".join(str(i + 1) for i in left))
+        notes.append(f"{len(left)} row(s) left out (blocked or rejected target, or outside the workspace): "
+                     "rows " + ", ".join(str(i + 1) for i in left))
+    rejected = {r["row"] - 1 for r in res.info["rejected"]}
     doc["rows_left_out"] = [{"row": i + 1, "pose_id": meas.pose_id[i],
-                             "why": "rejected outlier" if any(r["row"] == i + 1 for r in res.info["rejected"])
+                             "why": "rejected outlier" if i in rejected else
+                             "the nominal model cannot assemble it (outside the workspace?)" if i in outside
                              else "blocked target"} for i in left]
     return out, doc, notes
 

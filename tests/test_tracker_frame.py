@@ -191,7 +191,8 @@ def rewrite(src, dst, edit):
 
 
 @pytest.mark.parametrize("case, expect", [
-    ("half", "row 3, field 't2_y'"), ("one", "row 5, field 't1_x'"), ("all", "bad campaign")])
+    ("half", "row 3, field 't2_y'"), ("one", "row 5, field 't1_x'"), ("all", "bad campaign"),
+    ("outside", "cannot assemble 1 measured pose(s) at its starting parameters (rows 4)")])
 def test_bad_input_exit_2_one_line_nothing_written(base_campaign, tmp_path, capsys, case, expect):
     d, _ = base_campaign
     bad = tmp_path / "bad.csv"
@@ -203,6 +204,8 @@ def test_bad_input_exit_2_one_line_nothing_written(base_campaign, tmp_path, caps
         elif case == "one":
             for c in ("t1_x", "t1_y", "t1_z", "t2_x", "t2_y", "t2_z"):
                 rows[5][h.index(c)] = ""
+        elif case == "outside":                           # commands no machine reaches
+            rows[4][h.index("m1_cmd_deg")] = rows[4][h.index("m2_cmd_deg")] = "60.0"
         else:                                             # every row has a 1.5 mm outlier
             rng = np.random.default_rng(0)
             for r in rows[1:]:
@@ -211,7 +214,7 @@ def test_bad_input_exit_2_one_line_nothing_written(base_campaign, tmp_path, caps
     rewrite(d / "meas.csv", bad, edit)
     out = tmp_path / "p.json"
     capsys.readouterr()
-    args = ["identify", str(bad), "-o", str(out)] + (["--frame", "tracker"] if case == "all" else [])
+    args = ["identify", str(bad), "-o", str(out)] + (["--frame", "tracker"] if case in ("all", "outside") else [])
     assert main(args) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and expect in err and "Traceback" not in err
@@ -238,7 +241,12 @@ def test_twin_measure_tracker_campaign_end_to_end(tmp_path, capsys):
     assert ",,," in text
     line = next(x for x in text.splitlines() if x.startswith("# truth outlier"))
     row, target = int(line.split("row ")[1].split()[0]), int(line.split("target t")[1].split()[0])
-    assert main(["--quiet", "identify", str(m), "--frame", "tracker", "-o", str(tmp_path / "p.json")]) == 0
+    capsys.readouterr()
+    assert main(["identify", str(m), "--frame", "tracker", "-o", str(tmp_path / "p.json")]) == 0
+    out, err = capsys.readouterr()            # piped: the rejected target is a warning on stderr
+    warned = [x for x in err.splitlines() if x.startswith("pmcal: warning: rejected outlier")]
+    assert len(warned) == 1 and f"row {row} " in warned[0] and f"target t{target}," in warned[0], err
+    assert "warning" not in out and f"pmcal: wrote {tmp_path / 'p.json'}" in out.splitlines()
     doc = json.loads((tmp_path / "p.json").read_text())
     assert [(r["row"], r["target"]) for r in doc["rejected"]] == [(row, target)]
     assert doc["frame"] == "tracker" and set(doc["gauge"]["held_at_zero"]) == set(GAUGE_KEYS)
@@ -250,6 +258,21 @@ def test_twin_measure_tracker_campaign_end_to_end(tmp_path, capsys):
     assert np.linalg.norm(Rotation.from_matrix(np.array(reg["R"]) @ true_rot.T).as_rotvec(degrees=True)) < 0.5
     assert main(["twin", "measure", "--poses", "5", "--blocked", "2", "-o", str(tmp_path / "x.csv")]) == 2
     assert "--blocked" in capsys.readouterr().err and not (tmp_path / "x.csv").exists()
+
+
+def test_warnings_go_to_stderr_unless_quiet(capsys):
+    """docs/formats.md: warnings (a rejected target) are shown piped, on stderr; --quiet hides them."""
+    from pmcal import progress
+
+    try:
+        progress.set_quiet(False)
+        progress.warning("rejected outlier: row 3")
+        progress.set_quiet(True)
+        progress.warning("rejected outlier: row 4")
+    finally:
+        progress.set_quiet(False)
+    out, err = capsys.readouterr()
+    assert out == "" and err == "pmcal: warning: rejected outlier: row 3\n"
 
 
 def test_api_reads_and_identifies_the_tracker_frame(tracker_case, tmp_path):

@@ -33,7 +33,7 @@ from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, THERMAL_GROUPS, drive_basis, relative_time,
                                           thermal_delta)
 from pmcal.mechanism.ocpm.params import ErrorSet, random_errors
-from pmcal.twin.campaign import CampaignPlan, nominal_commands, plan_campaign
+from pmcal.twin.campaign import CampaignPlan, MeasurementFaults, apply_faults, nominal_commands, plan_campaign
 from pmcal.twin.machine import Twin, TwinState
 from pmcal.twin.model import MM
 from pmcal.twin.tracker import LaserTracker
@@ -294,8 +294,11 @@ class EffectTwin:
         return state
 
     def measure(self, plan: CampaignPlan, tracker: LaserTracker, m_cmd_deg: np.ndarray | None = None,
-                id_prefix: str = "P", skip_unassembled: bool = False) -> Measurements:
-        """Run a campaign (nominal commands unless given) and measure it with ``tracker``.
+                id_prefix: str = "P", skip_unassembled: bool = False,
+                faults: MeasurementFaults | None = None) -> Measurements:
+        """Run a campaign (nominal commands unless given) and measure it with ``tracker`` (in its frame
+        when it has a pose; with ``faults``: nest offsets, blocked targets and outliers as in
+        :func:`pmcal.twin.campaign.run_campaign`, their truth in ``extra``).
 
         A pose whose closed chain does not assemble (a strained machine at the edge of its workspace)
         raises RuntimeError, or with ``skip_unassembled`` is left out of the measurements, as an operator
@@ -304,10 +307,18 @@ class EffectTwin:
         cmd = nominal_commands(plan.phi_deg, plan.theta_deg, self.geom) if m_cmd_deg is None else m_cmd_deg
         state = self.reach(cmd, plan.approach, plan.time_s, plan.temp_c, plan.payload_kg)
         width = len(str(len(plan)))
+        extra = {}
+        if faults is None:
+            y = tracker.measure(state.targets)
+        else:
+            y, truth = apply_faults(state.targets, self.geom.targets[: state.targets.shape[1]], faults, tracker)
+            extra = {"outlier": truth["outlier"],
+                     "nest_offsets": np.broadcast_to(truth["nest_offsets"], y.shape).copy()}
         meas = Measurements(
             pose_id=[f"{id_prefix}{i + 1:0{width}d}" for i in range(len(plan))],
-            m_cmd_deg=np.asarray(cmd, float), targets=tracker.measure(state.targets),
-            temp_c=plan.temp_c, time_s=plan.time_s, payload_kg=plan.payload_kg, approach=plan.approach)
+            m_cmd_deg=np.asarray(cmd, float), targets=y,
+            temp_c=plan.temp_c, time_s=plan.time_s, payload_kg=plan.payload_kg, approach=plan.approach,
+            extra=extra)
         if not np.all(state.converged):
             if not skip_unassembled:
                 i = int(np.flatnonzero(~state.converged)[0])

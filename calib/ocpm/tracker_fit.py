@@ -61,6 +61,10 @@ class TrackerOptions:
     max_reject_fraction: float = 0.2        # more rows than this rejected: bad campaign
     max_scale_ratio: float = 5.0            # robust residual scale over tracker sigma beyond which: bad
     max_nfev: int = 60
+    #: Poses the model cannot assemble (at the start, or at the parameters a stalled fit reached: poses at
+    #: the edge of the workspace) are left out of the fit and named in ``info["unassembled"]``; when False
+    #: they are an :class:`UnassembledError`.
+    leave_out_unassembled: bool = False
     #: Machine keys held at zero in the tracker frame (the base frame's definition, the motor axes). Empty
     #: when the key set itself fixes the frame's rotation (e.g. the diagnosis baseline, passive limbs
     #: held nominal: docs/tracker_frame.md).
@@ -190,7 +194,9 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
     ``info["registration"]`` (``R``, ``t_mm``, ``rotvec_deg``, their standard deviations ``std_rot_deg``
     about the tracker axes and ``std_t_mm``), ``info["nests"]`` (offsets (k, 3) mm in platform
     coordinates and their standard deviations) and ``info["rejected"]`` (row index from 0, pose id,
-    target number from 1, residual mm).
+    target number from 1, residual mm). With ``leave_out_unassembled``: ``info["unassembled"]`` (row
+    from 1, pose id, ``at``: "start" for a pose the model cannot assemble at the prior mean, "fit" for one
+    lost where the fit went), left out of the fit.
     """
     opt = options or FullChainOptions()
     topt = tracker or TrackerOptions()
@@ -203,17 +209,39 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
     keep = meas.visible.copy()
     t_start = time.perf_counter()
     z = np.zeros(p + g + m)
+    unassembled: list[tuple[int, str]] = []    # (row from 0, "start" or "fit"): the model cannot assemble it
+    lost: set[int] = set()                     # rows that did not assemble at a point the solver tried
+
+    def rows_not_assembled(Y, mask) -> np.ndarray:
+        return np.flatnonzero(~np.isfinite(Y).all(axis=(1, 2)) & mask.any(axis=1))
+
+    def leave_out(rows, when: str) -> None:
+        rows = [int(i) for i in rows if keep[i].any()]
+        if not rows:
+            return
+        if not topt.leave_out_unassembled:
+            raise UnassembledError(
+                f"the model cannot assemble {len(rows)} measured pose(s) {when} (rows "
+                f"{', '.join(str(i + 1) for i in rows[:5])}{', ...' if len(rows) > 5 else ''}): are they "
+                "inside the workspace?")
+        keep[rows] = False
+        unassembled.extend((i, "start" if "start" in when else "fit") for i in rows)
+        if len(unassembled) > topt.max_reject_fraction * len(meas) or keep.any(axis=1).sum() < 2:
+            raise BadCampaignError(
+                f"bad campaign: the model cannot assemble {len(unassembled)} of {len(meas)} measured poses "
+                f"(limit {topt.max_reject_fraction:.0%}; first rows "
+                f"{', '.join(str(i + 1) for i, _ in sorted(unassembled)[:5])}): are they inside the workspace?")
+
     Y0, _ = prob.evaluate(z)
-    bad = np.flatnonzero(~np.isfinite(Y0).all(axis=(1, 2)))
-    if bad.size:
-        raise UnassembledError(f"the model cannot assemble {len(bad)} measured pose(s) at its starting "
-                               f"parameters (rows {', '.join(str(i + 1) for i in bad[:5])}"
-                               f"{', ...' if len(bad) > 5 else ''}): are they inside the workspace?")
+    leave_out(rows_not_assembled(Y0, keep), "at its starting parameters")
 
     def solve(z0, mask, loss, nfev):
         def fun(z):
             Y, _ = prob.evaluate(z)
-            return np.concatenate([((y - Y)[mask] / sigma).reshape(-1), prob.priors(z)])
+            r = np.concatenate([((y - Y)[mask] / sigma).reshape(-1), prob.priors(z)])
+            if not np.isfinite(r).all():
+                lost.update(rows_not_assembled(Y, mask).tolist())
+            return r
 
         def jac(z):
             _, J = prob.evaluate(z)
@@ -222,11 +250,36 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
         return least_squares(fun, z0, jac=jac, method="trf", loss=loss, f_scale=topt.f_scale_sigma,
                              xtol=1e-10, ftol=1e-12, gtol=1e-10, max_nfev=nfev)
 
+    def fit(z0, loss):
+        """One solve; a fit that stalls where poses stop assembling (or ends at a point the model cannot
+        evaluate again) leaves those poses out and starts again from the prior mean."""
+        for _ in range(4):
+            lost.clear()
+            try:
+                sol = solve(z0, keep, loss, topt.max_nfev)
+            except ValueError:                 # not finite at z0: the poses the model lost are named below
+                prob.cache = {}
+                rows = rows_not_assembled(prob.evaluate(z0)[0], keep)
+                if not rows.size:
+                    raise
+                leave_out(rows, "at the fit's start")
+                z0 = np.zeros_like(z0)
+                continue
+            prob.cache = {}                    # the assembly is warm-started: evaluate sol.x afresh
+            now = rows_not_assembled(prob.evaluate(sol.x)[0], keep)
+            if not now.size and (sol.status > 0 or not lost):
+                return sol
+            leave_out(sorted(set(now.tolist()) | lost), "at the parameters the fit reached")
+            z0 = np.zeros_like(z0)
+            prob.cache = {}
+        raise UnassembledError("the fit keeps reaching parameters at which the model cannot assemble "
+                               "measured poses: are they inside the workspace?")
+
     rejected = []
     nfev = 0
     scale = float("nan")
     if topt.robust:
-        sol = solve(z, keep, "soft_l1", topt.max_nfev)
+        sol = fit(z, "soft_l1")
         z, nfev = sol.x, sol.nfev
         Y, _ = prob.evaluate(z)
         e = np.linalg.norm(y - Y, axis=-1)                     # (N, k) mm, NaN where blocked
@@ -246,7 +299,7 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
             rejected.append({"row": int(i) + 1, "pose_id": meas.pose_id[i], "target": int(k) + 1,
                              "residual_mm": float(e[i, k])})
         keep &= ~out                   # the row's other targets stay: each is a point in the tracker frame
-    sol = solve(z, keep, "linear", topt.max_nfev)
+    sol = fit(z, "linear")
     z = sol.x
     wall = time.perf_counter() - t_start
     Y, J = prob.evaluate(z)
@@ -266,6 +319,8 @@ def identify_tracker(meas: Measurements, model: ForwardModel, options: FullChain
             "singular_values": np.linalg.svd(A[:, :p], compute_uv=False),
             "rejected": rejected, "robust_scale_mm": scale, "n_targets_used": int(keep.sum()),
             "n_targets_blocked": int((~meas.visible).sum()),
+            "unassembled": [{"row": int(i) + 1, "pose_id": meas.pose_id[i], "at": at}
+                            for i, at in sorted(unassembled)],
             "gauge_fixed": list(topt.gauge) if is_tracker else []}
     if is_tracker:
         Rg, tg = prob.registration(z)

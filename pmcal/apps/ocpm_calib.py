@@ -41,7 +41,7 @@ FRAME_HINT_DEG = 0.004
 
 
 def identify(args) -> int:
-    from pmcal.tracker_frame import check_nest_tolerance, parse_frame
+    from pmcal.tracker_frame import check_nest_tolerance, parse_frame, warn_rejected
 
     frame, reg0 = parse_frame(getattr(args, "frame", None))
     nest_std = check_nest_tolerance(getattr(args, "nest_tolerance", None))
@@ -52,14 +52,15 @@ def identify(args) -> int:
     cal = identify_campaign(meas, model=args.model or "full", method=args.method, sigma_mm=args.sigma,
                             rng_seed=args.seed, source=str(args.measurements), frame=frame, registration=reg0,
                             nest_tolerance_mm=nest_std, robust=True if getattr(args, "robust", False) else None)
-    for r in cal.document.get("rejected", []):
-        progress.status(f"rejected outlier: row {r['row']} ({r['pose_id']}) target t{r['target']}, "
-                        f"residual {r['residual_mm']:.3g} mm")
+    warn_rejected(cal.document)
     if "registration" in cal.document:
         std = float(np.linalg.norm(cal.document["registration"]["std_rot_deg"]))
-        progress.status(f"base frame (motor axes) determined to {std:.4f} deg (1 sigma)" + (
-            "; a campaign from 'pmcal twin plan --frame tracker' fixes it better (docs/tracker_frame.md)"
-            if std > FRAME_HINT_DEG else ""))
+        line = f"base frame (motor axes) determined to {std:.4f} deg (1 sigma)"
+        if std > FRAME_HINT_DEG:
+            progress.warning(line + "; a campaign from 'pmcal twin plan --frame tracker' fixes it better "
+                             "(docs/tracker_frame.md)")
+        else:
+            progress.status(line)
     cal.save(args.output)
     fit = cal.document["fit"]
     quality = (f"chi2/dof {fit['chi2_per_dof']:.3g}" if cal.model == "full" else

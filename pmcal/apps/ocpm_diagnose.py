@@ -16,6 +16,7 @@ import numpy as np
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.calib.ocpm.diagnose import BASELINES, DiagnoseOptions, diagnose as run_diagnosis
 from pmcal.calib.ocpm.diagnosis_result import Diagnosis
+from pmcal.calib.ocpm.fullchain import UnassembledError
 from pmcal.calib.ocpm.registration import FRAME_KEYS, FrameCorrected
 from pmcal.apps.ocpm_diagnose_frame import frame_input
 from pmcal.mechanism.ocpm.effects import EFFECT_NAMES
@@ -78,8 +79,9 @@ def load(args, geom: Geometry):
     return meas, options, (frame_doc, frame_notes)
 
 
-def run(meas, options: DiagnoseOptions, geom: Geometry) -> Diagnosis:
-    """The diagnosis with a progress bar over its steps."""
+def run(meas, options: DiagnoseOptions, geom: Geometry, source: str | None = None) -> Diagnosis:
+    """The diagnosis with a progress bar over its steps. A measured pose the model cannot assemble at the
+    start (outside the workspace) is an InputError naming the file and the rows."""
     steps = ["fitting the baseline model", "testing candidate effects", "cross-validating"]
     with progress.progress(total=len(steps), desc="diagnose", unit="step") as bar:
         def on_step(text: str) -> None:
@@ -91,6 +93,8 @@ def run(meas, options: DiagnoseOptions, geom: Geometry) -> Diagnosis:
             if any(k in FRAME_KEYS for k in options.baseline_keys or ()):
                 model = FrameCorrected(model)          # tracker frame: the registration stays in the baseline
             return run_diagnosis(meas, model, options, on_step)
+        except UnassembledError as exc:
+            raise InputError(str(exc), file=source) from None
         except (RuntimeError, np.linalg.LinAlgError) as exc:
             raise RunError(f"the diagnosis failed: {exc}") from None
 
@@ -133,7 +137,7 @@ def summary_line(d: Diagnosis) -> str:
 def diagnose(args) -> int:
     geom = default_geometry()
     meas, options, (frame_doc, frame_notes) = load(args, geom)
-    d = run(meas, options, geom)
+    d = run(meas, options, geom, str(args.measurements))
     d.notes[:0] = frame_notes
     if frame_doc.get("frame") == "tracker":
         from pmcal.tracker_frame import final_registration

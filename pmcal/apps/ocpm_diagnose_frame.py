@@ -19,7 +19,7 @@ def frame_input(args, geom: Geometry, sigma: float | None, min_poses: int):
     diagnosis baseline (:func:`pmcal.tracker_frame.register_for_diagnosis`; the baseline then keeps a
     small base-frame correction, :func:`pmcal.tracker_frame.with_frame_correction`). A row with a blocked
     target is left out and named, in either frame."""
-    from pmcal.tracker_frame import check_nest_tolerance, parse_frame, register_for_diagnosis
+    from pmcal.tracker_frame import check_nest_tolerance, parse_frame, register_for_diagnosis, warn_rejected
 
     frame, reg0 = parse_frame(getattr(args, "frame", None))
     nest_std = check_nest_tolerance(getattr(args, "nest_tolerance", None))
@@ -37,9 +37,12 @@ def frame_input(args, geom: Geometry, sigma: float | None, min_poses: int):
         meas, doc, notes = register_for_diagnosis(meas, FullChainModel(geom), sigma or geom.sigma_mm,
                                                   BASELINES[model], model == "full", reg0,
                                                   nest_std, str(args.measurements))
-        for r in doc.get("rejected", []):
-            progress.status(f"rejected outlier: row {r['row']} ({r['pose_id']}) target t{r['target']}, "
-                            f"residual {r['residual_mm']:.3g} mm")
+        warn_rejected(doc)
+        for r in doc.get("registration_left_out", []):
+            progress.warning(f"row {r['row']} ({r['pose_id']}) left out of the registration: {r['why']}")
+        for r in doc.get("rows_left_out", []):
+            if "cannot assemble" in r["why"]:
+                progress.warning(f"row {r['row']} ({r['pose_id']}) left out: {r['why']}")
         return meas, doc, notes
     blocked = np.flatnonzero(~meas.visible.all(axis=1))
     if not blocked.size:

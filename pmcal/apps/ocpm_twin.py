@@ -76,10 +76,7 @@ def twin_measure(args) -> int:
     errors = machine_errors(args)
     tracker_pose, faults = tracker_setup(args)
     if effect_campaign_requested(args):
-        if tracker_pose is not None or faults is not None:
-            raise InputError("tracker frame, nest errors, blocked targets and outliers are not available "
-                             "together with effects or context columns", field="--tracker-pose")
-        return measure_with_effects(args, errors, sigma, theta_max)
+        return measure_with_effects(args, errors, sigma, theta_max, tracker_pose, faults)
     plan = plan_campaign(args.poses, theta_max, args.seed, randomize_approach=not args.no_random_approach)
     if args.targets:
         phi, theta = read_targets(args.targets, theta_max_deg=THETA_LIMIT_DEG)
@@ -195,8 +192,11 @@ def parse_levels(text: str | None, field: str, lo: float, hi: float, unit: str, 
     return vals
 
 
-def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max: float) -> int:
-    """``twin measure`` with effects: the effect-aware twin (gravity, payload, temperature, drive effects)."""
+def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max: float,
+                         tracker_pose=None, faults=None) -> int:
+    """``twin measure`` with effects: the effect-aware twin (gravity, payload, temperature, drive effects),
+    measured by a tracker at ``tracker_pose`` (None: in the base frame) through ``faults`` (nests, blocked
+    targets, outliers; :func:`tracker_setup`)."""
     from pmcal.apps.effect_scenarios import parse_effects
     from pmcal.twin.effects import EffectTwin, plan_effect_campaign
     from pmcal.twin.tracker import LaserTracker
@@ -230,7 +230,8 @@ def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max
         raise InputError(str(exc), file=args.errors, field="params") from None
     progress.status(f"measuring {len(plan)} poses on the twin with {', '.join(effects.active()) or 'no effects'}")
     try:
-        meas = twin.measure(plan, LaserTracker(sigma, np.random.default_rng(args.seed)))
+        meas = twin.measure(plan, LaserTracker(sigma, np.random.default_rng(args.seed), pose=tracker_pose),
+                            faults=faults)
     except ValueError as exc:
         raise InputError(str(exc), file=args.targets, field="theta_deg" if args.targets else "--poses") from None
     except RuntimeError as exc:
@@ -240,7 +241,8 @@ def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max
     write_measurements(args.output, meas, comments=[
         f"pmcal twin measure: machine {geom_name()}, errors: {source}, poses {len(meas)}, tracker sigma "
         f"{sigma:g} mm, seed {args.seed}, gravity on, effects: {active}",
-        "units: mm, deg, degC, kg, s; targets in the base frame O-xyz"])
+        "units: mm, deg, degC, kg, s; targets in the "
+        + ("tracker frame" if tracker_pose is not None else "base frame O-xyz")] + truth_comments(tracker_pose, meas))
     return 0
 
 

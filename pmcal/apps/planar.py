@@ -9,7 +9,6 @@ target positions), ``evaluate`` (a parameter set against a measurement CSV), ``t
 from __future__ import annotations
 
 import math
-import sys
 
 import numpy as np
 
@@ -76,7 +75,8 @@ def identify(args) -> int:
         raise RunError(f"{args.output} written with success false: {deficient} (--allow-rank-deficient "
                        "accepts it)")
     if not doc["success"]:
-        print(f"warning: {doc['message']}", file=sys.stderr)
+        from pmcal import progress
+        progress.warning(doc["message"])
     return 0
 
 
