@@ -111,7 +111,12 @@ def verdict_cards(rep: Report, d) -> None:
         lines = [info.what] if info is not None else []
         lines += [f"value {_f(v.value, 5)} {v.unit}, 95 % interval [{_f(v.interval[0], 5)}, "
                   f"{_f(v.interval[1], 5)}] {v.unit}; layer: {_layer(v.name)}"]
-        lines += [f"{k}: {p[0]:.5g} ± {p[1]:.2g}" for k, p in list(v.params.items())[:6]]
+        member = getattr(v, "member_params", None) or {}
+        if member:
+            lines += [f"member {getattr(v, 'member', '')}: " + "; ".join(
+                f"{k} {p[0]:.5g} ± {p[1]:.2g}" for k, p in member.items())
+                + (" 1/K" if v.name == "thermal_expansion" else "")]
+        lines += [f"whole family, {k}: {p[0]:.5g} ± {p[1]:.2g}" for k, p in list(v.params.items())[:6]]
         rep.card(effect_label(v), lines, "ok")
 
 
