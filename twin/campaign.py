@@ -132,6 +132,18 @@ def apply_faults(points: np.ndarray, X: np.ndarray, faults: MeasurementFaults, t
     return y, {"nest_offsets": dn, "blocked": blocked, "outlier": outlier}
 
 
+def measure_targets(points: np.ndarray, X: np.ndarray, faults: MeasurementFaults | None,
+                    tracker: LaserTracker) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The tracker's reading of the true target points (N, k, 3) mm, base frame, with ``faults`` applied
+    when given (:func:`apply_faults`); returns the measured targets and the extra truth columns
+    (``outlier`` (N, k, 3) mm, ``nest_offsets`` repeated per row), empty without faults."""
+    if faults is None:
+        return tracker.measure(points), {}
+    y, truth = apply_faults(points, X[: points.shape[1]], faults, tracker)
+    return y, {"outlier": truth["outlier"],
+               "nest_offsets": np.broadcast_to(truth["nest_offsets"], y.shape).copy()}
+
+
 def run_campaign(twin: Twin, plan: CampaignPlan, tracker: LaserTracker,
                  m_cmd_deg: np.ndarray | None = None, id_prefix: str = "P",
                  faults: MeasurementFaults | None = None) -> Measurements:
@@ -146,13 +158,7 @@ def run_campaign(twin: Twin, plan: CampaignPlan, tracker: LaserTracker,
         i = int(np.flatnonzero(~state.converged)[0])
         raise RuntimeError(f"pose {i + 1}: the twin did not assemble (closure solve did not converge)")
     width = len(str(len(plan)))
-    extra = {}
-    if faults is None:
-        y = tracker.measure(state.targets)
-    else:
-        y, truth = apply_faults(state.targets, twin.geom.targets[: state.targets.shape[1]], faults, tracker)
-        extra = {"outlier": truth["outlier"],
-                 "nest_offsets": np.broadcast_to(truth["nest_offsets"], y.shape).copy()}
+    y, extra = measure_targets(state.targets, twin.geom.targets, faults, tracker)
     return Measurements(
         pose_id=[f"{id_prefix}{i + 1:0{width}d}" for i in range(len(plan))],
         m_cmd_deg=np.asarray(m_cmd_deg, float), targets=y,

@@ -33,7 +33,8 @@ from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, THERMAL_GROUPS, drive_basis, relative_time,
                                           thermal_delta)
 from pmcal.mechanism.ocpm.params import ErrorSet, random_errors
-from pmcal.twin.campaign import CampaignPlan, MeasurementFaults, apply_faults, nominal_commands, plan_campaign
+from pmcal.twin.campaign import (CampaignPlan, MeasurementFaults, measure_targets, nominal_commands,
+                                  plan_campaign)
 from pmcal.twin.machine import Twin, TwinState
 from pmcal.twin.model import MM
 from pmcal.twin.tracker import LaserTracker
@@ -307,13 +308,7 @@ class EffectTwin:
         cmd = nominal_commands(plan.phi_deg, plan.theta_deg, self.geom) if m_cmd_deg is None else m_cmd_deg
         state = self.reach(cmd, plan.approach, plan.time_s, plan.temp_c, plan.payload_kg)
         width = len(str(len(plan)))
-        extra = {}
-        if faults is None:
-            y = tracker.measure(state.targets)
-        else:
-            y, truth = apply_faults(state.targets, self.geom.targets[: state.targets.shape[1]], faults, tracker)
-            extra = {"outlier": truth["outlier"],
-                     "nest_offsets": np.broadcast_to(truth["nest_offsets"], y.shape).copy()}
+        y, extra = measure_targets(state.targets, self.geom.targets, faults, tracker)
         meas = Measurements(
             pose_id=[f"{id_prefix}{i + 1:0{width}d}" for i in range(len(plan))],
             m_cmd_deg=np.asarray(cmd, float), targets=y,
