@@ -34,7 +34,7 @@ import numpy as np
 
 from pmcal.mechanism.ocpm.kinematics import nominal_ik, nominal_pose
 from pmcal.mechanism.rotations import tilt_torsion
-from pmcal.twin.assembly import integrate_pos, solve_stacked
+from pmcal.twin.assembly import BALL, HINGE, chain_dofs, integrate_pos, solve_stacked
 
 
 class _BodyRotation:
@@ -44,18 +44,9 @@ class _BodyRotation:
 
     def __init__(self, m: mujoco.MjModel, body: int):
         self.nv = m.nv
-        hinge, ball = [], []                                  # (dof, jnt) and (dof, body, k)
-        b = body
-        while b > 0:
-            for jnt in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
-                kind, dof = int(m.jnt_type[jnt]), int(m.jnt_dofadr[jnt])
-                if kind == mujoco.mjtJoint.mjJNT_HINGE:
-                    hinge.append((dof, jnt))
-                elif kind == mujoco.mjtJoint.mjJNT_BALL:
-                    ball += [(dof + k, b, k) for k in range(3)]
-            b = int(m.body_parentid[b])
-        self.hinge = np.array(hinge, int).reshape(-1, 2)
-        self.ball = np.array(ball, int).reshape(-1, 3)
+        dofs = chain_dofs(m, body)
+        self.hinge = np.array([(dof, jnt) for dof, jnt, kind, _, _ in dofs if kind == HINGE], int).reshape(-1, 2)
+        self.ball = np.array([(dof, b, k) for dof, _, kind, b, k in dofs if kind == BALL], int).reshape(-1, 3)
 
     def __call__(self, xaxis: np.ndarray, xmat: np.ndarray) -> np.ndarray:
         N = len(xaxis)

@@ -96,6 +96,29 @@ class AssemblyResult:
     energy: np.ndarray
 
 
+HINGE, SLIDE, BALL = 0, 1, 2      # joint kinds in :func:`chain_dofs`
+
+
+def chain_dofs(m: mujoco.MjModel, body: int) -> list[tuple[int, int, int, int, int]]:
+    """Every degree of freedom that moves ``body``, walking the tree to the world: ``(dof, jnt, kind,
+    body, k)`` with kind :data:`HINGE`, :data:`SLIDE` or :data:`BALL` (``k`` the ball's axis 0-2, about
+    the axes of its ``body``'s frame: MuJoCo's ball velocities are local)."""
+    out = []
+    while body > 0:
+        for jnt in range(m.body_jntadr[body], m.body_jntadr[body] + m.body_jntnum[body]):
+            kind, dof = int(m.jnt_type[jnt]), int(m.jnt_dofadr[jnt])
+            if kind == mujoco.mjtJoint.mjJNT_BALL:
+                out += [(dof + k, jnt, BALL, body, k) for k in range(3)]
+            elif kind == mujoco.mjtJoint.mjJNT_HINGE:
+                out.append((dof, jnt, HINGE, body, 0))
+            elif kind == mujoco.mjtJoint.mjJNT_SLIDE:
+                out.append((dof, jnt, SLIDE, body, 0))
+            else:
+                raise ValueError("free joints are not expected inside the closed chain")
+        body = int(m.body_parentid[body])
+    return out
+
+
 class _ChainJacobian:
     """Translational Jacobians of sites from batched kinematics (numpy, vectorised over simulations).
 
@@ -105,25 +128,11 @@ class _ChainJacobian:
 
     def __init__(self, m: mujoco.MjModel, sites: np.ndarray):
         self.nv, self.n_sites = m.nv, len(sites)
-        cols = []   # (site row, dof, jnt, kind, body, k) for every dof that moves a site
-        for i, s in enumerate(sites):
-            body = int(m.site_bodyid[s])
-            while body > 0:
-                for jnt in range(m.body_jntadr[body], m.body_jntadr[body] + m.body_jntnum[body]):
-                    kind, dof = int(m.jnt_type[jnt]), int(m.jnt_dofadr[jnt])
-                    if kind == mujoco.mjtJoint.mjJNT_BALL:
-                        cols += [(i, dof + k, jnt, 2, body, k) for k in range(3)]
-                    elif kind == mujoco.mjtJoint.mjJNT_HINGE:
-                        cols.append((i, dof, jnt, 0, body, 0))
-                    elif kind == mujoco.mjtJoint.mjJNT_SLIDE:
-                        cols.append((i, dof, jnt, 1, body, 0))
-                    else:
-                        raise ValueError("free joints are not expected inside the closed chain")
-                body = int(m.body_parentid[body])
-        c = np.array(cols)
+        # (site row, dof, jnt, kind, body, k) for every dof that moves a site
+        c = np.array([(i, *col) for i, s in enumerate(sites) for col in chain_dofs(m, int(m.site_bodyid[s]))])
         self.site, self.dof, self.jnt, self.kind, self.body, self.k = c.T
-        self.ball = self.kind == 2
-        self.slide = self.kind == 1
+        self.ball = self.kind == BALL
+        self.slide = self.kind == SLIDE
         half = self.n_sites // 2
         self.sign = np.where(self.site < half, 1.0, -1.0)
         # flat positions of column c, component i in a (3 half, nv) gap Jacobian: row 3 (site % half) + i
