@@ -151,6 +151,12 @@ def stratified_folds(meas: Measurements, k: int, geom: Geometry) -> np.ndarray:
 
 
 # ======================================================================================== the steps
+def _at_noise(res: IdentResult) -> bool:
+    """The fit's chi2/dof is within 1 + 3 sqrt(2/dof) (three standard deviations of chi2/dof for pure
+    noise): nothing is left above the noise."""
+    return res.info["chi2_per_dof"] <= 1.0 + 3.0 * np.sqrt(2.0 / res.info["dof"])
+
+
 class _Problem:
     """Everything one diagnosis shares: data with context, noise, model, options, candidate keys."""
 
@@ -237,9 +243,7 @@ class _Problem:
         left in the data (a compliance campaign's baseline has the same few strained poses far off) the
         better baseline started the compliance refit where it stalled (twin compliance seed 1016: gap
         after 3.2 sigma), so the fit is then left as it was."""
-        dof = res.info["dof"]
-        level = 1.0 + 3.0 * np.sqrt(2.0 / dof)
-        if res.info["chi2_per_dof"] <= level:
+        if _at_noise(res):
             return res
         norms = np.linalg.norm(res.residuals.reshape(len(self.meas), -1), axis=1)
         out = norms > factor * np.median(norms)
@@ -251,7 +255,7 @@ class _Problem:
                 options, x0={k: float(v) for k, v in zip(part.names, part.x)}))
         except UnassembledError:
             return res
-        return again if again.info["chi2_per_dof"] <= level and self._map_cost(again) < self._map_cost(res) else res
+        return again if _at_noise(again) and self._map_cost(again) < self._map_cost(res) else res
 
     def linearize(self, res: IdentResult, named: list[str]) -> Linearization:
         """Linear model at ``res`` with the columns of every candidate not in ``named``."""
@@ -333,7 +337,7 @@ class _Problem:
         if sub is not None:
             x0.update({k: v for k, v in lin.values(sub).items() if k not in x0})
         new = self.identify(names, x0)
-        if new.info["chi2_per_dof"] > 1.0 + 3.0 * np.sqrt(2.0 / new.info["dof"]) and self._ratio_far(new):
+        if not _at_noise(new) and self._ratio_far(new):
             # Left well above the noise with the stiffness ratio far out: the warm start may sit in the
             # baseline's basin (the ratio pushed deep into its flat stiff limit to absorb the effect). A
             # fit from the prior mean with the effect in finds the other basin when there is one; the
