@@ -23,18 +23,15 @@ _ANGLE_FIELDS = ("dalpha", "dgamma", "dmu", "dnu", "dtheta")
 METHODS = {"full-chain-map": "least squares with the tolerance priors (maximum a posteriori)"}
 
 
-# ====================================================================== generic access to the result
+# ====================================================================== labels from the result
 def effect_label(v) -> str:
-    """``family`` or ``family (member)`` of a named effect (an EffectValue or anything with ``name``
-    and optionally ``member``)."""
-    name = getattr(v, "family", None) or v.name
-    member = getattr(v, "member", "") or ""
-    return f"{name} ({member})" if member else str(name)
+    """``family`` or ``family (member)`` of a named effect (an EffectValue: its ``name`` is the family)."""
+    return f"{v.name} ({v.member})" if v.member else v.name
 
 
 def named_labels(d) -> str:
     """The named effects, comma-separated, or "nothing"."""
-    return ", ".join(effect_label(v) for v in getattr(d, "named", [])) or ", ".join(d.effects) or "nothing"
+    return ", ".join(effect_label(v) for v in d.named) or ", ".join(d.effects) or "nothing"
 
 
 def _layer(name: str) -> str:
@@ -44,7 +41,7 @@ def _layer(name: str) -> str:
 
 def same_model(d) -> bool:
     """True when the diagnosis named nothing: the final model is the baseline (one figure, not two)."""
-    return not d.effects and not getattr(d, "named", [])
+    return not d.effects and not d.named
 
 
 def baseline_description(d) -> str:
@@ -52,7 +49,7 @@ def baseline_description(d) -> str:
     names = list(d.baseline.names)
     kind = ("whole closed chain (both actuated limbs, the passive limbs and the SS limb)"
             if any(k.startswith("SS.") for k in names) else "the paper's per-limb parameters (limbs 1 and 2)")
-    method = str(getattr(d.final, "method", "") or "")
+    method = d.final.method
     return f"{kind}, {len(names)} parameters, fitted by {METHODS.get(method, method or 'least squares')}"
 
 
@@ -111,10 +108,9 @@ def verdict_cards(rep: Report, d) -> None:
         lines = [info.what] if info is not None else []
         lines += [f"value {_f(v.value, 5)} {v.unit}, 95 % interval [{_f(v.interval[0], 5)}, "
                   f"{_f(v.interval[1], 5)}] {v.unit}; layer: {_layer(v.name)}"]
-        member = getattr(v, "member_params", None) or {}
-        if member:
-            lines += [f"member {getattr(v, 'member', '')}: " + "; ".join(
-                f"{k} {p[0]:.5g} ± {p[1]:.2g}" for k, p in member.items())
+        if v.member_params:
+            lines += [f"member {v.member}: " + "; ".join(
+                f"{k} {p[0]:.5g} ± {p[1]:.2g}" for k, p in v.member_params.items())
                 + (" 1/K" if v.name == "thermal_expansion" else "")]
         lines += [f"whole family, {k}: {p[0]:.5g} ± {p[1]:.2g}" for k, p in list(v.params.items())[:6]]
         rep.card(effect_label(v), lines, "ok")
