@@ -100,7 +100,7 @@ def run_one(job: tuple[str, int, int]) -> dict:
     inside = {v.name: within_interval(d, twin, v.name) for v in d.named if v.name in names}
     return {"case": case, "seed": seed, "poses": len(meas), "named": d.effects, "verdict": d.verdict,
             "gap_before": d.gap_before, "gap_after": d.gap_after, "noise_floor": d.noise_floor, "runtime_s": wall,
-            "truth_in_interval": inside, "values": {v.name: v.value for v in d.named},
+            "gap_after_all": d.gap_after_all, "extrapolated": d.extrapolated, "truth_in_interval": inside, "values": {v.name: v.value for v in d.named},
             "intervals": {v.name: v.interval for v in d.named}, "truth": {n: truth(twin, n) for n in names
                                                                           if n != "overconstraint"},
             "unexplained": d.unexplained}
@@ -136,7 +136,7 @@ def run_xsim(case: str, seed: int, n: int) -> dict:
     wall = time.perf_counter() - t0
     return {"case": f"xsim {case}", "seed": seed, "poses": len(meas), "named": d.effects, "verdict": d.verdict,
             "gap_before": d.gap_before, "gap_after": d.gap_after, "noise_floor": d.noise_floor, "runtime_s": wall,
-            "truth_in_interval": {}, "values": {v.name: v.value for v in d.named},
+            "gap_after_all": d.gap_after_all, "extrapolated": d.extrapolated, "truth_in_interval": {}, "values": {v.name: v.value for v in d.named},
             "intervals": {v.name: v.interval for v in d.named}, "truth": {}, "unexplained": d.unexplained}
 
 

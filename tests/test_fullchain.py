@@ -102,7 +102,7 @@ def test_on_consistent_data_both_methods_compensate_exactly():
     """Errors only in the motor zero offsets: the closures stay consistent, eq. 7 holds, and both the
     paper's method (HGA + real IK at the eq. 7 position) and the whole chain reach the noise floor."""
     from pmcal.calib.ocpm import compensation as comp
-    from pmcal.calib.ocpm import paper_calibration, paper_model as pm
+    from pmcal.calib.ocpm import paper_calibration
 
     params = {"L1.dtheta": -0.28, "L2.dtheta": -0.4}
     twin, meas = campaign(params, n=24, seed=8, noise_seed=9)

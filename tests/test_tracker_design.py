@@ -13,12 +13,12 @@ from scipy.spatial.transform import Rotation
 
 from pmcal.apps.effect_scenarios import hidden_effect_campaign
 from pmcal.calib.ocpm.registration import motor_axes_frame
-from pmcal.calib.ocpm.tracker_design import (PASSIVE_REACH, candidate_orientations, design_blocks,
+from pmcal.calib.ocpm.tracker_design import (candidate_orientations, design_blocks,
                                              frame_std_deg, tracker_campaign)
 from pmcal.cli import main
 from pmcal.io_ocpm import write_measurements
 from pmcal.mechanism.ocpm.config import default_geometry
-from pmcal.mechanism.ocpm.kinematics import limb_ik, nominal_pose
+from pmcal.mechanism.ocpm.kinematics import PASSIVE_REACH, limb_ik, nominal_pose
 from pmcal.mechanism.ocpm.params import ErrorSet, random_errors
 from pmcal.twin.campaign import nominal_commands, plan_orientations
 from pmcal.twin.forward import FullChainModel

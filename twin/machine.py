@@ -104,7 +104,7 @@ class Twin:
         small batches); the limb angles from the real IK of this machine at that pose. Within the error
         size (and the interpolation's 1e-3 rad) of the equilibrium, which the assembly then reaches.
         """
-        geom, idx = self.geom, self.index
+        geom = self.geom
         phi, theta = start_orientation(joint, geom)
         if np.any(~np.isfinite(theta)) and outside == "raise":
             bad = int(np.flatnonzero(~np.isfinite(theta))[0])

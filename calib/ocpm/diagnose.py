@@ -48,7 +48,7 @@ from pmcal.calib.ocpm.effect_values import EffectValue, effect_prior_std, effect
 from pmcal.calib.ocpm.fullchain import FullChainOptions, Priors, UnassembledError, identify_full
 from pmcal.mechanism.ocpm.params import LOG_RATIO
 from pmcal.calib.ocpm.linear_tests import (Linearization, SubFit, conditional_information, fit, huber_weighted,
-                                     nested_test, power, predict)
+                                     nested_test, pose_leverage, power, predict)
 from pmcal.calib.ocpm.noise_estimate import NoiseEstimate, estimate_noise
 from pmcal.calib.ocpm.residual_context import characterise, describe
 from pmcal.mechanism.ocpm.params import LIMB_FIELDS, PAPER_LIMB_FIELDS, SS_FIELDS, is_angular
@@ -77,6 +77,10 @@ class DiagnoseOptions:
         named (a significant effect that explains a sliver of a larger structure is not forced onto it).
     gate_alpha, gate_excess : the omnibus test: structure if p < gate_alpha and the RMS excess over
         the noise is at least gate_excess sigma (also by the robust, median-based measure).
+    max_leverage, max_extrapolated : a pose that determines more than ``max_leverage`` directions of the
+        final model by itself (:func:`pose_leverage`) is predicted by extrapolation when held out; the
+        held-out gaps leave such poses out (at most ``max_extrapolated`` of the poses, the highest first)
+        and a note names them.
     """
 
     baseline_keys: list[str] | None = None
@@ -91,6 +95,8 @@ class DiagnoseOptions:
     max_effects: int = 3
     gate_alpha: float = 1e-3
     gate_excess: float = 0.25
+    max_leverage: float = 1.0
+    max_extrapolated: float = 0.03
     priors: Priors = field(default_factory=Priors)
     initial: dict[str, float] | None = None      # start of the baseline fit (interface units), e.g. P.json
     max_nfev: int = 60
@@ -722,16 +728,41 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     if unexplained:
         pre_notes.append(describe(context))
     verdict = ("named+unexplained" if named else "unexplained") if unexplained else ("named" if named else "noise")
+    far, far_notes = _extrapolated(pb, lin, res, cv_after)
+    inside = ~lin.rows(far)
+    gap = lambda cv, rows: float(np.sqrt(np.mean(cv[rows] ** 2)) * pb.sigma)  # noqa: E731
     shape = meas.targets.shape
     return Diagnosis(
-        effect=named[0] if named else None, effects=named, gap_before=float(np.sqrt(np.mean(cv_before**2)) * pb.sigma),
-        gap_after=float(np.sqrt(np.mean(cv_after**2)) * pb.sigma), noise=pb.noise, verdict=verdict,
+        effect=named[0] if named else None, effects=named, gap_before=gap(cv_before, inside),
+        gap_after=gap(cv_after, inside), noise=pb.noise, verdict=verdict,
         unexplained=unexplained, notes=pre_notes + _notes(board, named, om1, opt)
-        + [v.note for v in values if v.note], candidates=board, named=values,
+        + [v.note for v in values if v.note] + far_notes, candidates=board, named=values,
+        extrapolated=[pb.meas.pose_id[i] for i in far], gap_before_all=gap(cv_before, slice(None)),
+        gap_after_all=gap(cv_after, slice(None)),
         baseline=base, final=res, omnibus_before=om0, omnibus_after=om1, time_unit=pb.time_unit, meas=pb.meas,
         lin_before=lin0, lin_after=lin, cv_before=(cv_before * pb.sigma).reshape(shape),
         cv_after=(cv_after * pb.sigma).reshape(shape), folds=pb.folds, runtime_s=time.perf_counter() - t_start,
         added_variable=_added_variable(pb, lin, res), unexplained_context=context)
+
+
+def _extrapolated(pb: _Problem, lin: Linearization, res: IdentResult, cv: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Poses (indices, highest leverage first) whose held-out prediction is an extrapolation: each
+    determines more than ``max_leverage`` directions of the final model by itself, at most
+    ``max_extrapolated`` of the poses; and the note that names them. Such a pose (typically alone at the
+    edge of the campaign) is predicted from poses that barely see a direction of the geometry, so its
+    held-out residual says little about the model; the gaps are taken without it."""
+    lev = pose_leverage(lin, lin.cols(list(res.names)))
+    cap = int(pb.opt.max_extrapolated * len(lev))
+    far = np.array([i for i in np.argsort(-lev)[:cap] if lev[i] > pb.opt.max_leverage], int)
+    if not far.size:
+        return far, []
+    m = pb.meas
+    per_pose = np.sqrt(np.bincount(lin.pose, weights=cv**2) / np.bincount(lin.pose)) * pb.sigma
+    desc = "; ".join(f"{m.pose_id[i]} (motors {m.m_cmd_deg[i, 0]:.1f}/{m.m_cmd_deg[i, 1]:.1f} deg, leverage "
+                     f"{lev[i]:.2g}, held-out residual {per_pose[i]:.3g} mm RMS)" for i in far)
+    return far, [f"left out of the held-out gaps: {desc}; each determines more than {pb.opt.max_leverage:g} "
+                 "direction of the model by itself, so held out it is predicted by extrapolation; measure a "
+                 "pose beside it to check the model there"]
 
 
 def _confounding(meas: Measurements) -> list[str]:

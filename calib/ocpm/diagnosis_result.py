@@ -76,6 +76,9 @@ class Diagnosis:
     runtime_s: float = 0.0
     added_variable: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     unexplained_context: list = field(default_factory=list)   # residual_context.ContextLink, strongest first
+    extrapolated: list[str] = field(default_factory=list)     # pose ids left out of the held-out gaps
+    gap_before_all: float = float("nan")                      # the held-out gaps over every pose, mm
+    gap_after_all: float = float("nan")
 
     @property
     def noise_floor(self) -> float:
@@ -108,6 +111,8 @@ class Diagnosis:
         return {
             "effect": self.effect, "effects": self.effects, "gap_before": self.gap_before,
             "gap_after": self.gap_after, "unit": "mm", "noise_floor": self.noise_floor,
+            "extrapolated_poses": self.extrapolated, "gap_before_all_poses": _num(self.gap_before_all),
+            "gap_after_all_poses": _num(self.gap_after_all),
             "verdict": self.verdict, "unexplained": self.unexplained, "notes": self.notes,
             "unexplained_context": [{"context": c.context, "share": _num(c.share), "p_value": _num(c.p_value),
                                      "direction": c.direction} for c in self.unexplained_context],

@@ -108,6 +108,17 @@ def predict(lin: Linearization, sub: SubFit, rows: np.ndarray, drop: np.ndarray 
     return r
 
 
+def pose_leverage(lin: Linearization, cols: np.ndarray) -> np.ndarray:
+    """Leverage (N,) of every pose in the fit of the columns ``cols``: the trace of the pose's block of the
+    hat matrix ``J (J^T J + I)^-1 J^T`` (whitened, priors as unit rows), i.e. how many directions of the
+    model the pose determines by itself (0 up to its number of coordinates; over the campaign they add up
+    to the effective number of parameters). A pose near or above 1 is predicted by extrapolation when it
+    is held out."""
+    J = lin.J[:, cols]
+    h = np.einsum("ij,ji->i", J, np.linalg.solve(J.T @ J + np.eye(len(cols)), J.T))
+    return np.bincount(lin.pose, weights=h)
+
+
 def conditional_information(lin: Linearization, model_cols: np.ndarray, effect_cols: np.ndarray,
                             rows: np.ndarray | None = None) -> np.ndarray:
     """Information (prior units) the data keep about ``effect_cols`` once ``model_cols`` have absorbed what

@@ -23,33 +23,23 @@ from pmcal.calib.ocpm.fullchain import FullChainOptions
 from pmcal.calib.ocpm.tracker_fit import TrackerOptions, build_problem
 from pmcal.calib.pose_selection import information, select_poses
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.config import Geometry, default_geometry
-from pmcal.mechanism.ocpm.kinematics import limb_ik, nominal_ik, nominal_pose
+from pmcal.mechanism.ocpm.config import Geometry
+from pmcal.mechanism.ocpm.kinematics import nominal_ik, passive_strained
 from pmcal.mechanism.ocpm.params import ErrorSet
 
 ROT_UNIT_DEG = np.rad2deg(1e-3)    # the registration rotation's unit in the fit's vector (tracker_fit)
-#: Largest nominal |K / rho| both passive limbs may have at once in a designed campaign (see
-#: :func:`candidate_orientations`): on the twin with 0.5 mm / 0.1 deg errors (10 machines x 3000 poses
-#: at 60..82 deg tilt) none of the 27060 pose-machine pairs outside the wedge failed to assemble and
-#: 295 of the 2940 inside it did.
-PASSIVE_REACH = 0.88
 
 
 def candidate_orientations(n: int, theta_max_deg: float, rng: np.random.Generator, geom: Geometry | None = None
                            ) -> tuple[np.ndarray, np.ndarray]:
     """``n`` orientations uniform on the cap of platform normals ``theta <= theta_max_deg`` (deg), outside
-    the wedge where both passive limbs are near their stretched-link singularity at once (nominal
-    ``|K / rho| > PASSIVE_REACH`` for each: tilts beyond ~68 deg towards azimuth 25..60 deg). There the
-    closure is ill-conditioned: a machine with errors of a few tenths of a millimetre strains by
-    millimetres or does not assemble (the twin does not), so a campaign stays out of it."""
-    geom = geom or default_geometry()
-    passive = tuple(j + 1 for j in range(geom.n_limbs) if j + 1 not in geom.actuated)
+    the wedge where both passive limbs are strained at once (:func:`pmcal.mechanism.ocpm.kinematics.
+    passive_strained`)."""
     phi, theta = np.empty(0), np.empty(0)
     while len(phi) < n:
         p = rng.uniform(0.0, 360.0, 2 * n)
         t = np.rad2deg(np.arccos(rng.uniform(np.cos(np.deg2rad(theta_max_deg)), 1.0, 2 * n)))
-        r, R = nominal_pose(np.deg2rad(p), np.deg2rad(t), geom)
-        ok = np.abs(limb_ik(r, R, None, geom, passive).reach).min(axis=1) <= PASSIVE_REACH
+        ok = ~passive_strained(p, t, geom)
         phi, theta = np.r_[phi, p[ok]], np.r_[theta, t[ok]]
     return phi[:n], theta[:n]
 

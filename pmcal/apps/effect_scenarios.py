@@ -14,7 +14,7 @@ from pmcal.mechanism.ocpm.effects import EFFECT_NAMES, VOCABULARY, approach_from
 from pmcal.mechanism.ocpm.kinematics import HOME_BETA
 from pmcal.mechanism.ocpm.params import random_errors
 from pmcal.twin.campaign import CampaignPlan, nominal_commands
-from pmcal.twin.effects import PER_MOTOR, EffectTwin, Effects, HeavyTailedTracker, plan_effect_campaign
+from pmcal.twin.effects import PER_MOTOR, EffectTwin, Effects, HeavyTailedTracker
 from pmcal.twin.tracker import LaserTracker
 
 
