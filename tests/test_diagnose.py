@@ -19,7 +19,7 @@ from pmcal.calib.ocpm.noise_estimate import estimate_noise, similarity_residuals
 from pmcal.mechanism.ocpm.effects import EFFECT_NAMES, PASSIVE_KEYS, with_context
 from pmcal.twin.effect_model import EffectChainModel
 from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full
-from pmcal.calib.ocpm.linear_tests import Linearization, fit, nested_test, predict
+from pmcal.calib.ocpm.linear_tests import Linearization, fit, nested_test, pose_leverage, predict
 from pmcal.mechanism.ocpm.params import is_angular, random_errors
 from pmcal.apps.ocpm_diagnose import hidden_effect_demo
 from pmcal import progress
@@ -83,6 +83,44 @@ def test_nested_test_holds_its_level_also_with_pose_level_errors():
     lin = _synthetic(rng)
     lin.r = lin.r + lin.J[:, e] @ np.array([0.3, -0.2])
     assert nested_test(lin, m, e).p_value < 1e-6
+
+
+def test_pose_leverage_closed_forms():
+    """One column ``a`` on every row (a common offset, prior 1): each of P poses with q rows has leverage
+    q a^2 / (P q a^2 + 1). A second column that only pose 7 sees (size c; the first then left off pose 7):
+    pose 7 alone determines it, leverage c^2 / (c^2 + 1) -> 1, the others q a^2 / ((P - 1) q a^2 + 1)."""
+    P, q, a, c = 40, 9, 3.0, 30.0
+    pose = np.repeat(np.arange(P), q)
+    J = np.zeros((P * q, 2))
+    J[:, 0] = a
+    lin = Linearization(r=np.zeros(P * q), J=J, keys=["k0", "k1"], z0=np.zeros(2), pose=pose, sigma=1.0,
+                        scale=np.ones(2), mean=np.zeros(2))
+    assert np.allclose(pose_leverage(lin, np.array([0])), q * a**2 / (P * q * a**2 + 1.0), rtol=1e-12)
+    J[pose == 7] = [0.0, c / np.sqrt(q)]
+    h = pose_leverage(lin, np.array([0, 1]))
+    assert np.isclose(h[7], c**2 / (c**2 + 1.0), rtol=1e-12)
+    assert np.allclose(np.delete(h, 7), q * a**2 / ((P - 1) * q * a**2 + 1.0), rtol=1e-12)
+
+
+def test_diagnosis_plan_covers_the_rim_outside_the_strained_wedge():
+    """`pmcal twin plan --for-diagnosis` poses: within the tilt limit, at least half on the rim band
+    (68..80 deg; the spiral adds its own rim poses), spread in azimuth there (every 30 deg sector outside
+    the wedge holds some), none where both passive limbs are near their stretched-link singularity
+    (|K / rho| > 0.88, from the limb IK), and in an order that moves every motor both ways."""
+    from pmcal.apps.ocpm_diagnosis_plan import diagnosis_campaign
+    from pmcal.mechanism.ocpm.kinematics import limb_ik, nominal_pose
+
+    c = diagnosis_campaign(128, 80.0, 5)
+    phi, theta = c["phi_deg"], c["theta_deg"]
+    assert len(phi) == 128 and theta.max() <= 80.0 and theta.min() >= 0.0
+    rim = theta >= 68.0
+    assert rim.mean() >= 0.5
+    sectors = np.bincount((phi[rim] // 30).astype(int), minlength=12)
+    assert (np.delete(sectors, 1) >= 3).all()                  # sector 1 (30..60 deg) holds the wedge
+    r, R = nominal_pose(np.deg2rad(phi), np.deg2rad(theta), G)
+    assert np.abs(limb_ik(r, R, None, G, (3, 4)).reach).min(axis=1).max() <= 0.88
+    moves = np.sign(np.diff(np.c_[c["m1_cmd_deg"], c["m2_cmd_deg"]], axis=0))
+    assert all((moves[:, j] > 0).sum() > 40 and (moves[:, j] < 0).sum() > 40 for j in (0, 1))
 
 
 def test_effect_model_reproduces_the_twin_and_its_derivatives():

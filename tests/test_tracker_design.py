@@ -101,7 +101,7 @@ def _blocked_row(cmd: np.ndarray) -> int:
 @pytest.fixture(scope="module")
 def backlash(tmp_path_factory):
     """The diagnosis campaign as `pmcal twin plan --for-diagnosis` then `pmcal twin measure` log it (128
-    poses uniform to 80 deg, random time order, no approach columns) on a machine with backlash, in the
+    poses to 80 deg, random time order, no approach columns) on a machine with backlash, in the
     base frame; the same file with one target blocked in the middle; and the campaign seen by a tracker at
     a known pose with that target blocked and a 2 mm outlier in row 20."""
     meas, _ = hidden_effect_campaign(["backlash"], 6, 128, SIGMA)

@@ -69,7 +69,10 @@ class DiagnoseOptions:
     baseline_keys : geometric keys of the baseline (default ``BASELINES["full"]``); the stiffness ratio
         is fitted too when ``fit_stiffness_ratio``. Passive-limb keys in it remove ``overconstraint``.
     sigma_mm : tracker noise if known (else estimated from the data, model-free).
-    alpha : family-wise level of a naming round (Bonferroni over the candidates in play).
+    alpha : family-wise level of a naming round: weighted Bonferroni over the candidates in play
+        (:func:`alpha_weights`: ``easy_share`` of it for the candidates the campaign detects at a typical
+        size even at that small a level, the rest for the others).
+    easy_share : the share of ``alpha`` spent on the easily detected candidates.
     folds : cross-validation folds (stratified by tilt, :func:`stratified_folds`).
     min_folds : share of the folds whose own selection must pick a named effect.
     min_rms_sigma : smallest RMS change of the measurements (in sigma) an effect must make to be named.
@@ -87,7 +90,8 @@ class DiagnoseOptions:
     fit_stiffness_ratio: bool = True
     candidates: tuple[str, ...] = EFFECT_NAMES
     sigma_mm: float | None = None
-    alpha: float = 0.01
+    alpha: float = 0.003
+    easy_share: float = 0.1
     folds: int = 10
     min_folds: float = 0.3
     min_rms_sigma: float = 0.03
@@ -193,6 +197,12 @@ class _Problem:
         #: full-data fits met so far: frozenset of effect names -> (fit, Huber-weighted linearisation or
         #: None when the fit does not assemble every pose); filled by the selection, read by the folds
         self.fits: dict[frozenset, tuple[IdentResult, Linearization | None]] = {}
+        #: weighted-Bonferroni weights of the candidates (:func:`alpha_weights`, set by the scoreboard)
+        self.weights: dict[str, float] = {n: 1.0 for n in self.candidates}
+
+    def level(self, name: str, in_play: list[str]) -> float:
+        """The level ``name`` is tested at among the candidates ``in_play``: its share of ``alpha``."""
+        return self.opt.alpha * self.weights[name] / sum(self.weights[n] for n in set(in_play) | {name})
 
     def remember(self, names: list[str], res: IdentResult, lin: Linearization) -> Linearization | None:
         """Keep the full-data fit of baseline + ``names`` and its Huber-weighted linearisation."""
@@ -368,11 +378,12 @@ class _Problem:
 
 
 def _test_round(pb: _Problem, lin: Linearization, model_keys: list[str], names: list[str],
-                rows: np.ndarray | None = None, n_tests: int | None = None) -> dict[str, tuple]:
-    """Test every candidate in ``names`` against the model ``model_keys`` (Bonferroni over ``n_tests``,
-    default ``len(names)``). Returns name -> (NestedTest, EffectValue, passes, explained share)."""
+                rows: np.ndarray | None = None, in_play: list[str] | None = None) -> dict[str, tuple]:
+    """Test every candidate in ``names`` against the model ``model_keys``, each at its level among the
+    candidates ``in_play`` (default ``names``; :meth:`_Problem.level`). Returns name -> (NestedTest,
+    EffectValue, passes, explained share, level)."""
     mcols = lin.cols(model_keys)
-    m = max(n_tests or len(names), 1)
+    in_play = in_play or names
     out = {}
     for name in names:
         t = nested_test(lin, mcols, lin.cols(pb.candidates[name]), rows)
@@ -380,9 +391,10 @@ def _test_round(pb: _Problem, lin: Linearization, model_keys: list[str], names: 
         n_rows = t.fit.n
         excess = t.base.rss - t.base.dof                      # structure beyond the noise, whitened
         share = t.delta_chi2 / max(excess, t.delta_chi2, 1e-12)
-        ok = (t.p_value < pb.opt.alpha / m and v.plausible
+        level = pb.level(name, in_play)
+        ok = (t.p_value < level and v.plausible
               and np.sqrt(t.delta_chi2 / n_rows) >= pb.opt.min_rms_sigma and share >= pb.opt.min_explained)
-        out[name] = (t, v, ok, share)
+        out[name] = (t, v, ok, share, level)
     return out
 
 
@@ -412,7 +424,7 @@ def _fold_selection(pb: _Problem, rows: np.ndarray) -> list[str]:
             # against the model without it.
             tried = pb.fits.get(frozenset(chosen + [n]), (None, None))[1]
             if not tests[n][2] and tried is not None:
-                tests[n] = _test_round(pb, tried, model, [n], rows, len(rest))[n]
+                tests[n] = _test_round(pb, tried, model, [n], rows, rest)[n]
         best = _best(tests)
         if best is None:
             break
@@ -423,7 +435,7 @@ def _fold_selection(pb: _Problem, rows: np.ndarray) -> list[str]:
             break
         for name in chosen[:-1]:
             others = pb.model_keys0 + [k for n in chosen if n != name for k in pb.candidates[n]]
-            if not _test_round(pb, lin, others, [name], rows, len(rest))[name][2]:
+            if not _test_round(pb, lin, others, [name], rows, rest + [name])[name][2]:
                 chosen.remove(name)
     return chosen
 
@@ -489,7 +501,7 @@ def _scoreboard(pb: _Problem, lin: Linearization) -> dict[str, Candidate]:
     """Identifiability of every candidate against the baseline: the share of a typical signature the
     baseline cannot absorb (survival) and the chance to detect a typical size (power, averaged over
     typical instances) with a test of the directions the data determine."""
-    out = {}
+    out, nc, k = {}, {}, {}
     mcols = lin.cols(pb.model_keys0)
     m = max(len(pb.candidates), 1)
     for name in pb.opt.candidates:
@@ -503,12 +515,38 @@ def _scoreboard(pb: _Problem, lin: Linearization) -> dict[str, Candidate]:
         S = lin.J[:, ecols]
         I_c = conditional_information(lin, mcols, ecols)
         raw = np.einsum("ni,ij,nj->n", Z, S.T @ S, Z)
-        nc = np.einsum("ni,ij,nj->n", Z, I_c, Z)
-        k = max(int(np.sum(np.linalg.eigvalsh(I_c) > 1.0)), 1)
-        pw = float(np.mean([power(c, k, pb.opt.alpha / m) for c in nc]))
-        out[name] = Candidate(name, True, survival=float(nc.mean() / raw.mean()) if raw.mean() > 0 else 0.0,
-                              power_typical=pw, fix=info.fix)
+        nc[name] = np.einsum("ni,ij,nj->n", Z, I_c, Z)
+        k[name] = max(int(np.sum(np.linalg.eigvalsh(I_c) > 1.0)), 1)
+        out[name] = Candidate(name, True, survival=float(nc[name].mean() / raw.mean()) if raw.mean() > 0 else 0.0,
+                              fix=info.fix)
+    typical = lambda n, level: float(np.mean([power(c, k[n], level) for c in nc[n]]))  # noqa: E731
+    pb.weights = alpha_weights({n: typical(n, pb.opt.alpha * pb.opt.easy_share / m) for n in nc},
+                               pb.opt.easy_share)
+    for n in nc:
+        out[n].power_typical = typical(n, pb.level(n, list(pb.candidates)))
     return out
+
+
+def alpha_weights(power_at_easy_level: dict[str, float], easy_share: float, easy: float = 0.999
+                  ) -> dict[str, float]:
+    """Weights of the weighted Bonferroni split of the level (they sum to 1 over the candidates).
+
+    A candidate the campaign detects at a typical size with probability >= ``easy`` even at the small
+    level ``alpha * easy_share / m`` (``power_at_easy_level``) needs little of the level: the easy ones
+    share ``easy_share`` of it, the others the rest, equally within each group (all equal when one group
+    is empty). The weights depend on the campaign's design (the Jacobian) and the typical sizes only,
+    not on the residuals, so the family-wise level holds (weighted Bonferroni); the level a test is run
+    at is ``alpha * w / sum(w of the candidates in play)`` (:meth:`_Problem.level`).
+
+    >>> alpha_weights({"backlash": 1.0, "encoder_eccentricity": 0.4}, 0.1)
+    {'backlash': 0.1, 'encoder_eccentricity': 0.9}
+    """
+    easy_ones = [n for n, p in power_at_easy_level.items() if p >= easy]
+    hard = [n for n in power_at_easy_level if n not in easy_ones]
+    if not easy_ones or not hard:
+        return {n: 1.0 / len(power_at_easy_level) for n in power_at_easy_level}
+    return {n: easy_share / len(easy_ones) if n in easy_ones else (1.0 - easy_share) / len(hard)
+            for n in power_at_easy_level}
 
 
 def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[str, Candidate]):
@@ -525,11 +563,11 @@ def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[st
         rest = [n for n in pb.candidates if n not in named and n not in rejected]
         if not rest:
             break
-        m = len(pb.candidates) - len(named)
+        in_play = [n for n in pb.candidates if n not in named]
         cols = lin.cols(list(res.names))
-        tests = _test_round(pb, huber_weighted(lin, cols), list(res.names), rest, n_tests=m)
+        tests = _test_round(pb, huber_weighted(lin, cols), list(res.names), rest, in_play=in_play)
         for n, t in tests.items():
-            history[n] = t[:3] + (m, t[3])
+            history[n] = t[:3] + (t[4], t[3])
         order = sorted((n for n in rest if tests[n][2]), key=lambda n: (tests[n][0].p_value, -tests[n][0].F))
         if not order and omnibus(lin, fit(lin, cols), pb.noise, pb.opt).structure:
             order = sorted(rest, key=lambda n: -tests[n][0].delta_chi2)[:2]
@@ -543,9 +581,10 @@ def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[st
                 board[best].reason = "the nonlinear refit could not assemble every measured pose"
                 continue
             model_t = [k for k in trial.names if effect_of_key(k) != best]
-            t = _test_round(pb, huber_weighted(lin_t, lin_t.cols(list(trial.names))), model_t, [best], n_tests=m)[best]
+            t = _test_round(pb, huber_weighted(lin_t, lin_t.cols(list(trial.names))), model_t, [best],
+                            in_play=in_play)[best]
             v = pb.value_final(trial, best)
-            history[best] = (t[0], v, t[2] and v.plausible, m, t[3])
+            history[best] = (t[0], v, t[2] and v.plausible, t[4], t[3])
             if history[best][2]:
                 accepted = (best, trial, lin_t)
                 break
@@ -558,7 +597,7 @@ def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[st
         named.append(best)
         for n in named[:-1]:                         # re-test the earlier names with the new one in
             model_n = [k for k in res.names if effect_of_key(k) != n]
-            t = _test_round(pb, huber_weighted(lin, lin.cols(list(res.names))), model_n, [n], n_tests=m)[n]
+            t = _test_round(pb, huber_weighted(lin, lin.cols(list(res.names))), model_n, [n], in_play=in_play)[n]
             if not t[2]:
                 named.remove(n)
                 board[n].reason = f"absorbed once {best} was added"
@@ -575,9 +614,9 @@ def _verdicts(pb: _Problem, board: dict[str, Candidate], history: dict, named: l
     for n, c in board.items():
         c.cv_folds = counts.get(n, 0)
         if n in history:
-            t, v, ok, m, share = history[n]
+            t, v, ok, level, share = history[n]
             c.delta_chi2, c.nu, c.F, c.p_value, c.value, c.share = t.delta_chi2, t.k, t.F, t.p_value, v, share
-            c.threshold = pb.opt.alpha / max(m, 1)
+            c.threshold = level
         if n in named:
             c.verdict, c.value = "named", values[named.index(n)]
             c.reason = c.reason or f"selected in {counts[n]} of {n_folds} cross-validation folds"
@@ -628,7 +667,8 @@ def _confirm(pb: _Problem, lin0: Linearization, named: list[str], res: IdentResu
     confirmed = [n for n in named if counts[n] >= need]
     if confirmed == named:
         cv_named = _cv(lin, lin.cols(list(res.names)), pb.folds)
-        if cv_named @ cv_named >= cv_before @ cv_before:
+        inside = ~lin.rows(_extrapolated(pb, lin, res, cv_named)[0])   # as the reported gaps
+        if cv_named[inside] @ cv_named[inside] >= cv_before[inside] @ cv_before[inside]:
             confirmed = []
             for n in named:
                 board[n].reason = "does not predict held-out poses better than the baseline"

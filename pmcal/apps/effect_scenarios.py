@@ -54,8 +54,8 @@ REALISTIC: dict[str, float] = {"joint_compliance": 5.0e4, "backlash": 0.0125, "e
 
 def diagnosis_plan(n: int = 128, seed: int | None = 0, theta_max_deg: float = 80.0) -> CampaignPlan:
     """The campaign the diagnosis is designed for, as ``pmcal twin plan --for-diagnosis`` writes it
-    (:func:`pmcal.apps.ocpm_diagnosis_plan.diagnosis_campaign`): poses uniform on the cap up to 80 deg in
-    random time order, each motor's approach the sign of its last move (the machine starts at home),
+    (:func:`pmcal.apps.ocpm_diagnosis_plan.diagnosis_campaign`): poses up to 80 deg, half on the rim, half
+    on a spiral over the cap, outside the strained wedge, in random time order, each motor's approach the sign of its last move (the machine starts at home),
     payloads 0 and 10 kg in blocks of 32 rows, a warm-up then cool-down 18 -> 28 -> 18 degC, 30 s a pose.
 
     The tilt range sets the motor range, and the motor range decides whether a first harmonic of the motor

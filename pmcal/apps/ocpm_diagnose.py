@@ -130,8 +130,9 @@ def summary_line(d: Diagnosis) -> str:
     else:
         named = "no effect named"
     extra = "; structure left that no candidate explains" if d.unexplained else ""
+    left = f", {len(d.extrapolated)} extrapolated pose(s) left out" if d.extrapolated else ""
     return (f"{named}{extra}; held-out gap {d.gap_before:.4f} -> {d.gap_after:.4f} mm "
-            f"(noise {d.noise_floor:.4f} mm)")
+            f"(noise {d.noise_floor:.4f} mm{left})")
 
 
 def diagnose(args) -> int:

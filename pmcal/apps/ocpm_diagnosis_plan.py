@@ -35,12 +35,14 @@ def diagnosis_orientations(n: int, theta_max_deg: float, rng: np.random.Generato
     Half the poses (``rim_share``) lie evenly spaced in azimuth on the band ``theta_max - rim_band ..
     theta_max`` (tilt uniform in area within it), the others on a golden-angle spiral over the whole cap;
     both leave out the wedge where the passive limbs are strained (:func:`pmcal.mechanism.ocpm.kinematics.
-    passive_strained`). Why: a first harmonic of the motor angle (encoder eccentricity) is told from what
-    the geometry absorbs only where the motors reach their widest angles, and an even spread, unlike random
-    draws, leaves no pose alone in a region (such a pose has high leverage: held out, it is predicted by
-    extrapolation). Why not into the wedge: its edge would carry more of the eccentricity (power at
-    0.01 deg 0.96 -> 0.98), but there the machine strains, a few poses do not assemble, and the twin and
-    the diagnosis model's over-constraint compromise disagree under load (docs/diagnose.md "Decisions").
+    passive_strained`).
+
+    Why: a first harmonic of the motor angle (encoder eccentricity) is told from what the geometry absorbs
+    only where the motors reach their widest angles, on the rim; the spiral covers the cap without the
+    clusters and holes of random draws. Why not into the wedge: there the machine strains, ~1 % of such
+    poses do not assemble, and the twin and the diagnosis model's over-constraint compromise disagree
+    under load; its edge would carry more of the eccentricity (power at 0.01 deg 0.96 -> 0.98; uniform
+    random draws over the whole cap: 0.95). Measured in docs/diagnose.md "Decisions".
     """
     k_rim = int(round(rim_share * n))
     lo = max(theta_max_deg - rim_band_deg, 0.5 * theta_max_deg)

@@ -100,7 +100,9 @@ def verdict_cards(rep: Report, d) -> None:
     rep.card(head[0], [f"method: discrepancy diagnosis against the baseline, {baseline_description(d)}; "
                        f"gaps by {len(np.unique(d.folds))}-fold cross-validation",
                        f"held-out gap (RMS over held-out target coordinates): {d.gap_before:.4f} mm with the "
-                       f"baseline, {d.gap_after:.4f} mm with {after}; noise floor {d.noise_floor:.4f} mm",
+                       f"baseline, {d.gap_after:.4f} mm with {after}; noise floor {d.noise_floor:.4f} mm"
+                       + (f"; {len(d.extrapolated)} pose(s) predicted by extrapolation left out (notes), over "
+                          f"every pose {d.gap_before_all:.4f} -> {d.gap_after_all:.4f} mm" if d.extrapolated else ""),
                        f"residual / noise: {d.omnibus_before.ratio:.3g} before, {d.omnibus_after.ratio:.3g} after "
                        f"(robust {d.omnibus_after.robust_ratio:.3g})"] + list(d.notes), head[1])
     for v in d.named:
@@ -179,8 +181,8 @@ def gap_figures(rep: Report, d) -> None:
         a.xaxis.set_major_locator(MaxNLocator(7))
         a.legend(fontsize=8)
     fig.tight_layout()
-    rep.figure(fig, "Held-out residuals of every target coordinate (each pose predicted by the model fitted "
-                    "without its fold), with the tracker-noise density")
+    rep.figure(fig, "Held-out residuals of every target coordinate of every pose (each pose predicted by the "
+                    "model fitted without its fold), with the tracker-noise density")
 
 
 def _apparent(d, lin) -> tuple[np.ndarray, np.ndarray]:
