@@ -102,6 +102,22 @@ def test_pose_leverage_closed_forms():
     assert np.allclose(np.delete(h, 7), q * a**2 / ((P - 1) * q * a**2 + 1.0), rtol=1e-12)
 
 
+def test_weighted_bonferroni_spends_the_level_where_it_buys_power():
+    """The levels of the candidates in play add up to alpha (family-wise level); the easily detected
+    ones share ``easy_share`` of it; naming one hands its share to the rest."""
+    from pmcal.calib.ocpm.diagnose import alpha_weights
+
+    w = alpha_weights({"a": 1.0, "b": 0.9995, "c": 0.5, "d": 0.2}, 0.1)
+    assert w == {"a": 0.05, "b": 0.05, "c": 0.45, "d": 0.45}
+    assert alpha_weights({"a": 1.0, "b": 1.0}, 0.1) == {"a": 0.5, "b": 0.5}
+    assert alpha_weights({"c": 0.5, "d": 0.2}, 0.1) == {"c": 0.5, "d": 0.5}
+    pb = SimpleNamespace(opt=DiagnoseOptions(alpha=0.003), weights=w)
+    level = lambda n, play: _Problem.level(pb, n, play)  # noqa: E731
+    assert np.isclose(sum(level(n, list(w)) for n in w), 0.003)
+    assert np.isclose(level("c", list(w)), 0.00135) and np.isclose(level("a", list(w)), 0.00015)
+    assert np.isclose(sum(level(n, ["a", "b", "d"]) for n in ("a", "b", "d")), 0.003)   # c named
+
+
 def test_diagnosis_plan_covers_the_rim_outside_the_strained_wedge():
     """`pmcal twin plan --for-diagnosis` poses: within the tilt limit, at least half on the rim band
     (68..80 deg; the spiral adds its own rim poses), spread in azimuth there (every 30 deg sector outside

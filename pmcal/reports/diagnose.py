@@ -123,7 +123,7 @@ def scoreboard(rep: Report, d) -> None:
     rep.paragraph("Every effect of the vocabulary, tested against the baseline (and the effects already "
                   "named): survival = share of a typical-size signature the geometric parameters cannot "
                   "absorb; power = chance to detect a typical size with this campaign; the test is a "
-                  "pose-clustered Wald test (F), Bonferroni-corrected; share = part of the structure left "
+                  "pose-clustered Wald test (F) at the candidate's threshold (weighted Bonferroni); share = part of the structure left "
                   "beyond the noise that the effect explains (shown for significant candidates only: p below the threshold); folds = cross-validation folds whose own "
                   "selection picked it.", "note")
     folds = len(np.unique(d.folds))
