@@ -102,7 +102,7 @@ def verdict_cards(rep: Report, d) -> None:
                        f"held-out gap (RMS over held-out target coordinates): {d.gap_before:.4f} mm with the "
                        f"baseline, {d.gap_after:.4f} mm with {after}; noise floor {d.noise_floor:.4f} mm"
                        + (f"; {len(d.extrapolated)} pose(s) predicted by extrapolation left out (notes), over "
-                          f"every pose {d.gap_before_all:.4f} -> {d.gap_after_all:.4f} mm" if d.extrapolated else ""),
+                          f"every pose {d.gap_before_all:.4f} → {d.gap_after_all:.4f} mm" if d.extrapolated else ""),
                        f"residual / noise: {d.omnibus_before.ratio:.3g} before, {d.omnibus_after.ratio:.3g} after "
                        f"(robust {d.omnibus_after.robust_ratio:.3g})"] + list(d.notes), head[1])
     for v in d.named:
