@@ -79,6 +79,53 @@ def read_measurements(path: str | Path, geom: Geometry | None = None, check_unit
     return meas
 
 
+def check_context(path: str, approach: np.ndarray | None = None, temp_c: np.ndarray | None = None,
+                  temp_field: str = "temp_c") -> None:
+    """The context columns of a measurement or campaign file: approach signs +1 / -1 only; a temperature
+    for every row or for none, within 20 +- 60 degC (a value outside is degrees Fahrenheit or kelvin).
+    An :class:`InputError` names file, row and field."""
+    if approach is not None:
+        bad = np.argwhere(~np.isin(approach, (-1.0, 1.0)))
+        if bad.size:
+            i, j = (int(v) for v in bad[0])
+            raise InputError(f"approach must be +1 or -1, got {approach[i, j]:g}", file=path, row=i + 1,
+                             field=f"m{j + 1}_approach")
+    if temp_c is not None:
+        bad = np.flatnonzero(~np.isfinite(temp_c))
+        if 0 < bad.size < len(temp_c):
+            raise InputError("temperature missing in some rows (give it for every pose or for none)",
+                             file=path, row=int(bad[0]) + 1, field=temp_field)
+        far = np.flatnonzero(np.abs(temp_c - 20.0) > 60.0)
+        if far.size:
+            raise InputError(f"temperature {temp_c[far[0]]:g} degC is implausible for a machine in use "
+                             "(degrees Fahrenheit or kelvin?)", file=path, row=int(far[0]) + 1, field=temp_field)
+
+
+def read_campaign_context(path: str | Path) -> dict[str, np.ndarray]:
+    """The campaign context a targets file may carry besides the orientations, in its row order (the
+    columns ``pmcal twin plan --for-diagnosis`` writes): ``payload_kg`` (kg, >= 0), ``time_s`` (s, not
+    decreasing), ``temp_c`` (degC; a plan's ``temp_c_planned`` when there is no ``temp_c``), ``approach``
+    (N, 2) from ``m1_approach``, ``m2_approach`` (+1 / -1). Only the columns present."""
+    t = read_csv(path)
+    out: dict[str, np.ndarray] = {}
+    if t.has("payload_kg"):
+        out["payload_kg"] = t.numbers("payload_kg")
+        for i in np.flatnonzero(out["payload_kg"] < 0)[:1]:
+            raise InputError("payload must not be negative", file=t.path, row=int(i) + 1, field="payload_kg")
+    if t.has("time_s"):
+        out["time_s"] = t.numbers("time_s")
+        for i in np.flatnonzero(np.diff(out["time_s"]) < 0)[:1]:
+            raise InputError("time goes backwards: the rows are the measurement order", file=t.path,
+                             row=int(i) + 2, field="time_s")
+    temp_field = next((c for c in ("temp_c", "temp_c_planned") if t.has(c)), None)
+    if temp_field:
+        out["temp_c"] = t.numbers(temp_field)
+    if t.has("m1_approach") and t.has("m2_approach"):
+        out["approach"] = np.stack([t.numbers("m1_approach"), t.numbers("m2_approach")], axis=1)
+    check_context(t.path, out.get("approach"), out.get("temp_c"), temp_field or "temp_c")
+    return out
+
+
 def check_blocked(coords: np.ndarray, path: str) -> None:
     """Blocked targets (all three cells empty) are allowed; a half-empty target or a row with fewer than
     two measured targets is an :class:`InputError` naming row and field."""

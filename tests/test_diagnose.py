@@ -325,6 +325,34 @@ def backlash_csv(tmp_path_factory):
     return path
 
 
+def test_plan_measured_on_the_twin_keeps_its_order_and_context(tmp_path, capsys):
+    """`twin plan --for-diagnosis` then `twin measure --targets plan.csv`: the twin drives the plan's rows
+    in its order with its payload, temperature, times and approach signs (compared with the plan's
+    columns as written, 6 significant digits), and the diagnosis of the result names the hidden effect;
+    an option that contradicts the plan is refused with one line and exit 2, nothing written."""
+    from pmcal.csvio import read_csv
+    from pmcal.io_ocpm import read_measurements
+
+    plan, m = tmp_path / "plan.csv", tmp_path / "m.csv"
+    assert main(["--quiet", "twin", "plan", "--for-diagnosis", "--poses", "64", "-o", str(plan)]) == 0
+    assert main(["--quiet", "twin", "measure", "--targets", str(plan), "--preset", "paper-table2",
+                 "--effect", "thermal_expansion=23e-6", "-o", str(m)]) == 0
+    p, meas = read_csv(plan), read_measurements(m)
+    assert len(meas) == 64
+    for column, got in (("m1_cmd_deg", meas.m_cmd_deg[:, 0]), ("temp_c_planned", meas.temp_c),
+                        ("payload_kg", meas.payload_kg), ("time_s", meas.time_s),
+                        ("m2_approach", meas.approach[:, 1])):
+        want = p.numbers(column)
+        assert np.allclose(got, want, rtol=1e-5, atol=1e-3), column
+    d = diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA))
+    assert d.effects == ["thermal_expansion"]
+    capsys.readouterr()
+    for extra in (["--temperature", "18,28"], ["--payload", "0,5"], ["--shuffle"]):
+        assert main(["twin", "measure", "--targets", str(plan), "-o", str(tmp_path / "x.csv")] + extra) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and extra[0] in err[0] and not (tmp_path / "x.csv").exists()
+
+
 def test_cli_diagnose_writes_json_report_and_model(tmp_path, capsys, backlash_csv):
     out, rep = tmp_path / "out.json", tmp_path / "report"
     rc = main(["diagnose", str(backlash_csv), "--json", str(out), "--report", str(rep)])

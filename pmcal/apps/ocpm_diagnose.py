@@ -24,7 +24,7 @@ from pmcal.twin.effect_model import EffectChainModel
 from pmcal import progress
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_directory, write_json
-from pmcal.io_ocpm import MECHANISM, read_params, write_measurements, write_params
+from pmcal.io_ocpm import MECHANISM, check_context, read_params, write_measurements, write_params
 from pmcal.reports.diagnose import effect_label, report
 
 #: Fewest poses the diagnosis accepts: the baseline has 31 parameters and cross-validation holds out
@@ -52,21 +52,7 @@ def load(args, geom: Geometry):
     if len(meas) < MIN_POSES:
         raise InputError(f"{len(meas)} poses are too few to tell an effect from the geometry: measure at least "
                          f"{MIN_POSES} (the diagnosis campaign has 128)", file=args.measurements, field="pose_id")
-    if meas.approach is not None:
-        bad = np.argwhere(~np.isin(meas.approach, (-1.0, 1.0)))
-        if bad.size:
-            i, j = (int(v) for v in bad[0])
-            raise InputError(f"approach must be +1 or -1, got {meas.approach[i, j]:g}", file=args.measurements,
-                             row=i + 1, field=f"m{j + 1}_approach")
-    if meas.temp_c is not None:
-        bad = np.flatnonzero(~np.isfinite(meas.temp_c))
-        if 0 < bad.size < len(meas):
-            raise InputError("temperature missing in some rows (give it for every pose or for none)",
-                             file=args.measurements, row=int(bad[0]) + 1, field="temp_c")
-        if np.any(np.abs(meas.temp_c[np.isfinite(meas.temp_c)] - 20.0) > 60.0):
-            i = int(np.flatnonzero(np.abs(meas.temp_c - 20.0) > 60.0)[0])
-            raise InputError(f"temperature {meas.temp_c[i]:g} degC is implausible for a machine in use "
-                             "(degrees Fahrenheit or kelvin?)", file=args.measurements, row=i + 1, field="temp_c")
+    check_context(args.measurements, meas.approach, meas.temp_c)
     initial = None
     if args.params:
         initial, _ = read_params(args.params, geom)

@@ -18,6 +18,7 @@ from pmcal.fileio import atomic_write
 from pmcal.mechanism.ocpm.effects import VOCABULARY, approach_from_order
 from pmcal.mechanism.ocpm.config import Geometry
 from pmcal.mechanism.ocpm.kinematics import HOME_BETA, passive_strained
+from pmcal.twin.campaign import nominal_commands, plan_orientations
 
 HEADER = ["step", "phi_deg", "theta_deg", "m1_cmd_deg", "m2_cmd_deg", "m1_approach", "m2_approach",
           "payload_kg", "time_s", "temp_c_planned"]
@@ -32,9 +33,9 @@ def diagnosis_orientations(n: int, theta_max_deg: float, rng: np.random.Generato
                            ) -> tuple[np.ndarray, np.ndarray]:
     """Orientations (phi, theta) deg of an ``n``-pose diagnosis campaign, in no particular order.
 
-    Half the poses (``rim_share``) lie evenly spaced in azimuth on the band ``theta_max - rim_band ..
-    theta_max`` (tilt uniform in area within it), the others on a golden-angle spiral over the whole cap;
-    both leave out the wedge where the passive limbs are strained (:func:`pmcal.mechanism.ocpm.kinematics.
+    Half the poses (``rim_share``) lie on the band ``theta_max - rim_band .. theta_max``, the others over
+    the whole cap, each set spread evenly (:func:`pmcal.twin.campaign.plan_orientations`: equal-area
+    strata on a golden-angle spiral); both leave out the wedge where the passive limbs are strained (:func:`pmcal.mechanism.ocpm.kinematics.
     passive_strained`).
 
     Why: a first harmonic of the motor angle (encoder eccentricity) is told from what the geometry absorbs
@@ -46,23 +47,11 @@ def diagnosis_orientations(n: int, theta_max_deg: float, rng: np.random.Generato
     """
     k_rim = int(round(rim_share * n))
     lo = max(theta_max_deg - rim_band_deg, 0.5 * theta_max_deg)
-    c_max, c_lo = np.cos(np.deg2rad(theta_max_deg)), np.cos(np.deg2rad(lo))
-
-    def spiral(m):
-        i = np.arange(m) + 0.5
-        return (np.rad2deg(i * np.pi * (3.0 - np.sqrt(5.0))) + offset[0]) % 360.0, \
-            np.rad2deg(np.arccos(1.0 - (1.0 - c_max) * i / m))
-
-    def rim(m):
-        return (np.arange(m) * 360.0 / m + offset[1]) % 360.0, \
-            np.rad2deg(np.arccos(rng.uniform(c_max, c_lo, m)))
-
-    offset = rng.uniform(0.0, 360.0, 2)
     out = []
-    for make, k in ((spiral, n - k_rim), (rim, k_rim)):
+    for theta_min, k in ((0.0, n - k_rim), (lo, k_rim)):
         m = k
         while True:                                  # add candidates until k lie outside the strained wedge
-            phi, theta = make(m)
+            phi, theta = plan_orientations(m, theta_max_deg, rng, theta_min)
             ok = np.flatnonzero(~passive_strained(phi, theta, geom))
             if len(ok) >= k:
                 break
@@ -77,8 +66,6 @@ def diagnosis_campaign(n: int, theta_max_deg: float, seed: int, seconds_per_pose
     """The poses of :func:`diagnosis_orientations` in random order (every motor moves both ways: backlash
     and drift visible, drift not aligned with the pose), payloads changed in blocks of ``block`` rows, a
     warm-up then cool-down (temperature not monotone in time: drift and thermal separable)."""
-    from pmcal.twin.campaign import nominal_commands
-
     rng = np.random.default_rng(seed)
     phi, theta = diagnosis_orientations(n, theta_max_deg, rng)
     order = rng.permutation(n)

@@ -9,7 +9,7 @@ from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 from pmcal import progress
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write
-from pmcal.io_ocpm import read_params, read_targets, write_measurements
+from pmcal.io_ocpm import read_campaign_context, read_params, read_targets, write_measurements
 
 PRESETS: dict[str, dict[str, float]] = {"paper-table2": PAPER_TABLE2, "nominal": {}}
 
@@ -75,7 +75,7 @@ def twin_measure(args) -> int:
                          field="--theta-max")
     errors = machine_errors(args)
     tracker_pose, faults = tracker_setup(args)
-    if effect_campaign_requested(args):
+    if effect_campaign_requested(args) or (args.targets and read_campaign_context(args.targets)):
         return measure_with_effects(args, errors, sigma, theta_max, tracker_pose, faults)
     plan = plan_campaign(args.poses, theta_max, args.seed, randomize_approach=not args.no_random_approach)
     if args.targets:
@@ -207,7 +207,13 @@ def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max
         raise InputError(str(exc), field="--effect") from None
     payloads = parse_levels(args.payload, "--payload", 0.0, 100.0, "kg") or (0.0,)
     temps = parse_levels(args.temperature, "--temperature", -20.0, 80.0, "degC", most=2)
-    if effects.thermal_expansion is not None and temps is None:
+    context = read_campaign_context(args.targets) if args.targets else {}
+    for column, option, given in (("payload_kg", "--payload", args.payload), ("temp_c", "--temperature", temps),
+                                  (next(iter(context), ""), "--shuffle", args.shuffle)):
+        if column in context and given:
+            raise InputError(f"{args.targets} is a campaign with a {column} column (driven in its own order, "
+                             f"with its own context): drop {option}", field=option)
+    if effects.thermal_expansion is not None and temps is None and "temp_c" not in context:
         raise InputError("thermal_expansion needs the machine temperature: give --temperature (e.g. 18,28)",
                          field="--effect")
     if not (np.isfinite(args.seconds_per_pose) and args.seconds_per_pose > 0):
@@ -224,6 +230,11 @@ def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max
     if phi is not None:
         order = np.random.default_rng([args.seed, 8]).permutation(n) if args.shuffle else np.arange(n)
         plan.phi_deg, plan.theta_deg = phi[order], theta[order]
+        # a campaign file (pmcal twin plan --for-diagnosis) brings its own context, in its own order
+        plan.payload_kg = context.get("payload_kg", plan.payload_kg)
+        plan.temp_c = context.get("temp_c", plan.temp_c)
+        plan.time_s = context.get("time_s", plan.time_s)
+        plan.approach = context.get("approach", plan.approach)
     try:
         twin = EffectTwin(errors, effects, stiffness_ratio=stiffness_ratio(args), seed=args.seed)
     except ValueError as exc:
