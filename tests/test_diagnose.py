@@ -105,7 +105,7 @@ def test_pose_leverage_closed_forms():
 def test_weighted_bonferroni_spends_the_level_where_it_buys_power():
     """The levels of the candidates in play add up to alpha (family-wise level); the easily detected
     ones share ``easy_share`` of it; naming one hands its share to the rest."""
-    from pmcal.calib.ocpm.diagnose import alpha_weights
+    from pmcal.calib.ocpm.linear_tests import alpha_weights
 
     w = alpha_weights({"a": 1.0, "b": 0.9995, "c": 0.5, "d": 0.2}, 0.1)
     assert w == {"a": 0.05, "b": 0.05, "c": 0.45, "d": 0.45}

@@ -19,7 +19,8 @@ e. Cross-validation: the same selection runs inside each fold (training poses on
    fold's training poses), so a large first effect does not block a second; a name is kept if enough
    folds select it.
 f. The named effects with value ± 95 % interval are written into the model; ``gap_before`` and
-   ``gap_after`` are RMS held-out disagreements (folds refitted, linearised at the full-data fits).
+   ``gap_after`` are RMS held-out disagreements (folds refitted, linearised at the full-data fits),
+   without the poses that held out are predicted by extrapolation (leverage > 1, named in a note).
 g. Structure left after that (omnibus test, also robust to heavy-tailed noise) is flagged unexplained.
 
 Units: mm, rad inside (interface values of effects in :data:`VOCABULARY` units).
@@ -47,8 +48,8 @@ from pmcal.calib.ocpm.diagnosis_result import Candidate, Diagnosis, Omnibus
 from pmcal.calib.ocpm.effect_values import EffectValue, effect_prior_std, effect_value
 from pmcal.calib.ocpm.fullchain import FullChainOptions, Priors, UnassembledError, identify_full
 from pmcal.mechanism.ocpm.params import LOG_RATIO
-from pmcal.calib.ocpm.linear_tests import (Linearization, SubFit, conditional_information, fit, huber_weighted,
-                                     nested_test, pose_leverage, power, predict)
+from pmcal.calib.ocpm.linear_tests import (Linearization, SubFit, alpha_weights, conditional_information, fit,
+                                     huber_weighted, nested_test, pose_leverage, power, predict)
 from pmcal.calib.ocpm.noise_estimate import NoiseEstimate, estimate_noise
 from pmcal.calib.ocpm.residual_context import characterise, describe
 from pmcal.mechanism.ocpm.params import LIMB_FIELDS, PAPER_LIMB_FIELDS, SS_FIELDS, is_angular
@@ -525,28 +526,6 @@ def _scoreboard(pb: _Problem, lin: Linearization) -> dict[str, Candidate]:
     for n in nc:
         out[n].power_typical = typical(n, pb.level(n, list(pb.candidates)))
     return out
-
-
-def alpha_weights(power_at_easy_level: dict[str, float], easy_share: float, easy: float = 0.999
-                  ) -> dict[str, float]:
-    """Weights of the weighted Bonferroni split of the level (they sum to 1 over the candidates).
-
-    A candidate the campaign detects at a typical size with probability >= ``easy`` even at the small
-    level ``alpha * easy_share / m`` (``power_at_easy_level``) needs little of the level: the easy ones
-    share ``easy_share`` of it, the others the rest, equally within each group (all equal when one group
-    is empty). The weights depend on the campaign's design (the Jacobian) and the typical sizes only,
-    not on the residuals, so the family-wise level holds (weighted Bonferroni); the level a test is run
-    at is ``alpha * w / sum(w of the candidates in play)`` (:meth:`_Problem.level`).
-
-    >>> alpha_weights({"backlash": 1.0, "encoder_eccentricity": 0.4}, 0.1)
-    {'backlash': 0.1, 'encoder_eccentricity': 0.9}
-    """
-    easy_ones = [n for n, p in power_at_easy_level.items() if p >= easy]
-    hard = [n for n in power_at_easy_level if n not in easy_ones]
-    if not easy_ones or not hard:
-        return {n: 1.0 / len(power_at_easy_level) for n in power_at_easy_level}
-    return {n: easy_share / len(easy_ones) if n in easy_ones else (1.0 - easy_share) / len(hard)
-            for n in power_at_easy_level}
 
 
 def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[str, Candidate]):

@@ -212,3 +212,25 @@ def power(nc: float, nu: float, alpha: float) -> float:
         return 0.0
     crit = stats.chi2.isf(alpha, nu)
     return float(stats.ncx2.sf(crit, nu, max(nc, 1e-12)))
+
+
+def alpha_weights(power_at_easy_level: dict[str, float], easy_share: float, easy: float = 0.999
+                  ) -> dict[str, float]:
+    """Weights of the weighted Bonferroni split of the level (they sum to 1 over the candidates).
+
+    A candidate the campaign detects at a typical size with probability >= ``easy`` even at the small
+    level ``alpha * easy_share / m`` (``power_at_easy_level``) needs little of the level: the easy ones
+    share ``easy_share`` of it, the others the rest, equally within each group (all equal when one group
+    is empty). The weights depend on the campaign's design (the Jacobian) and the typical sizes only,
+    not on the residuals, so the family-wise level holds (weighted Bonferroni); the level a test is run
+    at is ``alpha * w / sum(w of the candidates in play)`` (:meth:`_Problem.level`).
+
+    >>> alpha_weights({"backlash": 1.0, "encoder_eccentricity": 0.4}, 0.1)
+    {'backlash': 0.1, 'encoder_eccentricity': 0.9}
+    """
+    easy_ones = [n for n, p in power_at_easy_level.items() if p >= easy]
+    hard = [n for n in power_at_easy_level if n not in easy_ones]
+    if not easy_ones or not hard:
+        return {n: 1.0 / len(power_at_easy_level) for n in power_at_easy_level}
+    return {n: easy_share / len(easy_ones) if n in easy_ones else (1.0 - easy_share) / len(hard)
+            for n in power_at_easy_level}
