@@ -243,9 +243,12 @@ class _Problem:
         """Nonlinear MAP fit of the baseline plus the effects ``names``."""
         opt = self.opt
         keys = self.base_keys + [k for n in names for k in self.candidates[n]]
+        # The ratio's prior is centred on the machine's nominal ratio (machine.toml), not on the shared
+        # model's current one, which drifts with the fits before (deep into the stiff limit when the
+        # baseline absorbs compliance) and would carry that drift into every later fit's prior.
         options = FullChainOptions(
             keys=keys, fit_stiffness_ratio=opt.fit_stiffness_ratio, priors=opt.priors, sigma_mm=self.sigma,
-            max_nfev=opt.max_nfev, extra_prior_std=self.prior_std, x0=x0)
+            max_nfev=opt.max_nfev, extra_prior_std=self.prior_std, x0=x0, stiffness_ratio=self.geom.stiffness_ratio)
         return self._unstall(identify_full(self.meas, self.model, options), options)
 
     def _unstall(self, res: IdentResult, options: FullChainOptions, factor: float = 5.0,
