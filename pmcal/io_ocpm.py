@@ -67,9 +67,7 @@ def read_measurements(path: str | Path, geom: Geometry | None = None, check_unit
     check_blocked(coords, t.path)
     optional = {c: (t.numbers(c, allow_empty=True, default=d) if t.has(c) else None)
                 for c, d in (("temp_c", math.nan), ("time_s", math.nan), ("payload_kg", 0.0))}
-    if optional["payload_kg"] is not None and np.any(optional["payload_kg"] < 0):
-        row = int(np.flatnonzero(optional["payload_kg"] < 0)[0]) + 1
-        raise InputError("payload must not be negative", file=t.path, row=row, field="payload_kg")
+    check_context(t.path, payload_kg=optional["payload_kg"])
     approach = None
     if t.has("m1_approach") and t.has("m2_approach"):
         approach = np.stack([t.numbers("m1_approach"), t.numbers("m2_approach")], axis=1)
@@ -80,10 +78,13 @@ def read_measurements(path: str | Path, geom: Geometry | None = None, check_unit
 
 
 def check_context(path: str, approach: np.ndarray | None = None, temp_c: np.ndarray | None = None,
-                  temp_field: str = "temp_c") -> None:
-    """The context columns of a measurement or campaign file: approach signs +1 / -1 only; a temperature
-    for every row or for none, within 20 +- 60 degC (a value outside is degrees Fahrenheit or kelvin).
-    An :class:`InputError` names file, row and field."""
+                  temp_field: str = "temp_c", payload_kg: np.ndarray | None = None) -> None:
+    """The context columns of a measurement or campaign file (those given): approach signs +1 / -1 only; a
+    temperature for every row or for none, within 20 +- 60 degC (a value outside is degrees Fahrenheit or
+    kelvin); no negative payload. An :class:`InputError` names file, row and field."""
+    if payload_kg is not None and np.any(payload_kg < 0):
+        raise InputError("payload must not be negative", file=path, row=int(np.flatnonzero(payload_kg < 0)[0]) + 1,
+                         field="payload_kg")
     if approach is not None:
         bad = np.argwhere(~np.isin(approach, (-1.0, 1.0)))
         if bad.size:
@@ -110,8 +111,6 @@ def read_campaign_context(path: str | Path) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
     if t.has("payload_kg"):
         out["payload_kg"] = t.numbers("payload_kg")
-        for i in np.flatnonzero(out["payload_kg"] < 0)[:1]:
-            raise InputError("payload must not be negative", file=t.path, row=int(i) + 1, field="payload_kg")
     if t.has("time_s"):
         out["time_s"] = t.numbers("time_s")
         for i in np.flatnonzero(np.diff(out["time_s"]) < 0)[:1]:
@@ -122,7 +121,7 @@ def read_campaign_context(path: str | Path) -> dict[str, np.ndarray]:
         out["temp_c"] = t.numbers(temp_field)
     if t.has("m1_approach") and t.has("m2_approach"):
         out["approach"] = np.stack([t.numbers("m1_approach"), t.numbers("m2_approach")], axis=1)
-    check_context(t.path, out.get("approach"), out.get("temp_c"), temp_field or "temp_c")
+    check_context(t.path, out.get("approach"), out.get("temp_c"), temp_field or "temp_c", out.get("payload_kg"))
     return out
 
 

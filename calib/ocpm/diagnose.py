@@ -369,7 +369,7 @@ class _Problem:
 
     def _ratio_far(self, res: IdentResult, n_std: float = 2.0) -> bool:
         """The fitted stiffness ratio lies more than ``n_std`` prior stds from the machine's nominal ratio
-        (machine.toml; a refit's prior is centred on the model's current ratio, which may have drifted)."""
+        (machine.toml), where every fit's prior is centred (:meth:`identify`)."""
         if LOG_RATIO not in res.names:
             return False
         i = res.names.index(LOG_RATIO)
@@ -385,7 +385,7 @@ def _test_round(pb: _Problem, lin: Linearization, model_keys: list[str], names: 
                 rows: np.ndarray | None = None, in_play: list[str] | None = None) -> dict[str, tuple]:
     """Test every candidate in ``names`` against the model ``model_keys``, each at its level among the
     candidates ``in_play`` (default ``names``; :meth:`_Problem.level`). Returns name -> (NestedTest,
-    EffectValue, passes, explained share, level)."""
+    EffectValue, passes, level, explained share), the form the selection's history keeps."""
     mcols = lin.cols(model_keys)
     in_play = in_play or names
     out = {}
@@ -398,7 +398,7 @@ def _test_round(pb: _Problem, lin: Linearization, model_keys: list[str], names: 
         level = pb.level(name, in_play)
         ok = (t.p_value < level and v.plausible
               and np.sqrt(t.delta_chi2 / n_rows) >= pb.opt.min_rms_sigma and share >= pb.opt.min_explained)
-        out[name] = (t, v, ok, share, level)
+        out[name] = (t, v, ok, level, share)
     return out
 
 
@@ -548,8 +548,7 @@ def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[st
         in_play = [n for n in pb.candidates if n not in named]
         cols = lin.cols(list(res.names))
         tests = _test_round(pb, huber_weighted(lin, cols), list(res.names), rest, in_play=in_play)
-        for n, t in tests.items():
-            history[n] = t[:3] + (t[4], t[3])
+        history.update(tests)
         order = sorted((n for n in rest if tests[n][2]), key=lambda n: (tests[n][0].p_value, -tests[n][0].F))
         if not order and omnibus(lin, fit(lin, cols), pb.noise, pb.opt).structure:
             order = sorted(rest, key=lambda n: -tests[n][0].delta_chi2)[:2]
@@ -566,7 +565,7 @@ def _select(pb: _Problem, base: IdentResult, lin0: Linearization, board: dict[st
             t = _test_round(pb, huber_weighted(lin_t, lin_t.cols(list(trial.names))), model_t, [best],
                             in_play=in_play)[best]
             v = pb.value_final(trial, best)
-            history[best] = (t[0], v, t[2] and v.plausible, t[4], t[3])
+            history[best] = (t[0], v, t[2] and v.plausible) + t[3:]
             if history[best][2]:
                 accepted = (best, trial, lin_t)
                 break
@@ -649,7 +648,7 @@ def _confirm(pb: _Problem, lin0: Linearization, named: list[str], res: IdentResu
     confirmed = [n for n in named if counts[n] >= need]
     if confirmed == named:
         cv_named = _cv(lin, lin.cols(list(res.names)), pb.folds)
-        inside = ~lin.rows(_extrapolated(pb, lin, res, cv_named)[0])   # as the reported gaps
+        inside = ~lin.rows(_extrapolated(pb, lin, res)[0])   # as the reported gaps
         if cv_named[inside] @ cv_named[inside] >= cv_before[inside] @ cv_before[inside]:
             confirmed = []
             for n in named:
@@ -750,7 +749,7 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     if unexplained:
         pre_notes.append(describe(context))
     verdict = ("named+unexplained" if named else "unexplained") if unexplained else ("named" if named else "noise")
-    far, far_notes = _extrapolated(pb, lin, res, cv_after)
+    far, lev = _extrapolated(pb, lin, res)
     inside = ~lin.rows(far)
     gap = lambda cv, rows: float(np.sqrt(np.mean(cv[rows] ** 2)) * pb.sigma)  # noqa: E731
     shape = meas.targets.shape
@@ -758,7 +757,8 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
         effect=named[0] if named else None, effects=named, gap_before=gap(cv_before, inside),
         gap_after=gap(cv_after, inside), noise=pb.noise, verdict=verdict,
         unexplained=unexplained, notes=pre_notes + _notes(board, named, om1, opt)
-        + [v.note for v in values if v.note] + far_notes, candidates=board, named=values,
+        + [v.note for v in values if v.note] + _extrapolated_note(pb, lin, far, lev, cv_after),
+        candidates=board, named=values,
         extrapolated=[pb.meas.pose_id[i] for i in far], gap_before_all=gap(cv_before, slice(None)),
         gap_after_all=gap(cv_after, slice(None)),
         baseline=base, final=res, omnibus_before=om0, omnibus_after=om1, time_unit=pb.time_unit, meas=pb.meas,
@@ -767,24 +767,30 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
         added_variable=_added_variable(pb, lin, res), unexplained_context=context)
 
 
-def _extrapolated(pb: _Problem, lin: Linearization, res: IdentResult, cv: np.ndarray) -> tuple[np.ndarray, list[str]]:
+def _extrapolated(pb: _Problem, lin: Linearization, res: IdentResult) -> tuple[np.ndarray, np.ndarray]:
     """Poses (indices, highest leverage first) whose held-out prediction is an extrapolation: each
-    determines more than ``max_leverage`` directions of the final model by itself, at most
-    ``max_extrapolated`` of the poses; and the note that names them. Such a pose (typically alone at the
+    determines more than ``max_leverage`` directions of the model ``res`` by itself, at most
+    ``max_extrapolated`` of the poses; and every pose's leverage (N,). Such a pose (typically alone at the
     edge of the campaign) is predicted from poses that barely see a direction of the geometry, so its
     held-out residual says little about the model; the gaps are taken without it."""
     lev = pose_leverage(lin, lin.cols(list(res.names)))
     cap = int(pb.opt.max_extrapolated * len(lev))
-    far = np.array([i for i in np.argsort(-lev)[:cap] if lev[i] > pb.opt.max_leverage], int)
+    return np.array([i for i in np.argsort(-lev)[:cap] if lev[i] > pb.opt.max_leverage], int), lev
+
+
+def _extrapolated_note(pb: _Problem, lin: Linearization, far: np.ndarray, lev: np.ndarray,
+                       cv: np.ndarray) -> list[str]:
+    """The note naming the poses ``far`` left out of the gaps (:func:`_extrapolated`), with their held-out
+    residual (``cv``, whitened)."""
     if not far.size:
-        return far, []
+        return []
     m = pb.meas
     per_pose = np.sqrt(np.bincount(lin.pose, weights=cv**2) / np.bincount(lin.pose)) * pb.sigma
     desc = "; ".join(f"{m.pose_id[i]} (motors {m.m_cmd_deg[i, 0]:.1f}/{m.m_cmd_deg[i, 1]:.1f} deg, leverage "
                      f"{lev[i]:.2g}, held-out residual {per_pose[i]:.3g} mm RMS)" for i in far)
-    return far, [f"left out of the held-out gaps: {desc}; each determines more than {pb.opt.max_leverage:g} "
-                 "direction of the model by itself, so held out it is predicted by extrapolation; measure a "
-                 "pose beside it to check the model there"]
+    return [f"left out of the held-out gaps: {desc}; each determines more than {pb.opt.max_leverage:g} "
+            "direction of the model by itself, so held out it is predicted by extrapolation; measure a "
+            "pose beside it to check the model there"]
 
 
 def _confounding(meas: Measurements) -> list[str]:

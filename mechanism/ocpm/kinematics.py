@@ -190,12 +190,12 @@ def nominal_fk(beta: np.ndarray, geom: Geometry | None = None, tol: float = 1e-1
 PASSIVE_REACH = 0.88
 
 
-def passive_strained(phi_deg, theta_deg, geom: Geometry | None = None, reach: float | None = None) -> np.ndarray:
+def passive_strained(phi_deg, theta_deg, geom: Geometry | None = None) -> np.ndarray:
     """True where both passive limbs are near their stretched-link singularity at once (nominal
-    ``|K / rho| > reach``, default :data:`PASSIVE_REACH`, for each: tilts beyond ~68 deg towards azimuth 25..60 deg). There the
+    ``|K / rho| >`` :data:`PASSIVE_REACH` for each: tilts beyond ~68 deg towards azimuth 25..60 deg). There the
     closure is ill-conditioned: a machine with errors of a few tenths of a millimetre strains by
     millimetres or does not assemble, so a campaign stays out of it. Angles in deg, any matching shape."""
     geom = geom or default_geometry()
     passive = tuple(j + 1 for j in range(geom.n_limbs) if j + 1 not in geom.actuated)
     r, R = nominal_pose(np.deg2rad(phi_deg), np.deg2rad(theta_deg), geom)
-    return np.abs(limb_ik(r, R, None, geom, passive).reach).min(axis=1) > (reach or PASSIVE_REACH)
+    return np.abs(limb_ik(r, R, None, geom, passive).reach).min(axis=1) > PASSIVE_REACH

@@ -9,6 +9,7 @@ import dataclasses
 
 import numpy as np
 
+from pmcal.apps.ocpm_diagnosis_plan import diagnosis_campaign
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.effects import EFFECT_NAMES, VOCABULARY, approach_from_order
 from pmcal.mechanism.ocpm.kinematics import HOME_BETA
@@ -64,8 +65,6 @@ def diagnosis_plan(n: int = 128, seed: int | None = 0, theta_max_deg: float = 80
     span ~126 deg, 99.59 % is absorbed and 0.01 deg is named in >= 90 % (docs/diagnose.md). 80 deg keeps
     7.5 deg from the limbs' stretched-link singularity; a strained machine skips ~1 % of such poses.
     """
-    from pmcal.apps.ocpm_diagnosis_plan import diagnosis_campaign
-
     c = diagnosis_campaign(n, theta_max_deg, 0 if seed is None else seed)
     return CampaignPlan(phi_deg=c["phi_deg"], theta_deg=c["theta_deg"],
                         approach=np.stack([c["m1_approach"], c["m2_approach"]], 1), time_s=c["time_s"],

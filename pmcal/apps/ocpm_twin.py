@@ -75,8 +75,9 @@ def twin_measure(args) -> int:
                          field="--theta-max")
     errors = machine_errors(args)
     tracker_pose, faults = tracker_setup(args)
-    if effect_campaign_requested(args) or (args.targets and read_campaign_context(args.targets)):
-        return measure_with_effects(args, errors, sigma, theta_max, tracker_pose, faults)
+    context = read_campaign_context(args.targets) if args.targets else {}
+    if effect_campaign_requested(args) or context:
+        return measure_with_effects(args, errors, sigma, theta_max, tracker_pose, faults, context)
     plan = plan_campaign(args.poses, theta_max, args.seed, randomize_approach=not args.no_random_approach)
     if args.targets:
         phi, theta = read_targets(args.targets, theta_max_deg=THETA_LIMIT_DEG)
@@ -193,10 +194,11 @@ def parse_levels(text: str | None, field: str, lo: float, hi: float, unit: str, 
 
 
 def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max: float,
-                         tracker_pose=None, faults=None) -> int:
+                         tracker_pose=None, faults=None, context: dict[str, np.ndarray] | None = None) -> int:
     """``twin measure`` with effects: the effect-aware twin (gravity, payload, temperature, drive effects),
     measured by a tracker at ``tracker_pose`` (None: in the base frame) through ``faults`` (nests, blocked
-    targets, outliers; :func:`tracker_setup`)."""
+    targets, outliers; :func:`tracker_setup`); ``context``: the campaign columns of the targets file
+    (:func:`pmcal.io_ocpm.read_campaign_context`), driven in the file's order."""
     from pmcal.apps.effect_scenarios import parse_effects
     from pmcal.twin.effects import EffectTwin, plan_effect_campaign
     from pmcal.twin.tracker import LaserTracker
@@ -207,12 +209,16 @@ def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max
         raise InputError(str(exc), field="--effect") from None
     payloads = parse_levels(args.payload, "--payload", 0.0, 100.0, "kg") or (0.0,)
     temps = parse_levels(args.temperature, "--temperature", -20.0, 80.0, "degC", most=2)
-    context = read_campaign_context(args.targets) if args.targets else {}
-    for column, option, given in (("payload_kg", "--payload", args.payload), ("temp_c", "--temperature", temps),
-                                  (next(iter(context), ""), "--shuffle", args.shuffle)):
-        if column in context and given:
-            raise InputError(f"{args.targets} is a campaign with a {column} column (driven in its own order, "
-                             f"with its own context): drop {option}", field=option)
+    context = context or {}
+    # a campaign file's payload and temperature columns, and its order, are the campaign's own
+    clashes = [(c, o) for c, o, given in (("payload_kg", "--payload", args.payload),
+                                          ("temp_c", "--temperature", temps)) if given and c in context]
+    if context and args.shuffle:
+        clashes.append((next(iter(context)), "--shuffle"))
+    if clashes:
+        column, option = clashes[0]
+        raise InputError(f"{args.targets} is a campaign with a {column} column (driven in its own order, "
+                         f"with its own context): drop {option}", field=option)
     if effects.thermal_expansion is not None and temps is None and "temp_c" not in context:
         raise InputError("thermal_expansion needs the machine temperature: give --temperature (e.g. 18,28)",
                          field="--effect")
