@@ -19,6 +19,7 @@ from scipy.linalg import block_diag
 
 from pmcal import progress
 from pmcal.bridge.comptable import CompTable
+from pmcal.campaign_quality import full_chain_quality, paper_quality
 from pmcal.calib.ocpm import compensation as comp
 from pmcal.calib.ocpm import paper_calibration
 from pmcal.calib.ocpm import paper_model as pm
@@ -266,9 +267,12 @@ def identify(meas: Measurements, *, model: str = DEFAULT_MODEL, method: str | No
                              field="pose_id")
         if frame == "base":
             check_reachable(meas, source, geom)
-        res = identify_result(meas, FullChainModel(geom), sigma, frame, registration, nest_tolerance_mm, robust,
+        model_ = FullChainModel(geom)
+        res = identify_result(meas, model_, sigma, frame, registration, nest_tolerance_mm, robust,
                               fit_stiffness_ratio, source)
-        return _identify_full(res, meas, sigma, source or "", geom, fit_stiffness_ratio)
+        cal = _identify_full(res, meas, sigma, source or "", geom, fit_stiffness_ratio)
+        cal.document["quality"] = full_chain_quality(model_, res, geom)
+        return cal
     method = check_choice(method, DEFAULT_METHOD, METHODS, "--method")
     n_free = len(pm.PAPER_LIMB_FIELDS)
     if len(meas) <= n_free:
@@ -342,6 +346,7 @@ def _identify_paper(meas: Measurements, method: str, sigma: float, rng_seed: int
                              "success": r.success, "message": r.message} for j, r in cal.results.items()},
     }
     names = [n for r in cal.results.values() for n in r.names]
+    doc["quality"] = paper_quality(len(names), cal.unidentifiable, weak)
     covs = [r.covariance for r in cal.results.values()]
     cov = block_diag(*covs) if all(c is not None for c in covs) else None
     return Calibration(params=cal.params(), model="paper", method=method, document=doc, names=names,

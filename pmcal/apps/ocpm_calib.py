@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pmcal import progress
+from pmcal.campaign_quality import CAMPAIGN_FIX, quality_line, refuse_unusable, save_table
 from pmcal.calibration import Calibration, identify as identify_campaign
 from pmcal.compensators import DEFAULT_GRID, PaperCompensation, build_table, check_grid, checked_commands
 from pmcal.errors import InputError
@@ -65,8 +66,12 @@ def identify(args) -> int:
     fit = cal.document["fit"]
     quality = (f"chi2/dof {fit['chi2_per_dof']:.3g}" if cal.model == "full" else
                f"residual {fit['residual_rms_sigma']:.3g} sigma")
-    progress.status(f"identified {len(cal.params)} parameters "
-                    f"({'whole chain' if cal.model == 'full' else cal.method}); {quality}")
+    q = cal.document["quality"]
+    print(f"identified {len(cal.params)} parameters ({'whole chain' if cal.model == 'full' else cal.method}); "
+          f"{quality}; {quality_line(q)}", flush=True)
+    if not q["usable"]:
+        progress.warning(f"this calibration is not usable: {q['why']}; {CAMPAIGN_FIX} (compensate and push "
+                         "refuse it without --force)")
     return 0
 
 
@@ -82,6 +87,7 @@ def compensate(args) -> int:
     if args.output and not args.targets:
         raise InputError("-o SETPOINTS.csv needs --targets TARGETS.csv", field="--targets")
     cal = Calibration.load(args.params)
+    refuse_unusable(cal.document, str(args.params), bool(getattr(args, "force", False)))
     grid = parse_grid(args.grid)
     version = getattr(args, "table_version", None)
     version = int(time.time()) if version is None else int(version)
@@ -93,7 +99,7 @@ def compensate(args) -> int:
         work.append(lambda: write_setpoints(args.output, phi, theta, m, comments=[note]))
     if args.table:
         table = build_table(cal.compensator, cal.geometry, grid, version)
-        work.append(lambda: table.save(args.table))
+        work.append(lambda: save_table(table, args.table, cal.document.get("quality")))
     for w in work:
         w()
     return 0

@@ -39,6 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="audit log to append to (default: bridge_audit.log beside TABLE)")
     p.add_argument("--no-audit", action="store_true", help="write no audit line")
     p.add_argument("--json", default=None, metavar="REPORT.json", help="also write the push report as JSON")
+    p.add_argument("--force", action="store_true",
+                   help="push a table made from a calibration that identify flagged not usable")
     p.set_defaults(func=cmd_push)
 
     m = sub.add_parser("mock-plc", help="run a mock TwinCAT PLC on 127.0.0.1 for manual trials")
@@ -123,6 +125,7 @@ def cmd_push(args) -> int:
     if not (args.wait_motion >= 0.0) or args.wait_motion > 3600.0:
         raise InputError(f"wait for motion must be 0..3600 s, got {args.wait_motion}", field="--wait-motion")
     table = CompTable.load(args.table).validate()       # checksums and values: before connecting
+    check_table_for(table, args.table, getattr(args, "machine", None), bool(args.force))
     link = make_link(args, writes=frozenset() if args.dry_run else None)
     _quiet_libraries()
     audit = None if args.no_audit else (args.audit or Path(args.table).with_name("bridge_audit.log"))
@@ -145,6 +148,23 @@ def cmd_push(args) -> int:
     print(f"{rep.result}: {args.table} v{rep.version} -> {link.transport} {link.target}: {rep.message} "
           f"(crc {rep.crc16}{sent}, {total_ms:.1f} ms)")
     return 0
+
+
+def check_table_for(table, path, machine: str | None, force: bool) -> None:
+    """Before any link opens: the table is for ``machine`` (``pmcal --machine``), and was not made with
+    ``--force`` from a calibration flagged not usable (its JSON's ``quality``), unless ``force``."""
+    from pmcal.campaign_quality import refuse_unusable
+
+    if machine and table.machine != machine:
+        raise InputError(f"the table is for machine '{table.machine}', not '{machine}' (pmcal --machine "
+                         f"{table.machine} push ... if that is the machine behind the link)", file=str(path),
+                         field="machine")
+    if Path(path).suffix.lower() == ".json":
+        try:
+            doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
+        except (OSError, ValueError):
+            doc = None                                  # CompTable.load read it: cannot happen
+        refuse_unusable(doc, str(path), force)
 
 
 def plc_status(link) -> dict:

@@ -74,6 +74,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="table grid: points in phi (0..360 deg) and theta (0..theta_max); default 73,31")
     p.add_argument("--table-version", type=int, default=None, metavar="N",
                    help="table version (1..2**32-1, must increase on the PLC); default: Unix time")
+    p.add_argument("--force", action="store_true",
+                   help="use a calibration that identify flagged not usable (its campaign determines too little)")
     p.set_defaults(func=_cmd("compensate"))
 
     p = sub.add_parser("evaluate", help="pointing error of a parameter set against a measurement file")

@@ -1,0 +1,141 @@
+"""How much a measurement campaign determines, and whether its calibration may be used.
+
+``pmcal identify`` records a ``quality`` object in the parameters file (docs/formats.md, "Campaign
+quality"); ``pmcal compensate`` and ``pmcal push`` refuse a result flagged ``"usable": false`` unless
+``--force`` (:func:`refuse_unusable`).
+
+Two numbers say how much a campaign determines:
+
+- **determined directions**: the effective number of fitted parameters, trace(C AᵀA) of the MAP fit
+  (each direction counts 1 when the data fix it, 0 when only the prior holds it), rounded, of the number
+  of parameters;
+- **predicted pointing uncertainty**: the posterior covariance C propagated to the platform normal over
+  :data:`QUALITY_GRID` (1 sigma, deg): RMS and max over the grid. The same propagation of the prior
+  (the manufacturing tolerances the machine's configuration assumes, ``docs/fullchain.md``) gives the
+  **uncalibrated machine's expected pointing error**.
+
+A result is *not usable* when fewer than half of the parameter directions are determined, or when its
+predicted pointing uncertainty (RMS over the grid) is above :data:`USABLE_FRACTION` of the uncalibrated
+machine's expected error (RMS). A calibration is made to cut the pointing error by an order of magnitude
+or more (the paper's Table 2 machine: 0.8 deg to below 0.01 deg); one whose own uncertainty is a tenth of
+the error it should remove cannot deliver that, and compensating with it moves the machine by amounts the
+data do not support. Measured (``pmcal twin measure --preset paper-table2 --seed 1``, 24 planned poses):
+42 of 55 directions, 0.0042 deg RMS against 3.45 deg uncalibrated; the same pose measured 30 times: 6 of
+55 directions, 0.41 deg RMS.
+
+The paper's per-limb model has no prior: its determined directions are its parameters less those the
+identifiability analysis calls unidentifiable or weak, and no pointing uncertainty is predicted.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from pmcal.calib.ocpm.fullchain import platform_normals
+from pmcal.errors import InputError
+from pmcal.fileio import write_json
+from pmcal.mechanism.ocpm.config import Geometry
+from pmcal.mechanism.ocpm.kinematics import nominal_ik
+
+#: Orientations (phi, theta) deg over which the pointing uncertainty is predicted: phi every 30 deg,
+#: theta 10..60 deg every 10 deg, and the home pose (73 orientations over the default workspace).
+QUALITY_GRID = np.array([(0.0, 0.0)] + [(p, t) for t in range(10, 61, 10) for p in range(0, 360, 30)], float)
+#: A calibration whose predicted pointing uncertainty (RMS over the grid, 1 sigma) is above this fraction
+#: of the uncalibrated machine's expected pointing error (RMS, 1 sigma) is not usable (module docstring).
+USABLE_FRACTION = 0.1
+#: The campaign that fixes an unusable calibration (named by warnings and refusals).
+CAMPAIGN_FIX = ("measure >= 24 poses spread over the workspace: 'pmcal twin plan --frame tracker --poses 48' "
+                "plans them (docs/fullchain.md)")
+
+
+def _normal_jacobian(model, names: list[str], x: np.ndarray, ratio0: float, geom: Geometry) -> np.ndarray:
+    """d normal / d parameter (N, 3, P) of the whole-chain ``model`` at ``x`` over :data:`QUALITY_GRID`."""
+    phi, theta = np.deg2rad(QUALITY_GRID).T
+    m = np.rad2deg(nominal_ik(phi, theta, geom))
+    model.set_vector(names, x, ratio0)
+    T, dT = model.predict(m, names)
+    X = geom.targets[: T.shape[1]]
+    n0 = platform_normals(T, X)
+    h = 1e-4                                           # mm of target motion per unit step: linear regime
+    scale = h / np.maximum(np.abs(dT).max(axis=(0, 1, 2)), 1e-300)
+    dn = np.stack([(platform_normals(T + s * dT[..., j], X) - n0) / s for j, s in enumerate(scale)], axis=-1)
+    return dn[np.isfinite(dn).all(axis=(1, 2))]
+
+
+def _pointing_std_deg(dn: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """1-sigma pointing error (deg) of each grid pose: sqrt(trace(dn C dnᵀ)) of the normal's covariance."""
+    return np.rad2deg(np.sqrt(np.einsum("nap,pq,naq->n", dn, cov, dn)))
+
+
+def full_chain_quality(model, res, geom: Geometry) -> dict:
+    """The ``quality`` object of a whole-chain fit ``res`` (``IdentResult`` with covariance, prior_std and
+    effective_parameters in its ``info``) evaluated with ``model`` (the fit's forward model)."""
+    names, x = list(res.names), np.asarray(res.x, float)
+    ratio0 = float(res.info["stiffness_ratio"])
+    dn = _normal_jacobian(model, names, x, ratio0, geom)
+    post = _pointing_std_deg(dn, np.asarray(res.covariance, float))
+    prior = _pointing_std_deg(dn, np.diag(np.asarray(res.info["prior_std"], float) ** 2))
+    determined = int(round(float(res.info["effective_parameters"])))
+    return judge(determined, len(names), float(np.sqrt(np.mean(post**2))), float(post.max()),
+                 float(np.sqrt(np.mean(prior**2))), unit="deg", what="pointing")
+
+
+def judge(determined: int, n_params: int, rms: float | None = None, most: float | None = None,
+          uncalibrated: float | None = None, unit: str = "deg", what: str = "pointing") -> dict:
+    """The ``quality`` object: the numbers and the verdict (``usable``, ``why``); ``rms``, ``most`` and
+    ``uncalibrated`` None when the model predicts no uncertainty (the paper's)."""
+    why = []
+    if determined < n_params / 2:
+        why.append(f"only {determined} of {n_params} parameter directions are determined by the campaign")
+    if rms is not None and rms > USABLE_FRACTION * uncalibrated:
+        why.append(f"the predicted {what} uncertainty ({rms:.3g} {unit} RMS, 1 sigma) is above "
+                   f"{USABLE_FRACTION:g} x the uncalibrated machine's expected error ({uncalibrated:.3g} {unit})")
+    return {"determined_directions": determined, "parameters": n_params,
+            f"predicted_{what}_std_{unit}": None if rms is None else {"rms": rms, "max": most},
+            f"uncalibrated_{what}_error_{unit}": uncalibrated,
+            "usable": not why, "why": "; ".join(why) if why else None,
+            "note": f"{what} uncertainty: posterior covariance propagated over the quality grid (1 sigma); "
+                    "uncalibrated error: the prior (manufacturing tolerances) propagated the same way; not usable "
+                    f"below half the directions determined or above {USABLE_FRACTION:g} x the uncalibrated error "
+                    "(RMS over the grid)"}
+
+
+def quality_line(q: dict) -> str:
+    """The one-line summary ``identify`` prints, e.g. ``42 of 55 parameter directions determined; predicted
+    pointing uncertainty 0.0021 deg RMS, 0.0050 deg max (uncalibrated 0.52 deg)``."""
+    line = f"{q['determined_directions']} of {q['parameters']} parameter directions determined"
+    key = next(k for k in q if k.startswith("predicted_"))
+    if q[key] is None:
+        return line
+    what, unit = key[len("predicted_"):].split("_std_")
+    unc = q[f"uncalibrated_{what}_error_{unit}"]
+    return (f"{line}; predicted {what} uncertainty {q[key]['rms']:.2g} {unit} RMS, {q[key]['max']:.2g} {unit} max "
+            f"(uncalibrated {unc:.2g} {unit})")
+
+
+def paper_quality(n_params: int, unidentifiable: list[str], weak: list[str]) -> dict:
+    """The ``quality`` object of a paper-model fit (no prior, no predicted uncertainty)."""
+    return judge(n_params - len(set(unidentifiable) | set(weak)), n_params)
+
+
+def save_table(table, path, quality: dict | None) -> None:
+    """Save a compensation table (JSON and CSV beside it); a table made with ``--force`` from a calibration
+    flagged not usable carries its ``quality`` object in the JSON, so ``pmcal push`` refuses it too."""
+    table.save(path)
+    if isinstance(quality, dict) and quality.get("usable") is False:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+        doc["quality"] = quality
+        write_json(path, doc)
+
+
+def refuse_unusable(doc: dict, path: str, force: bool, fix: str = CAMPAIGN_FIX) -> None:
+    """InputError naming ``path`` when the parameters/table document ``doc`` carries ``quality.usable``
+    false (written by ``pmcal identify``), unless ``force``."""
+    q = doc.get("quality") if isinstance(doc, dict) else None
+    if force or not isinstance(q, dict) or q.get("usable", True) is not False:
+        return
+    raise InputError(f"calibration flagged not usable ({q.get('why') or 'campaign too weak'}): {fix}; or add "
+                     "--force to use it anyway", file=path, field="quality")
