@@ -31,7 +31,7 @@ from pathlib import Path
 
 from pmcal import __version__, progress, threads
 from pmcal.errors import InputError, RunError
-from pmcal.fileio import check_output
+from pmcal.fileio import check_not_input, check_output
 
 DEFAULT_MACHINE = "ocpm_2dof"
 
@@ -42,6 +42,15 @@ FILE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "push": ("json", "audit"), "loop": ("json",),
 }
 FOLDER_OUTPUTS: dict[str, tuple[str, ...]] = {"demo": ("out",), "diagnose": ("report",)}
+#: command -> {attribute: how the user names it} of every file the command reads: no output may be one
+FILE_INPUTS: dict[str, dict[str, str]] = {
+    "identify": {"measurements": "MEAS.csv"}, "compensate": {"params": "PARAMS.json", "targets": "--targets"},
+    "evaluate": {"params": "PARAMS.json", "measurements": "MEAS.csv"},
+    "diagnose": {"measurements": "MEAS.csv", "params": "--params"},
+    "twin measure": {"targets": "--targets", "errors": "--errors"}, "twin render": {"errors": "--errors"},
+    "twin plan": {"from_diagnosis": "--from"}, "push": {"table": "TABLE"},
+    "loop": {"table": "--table", "errors": "--errors"},
+}
 #: (command, attribute) of a file output that brings a second file beside it: suffix of that file
 COMPANIONS: dict[tuple[str, str], str] = {("compensate", "table"): ".csv"}
 
@@ -175,7 +184,7 @@ def output_paths(args) -> list[tuple[str, str, bool]]:
         for attr in attrs:
             value = getattr(args, attr, None)
             if value:
-                option = "--" + attr.replace("_", "-") if attr != "output" else "-o"
+                option = _option(attr)
                 out.append((option, str(value), folder))
                 suffix = COMPANIONS.get((name, attr))
                 if suffix and not folder:
@@ -183,10 +192,21 @@ def output_paths(args) -> list[tuple[str, str, bool]]:
     return out
 
 
+def _option(attr: str) -> str:
+    return "--" + attr.replace("_", "-") if attr != "output" else "-o"
+
+
+def input_paths(args) -> list[tuple[str, str]]:
+    """(option or argument name, path) of every file the parsed command reads."""
+    return [(label, str(getattr(args, attr))) for attr, label in FILE_INPUTS.get(_command_name(args), {}).items()
+            if getattr(args, attr, None)]
+
+
 def check_outputs(args) -> None:
     """The one output check, before any work starts."""
     force = bool(getattr(args, "force", False))
     seen = set()
+    inputs = input_paths(args)
     for option, path, folder in output_paths(args):
         key = os.path.abspath(path)
         if key in seen:
@@ -194,6 +214,7 @@ def check_outputs(args) -> None:
         seen.add(key)
         try:
             check_output(path, folder=folder, force=force, field=option)
+            check_not_input(path, inputs, field=option)
         except InputError as exc:       # checked before any work: say so
             raise InputError(f"{exc.message}; nothing was sent or written", field=exc.field) from None
 

@@ -117,6 +117,26 @@ def check_output(path: str | os.PathLike, *, folder: bool = False, force: bool =
         raise InputError(f"{target} is read-only; it will not be replaced", field=field)
 
 
+def check_not_input(path: str | os.PathLike, inputs, *, field: str | None = None) -> None:
+    """Raise :class:`InputError` when the output ``path`` is the same file as one of ``inputs`` ((option,
+    path) pairs): the same resolved path, or the same inode (a hard link, a symlink). Checked whatever
+    ``--force`` says: replacing an input with an output loses the input."""
+    target = Path(path)
+    for option, src in inputs:
+        if src is None or not str(src).strip():
+            continue
+        source = Path(src)
+        same = target.resolve() == source.resolve()
+        if not same and target.exists() and source.exists():
+            try:
+                same = os.path.samefile(target, source)
+            except OSError:
+                same = False
+        if same:
+            raise InputError(f"{path} is also the input {option} ({src}): the output would replace it "
+                             "(choose another output name)", field=field)
+
+
 def _writable(path: Path) -> bool:
     """Writable by this process, and not marked read-only (also when running as root, who may write anyway)."""
     return os.access(path, os.W_OK) and bool(path.stat().st_mode & 0o222)
