@@ -51,6 +51,13 @@ FILE_INPUTS: dict[str, dict[str, str]] = {
     "twin plan": {"from_diagnosis": "--from"}, "push": {"table": "TABLE"},
     "loop": {"table": "--table", "errors": "--errors"},
 }
+#: (command, attribute) of a file output -> the suffixes its format may have (case-insensitive)
+OUTPUT_SUFFIXES: dict[tuple[str, str], tuple[str, ...]] = {
+    ("identify", "output"): (".json",), ("compensate", "output"): (".csv",), ("compensate", "table"): (".json",),
+    ("evaluate", "json"): (".json",), ("diagnose", "json"): (".json",), ("twin measure", "output"): (".csv",),
+    ("twin plan", "output"): (".csv",), ("twin render", "output"): (".png",), ("targets", "output"): (".csv",),
+    ("push", "json"): (".json",), ("loop", "json"): (".json",),
+}
 #: (command, attribute) of a file output that brings a second file beside it: suffix of that file
 COMPANIONS: dict[tuple[str, str], str] = {("compensate", "table"): ".csv"}
 
@@ -176,8 +183,9 @@ def _command_name(args) -> str:
     return f"{args.command} {twin}" if twin else str(args.command)
 
 
-def output_paths(args) -> list[tuple[str, str, bool]]:
-    """(option, path, is_folder) of every output the parsed command will write."""
+def output_paths(args, suffixes: bool = False) -> list:
+    """(option, path, is_folder) of every output the parsed command will write; with ``suffixes``,
+    (option, path, is_folder, the suffixes its format may have or ())."""
     name = _command_name(args)
     out = []
     for attrs, folder in ((FILE_OUTPUTS.get(name, ()), False), (FOLDER_OUTPUTS.get(name, ()), True)):
@@ -185,11 +193,11 @@ def output_paths(args) -> list[tuple[str, str, bool]]:
             value = getattr(args, attr, None)
             if value:
                 option = _option(attr)
-                out.append((option, str(value), folder))
+                out.append((option, str(value), folder, OUTPUT_SUFFIXES.get((name, attr), ())))
                 suffix = COMPANIONS.get((name, attr))
                 if suffix and not folder:
-                    out.append((option, str(Path(str(value)).with_suffix(suffix)), False))
-    return out
+                    out.append((option, str(Path(str(value)).with_suffix(suffix)), False, ()))
+    return out if suffixes else [o[:3] for o in out]
 
 
 def _option(attr: str) -> str:
@@ -207,13 +215,13 @@ def check_outputs(args) -> None:
     force = bool(getattr(args, "force", False))
     seen = set()
     inputs = input_paths(args)
-    for option, path, folder in output_paths(args):
+    for option, path, folder, suffixes in output_paths(args, suffixes=True):
         key = os.path.abspath(path)
         if key in seen:
             raise InputError(f"{path} is given as two outputs", field=option)
         seen.add(key)
         try:
-            check_output(path, folder=folder, force=force, field=option)
+            check_output(path, folder=folder, force=force, field=option, suffixes=suffixes)
             check_not_input(path, inputs, field=option)
         except InputError as exc:       # checked before any work: say so
             raise InputError(f"{exc.message}; nothing was sent or written", field=exc.field) from None

@@ -85,13 +85,13 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
 
 
 def check_output(path: str | os.PathLike, *, folder: bool = False, force: bool = False,
-                 field: str | None = None) -> None:
+                 field: str | None = None, suffixes: tuple[str, ...] = ()) -> None:
     """Check before any work that ``path`` can be written; raise :class:`InputError` otherwise.
 
     A file output must not be a folder, must not be a read-only file, and its folder must exist and be
     writable. A folder output (``folder=True``) must not be a file; if it exists, it must hold the marker
     :data:`MARKER` (pmcal wrote it, so replacing it loses nothing of the user's) or be empty, unless
-    ``force``.
+    ``force``. A file output's name must end in one of ``suffixes`` (its format's; any when empty).
     """
     if path is None:
         return
@@ -115,6 +115,9 @@ def check_output(path: str | os.PathLike, *, folder: bool = False, force: bool =
         raise InputError(f"{target} is a folder; give a file name", field=field)
     if target.exists() and not _writable(target):
         raise InputError(f"{target} is read-only; it will not be replaced", field=field)
+    if suffixes and target.suffix.lower() not in suffixes:
+        raise InputError(f"{target}: this output is {' or '.join(s.lstrip('.').upper() for s in suffixes)}; "
+                         f"name it with {' or '.join(suffixes)}", field=field)
 
 
 def check_not_input(path: str | os.PathLike, inputs, *, field: str | None = None) -> None:
