@@ -252,8 +252,21 @@ def main(argv: list[str] | None = None) -> int:
         progress.set_long(False)
 
 
+def _join_negative_lists(argv: list[str]) -> list[str]:
+    """``--grid -5,10`` as ``--grid=-5,10``: argparse takes a value starting with '-' and holding a comma
+    for an option, and would answer with its own usage error instead of ours naming the option."""
+    out: list[str] = []
+    for a in argv:
+        if (out and out[-1].startswith("--") and "=" not in out[-1] and len(a) > 1 and a[0] == "-"
+                and (a[1].isdigit() or a[1] == ".") and "," in a):
+            out[-1] = f"{out[-1]}={a}"
+        else:
+            out.append(a)
+    return out
+
+
 def _main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    argv = _join_negative_lists(sys.argv[1:] if argv is None else list(argv))
     parser = build_parser(_machine_from_argv(argv))
     try:
         args = parser.parse_args(argv)

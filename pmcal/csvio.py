@@ -16,7 +16,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from pmcal.errors import InputError
-from pmcal.fileio import atomic_write
+from pmcal.fileio import atomic_write, read_text
 
 
 @dataclass
@@ -84,11 +84,9 @@ def read_csv(path: str | Path, max_rows: int | None = None) -> CsvTable:
             raise InputError(f"{Path(path).stat().st_size / 2**20:.0f} MiB, larger than the "
                              f"{MAX_CSV_BYTES // 2**20} MiB a pmcal CSV may have (docs/formats.md, 'Size "
                              "limits'): split the file or thin it out", file=p)
-        raw = Path(path).read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise InputError("file not found", file=p) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read file ({exc.__class__.__name__}: {exc})", file=p) from None
+    except OSError as exc:
+        raise InputError(f"cannot read file ({exc.strerror or exc})", file=p) from None
+    raw = read_text(path)
     lines = raw.splitlines()
     comments = []
     while lines and (lines[0].lstrip().startswith("#") or not lines[0].strip()):
@@ -97,6 +95,10 @@ def read_csv(path: str | Path, max_rows: int | None = None) -> CsvTable:
         raise InputError("no header row", file=p)
     reader = csv.reader(io.StringIO("\n".join(lines)))
     header = [h.strip() for h in next(reader)]
+    for sep, name in ((";", "semicolons"), ("\t", "tabs")):
+        if len(header) == 1 and sep in lines[0]:
+            raise InputError(f"the columns are separated by {name}: pmcal reads comma-separated CSV (save it "
+                             "with ',' as the separator and '.' as the decimal point)", file=p)
     if len(set(header)) != len(header):
         dup = next(h for h in header if header.count(h) > 1)
         raise InputError("duplicate column", file=p, field=dup)

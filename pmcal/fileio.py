@@ -84,6 +84,24 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+def read_text(path: str | os.PathLike, field: str | None = None) -> str:
+    """The text of a UTF-8 file (a BOM is dropped); :class:`InputError` naming the file when it is missing,
+    unreadable, or not UTF-8 (then the byte and the fix: save it as UTF-8)."""
+    p = str(path)
+    try:
+        return Path(path).read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise InputError("file not found", file=p, field=field) from None
+    except UnicodeDecodeError as exc:
+        line = exc.object[: exc.start].count(b"\n") + 1
+        raise InputError(f"not UTF-8 text (byte 0x{exc.object[exc.start]:02X} on line {line}, another encoding "
+                         "such as Latin-1 or Windows-1252?): save it as UTF-8", file=p, field=field) from None
+    except IsADirectoryError:
+        raise InputError("is a folder, not a file", file=p, field=field) from None
+    except OSError as exc:
+        raise InputError(f"cannot read file ({exc.strerror or exc})", file=p, field=field) from None
+
+
 def check_output(path: str | os.PathLike, *, folder: bool = False, force: bool = False,
                  field: str | None = None, suffixes: tuple[str, ...] = ()) -> None:
     """Check before any work that ``path`` can be written; raise :class:`InputError` otherwise.

@@ -18,7 +18,7 @@ from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, PAPER_LIMB_FIELDS, check
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.csvio import read_csv, write_csv
 from pmcal.errors import InputError
-from pmcal.fileio import write_json
+from pmcal.fileio import read_text, write_json
 
 MECHANISM = "ocpm_2dof"
 TARGET_AXES = ("x", "y", "z")
@@ -32,6 +32,8 @@ MAX_POSES = 2000
 #: Above this many poses identify and diagnose take long (tens of seconds to minutes): they report their
 #: steps on stderr also when piped (:func:`pmcal.progress.set_long`).
 LONG_POSES = 200
+#: Largest target coordinate a measurement file may hold, mm (100 m: beyond any laser tracker's range).
+MAX_COORDINATE_MM = 1e5
 #: Largest plausible error of a measured distance between two targets (mm).
 PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
 #: The same in the tracker frame, where gross outliers are expected and rejected (named) by the robust fit:
@@ -63,7 +65,11 @@ def read_measurements(path: str | Path, geom: Geometry | None = None, check_unit
     t.require(["pose_id", "m1_cmd_deg", "m2_cmd_deg"] + target_columns(k))
     ids = t.unique_ids("pose_id")
     m = np.stack([t.numbers("m1_cmd_deg"), t.numbers("m2_cmd_deg")], axis=1)
-    coords = np.stack([t.numbers(c, allow_empty=True) for c in target_columns(k)], axis=1).reshape(len(ids), k, 3)
+    flat = np.stack([t.numbers(c, allow_empty=True) for c in target_columns(k)], axis=1)
+    for i, j in np.argwhere(np.abs(flat) > MAX_COORDINATE_MM)[:1]:
+        raise InputError(f"{flat[i, j]:g} mm is not a target coordinate (at most {MAX_COORDINATE_MM:g} mm from the "
+                         "frame's origin)", file=t.path, row=int(i) + 1, field=target_columns(k)[j])
+    coords = flat.reshape(len(ids), k, 3)
     check_blocked(coords, t.path)
     optional = {c: (t.numbers(c, allow_empty=True, default=d) if t.has(c) else None)
                 for c, d in (("temp_c", math.nan), ("time_s", math.nan), ("payload_kg", 0.0))}
@@ -229,12 +235,9 @@ def read_params(path: str | Path, geom: Geometry | None = None) -> tuple[dict[st
     """
     geom = geom or default_geometry()
     p = str(path)
+    text = read_text(path)
     try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
-    except FileNotFoundError:
-        raise InputError("file not found", file=p) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read file ({exc})", file=p) from None
+        doc = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=p) from None
     if not isinstance(doc, dict) or not isinstance(doc.get("params", None), dict):
@@ -272,11 +275,19 @@ def write_params(path: str | Path, params: dict[str, float], **extra) -> None:
     write_json(path, doc)
 
 
+#: Largest azimuth a targets file may give, deg (either sign): one turn; beyond it a value is a unit or
+#: typing error, not an orientation.
+PHI_LIMIT_DEG = 360.0
+
+
 def read_targets(path: str | Path, theta_max_deg: float = 90.0) -> tuple[np.ndarray, np.ndarray]:
     """Target orientations (``phi_deg``, ``theta_deg``) from a targets CSV."""
     t = read_csv(path)
     t.require(["phi_deg", "theta_deg"])
     phi, theta = t.numbers("phi_deg"), t.numbers("theta_deg")
+    for i in np.flatnonzero(np.abs(phi) > PHI_LIMIT_DEG):
+        raise InputError(f"azimuth {phi[i]:g} deg is outside -{PHI_LIMIT_DEG:g}..{PHI_LIMIT_DEG:g} deg", file=t.path,
+                         row=int(i) + 1, field="phi_deg")
     for i in np.flatnonzero((theta < 0) | (theta > theta_max_deg)):
         raise InputError(f"tilt {theta[i]:g} deg is outside 0..{theta_max_deg:g} deg", file=t.path,
                          row=int(i) + 1, field="theta_deg")

@@ -19,6 +19,7 @@ from pmcal.calib.ocpm.registration import FRAME_KEYS, read_registration
 from pmcal.calib.ocpm.tracker_fit import BadCampaignError, TrackerOptions, identify_tracker
 from pmcal import progress
 from pmcal.errors import InputError
+from pmcal.fileio import read_text
 
 FRAMES = ("base", "tracker")
 #: Robust residual scale (in tracker sigmas) beyond which the diagnosis' registration calls the campaign
@@ -34,11 +35,10 @@ def parse_frame(text: str | None) -> tuple[str, tuple[np.ndarray, np.ndarray] | 
         raise InputError(f"unknown frame '{text}' (base, tracker or tracker:T.json)", field="--frame")
     if not path:
         return frame, None
+    text = read_text(path, field="--frame")
     try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("file not found", file=path, field="--frame") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
         raise InputError(f"cannot read the registration ({exc})", file=path) from None
     if isinstance(doc, dict) and isinstance(doc.get("registration"), dict):
         doc = doc["registration"]                      # a params JSON of an earlier tracker-frame fit

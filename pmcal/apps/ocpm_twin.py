@@ -9,7 +9,7 @@ from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 from pmcal import progress
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write
-from pmcal.io_ocpm import read_campaign_context, read_params, read_targets, write_measurements
+from pmcal.io_ocpm import MAX_POSES, read_campaign_context, read_params, read_targets, write_measurements
 
 PRESETS: dict[str, dict[str, float]] = {"paper-table2": PAPER_TABLE2, "nominal": {}}
 
@@ -66,8 +66,9 @@ def twin_measure(args) -> int:
         raise InputError(f"noise must be a non-negative number of mm, got {args.noise}", field="--noise")
     if args.poses is None:
         args.poses = 24
-    if args.poses < 1:
-        raise InputError(f"number of poses must be at least 1, got {args.poses}", field="--poses")
+    if not 1 <= args.poses <= MAX_POSES:
+        raise InputError(f"number of poses must be 1..{MAX_POSES} (the most identify and diagnose read), got "
+                         f"{args.poses}", field="--poses")
     theta_max = np.rad2deg(geom.theta_max) if args.theta_max is None else args.theta_max
     if not 0 < theta_max <= THETA_LIMIT_DEG:
         raise InputError(f"tilt limit {theta_max:g} deg is outside the workspace 0..{THETA_LIMIT_DEG:g} deg "

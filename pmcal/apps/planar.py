@@ -186,7 +186,7 @@ def twin_measure(args) -> int:
     from pmcal.calib.planar.design import boundary_positions
     from pmcal.mechanism.planar.noise import Noise
     from pmcal import progress
-    from pmcal.io_planar import read_targets, write_measurements
+    from pmcal.io_planar import MAX_POSITIONS, read_targets, write_measurements
     from pmcal.twin.planar.campaign import commands_for, measure
     from pmcal.twin.planar.twin import PlanarTwin
 
@@ -208,9 +208,9 @@ def twin_measure(args) -> int:
             raise InputError("a campaign needs at least two positions", file=args.targets, field="x_mm")
     else:
         K = int(getattr(args, "poses", None) or 6)
-        if K < 6 or K % 2:
-            raise InputError(f"number of poses must be even and at least 6 (K = 2n > 5), got {K}",
-                             field="--poses")
+        if K < 6 or K % 2 or K > MAX_POSITIONS:
+            raise InputError(f"number of poses must be even and 6..{MAX_POSITIONS} (K = 2n > 5; the most identify "
+                             f"reads), got {K}", field="--poses")
         r = boundary_positions(machine.workspace, K // 2)
     twin = PlanarTwin(errors, machine)
     rng = np.random.default_rng(int(getattr(args, "seed", 1)))
