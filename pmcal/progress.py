@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from typing import Iterable, TypeVar
@@ -102,8 +103,20 @@ def progress(iterable: Iterable[T] | None = None, *, total: int | None = None, d
     """Wrap ``iterable`` in a progress bar (or a disabled one): usable as iterator and context."""
     if _lines():
         return _LineBar(iterable, total, desc, unit)
+    # a terminal that reports no size (a pty without a window, ``script``): tqdm would draw nothing in 0
+    # columns and hide every bar below row 0, so assume 80 x 24
+    sized = min(_terminal_size()) > 0
     return tqdm(iterable, total=total, desc=desc, unit=unit, disable=not enabled(),
-                leave=False, file=sys.stderr, dynamic_ncols=True)
+                leave=False, file=sys.stderr, dynamic_ncols=sized, ncols=None if sized else 80,
+                nrows=None if sized else 24)
+
+
+def _terminal_size() -> tuple[int, int]:
+    """(columns, lines) of the terminal stderr writes to; (0, 0) when it reports none."""
+    try:
+        return tuple(os.get_terminal_size(sys.stderr.fileno()))
+    except (OSError, ValueError, AttributeError):
+        return 0, 0
 
 
 def status(message: str) -> None:

@@ -111,13 +111,17 @@ def write_outputs(d: Diagnosis, doc: dict, json_path: str, report_dir: str | Non
 
 
 def summary_line(d: Diagnosis) -> str:
+    """The verdict as a plain sentence first, the numbers after it."""
     if d.named:
-        named = ", ".join(f"{effect_label(v)} = {v.value:.4g} {v.unit}" for v in d.named)
+        verdict = "missing effect: " + ", ".join(f"{effect_label(v)} = {v.value:.4g} {v.unit}" for v in d.named)
+        if d.unexplained:
+            verdict += "; structure left that no candidate explains"
+    elif d.unexplained:
+        verdict = "missing effect not identified: structure is left that no candidate effect explains"
     else:
-        named = "no effect named"
-    extra = "; structure left that no candidate explains" if d.unexplained else ""
+        verdict = "no missing effect: the model explains the data to the noise level"
     left = f", {len(d.extrapolated)} extrapolated pose(s) left out" if d.extrapolated else ""
-    return (f"{named}{extra}; held-out gap {d.gap_before:.4f} -> {d.gap_after:.4f} mm "
+    return (f"{verdict}; held-out gap {d.gap_before:.4f} -> {d.gap_after:.4f} mm "
             f"(noise {d.noise_floor:.4f} mm{left})")
 
 
@@ -173,5 +177,5 @@ def hidden_effect_demo(args) -> int:
         write_outputs(d, doc, str(tmp / "diagnosis.json"), str(tmp / "report"),
                       "pmcal demo: a hidden effect, diagnosed blind", extra=answer)
         write_json(tmp / "answer.json", truth)
-    progress.status(f"hidden: {name}; diagnosed: {summary_line(d)}")       # the answer: answer.json
+    print(f"hidden: {name}; diagnosed: {', '.join(d.effects) or 'none'} ({summary_line(d)})", flush=True)       # the answer: answer.json
     return 0

@@ -50,5 +50,5 @@ def tracker_plan(args) -> int:
         fh.write(",".join(HEADER) + "\n")
         for i in range(len(phi)):
             fh.write(f"{i + 1},{phi[i]:.6f},{theta[i]:.6f},{cmd[i, 0]:.6f},{cmd[i, 1]:.6f}\n")
-    progress.status(f"predicted base-frame uncertainty {std:.4f} deg; written {args.output}")
+    print(f"predicted base-frame uncertainty {std:.4f} deg (1 sigma)", flush=True)
     return 0

@@ -216,8 +216,9 @@ def demo(args) -> int:
     s = results["groups"]
     worst = {label: max(max(s[grp][name]["delta_deg_median"]) for grp in GROUPS) for name, label in
              (("seed", "paper"), ("paper_scale_only", "paper, scale only"), ("ours", "pmcal"))}
-    progress.status(f"planar_2dof demo: {runs} runs per group and setting, {t:.1f} s -> {out}/report.html; "
-                    "worst-group median zero-offset error: " + ", ".join(f"{k} {v:.4f} deg" for k, v in worst.items()))
+    print(f"planar_2dof demo: {runs} runs per group and setting, {t:.1f} s -> {out}/report.html; "
+          "worst-group median zero-offset error: " + ", ".join(f"{k} {v:.4f} deg" for k, v in worst.items()),
+          flush=True)
     return 0
 
 

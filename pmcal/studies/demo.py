@@ -385,8 +385,8 @@ def run_demo(out: Path, seed: int, full: bool = False) -> int:
             demo_report(study, pool).write(tmp / "report.html")
             write_json(tmp / "summary.json", summary)
             bar.update(1)
-    progress.status(f"pmcal demo: {out}/report.html in {time.perf_counter() - t0:.0f} s; mean pointing error on "
+    print(f"pmcal demo: {out}/report.html in {time.perf_counter() - t0:.0f} s; mean pointing error on "
           f"{DemoStudy.N_TEST} test poses {summary['before_mean_deg']:.4f} -> {summary['after_mean_deg']:.4f} deg "
           f"({summary['improvement_percent']:.1f} % better, whole closed chain; paper HGA method "
-          f"{summary['hga_paper_after_mean_deg']:.4f} deg)")
+          f"{summary['hga_paper_after_mean_deg']:.4f} deg)", flush=True)
     return 0
