@@ -22,7 +22,6 @@ from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full
 from pmcal.calib.ocpm.linear_tests import Linearization, fit, nested_test, pose_leverage, predict
 from pmcal.mechanism.ocpm.params import is_angular, random_errors
 from pmcal.apps.ocpm_diagnose import hidden_effect_demo
-from pmcal import progress
 from pmcal.cli import main
 from pmcal.io_ocpm import write_measurements
 from pmcal.apps.effect_scenarios import diagnosis_plan, hidden_effect_campaign

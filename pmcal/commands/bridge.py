@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", default=None, metavar="REPORT.json", help="also write the push report as JSON")
     p.add_argument("--force", action="store_true",
                    help="push a table made from a calibration that identify flagged not usable")
-    p.set_defaults(func=cmd_push)
+    p.set_defaults(func=cmd_push, prepare=_audit_default)
 
     m = sub.add_parser("mock-plc", help="run a mock TwinCAT PLC on 127.0.0.1 for manual trials")
     g = m.add_mutually_exclusive_group(required=True)
@@ -83,6 +83,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     lp.add_argument("--seed", type=int, default=1, help="random seed of orientations and tracker noise")
     lp.add_argument("--json", default=None, metavar="OUT.json", help="write the result as JSON")
     lp.set_defaults(func=cmd_loop)
+
+
+def _audit_default(args) -> None:
+    """The audit log is an output like any other (checked first, its 'wrote' line after): beside TABLE
+    unless ``--audit`` or ``--no-audit``."""
+    args.audit = None if args.no_audit else (args.audit or str(Path(args.table).with_name("bridge_audit.log")))
 
 
 def _target_args(p: argparse.ArgumentParser) -> None:
@@ -128,7 +134,7 @@ def cmd_push(args) -> int:
     check_table_for(table, args.table, getattr(args, "machine", None), bool(args.force))
     link = make_link(args, writes=frozenset() if args.dry_run else None)
     _quiet_libraries()
-    audit = None if args.no_audit else (args.audit or Path(args.table).with_name("bridge_audit.log"))
+    audit = args.audit                                   # _audit_default: None with --no-audit
     # everything that can fail locally, before the first byte goes to the PLC
     if audit is not None and not args.dry_run:
         check_writable(audit, "--audit")
