@@ -6,12 +6,13 @@ status). This module owns what every command shares:
 
 - ``--quiet`` / ``--verbose`` (accepted before or after the subcommand) and ``--version``;
 - one output check before any work (:func:`check_outputs`): unwritable, missing folder, a folder where
-  a file goes, a read-only file, a folder pmcal did not write -> exit 2 with one line;
+  a file goes, a read-only file, a folder pmcal did not write, a name without its format's suffix, an
+  output that is one of the command's inputs (:data:`FILE_INPUTS`) -> exit 2 with one line;
 - one line per output on stdout (``pmcal: wrote PATH``), also when piped. An output is a file or folder
   named by an output option or its default (:data:`FILE_OUTPUTS`, :data:`FOLDER_OUTPUTS`, plus the CSV
   written beside a compensation table); a folder (``demo --out``, ``diagnose --report``) is one output,
-  ``PATH/``. Analysis commands print their result line before it (``evaluate``, ``diagnose``, ``push``,
-  ...); the demos print only the wrote-lines (their summary is a status line: terminal or ``--verbose``);
+  ``PATH/``. Commands print their result line before it (``identify``, ``evaluate``, ``diagnose``,
+  ``push``, the demos, ...), also when piped;
 - ``--quiet`` prints nothing but errors: no result lines, no wrote-lines, no progress (stdout is empty);
 - no traceback reaches the user: bad input -> exit 2, failures -> exit 1 with one line (``--verbose``
   adds the traceback), Ctrl-C -> exit 130 with one line.
@@ -221,8 +222,8 @@ def check_outputs(args) -> None:
             raise InputError(f"{path} is given as two outputs", field=option)
         seen.add(key)
         try:
-            check_output(path, folder=folder, force=force, field=option, suffixes=suffixes)
             check_not_input(path, inputs, field=option)
+            check_output(path, folder=folder, force=force, field=option, suffixes=suffixes)
         except InputError as exc:       # checked before any work: say so
             raise InputError(f"{exc.message}; nothing was sent or written", field=exc.field) from None
 
