@@ -246,7 +246,8 @@ def test_demo_small(tmp_path, monkeypatch, capsys):
     out = tmp_path / "demo"
     capsys.readouterr()
     assert main(["demo", "--out", str(out)]) == 0
-    assert capsys.readouterr().out.splitlines() == [f"pmcal: wrote {out}/"]    # piped: one line per output
+    lines = capsys.readouterr().out.splitlines()          # piped: the result line, then one line per output
+    assert lines[1:] == [f"pmcal: wrote {out}/"] and lines[0].startswith(f"pmcal demo: {out}/report.html in ")
     html = (out / "report.html").read_text()
     for heading in ("Identified vs predefined", "paper Fig. 5", "Algorithm comparison", "Regularisation",
                     "Identifiability", "Pose selection", "Compensation table"):
@@ -254,6 +255,7 @@ def test_demo_small(tmp_path, monkeypatch, capsys):
     assert html.count("data:image/png;base64") >= 4 and "http" not in html.split("<body>")[1].split("Generated")[0]
     s = json.loads((out / "summary.json").read_text())
     assert s["after_mean_deg"] < s["before_mean_deg"] / 10
+    assert f"{s['before_mean_deg']:.4f} -> {s['after_mean_deg']:.4f} deg" in lines[0]
     # the tracker-frame run: outlier named, registration within its reported uncertainty, pointing of the
     # order the frame uncertainty allows (mean 1.25 sigma per axis, docs/tracker_frame.md)
     tr = s["tracker_frame"]
