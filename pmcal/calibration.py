@@ -346,7 +346,7 @@ def _identify_paper(meas: Measurements, method: str, sigma: float, rng_seed: int
                              "success": r.success, "message": r.message} for j, r in cal.results.items()},
     }
     names = [n for r in cal.results.values() for n in r.names]
-    doc["quality"] = paper_quality(len(names), cal.unidentifiable, weak)
+    doc["quality"] = paper_quality(len(names), [a.singular_values for a in cal.identifiability.values()])
     covs = [r.covariance for r in cal.results.values()]
     cov = block_diag(*covs) if all(c is not None for c in covs) else None
     return Calibration(params=cal.params(), model="paper", method=method, document=doc, names=names,

@@ -23,8 +23,8 @@ data do not support. Measured (``pmcal twin measure --preset paper-table2 --seed
 42 of 55 directions, 0.0042 deg RMS against 3.45 deg uncalibrated; the same pose measured 30 times: 6 of
 55 directions, 0.41 deg RMS.
 
-The paper's per-limb model has no prior: its determined directions are its parameters less those the
-identifiability analysis calls unidentifiable or weak, and no pointing uncertainty is predicted.
+The paper's per-limb model has no prior: its determined directions are the numerical rank of its limbs'
+Jacobians (:data:`RANK_TOL`), and no pointing uncertainty is predicted.
 """
 
 from __future__ import annotations
@@ -46,6 +46,9 @@ QUALITY_GRID = np.array([(0.0, 0.0)] + [(p, t) for t in range(10, 61, 10) for p 
 #: A calibration whose predicted pointing uncertainty (RMS over the grid, 1 sigma) is above this fraction
 #: of the uncalibrated machine's expected pointing error (RMS, 1 sigma) is not usable (module docstring).
 USABLE_FRACTION = 0.1
+#: Relative singular value below which a direction of the paper model's Jacobian counts as not determined
+#: (a condition number of 1e6; 24 planned poses give ~1e4, one pose repeated ~1e50).
+RANK_TOL = 1e-6
 #: The campaign that fixes an unusable calibration (named by warnings and refusals).
 CAMPAIGN_FIX = ("measure >= 24 poses spread over the workspace: 'pmcal twin plan --frame tracker --poses 48' "
                 "plans them (docs/fullchain.md)")
@@ -116,9 +119,12 @@ def quality_line(q: dict) -> str:
             f"(uncalibrated {unc:.2g} {unit})")
 
 
-def paper_quality(n_params: int, unidentifiable: list[str], weak: list[str]) -> dict:
-    """The ``quality`` object of a paper-model fit (no prior, no predicted uncertainty)."""
-    return judge(n_params - len(set(unidentifiable) | set(weak)), n_params)
+def paper_quality(n_params: int, singular_values) -> dict:
+    """The ``quality`` object of a paper-model fit (no prior, no predicted uncertainty): the determined
+    directions are the numerical rank of each limb's column-normalised Jacobian (``singular_values``, one
+    array per limb), singular values above :data:`RANK_TOL` times the largest."""
+    rank = sum(int(np.sum(np.asarray(sv) > RANK_TOL * np.max(sv))) for sv in singular_values if np.size(sv))
+    return judge(rank, n_params)
 
 
 def save_table(table, path, quality: dict | None) -> None:

@@ -139,6 +139,13 @@ def test_identify_says_how_much_a_campaign_determines(work, capsys, tmp_path):
     assert f"{bad['determined_directions']} of {bad['parameters']} parameter directions determined" in cap.out
     warn = [line for line in cap.err.splitlines() if line.startswith("pmcal: warning:")]
     assert len(warn) == 1 and "not usable" in warn[0] and "pmcal twin plan" in warn[0]
+    # the paper's per-limb model: one pose fixes one motor equation a limb
+    for src, usable in (("same.csv", False), ("m.csv", True)):
+        assert main(["--quiet", "identify", str(work / src), "-o", str(tmp_path / "paper.json"), "--model", "paper",
+                     "--method", "lm"]) == 0
+        q = json.loads((tmp_path / "paper.json").read_text())["quality"]
+        assert q["usable"] is usable and (q["determined_directions"] <= 2 if not usable else
+                                          q["determined_directions"] >= 18), q
 
 
 def test_compensate_and_push_refuse_a_useless_calibration(work, capsys, tmp_path):

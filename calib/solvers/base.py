@@ -83,7 +83,9 @@ def crlb_covariance(J_white: np.ndarray, rcond: float = 1e-12) -> np.ndarray:
     d = np.where(d > 0, d, 1.0)
     Jn = J_white / d
     U, s, Vt = np.linalg.svd(Jn, full_matrices=False)
-    inv = np.where(s > rcond * s[0], 1.0 / np.maximum(s, 1e-300) ** 2, 0.0)
+    keep = s > rcond * s[0]
+    inv = np.zeros_like(s)
+    inv[keep] = 1.0 / s[keep] ** 2                      # only kept values: no 1/0 warning for a null one
     return ((Vt.T * inv) @ Vt) / np.outer(d, d)
 
 

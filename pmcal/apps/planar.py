@@ -39,6 +39,7 @@ def _noise(machine, sigma: float | None):
 def identify(args) -> int:
     """``pmcal --machine planar_2dof identify MEAS.csv -o PARAMS.json [--model full] [--method tsvd|ls|gls]``."""
     from pmcal.calib.planar.identification import METHODS, identify as run
+    from pmcal.campaign_quality import judge
     from pmcal.fileio import write_json
     from pmcal.io_planar import params_document, read_measurements
 
@@ -60,6 +61,7 @@ def identify(args) -> int:
     doc = params_document(res, {"n_positions": len(meas.ids), "source": str(args.measurements),
                                 "noise": {"scale_sigma_mm": noise.scale,
                                           "servo_sigma_deg": math.degrees(noise.servo)}})
+    doc["quality"] = judge(int(doc.get("rank") or 0), len(doc["params"]), what="position", unit="mm")
     deficient = rank_deficiency(machine.geometry, meas, model, doc)
     if deficient and not getattr(args, "allow_rank_deficient", False):
         doc["success"] = False
@@ -103,6 +105,7 @@ def rank_deficiency(geom, meas, model: str, doc: dict) -> str:
 def compensate(args) -> int:
     """Motor commands (deg) that bring the identified machine to target positions (mm): the controller's
     inverse kinematics with the identified parameters, minus the zero offsets (paper section 5)."""
+    from pmcal.campaign_quality import refuse_unusable
     from pmcal.mechanism.planar.kinematics import inverse
     from pmcal.io_planar import read_params, read_targets, write_setpoints
 
@@ -111,7 +114,10 @@ def compensate(args) -> int:
     if not getattr(args, "targets", None) or not getattr(args, "output", None):
         raise InputError("planar_2dof needs --targets TARGETS.csv and -o SETPOINTS.csv", field="--targets")
     machine = _machine()
-    errors, _ = read_params(args.params)
+    errors, doc = read_params(args.params)
+    refuse_unusable(doc, str(args.params), bool(getattr(args, "force", False)),
+                    fix=f"measure at least {2 * len(errors.as_internal())} positions spread over the workspace "
+                        "('pmcal --machine planar_2dof twin measure --poses 24')")
     real = machine.geometry.perturbed(errors)
     r, rows, header = read_targets(args.targets, machine.geometry)
     theta = inverse(real, r) - errors.dtheta
