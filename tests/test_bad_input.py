@@ -5,7 +5,6 @@ Run in-process through :func:`pmcal.cli.main`, the console script's entry point.
 """
 
 import json
-import os
 import stat
 from pathlib import Path
 
@@ -13,27 +12,20 @@ import numpy as np
 import pytest
 
 from pmcal.cli import main
+from tests.conftest import run_quietly_in
 
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
     """A campaign, its whole-chain and paper parameters, a planar campaign, targets, a table."""
-    d = tmp_path_factory.mktemp("bad")
-    cwd = os.getcwd()
-    os.chdir(d)
-    try:
-        for argv in (["targets", "-o", "targets.csv"],
-                     ["twin", "measure", "--preset", "paper-table2", "--poses", "24", "--seed", "1", "-o", "m.csv"],
-                     ["identify", "m.csv", "-o", "params.json"],
-                     ["identify", "m.csv", "-o", "paper.json", "--model", "paper"],
-                     ["compensate", "params.json", "--table", "table.json", "--table-version", "7"],
-                     ["--machine", "planar_2dof", "twin", "measure", "--preset", "group1", "--poses", "14",
-                      "-o", "planar.csv"],
-                     ["--machine", "planar_2dof", "identify", "planar.csv", "-o", "planar.json"]):
-            assert main(argv + ["--quiet"]) == 0, argv
-    finally:
-        os.chdir(cwd)
-    return d
+    return run_quietly_in(
+        tmp_path_factory.mktemp("bad"), ["targets", "-o", "targets.csv"],
+        ["twin", "measure", "--preset", "paper-table2", "--poses", "24", "--seed", "1", "-o", "m.csv"],
+        ["identify", "m.csv", "-o", "params.json"],
+        ["identify", "m.csv", "-o", "paper.json", "--model", "paper"],
+        ["compensate", "params.json", "--table", "table.json", "--table-version", "7"],
+        ["--machine", "planar_2dof", "twin", "measure", "--preset", "group1", "--poses", "14", "-o", "planar.csv"],
+        ["--machine", "planar_2dof", "identify", "planar.csv", "-o", "planar.json"])
 
 
 def run(capsys, *argv) -> tuple[int, str]:

@@ -17,6 +17,7 @@ import pytest
 from pmcal.bridge.modbus_mock import ModbusMockPlc
 from pmcal.cli import main
 from tests.bridge_fixtures import running
+from tests.conftest import run_quietly_in
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
 
@@ -31,23 +32,16 @@ def _rows(path: Path) -> tuple[list[str], list[str]]:
 def work(tmp_path_factory):
     """A good campaign (24 planned poses, the acceptance's) and a useless one (one pose measured 30 times),
     each identified; targets; a table."""
-    d = tmp_path_factory.mktemp("user")
-    cwd = os.getcwd()
-    os.chdir(d)
-    try:
-        for argv in (["targets", "-o", "targets.csv"],
-                     ["twin", "measure", "--preset", "paper-table2", "--poses", "24", "--seed", "1", "-o", "m.csv"],
-                     ["twin", "measure", "--preset", "paper-table2", "--poses", "24", "--seed", "2", "-o", "m2.csv"],
-                     ["identify", "m.csv", "-o", "params.json"],
-                     ["compensate", "params.json", "--table", "table.json", "--table-version", "7"]):
-            assert main(argv + ["--quiet"]) == 0, argv
-        head, rows = _rows(d / "m.csv")
-        one = rows[4].split(",", 1)[1]
-        (d / "same.csv").write_text("\n".join(head + [rows[0]] + [f"S{i},{one}" for i in range(30)]) + "\n")
-        assert main(["identify", "same.csv", "-o", "same.json", "--quiet"]) == 0
-    finally:
-        os.chdir(cwd)
-    return d
+    d = run_quietly_in(
+        tmp_path_factory.mktemp("user"), ["targets", "-o", "targets.csv"],
+        ["twin", "measure", "--preset", "paper-table2", "--poses", "24", "--seed", "1", "-o", "m.csv"],
+        ["twin", "measure", "--preset", "paper-table2", "--poses", "24", "--seed", "2", "-o", "m2.csv"],
+        ["identify", "m.csv", "-o", "params.json"],
+        ["compensate", "params.json", "--table", "table.json", "--table-version", "7"])
+    head, rows = _rows(d / "m.csv")
+    one = rows[4].split(",", 1)[1]
+    (d / "same.csv").write_text("\n".join(head + [rows[0]] + [f"S{i},{one}" for i in range(30)]) + "\n")
+    return run_quietly_in(d, ["identify", "same.csv", "-o", "same.json"])
 
 
 def digest(folder: Path) -> dict[str, str]:
