@@ -62,8 +62,10 @@ class Calibration:
         Solver: ``"map-least-squares"`` for the whole chain, the paper's method name otherwise.
     document : dict
         Everything else the parameters file records: uncertainty (1 sigma, mm/deg), identifiability,
-        fit statistics (``fit.residual_rms_mm`` or ``fit.residual_rms_sigma``), solver report, and for
-        the whole chain ``stiffness_ratio``; for the paper model ``position_map``.
+        fit statistics (``fit.residual_rms_mm`` or ``fit.residual_rms_sigma``), solver report,
+        ``quality`` (how much the campaign determines and whether the result is usable:
+        :mod:`pmcal.campaign_quality`), and for the whole chain ``stiffness_ratio``; for the paper model
+        ``position_map``.
     names : list of str
         Parameter keys of ``covariance`` (internal order; may include ``log_stiffness_ratio``).
     covariance : ndarray or None

@@ -55,11 +55,20 @@ def test_readme_walkthrough_runs_verbatim(tmp_path):
     assert "pmcal: wrote setpoints.csv" in res.stdout
     assert "dry_run" in res.stdout
     assert "Traceback" not in res.stderr
+    # piped, every result is on stdout; the README's campaigns draw no warning (the tracker step's 48 poses)
+    assert res.stdout.count("parameter directions determined") == 3           # identify: full, paper, tracker
+    assert "no missing effect: the model explains the data to the noise level" in res.stdout
+    assert "pmcal: wrote bridge_audit.log" in res.stdout
+    assert "pmcal: warning" not in res.stderr, res.stderr
 
 
 @pytest.mark.slow
 def test_readme_demos_run_verbatim(tmp_path):
     res = run_block(command_blocks()[1], tmp_path, timeout=3600)
     assert res.returncode == 0, res.stderr[-2000:]
+    # piped, each demo prints its result: the improvement, the hidden effect and the diagnosis
+    assert "pmcal demo: pmcal-demo/report.html" in res.stdout and " -> " in res.stdout
+    assert "hidden: " in res.stdout and "; diagnosed: " in res.stdout
+    assert "planar_2dof demo: " in res.stdout
     for name in ("pmcal-demo", "pmcal-demo-hidden", "pmcal-demo-planar"):
         assert (tmp_path / name / ".pmcal-output").is_file(), name

@@ -98,6 +98,7 @@ def compensate(args) -> int:
         note = f"pmcal compensate: {args.params}, {cal.compensator.description}"
         work.append(lambda: write_setpoints(args.output, phi, theta, m, comments=[note]))
     if args.table:
+        progress.status(f"computing the compensation table: {grid[0]} x {grid[1]} orientations")
         table = build_table(cal.compensator, cal.geometry, grid, version)
         work.append(lambda: save_table(table, args.table, cal.document.get("quality")))
     for w in work:
