@@ -14,6 +14,8 @@ import pytest
 from pmcal.cli import main
 from tests.conftest import run_quietly_in
 
+pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")    # no numpy warning reaches the user
+
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
