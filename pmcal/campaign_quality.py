@@ -24,7 +24,11 @@ data do not support. Measured (``pmcal twin measure --preset paper-table2 --seed
 55 directions, 0.41 deg RMS.
 
 The paper's per-limb model has no prior: its determined directions are the numerical rank of its limbs'
-Jacobians (:data:`RANK_TOL`), and no pointing uncertainty is predicted.
+Jacobians (:data:`RANK_TOL`), and no pointing uncertainty is predicted. planar_2dof: the determined
+directions are the rank of the identification matrix, and no position uncertainty is predicted: its
+recorded covariance is far above the errors its campaigns leave (14 boundary positions, preset group1:
+dtheta1 1 sigma 0.73 deg against an actual error of 0.11 deg; propagated, 7.6 mm RMS over W against an
+uncalibrated 11.4 mm), so a verdict on it would refuse good calibrations.
 """
 
 from __future__ import annotations
