@@ -104,10 +104,12 @@ def judge(determined: int, n_params: int, rms: float | None = None, most: float 
             f"predicted_{what}_std_{unit}": None if rms is None else {"rms": rms, "max": most},
             f"uncalibrated_{what}_error_{unit}": uncalibrated,
             "usable": not why, "why": "; ".join(why) if why else None,
-            "note": f"{what} uncertainty: posterior covariance propagated over the quality grid (1 sigma); "
-                    "uncalibrated error: the prior (manufacturing tolerances) propagated the same way; not usable "
-                    f"below half the directions determined or above {USABLE_FRACTION:g} x the uncalibrated error "
-                    "(RMS over the grid)"}
+            "note": (f"{what} uncertainty: posterior covariance propagated over the quality grid (1 sigma); "
+                     "uncalibrated error: the prior (manufacturing tolerances) propagated the same way; not usable "
+                     f"below half the directions determined or above {USABLE_FRACTION:g} x the uncalibrated error "
+                     "(RMS over the grid)") if rms is not None else
+                    ("determined directions: numerical rank of the identification Jacobian; not usable below half "
+                     f"of them; no {what} uncertainty predicted for this model (docs/formats.md)")}
 
 
 def quality_line(q: dict) -> str:

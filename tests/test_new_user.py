@@ -270,3 +270,19 @@ def test_progress_bar_is_drawn_on_a_terminal_that_reports_no_size(monkeypatch):
     with progress.progress(total=3, desc="pmcal demo", unit="step") as bar:
         bar.update(3)
     assert piped.getvalue() == ""
+
+
+def test_planar_identify_records_its_rank_and_compensate_refuses_a_flagged_file(capsys, tmp_path):
+    d = run_quietly_in(tmp_path, ["--machine", "planar_2dof", "twin", "measure", "--preset", "group1", "-o", "p.csv"],
+                       ["--machine", "planar_2dof", "identify", "p.csv", "-o", "p.json"],
+                       ["--machine", "planar_2dof", "targets", "-o", "t.csv"])
+    doc = json.loads((d / "p.json").read_text())
+    assert doc["quality"]["usable"] is True and doc["quality"]["determined_directions"] == doc["rank"] == 4
+    doc["quality"].update(usable=False, why="only 1 of 4 parameter directions are determined by the campaign")
+    (d / "weak.json").write_text(json.dumps(doc))
+    before = digest(d)
+    refused(capsys, "--machine", "planar_2dof", "compensate", d / "weak.json", "--targets", d / "t.csv", "-o",
+            d / "s.csv", says="weak.json, field 'quality'")
+    assert digest(d) == before
+    assert main(["--quiet", "--machine", "planar_2dof", "compensate", str(d / "weak.json"), "--targets",
+                 str(d / "t.csv"), "-o", str(d / "s.csv"), "--force"]) == 0
