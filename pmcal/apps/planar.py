@@ -12,7 +12,41 @@ import math
 
 import numpy as np
 
+from pmcal.commands.options import HIDDEN
 from pmcal.errors import InputError, RunError
+
+#: this machine's wording of the commands' options (:mod:`pmcal.commands.options`)
+OPTION_HELP = {
+    **{("twin measure", o): HIDDEN for o in ("--stiffness-ratio", "--effect", "--payload", "--temperature",
+                                              "--shuffle", "--seconds-per-pose", "--theta-max",
+                                              "--no-random-approach", "--tracker-pose", "--nest-error",
+                                              "--blocked", "--outliers")},
+    **{("identify", o): HIDDEN for o in ("--frame", "--nest-tolerance", "--robust")},
+    ("twin render", "--stiffness-ratio"): HIDDEN, ("compensate", "--table"): HIDDEN,
+    ("compensate", "--grid"): HIDDEN, ("compensate", "--table-version"): HIDDEN,
+    ("twin measure", "--poses"): "number of positions on the workspace boundary, even, >= 6 (default 6, "
+                                 "the paper's)",
+    ("twin measure", "--noise"): "linear-scale noise, standard deviation, mm (default the paper's eq. 34)",
+    ("twin measure", "--targets"): "explicit target positions (x_mm, y_mm) instead of the boundary layout",
+    ("twin measure", "--preset"): "built-in error set: nominal (default) or group1..group6 (the paper's "
+                                  "Table 3 groups)",
+    ("twin render", "--preset"): "built-in error set: nominal (default) or group1..group6",
+    ("twin render", "--pose"): "position X,Y of the platform, mm (seed frame, y < 0)",
+    ("identify", "--model"): "error model: the paper's 4 parameters (simplified = paper, default) or all "
+                             "12 (full; rank 9, see --allow-rank-deficient)",
+    ("identify", "--method"): "tsvd (default, eq. 29), ls (eq. 25) or gls (whitened TSVD)",
+    ("identify", "--sigma"): "linear-scale noise, mm (default the paper's eq. 34)",
+    ("identify", "--seed"): HIDDEN,
+    ("compensate", "--targets"): "targets CSV: x_mm, y_mm ('pmcal --machine planar_2dof targets' writes "
+                                 "one)",
+    ("compensate", "-o"): "setpoints CSV to write: the targets with theta1_deg, theta2_deg appended",
+}
+
+
+def option_help(machine) -> dict:
+    """The help table of the command line (the same for every folder of this machine)."""
+    return OPTION_HELP
+
 
 MODEL_CHOICES = {None: "simplified", "paper": "simplified", "simplified": "simplified", "full": "full"}
 
