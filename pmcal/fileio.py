@@ -57,6 +57,20 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+def read_json(path: str | os.PathLike) -> object:
+    """The JSON document in ``path`` (a byte-order mark accepted); :class:`InputError` naming the file for a
+    missing, unreadable or malformed file (with the line and column of a syntax error)."""
+    p = str(path)
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8-sig"))
+    except FileNotFoundError:
+        raise InputError("file not found", file=p) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read file ({exc})", file=p) from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=p) from None
+
+
 def write_json(path: str | os.PathLike, doc, indent: int = 2) -> None:
     """Write a JSON document atomically; numpy arrays and scalars become plain JSON values."""
     with atomic_write(path) as fh:

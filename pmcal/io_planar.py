@@ -5,7 +5,6 @@ field; every output is written atomically. Units in files: mm and degrees.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +16,7 @@ from pmcal.mechanism.planar.kinematics import forward, inverse, mm_vector
 from pmcal.calib.solvers.result import IdentResult
 from pmcal.csvio import read_csv, write_csv
 from pmcal.errors import InputError
+from pmcal.fileio import read_json
 
 MECHANISM = "planar_2dof"
 MEAS_COLUMNS = ("pose_id", "theta1_cmd_deg", "theta2_cmd_deg", "scale_change_mm")
@@ -182,12 +182,7 @@ def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Er
     Absent keys are zero. Returns the errors and the whole document.
     """
     p = str(path)
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
-    except FileNotFoundError:
-        raise InputError("file not found", file=p) from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"not a readable JSON file ({exc})", file=p) from None
+    doc = read_json(path)
     if not isinstance(doc, dict):
         raise InputError("must be a JSON object", file=p)
     if "params" in doc or require_mechanism:
