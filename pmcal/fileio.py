@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -69,6 +70,24 @@ def read_json(path: str | os.PathLike) -> object:
         raise InputError(f"cannot read file ({exc})", file=p) from None
     except json.JSONDecodeError as exc:
         raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=p) from None
+
+
+def check_param_values(params: dict, path: str, unit_of, limits: dict[str, float], prefix: str = "params."
+                       ) -> dict[str, float]:
+    """The values of a parameters JSON's ``params`` object: each a finite number (not a boolean) whose
+    magnitude is at most ``limits[unit_of(key)]`` (beyond it a unit mix-up, radians or micrometres, is far
+    likelier than such a geometric error). Returns them as floats; an :class:`InputError` names the file
+    and the field ``prefix + key``."""
+    out = {}
+    for key, value in params.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise InputError(f"value {value!r} is not a finite number", file=path, field=prefix + key)
+        unit = unit_of(key)
+        if abs(value) > limits[unit]:
+            raise InputError(f"{value:g} {unit} is implausible for a geometric error (at most {limits[unit]:g} "
+                             f"{unit}; units are mm and degrees)", file=path, field=prefix + key)
+        out[key] = float(value)
+    return out
 
 
 def write_json(path: str | os.PathLike, doc, indent: int = 2) -> None:

@@ -17,7 +17,7 @@ from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, PAPER_LIMB_FIELDS, check
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.csvio import check_blocked, check_context, read_csv, target_columns, write_columns, write_csv
 from pmcal.errors import InputError
-from pmcal.fileio import read_json, write_json
+from pmcal.fileio import check_param_values, read_json, write_json
 
 MECHANISM = "ocpm_2dof"
 
@@ -182,18 +182,11 @@ def read_params(path: str | Path, geom: Geometry | None = None) -> tuple[dict[st
     mech = doc.get("mechanism", MECHANISM)
     if mech != MECHANISM:
         raise InputError(f"parameters are for mechanism '{mech}', not '{MECHANISM}'", file=p, field="mechanism")
-    params = {}
-    for key, value in doc["params"].items():
+    for key in doc["params"]:
         msg = check_key(key, geom.n_limbs, geom.actuated)
         if msg:
             raise InputError(msg, file=p, field=key)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise InputError(f"value {value!r} is not a finite number", file=p, field=key)
-        unit = param_unit(key)
-        if abs(value) > PLAUSIBLE_PARAM[unit]:
-            raise InputError(f"{value:g} {unit} is implausible for a geometric error (at most "
-                             f"{PLAUSIBLE_PARAM[unit]:g} {unit}; units are mm and degrees)", file=p, field=key)
-        params[key] = float(value)
+    params = check_param_values(doc["params"], p, param_unit, PLAUSIBLE_PARAM, prefix="")
     model = doc.get("model")
     if model is not None and model not in PARAM_MODELS:
         raise InputError(f"unknown model {model!r} (known: {', '.join(PARAM_MODELS)})", file=p, field="model")

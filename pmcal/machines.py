@@ -10,11 +10,11 @@ the parsed ``argparse`` namespace and returning an exit status (``identify``, ``
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 
 from pmcal.errors import InputError
+from pmcal.mechanism.machine_spec import MachineSpec
 from pmcal.mjcf import ROOT as MJCF_ROOT
 
 #: the machine of ``pmcal`` without ``--machine``
@@ -50,10 +50,7 @@ def machine_folder(value: str | Path) -> Path:
         return machine_dir(text)
     path = Path(text).expanduser()
     if path.is_dir():
-        if not (path / TOML_NAME).is_file():
-            raise InputError(f"machine folder {path} holds no {TOML_NAME} (docs/ADDING_A_MACHINE.md)",
-                             field="--machine")
-        return path
+        return path                  # MachineSpec.load says what is missing in it
     if path.exists():
         raise InputError(f"{path} is a file; --machine takes a built-in name or a machine folder",
                          field="--machine")
@@ -61,13 +58,58 @@ def machine_folder(value: str | Path) -> Path:
                      "folder holding NAME.xml and machine.toml", field="--machine")
 
 
-@dataclass(frozen=True)
-class MachineEntry:
-    """A machine as the command line sees it: ``name``, ``folder`` and the application module's name."""
+class Machine:
+    """A machine: its validated ``machine.toml`` and MJCF, the application that runs its commands, its
+    commands' defaults and (built on first use) its digital twin.
 
-    name: str
-    folder: Path
-    app_name: str
+    Attributes
+    ----------
+    spec : :class:`pmcal.mechanism.machine_spec.MachineSpec`
+        The folder's configuration (docs/machine_toml.md): motors, targets, task coordinates, workspace,
+        errors, tracker noise, table axes. ``spec.legacy`` for the seeded machines.
+    name, folder : the machine's name (``[machine] name``, else the folder's) and its folder.
+    app_name : the application module of its commands (:data:`LEGACY_APPS` or :data:`GENERIC_APP`).
+    defaults : dict
+        Defaults of the machine's commands (``twin measure --poses``, ``--noise``, ``targets --count``, ...),
+        from the application module's ``command_defaults(machine)``.
+
+    Examples
+    --------
+    >>> m = Machine.builtin("delta_3dof")                        # doctest: +SKIP
+    >>> m.spec.motor_columns, m.defaults["poses"]                 # doctest: +SKIP
+    (('m1_cmd_deg', 'm2_cmd_deg', 'm3_cmd_deg'), 48)
+    >>> Machine.from_folder("/home/me/my_delta").twin.error_keys   # doctest: +SKIP
+    """
+
+    def __init__(self, spec):
+        self.spec = spec
+        self.name: str = spec.name
+        self.folder: Path = spec.folder
+        self.legacy: bool = spec.legacy
+        self.app_name = LEGACY_APPS[spec.kind] if spec.legacy else GENERIC_APP
+        self._twin = None
+
+    def __repr__(self) -> str:
+        return f"Machine({self.name!r}, folder={str(self.folder)!r}, app={self.app_name!r})"
+
+    @classmethod
+    def from_folder(cls, folder: str | Path) -> Machine:
+        """The machine of a folder holding ``<name>.xml`` and ``machine.toml`` (validated: an
+        :class:`~pmcal.errors.InputError` names the file, key and fix)."""
+        return cls(MachineSpec.load(folder))
+
+    @classmethod
+    def builtin(cls, name: str) -> Machine:
+        """A built-in machine by name (:func:`builtin_names`)."""
+        if name not in builtin_names():
+            raise InputError(f"no built-in machine '{name}' (built-in: {', '.join(builtin_names())})",
+                             field="--machine")
+        return cls.from_folder(machine_dir(name))
+
+    @classmethod
+    def resolve(cls, value: str | Path) -> Machine:
+        """The machine ``--machine VALUE`` selects: a built-in name or a folder (:func:`machine_folder`)."""
+        return cls.from_folder(machine_folder(value))
 
     @property
     def app(self) -> ModuleType:
@@ -77,12 +119,29 @@ class MachineEntry:
         """The application's per-machine help table (:mod:`pmcal.commands.options`)."""
         return self.app.option_help(self)
 
+    @property
+    def defaults(self) -> dict:
+        return self.app.command_defaults(self)
 
-def resolve(value: str | Path) -> MachineEntry:
+    @property
+    def twin(self):
+        """The closed-chain digital twin (:class:`pmcal.twin.closed_chain.ClosedChainTwin`), compiled on
+        first use. The seeded machines have their own twins (``pmcal.twin.machine``, ``pmcal.twin.planar``)."""
+        if self.legacy:
+            raise InputError(f"machine '{self.name}' runs on its dedicated twin, not the closed-chain one",
+                             field="--machine")
+        if self._twin is None:
+            # imported here, not at the top: MuJoCo loads in ~2 s and the parser (pmcal --help) builds a
+            # Machine for every call; not a cycle (pmcal.twin is a lower layer)
+            from pmcal.twin.closed_chain import ClosedChainTwin
+
+            self._twin = ClosedChainTwin(self.spec)
+        return self._twin
+
+
+def resolve(value: str | Path) -> Machine:
     """The machine ``--machine VALUE`` selects."""
-    folder = machine_folder(value)
-    name = folder.name if str(value) not in LEGACY_APPS else str(value)
-    return MachineEntry(name, folder, LEGACY_APPS.get(name, GENERIC_APP))
+    return Machine.resolve(value)
 
 
 def get_app(name: str) -> ModuleType:
@@ -91,9 +150,9 @@ def get_app(name: str) -> ModuleType:
 
 def dispatch(command: str, args) -> int:
     """Run ``command`` of the machine selected by ``args.machine``."""
-    entry = getattr(args, "machine_entry", None) or resolve(args.machine)
-    func = getattr(entry.app, command, None)
+    machine = getattr(args, "machine_entry", None) or resolve(args.machine)
+    func = getattr(machine.app, command, None)
     if func is None:
-        raise InputError(f"'{command.replace('_', ' ')}' is not available for machine '{entry.name}'",
+        raise InputError(f"'{command.replace('_', ' ')}' is not available for machine '{machine.name}'",
                          field="--machine")
     return int(func(args) or 0)

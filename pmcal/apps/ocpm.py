@@ -36,6 +36,15 @@ ROUTES = {
 }
 
 
+#: defaults of this machine's commands (:attr:`pmcal.machines.Machine.defaults`)
+DEFAULTS = {"poses": 24}
+
+
+def command_defaults(machine) -> dict:
+    """Defaults of the commands (the same for every folder of this machine)."""
+    return dict(DEFAULTS)
+
+
 def option_help(machine) -> dict:
     """The help table of the command line (the same for every folder of this machine)."""
     return OPTION_HELP

@@ -7,6 +7,7 @@ import numpy as np
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 from pmcal import progress
+from pmcal.apps.ocpm import DEFAULTS
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write
 from pmcal.io_ocpm import read_campaign_context, read_params, read_targets, write_measurements
@@ -65,7 +66,7 @@ def twin_measure(args) -> int:
     if not np.isfinite(sigma) or sigma < 0:
         raise InputError(f"noise must be a non-negative number of mm, got {args.noise}", field="--noise")
     if args.poses is None:
-        args.poses = 24
+        args.poses = DEFAULTS["poses"]
     if args.poses < 1:
         raise InputError(f"number of poses must be at least 1, got {args.poses}", field="--poses")
     theta_max = np.rad2deg(geom.theta_max) if args.theta_max is None else args.theta_max

@@ -43,6 +43,15 @@ OPTION_HELP = {
 }
 
 
+#: defaults of this machine's commands (:attr:`pmcal.machines.Machine.defaults`): 6 positions, the paper's
+DEFAULTS = {"poses": 6}
+
+
+def command_defaults(machine) -> dict:
+    """Defaults of the commands (the same for every folder of this machine)."""
+    return dict(DEFAULTS)
+
+
 def option_help(machine) -> dict:
     """The help table of the command line (the same for every folder of this machine)."""
     return OPTION_HELP
@@ -241,7 +250,7 @@ def twin_measure(args) -> int:
         if len(r) < 2:
             raise InputError("a campaign needs at least two positions", file=args.targets, field="x_mm")
     else:
-        K = int(getattr(args, "poses", None) or 6)
+        K = int(getattr(args, "poses", None) or DEFAULTS["poses"])
         if K < 6 or K % 2:
             raise InputError(f"number of poses must be even and at least 6 (K = 2n > 5), got {K}",
                              field="--poses")
