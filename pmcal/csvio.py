@@ -117,6 +117,12 @@ def read_csv(path: str | Path, max_rows: int | None = None) -> CsvTable:
     return CsvTable(path=p, header=header, rows=rows, comments=[c for c in comments if c])
 
 
+#: Most poses a measurement file may hold: identification and diagnosis solve dense problems whose cost
+#: grows with the poses (a campaign has 24..128; 2000 take minutes).
+MAX_POSES = 2000
+#: Above this many poses identify and diagnose take long (tens of seconds to minutes): they report their
+#: steps on stderr also when piped (:func:`pmcal.progress.set_long`).
+LONG_POSES = 200
 #: coordinates of a tracker target, in column order
 TARGET_AXES = ("x", "y", "z")
 

@@ -15,7 +15,8 @@ from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_fk
 from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, PAPER_LIMB_FIELDS, check_key
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
-from pmcal.csvio import check_blocked, check_context, read_csv, target_columns, write_columns, write_csv
+from pmcal.csvio import (LONG_POSES, MAX_POSES, check_blocked, check_context, read_csv, target_columns,  # noqa: F401
+                         write_columns, write_csv)
 from pmcal.errors import InputError
 from pmcal.fileio import check_param_values, read_json, write_json
 
@@ -24,12 +25,6 @@ MECHANISM = "ocpm_2dof"
 #: Largest disagreement between the measured tilt and the tilt the commands give on the nominal machine
 #: that is still plausible for a machine with geometric errors (deg). Beyond it, a unit mix-up is likely.
 PLAUSIBLE_POINTING_DEG = 5.0
-#: Most poses a measurement file may hold: identification and diagnosis solve dense problems whose cost
-#: grows with the poses (a campaign has 24..128; 2000 take minutes).
-MAX_POSES = 2000
-#: Above this many poses identify and diagnose take long (tens of seconds to minutes): they report their
-#: steps on stderr also when piped (:func:`pmcal.progress.set_long`).
-LONG_POSES = 200
 #: Largest plausible error of a measured distance between two targets (mm).
 PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
 #: The same in the tracker frame, where gross outliers are expected and rejected (named) by the robust fit:

@@ -5,7 +5,8 @@ their options with :meth:`Command.add_argument`, exactly as with argparse, givin
 text. The selected machine's application module supplies a table of help texts (``option_help``,
 see :mod:`pmcal.machines`): ``(command, option) -> text`` rewords an option for that machine,
 ``-> HIDDEN`` keeps it accepted but out of ``--help``, ``-> ABSENT`` leaves it out (argparse then
-refuses it as an unrecognised argument). ``command`` is the full command name (``"twin measure"``),
+refuses it as an unrecognised argument), ``-> {"help": ..., "metavar": ...}`` changes further keywords of
+``add_argument``. ``command`` is the full command name (``"twin measure"``),
 ``option`` any of the option's flags (``"-o"`` or ``"--output"``) or a positional's name; the key
 ``(command, "")`` rewords the command's own one-line help.
 
@@ -26,7 +27,7 @@ HIDDEN = None
 #: table value: the option does not exist for this machine
 ABSENT = "<absent>"
 
-HelpTable = Mapping[tuple[str, str], "str | None"]
+HelpTable = Mapping[tuple[str, str], "str | dict | None"]
 
 
 class Command:
@@ -50,6 +51,9 @@ class Command:
         """:meth:`argparse.ArgumentParser.add_argument` with the machine's help text; None when the option
         is ABSENT for this machine."""
         text = self._text(flags, help)
+        if isinstance(text, dict):           # wording and other keywords (metavar, ...)
+            kwargs = {**kwargs, **text}
+            text = kwargs.pop("help", help)
         if text == ABSENT:
             return None
         self.flags.update(flags)
