@@ -71,3 +71,99 @@ def option_help(machine) -> dict:
         ("evaluate", ""): "position error of a parameter set against a measurement file (RMS, mm)",
     })
     return table
+
+
+def _machine(args):
+    return args.machine_entry
+
+
+def _sigma(value: float | None, option: str) -> float | None:
+    if value is not None and not (np.isfinite(value) and value >= 0):
+        raise InputError(f"noise must be a non-negative number of mm, got {value}", field=option)
+    return value
+
+
+def _error_set(machine, text: str | None):
+    """``--errors``: random (default), none, or a parameters file of this machine."""
+    if text is None or text in ERROR_CHOICES:
+        return text or "random"
+    params, _ = read_params(text, machine.spec, _units(machine))
+    return params
+
+
+def _units(machine) -> dict[str, str]:
+    twin = machine.twin
+    return dict(zip(twin.error_keys, twin.error_units()))
+
+
+def twin_measure(args) -> int:
+    """``pmcal --machine DIR twin measure --poses N --seed S -o MEAS.csv``: a virtual campaign on the twin
+    with random geometric errors (or ``--errors``) and the tracker noise of machine.toml (or ``--noise``)."""
+    from pmcal.chain import campaign
+
+    machine = _machine(args)
+    if args.poses is not None and not 1 <= args.poses <= 2000:
+        raise InputError(f"number of poses must be 1..2000, got {args.poses}", field="--poses")
+    if not (np.isfinite(args.seconds_per_pose) and args.seconds_per_pose >= 0):
+        raise InputError(f"seconds per pose must be >= 0, got {args.seconds_per_pose}", field="--seconds-per-pose")
+    sigma = _sigma(args.noise, "--noise")
+    task = read_targets(args.targets, machine.spec) if args.targets else None
+    errors = _error_set(machine, args.errors)
+    poses = args.poses or command_defaults(machine)["poses"]
+    meas, truth = campaign(machine, poses, seed=args.seed, errors=errors, sigma_mm=sigma, task=task,
+                           seconds_per_pose=args.seconds_per_pose, source=args.targets)
+    what = args.errors if isinstance(errors, dict) else errors
+    comments = [f"pmcal twin measure: machine {machine.name}, errors: {what}, poses {len(meas)}, tracker sigma "
+                f"{machine.twin.sigma_mm if sigma is None else sigma:g} mm, seed {args.seed}"]
+    if truth:
+        comments.append("true errors (mm, deg): " + ", ".join(f"{k}={v:.6g}" for k, v in truth.items()))
+    write_measurements(args.output, machine.spec, meas, comments)
+    return 0
+
+
+def targets(args) -> int:
+    """``pmcal --machine DIR targets -o TARGETS.csv``: ``--count`` targets over the workspace of machine.toml."""
+    from pmcal.chain import sample_targets
+
+    machine = _machine(args)
+    if not 1 <= args.count <= 100_000:
+        raise InputError(f"count must be 1..100000, got {args.count}", field="--count")
+    task = sample_targets(machine, args.count, args.seed)
+    write_targets(args.output, machine.spec, task,
+                  [f"pmcal targets: machine {machine.name}, {args.count} targets over the workspace of "
+                   f"machine.toml, seed {args.seed}"])
+    return 0
+
+
+def compensate(args) -> int:
+    """``pmcal --machine DIR compensate PARAMS.json --targets TARGETS.csv -o SETPOINTS.csv``: offline
+    compensation of a target list (the identified machine's inverse kinematics)."""
+    from pmcal.chain import compensate as commands_for
+
+    machine = _machine(args)
+    if getattr(args, "table", None) or getattr(args, "grid", None) or getattr(args, "table_version", None):
+        raise InputError(table_refusal(machine), field="--table")
+    if not args.targets or not args.output:
+        raise InputError(f"machine {machine.name} needs --targets TARGETS.csv and -o SETPOINTS.csv",
+                         field="--targets" if not args.targets else "-o")
+    params, _ = read_params(args.params, machine.spec, _units(machine))
+    task = read_targets(args.targets, machine.spec)
+    progress.status(f"compensating {len(task)} targets")
+    commands = commands_for(machine, params, task, args.targets)
+    write_setpoints(args.output, machine.spec, task, commands,
+                    [f"pmcal compensate: machine {machine.name}, parameters {args.params}"])
+    return 0
+
+
+def table_refusal(machine) -> str:
+    """Why ``compensate --table`` is refused for a machine folder, and what it gets instead."""
+    axes = machine.spec.table_axes
+    coords = machine.spec.task.coordinates
+    if not axes or len(coords) > len(axes):
+        why = (f"its {len(coords)} task coordinates ({', '.join(coords)}) are more than a compensation table "
+               f"holds ({len(axes)} axes in machine.toml [table])" if axes else
+               "machine.toml names no [table] axes")
+    else:
+        why = "compensation tables of a machine folder are not supported by the PLC bridge yet"
+    return (f"no compensation table for machine {machine.name}: {why}; this machine gets offline compensation "
+            f"of target lists: compensate PARAMS.json --targets TARGETS.csv -o SETPOINTS.csv")
