@@ -55,8 +55,9 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
 
     Returns
     -------
-    (measurements, truth) : the measured targets (mm, base frame; poses the erroneous machine cannot
-    assemble are replaced by further draws) and the error set measured.
+    (measurements, truth) : the measured targets (mm, base frame) and the error set measured. A pose the
+    erroneous machine cannot assemble, or assembles on another branch than the nominal machine's (a target
+    more than :data:`PLAUSIBLE_TARGET_MM` from the nominal one), is replaced by a further draw.
     """
     twin = machine.twin
     rng = np.random.default_rng(seed)
@@ -73,27 +74,29 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
                              field=machine.spec.task.coordinates[0])
     else:
         commands = twin.sample_commands(poses, rng)
-    got_cmd, got_y = [], []
+    def measured(cmd):
+        """The rows of ``cmd`` the erroneous machine assembles on the nominal one's branch, and their
+        readings."""
+        y = twin.measure(cmd, truth, rng, sigma)
+        ok = (distance_from_nominal(machine, cmd, y) <= PLAUSIBLE_TARGET_MM).all(axis=1)
+        return cmd[ok], y[ok]
+
+    got, wanted = [], len(commands)
     with progress.progress(total=len(commands), desc="measuring", unit="pose") as bar:
         for start in range(0, len(commands), _CHUNK):
-            cmd = commands[start:start + _CHUNK]
-            y = twin.measure(cmd, truth, rng, sigma)
-            ok = np.isfinite(y).all(axis=(1, 2))
-            got_cmd.append(cmd[ok])
-            got_y.append(y[ok])
-            bar.update(len(cmd))
-    commands, y = np.concatenate(got_cmd), np.concatenate(got_y)
-    short = (poses if task is None else len(task)) - len(commands)
+            got.append(measured(commands[start:start + _CHUNK]))
+            bar.update(min(_CHUNK, wanted - start))
+    commands, y = (np.concatenate(v) for v in zip(*got))
+    short = wanted - len(commands)
     if short and task is not None:
-        raise RunError(f"{short} of the targets cannot be assembled on the erroneous machine")
+        raise RunError(f"{short} of the targets cannot be assembled on the erroneous machine (on the nominal "
+                       "machine's branch)")
     for _ in range(20):
         if short <= 0:
             break
-        cmd = twin.sample_commands(short, rng)
-        more = twin.measure(cmd, truth, rng, sigma)
-        ok = np.isfinite(more).all(axis=(1, 2))
-        commands, y = np.concatenate([commands, cmd[ok]]), np.concatenate([y, more[ok]])
-        short -= int(ok.sum())
+        cmd, more = measured(twin.sample_commands(short, rng))
+        commands, y = np.concatenate([commands, cmd]), np.concatenate([y, more])
+        short -= len(cmd)
     if short > 0:
         raise RunError(f"the erroneous machine assembles too few of the drawn poses ({short} missing)")
     n = len(commands)
@@ -102,23 +105,43 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     return meas, truth
 
 
-def check_assembles(machine, meas: ChainMeasurements, limit_mm: float = 50.0) -> None:
-    """Catch a wrong unit or a mislabelled row before identifying: every measured target within
-    ``limit_mm`` of where the nominal machine puts it at the row's commands, and every row's commands
-    assemble the nominal chain. An :class:`InputError` names file, row and field."""
-    y0 = machine.twin.targets(meas.commands)
-    motors = machine.spec.motor_columns
-    for i in np.flatnonzero(~np.isfinite(y0).all(axis=(1, 2))):
+#: largest plausible distance (mm) between a measured target and where the nominal machine puts it:
+#: geometric errors move targets by millimetres; beyond this a unit mix-up, a mislabelled row or an
+#: assembly on another branch of the chain is likelier
+PLAUSIBLE_TARGET_MM = 50.0
+
+
+def distance_from_nominal(machine, commands: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """Distance (n, K) mm of measured ``targets`` from the nominal machine's at ``commands``; inf for a row
+    the nominal chain cannot assemble, NaN for a blocked target."""
+    y0 = machine.twin.targets(commands)
+    d = np.linalg.norm(targets - y0, axis=2)
+    d[~np.isfinite(y0).all(axis=(1, 2))] = np.inf
+    return d
+
+
+def check_assembles(machine, meas: ChainMeasurements, limit_mm: float = PLAUSIBLE_TARGET_MM) -> None:
+    """Catch a wrong unit or a mislabelled row before identifying: every row's commands assemble the
+    nominal chain, every measured target is within ``limit_mm`` of where the nominal machine puts it.
+    An :class:`InputError` names file, row and field."""
+    d = distance_from_nominal(machine, meas.commands, meas.targets)
+    for i in np.flatnonzero(np.isinf(d).any(axis=1)):
         raise InputError("the nominal machine cannot assemble at these commands (wrong machine or units?)",
-                         file=meas.path, row=int(i) + 1, field=motors[0])
-    d = np.linalg.norm(meas.targets - y0, axis=2)
+                         file=meas.path, row=int(i) + 1, field=machine.spec.motor_columns[0])
     bad = np.argwhere(d > limit_mm)
     if bad.size:
         i, k = (int(v) for v in bad[0])
-        scale = np.linalg.norm(meas.targets[i, k]) / max(np.linalg.norm(y0[i, k]), 1e-9)
-        hint = " (values look like metres: the file must be in mm)" if 5e-4 < scale < 2e-3 else ""
+        y = meas.targets[i, k]
+        scale = np.linalg.norm(y) / max(np.linalg.norm(y) + d[i, k], 1e-9)
+        hint = " (values look like metres: the file must be in mm)" if scale < 2e-3 else ""
         raise InputError(f"target t{k + 1} is {d[i, k]:.4g} mm from where the nominal machine puts it (limit "
                          f"{limit_mm:g} mm){hint}", file=meas.path, row=i + 1, field=f"t{k + 1}_x")
+
+
+def residuals(machine, params: Mapping[str, float] | None, meas: ChainMeasurements) -> np.ndarray:
+    """Distance (n, K) mm between each measured target and where the machine with errors ``params`` puts it
+    at the row's commands (NaN for a blocked target or a row it cannot assemble)."""
+    return np.linalg.norm(meas.targets - machine.twin.targets(meas.commands, params), axis=2)
 
 
 def sample_targets(machine, count: int, seed: int = 1) -> np.ndarray:
