@@ -23,7 +23,7 @@ import numpy as np
 
 from pmcal import progress
 from pmcal.errors import InputError, RunError
-from pmcal.io_chain import ChainMeasurements
+from pmcal.io_chain import UNIT_SLIPS, ChainMeasurements
 
 #: poses measured per step of the progress bar
 _CHUNK = 8
@@ -134,6 +134,10 @@ def check_assembles(machine, meas: ChainMeasurements, limit_mm: float = PLAUSIBL
         y = meas.targets[i, k]
         scale = np.linalg.norm(y) / max(np.linalg.norm(y) + d[i, k], 1e-9)
         hint = " (values look like metres: the file must be in mm)" if scale < 2e-3 else ""
+        slips = np.array([UNIT_SLIPS[m.unit][0] for m in machine.spec.motors])
+        if not hint and np.all(distance_from_nominal(machine, meas.commands[i:i + 1] * slips,
+                                                     meas.targets[i:i + 1]) <= limit_mm):
+            hint = " (the commands look like radians or metres: the file must be in degrees and mm)"
         raise InputError(f"target t{k + 1} is {d[i, k]:.4g} mm from where the nominal machine puts it (limit "
                          f"{limit_mm:g} mm){hint}", file=meas.path, row=i + 1, field=f"t{k + 1}_x")
 

@@ -31,8 +31,9 @@ from pmcal.mechanism.machine_spec import MachineSpec
 CONTEXT_COLUMNS = ("time_s", "temp_c")
 #: largest plausible magnitude of a geometric error per unit (beyond it a unit mix-up is likelier)
 PLAUSIBLE_PARAM = {"mm": 25.0, "deg": 10.0}
-#: a factor that turns a command in the wrong unit into the right one: radians, metres
-_UNIT_SLIPS = {"deg": (180.0 / math.pi, "radians: the file must be in degrees"),
+#: per command unit: the factor that turns a value in the likely wrong unit into it (radians, metres), and
+#: what to say
+UNIT_SLIPS = {"deg": (180.0 / math.pi, "radians: the file must be in degrees"),
                "mm": (1000.0, "metres: the file must be in mm")}
 
 
@@ -95,7 +96,7 @@ def check_commands(commands: np.ndarray, spec: MachineSpec, path: str, columns: 
         col = commands[:, j]
         bad = np.flatnonzero((col < lo) | (col > hi))
         if bad.size:
-            factor, slip = _UNIT_SLIPS[motor.unit]
+            factor, slip = UNIT_SLIPS[motor.unit]
             scaled = col * factor
             hint = f" (values look like {slip})" if np.all((scaled >= lo) & (scaled <= hi)) else ""
             i = int(bad[0])

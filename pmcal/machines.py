@@ -135,7 +135,11 @@ class Machine:
             # Machine for every call; not a cycle (pmcal.twin is a lower layer)
             from pmcal.twin.closed_chain import ClosedChainTwin
 
-            self._twin = ClosedChainTwin(self.spec)
+            try:
+                self._twin = ClosedChainTwin(self.spec)
+            except ValueError as exc:         # MuJoCo's compiler refused the MJCF
+                text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+                raise InputError(f"MuJoCo cannot compile the model: {text}", file=str(self.spec.model_path)) from None
         return self._twin
 
 
