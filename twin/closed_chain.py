@@ -223,7 +223,9 @@ class ClosedChainTwin:
         body_name = lambda b: mujoco.mj_id2name(m, _OBJ.mjOBJ_BODY, b)  # noqa: E731
         site_name = lambda s: mujoco.mj_id2name(m, _OBJ.mjOBJ_SITE, s)  # noqa: E731
         free = self._free_bodies()
-        used_sites = [int(s) for s in self.points if s != self.task_site or s in self.target_sites]
+        # The tracker nests define the moving frames they sit on (their coordinates there come from a CMM
+        # or the drawing): under "all" they carry no error, nor does the task site (it is not measured).
+        used_sites = [int(s) for s in self.points if s != self.task_site and s not in self.target_sites]
         if es.frames == "all":
             bodies = [b for b in range(1, m.nbody) if b not in free]
             sites = used_sites
