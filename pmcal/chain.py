@@ -22,6 +22,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from pmcal import progress
+from pmcal.calib.closed_chain import compensate_targets, identify_chain
 from pmcal.errors import InputError, RunError
 from pmcal.io_chain import UNIT_SLIPS, ChainMeasurements
 
@@ -142,6 +143,39 @@ def check_assembles(machine, meas: ChainMeasurements, limit_mm: float = PLAUSIBL
                          f"{limit_mm:g} mm){hint}", file=meas.path, row=i + 1, field=f"t{k + 1}_x")
 
 
+def identify(machine, meas: ChainMeasurements, sigma_mm: float | None = None):
+    """Identify the machine's geometric errors from a measurement campaign: the base set the campaign
+    determines, by Levenberg-Marquardt with the Tikhonov prior of machine.toml
+    (:func:`pmcal.calib.closed_chain.identify_chain`). Checks first that the file is plausible for the
+    machine (:func:`check_assembles`). Returns the :class:`~pmcal.calib.closed_chain.ChainIdentResult`."""
+    check_assembles(machine, meas)
+    try:
+        return identify_chain(machine.twin, meas.commands, meas.targets, sigma_mm)
+    except ValueError as exc:            # too few poses for the base set, poses the machine cannot assemble
+        raise InputError(str(exc), file=meas.path) from None
+
+
+def params_document(machine, result, source: str | None = None) -> dict:
+    """The parameters JSON of an identification (docs/formats.md, "Any machine"): ``params`` every error
+    considered (mm / deg; the base parameters' values, 0 for those absorbed into them), ``units``, the base
+    parameters' ``uncertainty`` (1 sigma, posterior) and ``crlb`` (data alone), what each base value
+    estimates (``combinations``), what the data cannot see (``unidentifiable``), ``weak`` ones, fit
+    quality."""
+    units = dict(zip(machine.twin.error_keys, machine.twin.error_units()))
+    return {
+        "mechanism": machine.name, "model": "closed_chain", "method": "lm+tikhonov",
+        "units": {k: units[k] for k in result.params},
+        "params": {k: float(v) for k, v in result.params.items()},
+        "identifiable": list(result.base), "uncertainty": dict(result.std), "crlb": dict(result.crlb),
+        "combinations": dict(result.combinations), "unidentifiable": list(result.unidentifiable),
+        "weak": list(result.weak), "rank": int(result.rank), "n_errors": len(result.params),
+        "condition_number": float(result.condition_number), "chi2_per_dof": float(result.chi2_per_dof),
+        "residual_rms_mm": float(result.residual_rms_mm), "sigma_mm": float(result.sigma_mm),
+        "n_poses": int(result.n_poses), "source": source, "success": bool(result.success),
+        "message": result.message,
+    }
+
+
 def residuals(machine, params: Mapping[str, float] | None, meas: ChainMeasurements) -> np.ndarray:
     """Distance (n, K) mm between each measured target and where the machine with errors ``params`` puts it
     at the row's commands (NaN for a blocked target or a row it cannot assemble)."""
@@ -161,9 +195,9 @@ def compensate(machine, params: Mapping[str, float], task: np.ndarray, path: str
     """Motor commands (n, M) that put the task site of the machine with errors ``params`` at ``task`` (n, C):
     its inverse kinematics with the identified errors. A target it cannot reach is an :class:`InputError`
     naming the row of ``path`` and the reason."""
-    commands, reasons = machine.twin.inverse_report(task, dict(params))
-    for i, why in enumerate(reasons):
-        if why:
-            raise InputError(f"not reachable by the identified machine: {why}", file=path, row=i + 1,
-                             field=machine.spec.task.coordinates[0])
+    commands = compensate_targets(machine.twin, dict(params), task)
+    for i in np.flatnonzero(~np.isfinite(commands).all(axis=1)):
+        _, why = machine.twin.inverse_report(task[i:i + 1], dict(params))
+        raise InputError(f"not reachable by the identified machine: {why[0]}", file=path, row=int(i) + 1,
+                         field=machine.spec.task.coordinates[0])
     return commands

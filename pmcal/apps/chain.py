@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from pmcal import progress
+from pmcal.csvio import LONG_POSES
 from pmcal.commands.options import ABSENT
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
@@ -118,6 +119,27 @@ def twin_measure(args) -> int:
     if truth:
         comments.append("true errors (mm, deg): " + ", ".join(f"{k}={v:.6g}" for k, v in truth.items()))
     write_measurements(args.output, machine.spec, meas, comments)
+    return 0
+
+
+def identify(args) -> int:
+    """``pmcal --machine DIR identify MEAS.csv -o PARAMS.json [--sigma MM]``: the geometric errors the
+    campaign determines (base set), their uncertainty and what the data cannot see."""
+    from pmcal.chain import identify as run, params_document
+
+    machine = _machine(args)
+    sigma = _sigma(args.sigma, "--sigma")
+    if sigma == 0:
+        raise InputError("tracker noise must be positive", field="--sigma")
+    meas = read_measurements(args.measurements, machine.spec)
+    progress.set_long(len(meas) > LONG_POSES)
+    progress.status(f"identifying {len(machine.twin.error_keys)} errors of {machine.name} from {len(meas)} poses")
+    res = run(machine, meas, sigma)
+    write_json(args.output, params_document(machine, res, str(args.measurements)))
+    print(f"{res.rank} of {len(res.params)} errors identifiable (base set), {len(res.weak)} weak; residual "
+          f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}")
+    if not res.success:
+        progress.warning(f"the fit did not converge: {res.message}")
     return 0
 
 
