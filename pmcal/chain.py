@@ -158,7 +158,8 @@ def identify(machine, meas: ChainMeasurements, sigma_mm: float | None = None):
 def params_document(machine, result, source: str | None = None) -> dict:
     """The parameters JSON of an identification (docs/formats.md, "Any machine"): ``params`` every error
     considered (mm / deg; the base parameters' values, 0 for those absorbed into them), ``units``, the base
-    parameters' ``uncertainty`` (1 sigma, posterior) and ``crlb`` (data alone), what each base value
+    parameters (``identifiable``), their ``uncertainty`` (1 sigma, posterior), ``covariance`` (posterior, in
+    the order of ``identifiable``) and ``crlb`` (data alone), what each base value
     estimates (``combinations``), what the data cannot see (``unidentifiable``), ``weak`` ones, fit
     quality."""
     units = dict(zip(machine.twin.error_keys, machine.twin.error_units()))
@@ -166,7 +167,8 @@ def params_document(machine, result, source: str | None = None) -> dict:
         "mechanism": machine.name, "model": "closed_chain", "method": "lm+tikhonov",
         "units": {k: units[k] for k in result.params},
         "params": {k: float(v) for k, v in result.params.items()},
-        "identifiable": list(result.base), "uncertainty": dict(result.std), "crlb": dict(result.crlb),
+        "identifiable": list(result.base), "uncertainty": dict(result.std),
+        "covariance": np.asarray(result.covariance, float).tolist(), "crlb": dict(result.crlb),
         "combinations": dict(result.combinations), "unidentifiable": list(result.unidentifiable),
         "weak": list(result.weak), "rank": int(result.rank), "n_errors": len(result.params),
         "condition_number": float(result.condition_number), "chi2_per_dof": float(result.chi2_per_dof),
