@@ -281,3 +281,22 @@ def test_nominal_compensation_reaches_the_targets_on_the_nominal_twin(capsys, de
     values = np.array(rows[1:], float)
     np.testing.assert_allclose(values[:, :3], read_targets(d / "tg.csv", m.spec), atol=1e-6)
     np.testing.assert_allclose(m.twin.forward(values[:, 3:]), values[:, :3], atol=1e-4)
+
+
+def test_the_api_gives_one_machine_object(tmp_path):
+    import pmcal
+
+    folder = copy_machine("delta_3dof", tmp_path)
+    m = pmcal.Machine.from_folder(folder)
+    assert (m.name, m.folder, m.legacy, m.app_name) == ("delta_3dof", folder.resolve(), False, "pmcal.apps.chain")
+    assert m.spec.motor_columns == ("m1_cmd_deg", "m2_cmd_deg", "m3_cmd_deg")
+    assert m.defaults == {"poses": 48, "sigma_mm": m.spec.sigma_mm, "errors": "random"}
+    assert m._twin is None                              # compiled on first use only
+    assert m.twin is m.twin and "m1.dzero" in m.twin.error_keys
+    seeded = pmcal.Machine.builtin("ocpm_2dof")
+    assert seeded.legacy and seeded.app_name == "pmcal.apps.ocpm" and seeded.defaults["poses"] == 24
+    from pmcal.errors import InputError
+    with pytest.raises(InputError, match="dedicated twin"):
+        seeded.twin
+    with pytest.raises(InputError, match="no built-in machine"):
+        pmcal.Machine.builtin(str(folder))
