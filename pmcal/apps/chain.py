@@ -138,9 +138,30 @@ def identify(args) -> int:
     write_json(args.output, params_document(machine, res, str(args.measurements)))
     print(f"{res.rank} of {len(res.params)} errors identifiable (base set), {len(res.weak)} weak; residual "
           f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}")
-    if not res.success:
-        progress.warning(f"the fit did not converge: {res.message}")
+    for line in identify_warnings(res, len(meas)):
+        progress.warning(line)
     return 0
+
+
+#: chi2 per degree of freedom above which the model does not explain the data down to the tracker noise
+CHI2_WARN = 2.0
+
+
+def identify_warnings(res, n_poses: int) -> list[str]:
+    """What a user must know about an identification that still succeeded (docs/ADDING_A_MACHINE.md,
+    "When fewer errors are identifiable than expected")."""
+    out = []
+    if not res.success:
+        out.append(f"the fit did not converge: {res.message}")
+    if res.weak:
+        out.append(f"{len(res.weak)} of the {res.rank} identifiable errors are set by the prior, not by the "
+                   f"{n_poses} poses ({', '.join(res.weak[:3])}{', ...' if len(res.weak) > 3 else ''}): measure "
+                   "more poses spread over the workspace")
+    if res.chi2_per_dof > CHI2_WARN:
+        out.append(f"the model leaves {res.residual_rms_mm:.4f} mm rms (chi2/dof {res.chi2_per_dof:.1f}, "
+                   f"{res.sigma_mm:g} mm tracker noise): an error frame missing from [errors], a wrong "
+                   "sigma_mm, or an effect the geometry does not hold")
+    return out
 
 
 def targets(args) -> int:
