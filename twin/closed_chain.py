@@ -123,8 +123,9 @@ class ClosedChainTwin:
     MAX_ITER = 40
     #: Largest Newton step per coordinate (rad or m); longer steps are scaled down.
     MAX_STEP = 0.2
-    #: Continuation sub-steps tried when the direct Newton solve from a start does not converge.
-    CONTINUATION = (4, 16)
+    #: Largest motor move per continuation sub-step, as a fraction of the motor's range (the task-space
+    #: path of the inverse kinematics: of the workspace box).
+    PATH_STEP = 0.1
 
     def __init__(self, spec: MachineSpec, model: mujoco.MjModel | None = None):
         if spec.legacy:
@@ -338,7 +339,7 @@ class ClosedChainTwin:
         self._rot = rot
         self._zero_offset = zero
         self._x = x
-        self._warm_cmd = np.zeros((0, self.n_motors))     # another machine: forget the warm starts
+        # The warm starts stay: configurations of a machine with slightly other errors are the best starts.
 
     @property
     def params(self) -> dict[str, float]:
@@ -415,12 +416,16 @@ class ClosedChainTwin:
         return q, False
 
     def _assemble(self, joints: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, bool]:
-        """Assemble at motor joint positions ``joints`` (M,) SI from configuration ``start``, directly, then
-        by continuation from ``start``'s motor positions if the direct solve fails."""
-        q0 = start.copy()
-        j0 = q0[self.motor_qadr].copy()
-        for n_sub in (1,) + self.CONTINUATION:
-            q, ok = q0, True
+        """Assemble at motor joint positions ``joints`` (M,) SI from configuration ``start`` by continuation:
+        the motors move in sub-steps of at most :data:`PATH_STEP` of their range, each closed by Newton from
+        the previous one (a long direct step can land on another assembly branch); the sub-steps halve
+        when one fails."""
+        j0 = start[self.motor_qadr].copy()
+        span = (self.motor_range[:, 1] - self.motor_range[:, 0]) * self.motor_unit
+        n = max(1, int(np.ceil(np.max(np.abs(joints - j0) / span) / self.PATH_STEP)))
+        q = start
+        for n_sub in (n, 4 * n):
+            q, ok = start, True
             for t in np.linspace(0.0, 1.0, n_sub + 1)[1:]:
                 q = q.copy()
                 q[self.motor_qadr] = j0 + t * (joints - j0)
@@ -435,31 +440,35 @@ class ClosedChainTwin:
     def solve(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
         """Assembled configurations (N, nq) at commands (N, M) (deg / mm) with errors ``params``.
 
-        Each pose starts from the nearest earlier solution of this machine (within 5 % of the motor ranges)
-        or, failing that, from ``home`` by continuation, so every pose lies on the home branch. Rows that do
-        not assemble (out of reach, singular) are NaN.
+        Each pose starts from the nearest configuration already assembled on this machine (``home``, earlier
+        solves with the same errors, the poses before it in this call) and moves the motors there by
+        continuation (:meth:`_assemble`), so every pose lies on the home branch. Rows that do not assemble
+        (out of reach, singular) are NaN.
         """
         self.set_params(params)
         cmd = self._as_commands(commands)
         joints = self._joints_of(cmd)
         out = np.full((len(cmd), self.model.nq), np.nan)
         span = self.motor_range[:, 1] - self.motor_range[:, 0]
+        known_cmd = np.concatenate([self.home_commands[None], self._warm_cmd])
+        known_q = np.concatenate([self.home_qpos[None], self._warm_qpos])
         for i in range(len(cmd)):
-            start = self.home_qpos
-            if len(self._warm_cmd):
-                dist = np.max(np.abs(self._warm_cmd - cmd[i]) / span, axis=1)
-                j = int(np.argmin(dist))
-                if dist[j] < 0.05:
-                    start = self._warm_qpos[j]
-            q, ok = self._assemble(joints[i], start)
-            if not ok and start is not self.home_qpos:
+            dist = np.max(np.abs(known_cmd - cmd[i]) / span, axis=1)
+            j = int(np.argmin(dist))
+            q, ok = self._assemble(joints[i], known_q[j])
+            if not ok and j != 0:
                 q, ok = self._assemble(joints[i], self.home_qpos)
             if ok:
                 out[i] = q
-        good = np.isfinite(out).all(axis=1)
-        self._warm_cmd = np.concatenate([cmd[good], self._warm_cmd])[:4096]
-        self._warm_qpos = np.concatenate([out[good], self._warm_qpos])[:4096]
+                known_cmd = np.concatenate([known_cmd, cmd[i][None]])
+                known_q = np.concatenate([known_q, q[None]])
+        self._remember(known_cmd[1:], known_q[1:])
         return out
+
+    def _remember(self, cmd: np.ndarray, qpos: np.ndarray) -> None:
+        """Keep assembled configurations (latest last, at most 4096) as warm starts of later solves."""
+        self._warm_cmd = cmd[-4096:]
+        self._warm_qpos = qpos[-4096:]
 
     def kinematics(self, qpos: np.ndarray) -> Kinematics:
         """World poses and point Jacobians (:class:`Kinematics`) at configurations ``qpos`` (N, nq), SI."""
@@ -615,9 +624,12 @@ class ClosedChainTwin:
         home_task = self.task_of(self.home_qpos[None])[0]
         cmd = np.full((len(task), self.n_motors), np.nan)
         reasons = [""] * len(task)
+        box = np.array([self.spec.workspace[c] for c in coords])
         for i, goal in enumerate(task):
             q, ok = self.home_qpos, False
-            for n_sub in (1,) + self.CONTINUATION:
+            far = np.max(np.abs(task_difference(goal, home_task, coords)) / (box[:, 1] - box[:, 0]))
+            n = max(1, int(np.ceil(far / self.PATH_STEP)))
+            for n_sub in (n, 4 * n):
                 q, ok = self.home_qpos, True
                 for t in np.linspace(0.0, 1.0, n_sub + 1)[1:]:
                     sub = home_task + t * task_difference(goal, home_task, coords)
@@ -639,8 +651,7 @@ class ClosedChainTwin:
                               f"[{lo[j]:g}, {hi[j]:g}]")
                 continue
             cmd[i] = c
-            self._warm_cmd = np.concatenate([c[None], self._warm_cmd])[:4096]
-            self._warm_qpos = np.concatenate([q[None], self._warm_qpos])[:4096]
+            self._remember(np.concatenate([self._warm_cmd, c[None]]), np.concatenate([self._warm_qpos, q[None]]))
         return cmd, reasons
 
     def inverse(self, task, params: Mapping[str, float] | None = None) -> np.ndarray:
