@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from pmcal import progress
+from pmcal.apps import error_stats
 from pmcal.csvio import LONG_POSES
 from pmcal.commands.options import ABSENT
 from pmcal.errors import InputError
@@ -208,17 +209,14 @@ def evaluate(args) -> int:
     meas = read_measurements(args.measurements, machine.spec)
     check_assembles(machine, meas)
     d = residuals(machine, params, meas)
-    seen = d[np.isfinite(d)]
-    out = {"mechanism": machine.name, "params_file": str(args.params), "measurements": str(args.measurements),
-           "unit": "mm", "n_poses": len(meas),
-           "position_error_mm": {"rms": float(np.sqrt(np.mean(seen**2))), "mean": float(seen.mean()),
-                                 "max": float(seen.max())},
-           "per_pose": [{"pose_id": pid, "position_error_mm": [None if np.isnan(v) else float(v) for v in row]}
-                        for pid, row in zip(meas.pose_id, d)]}
-    pe = out["position_error_mm"]
-    print(f"target position error over {len(meas)} poses: rms {pe['rms']:.4f} mm, max {pe['max']:.4f} mm")
+    stats = error_stats(d)
+    print(f"target position error over {len(meas)} poses: rms {stats['rms']:.4f} mm, max {stats['max']:.4f} mm")
     if args.json:
-        write_json(args.json, out)
+        per_pose = [{"pose_id": pid, "position_error_mm": [None if np.isnan(v) else float(v) for v in row]}
+                    for pid, row in zip(meas.pose_id, d)]
+        write_json(args.json, {"mechanism": machine.name, "params_file": str(args.params),
+                               "measurements": str(args.measurements), "unit": "mm", "n_poses": len(meas),
+                               "position_error_mm": stats, "per_pose": per_pose})
     return 0
 
 
