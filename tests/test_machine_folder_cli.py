@@ -17,7 +17,7 @@ import pytest
 from pmcal.cli import _named_subparsers, build_parser, main
 from pmcal.mjcf import machine_dir
 
-NEW_MACHINES = ("delta_3dof",)
+NEW_MACHINES = [m for m in ("delta_3dof", "hexapod_6dof") if (machine_dir(m) / "machine.toml").is_file()]
 
 
 def run(capsys, *argv) -> tuple[int, str, str]:
@@ -257,6 +257,23 @@ def test_a_table_is_refused_with_what_the_machine_gets_instead(capsys, delta, tm
     line = one_line_error(capsys, "--machine", folder, "compensate", d / "nominal.json", "--table",
                           tmp_path / "t.json", says=["--table", "offline compensation of target lists"])
     assert "--targets" in line and not list(tmp_path.iterdir())
+
+
+def test_twin_options_of_a_folder_machine(capsys, delta, tmp_path):
+    """--errors none --noise 0 at explicit targets: the nominal machine's exact targets (evaluate: 0);
+    --errors P.json: that machine; a value that is neither is one line."""
+    folder, d = delta
+    assert main(["-q", "--machine", str(folder), "twin", "measure", "--targets", str(d / "tg.csv"), "--errors",
+                 "none", "--noise", "0", "-o", str(tmp_path / "m0.csv")]) == 0
+    status, out, _ = run(capsys, "--machine", folder, "evaluate", d / "nominal.json", tmp_path / "m0.csv")
+    assert status == 0 and "rms 0.0000 mm, max 0.0000 mm" in out
+    text = (tmp_path / "m0.csv").read_text()
+    assert "errors: none" in text and "true errors" not in text and text.count("\nP") == 5
+    one_line_error(capsys, "--machine", folder, "twin", "measure", "--errors", "bogus", "-o", tmp_path / "x.csv",
+                   says=["--errors", "neither random nor none nor a parameters file"])
+    one_line_error(capsys, "--machine", folder, "twin", "measure", "--noise", "-1", "-o", tmp_path / "x.csv",
+                   says="--noise")
+    assert not (tmp_path / "x.csv").exists()
 
 
 def test_commands_a_folder_machine_does_not_have_say_so(capsys, delta, tmp_path):

@@ -6,6 +6,8 @@ folder): ``twin measure``, ``identify``, ``targets``, ``compensate``, ``evaluate
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from pmcal import progress
@@ -89,6 +91,9 @@ def _error_set(machine, text: str | None):
     """``--errors``: random (default), none, or a parameters file of this machine."""
     if text is None or text in ERROR_CHOICES:
         return text or "random"
+    if not Path(text).is_file():
+        raise InputError(f"'{text}' is neither {' nor '.join(ERROR_CHOICES)} nor a parameters file",
+                         field="--errors")
     params, _ = read_params(text, machine.spec, _units(machine))
     return params
 
