@@ -90,3 +90,20 @@ def test_identification_recovers_the_base_set(twin):
     z = (res.x - res.basis.combination_values(true)) / np.array([res.std[k] for k in res.base])
     assert res.success and 0.65 < np.sqrt(np.mean(z**2)) < 1.35 and np.max(np.abs(z)) < 4.0, z
     assert abs(res.chi2_per_dof - 1.0) < 5 * np.sqrt(2.0 / res.dof)
+
+
+def test_task_jacobian_matches_central_differences(twin):
+    """d (x, y, z mm, rx, ry, rz deg) / d errors at fixed leg lengths, against differences of forward()."""
+    rng = np.random.default_rng(1)
+    cmd = twin.sample_commands(3, rng)
+    keys = twin.error_keys[::5]
+    params = dict(zip(twin.error_keys, rng.normal(0.0, 0.2, len(twin.error_keys))))
+    J = twin.task_jacobian(cmd, params, keys)
+    h = 1e-4
+    for i, k in enumerate(keys):
+        up, dn = dict(params), dict(params)
+        up[k] += h
+        dn[k] -= h
+        fd = (twin.forward(cmd, up) - twin.forward(cmd, dn)) / (2 * h)
+        np.testing.assert_allclose(J[..., i], fd, atol=1e-6)
+    assert np.abs(J).max() > 0.5
