@@ -514,6 +514,32 @@ class ClosedChainTwin:
         """Exact d targets / d errors (N, K, 3, P) at commands (N, M), mm per key unit (mm/mm, mm/deg),
         by the implicit-function theorem (module docstring). ``keys`` default :attr:`error_keys`. NaN rows
         where the chain cannot assemble."""
+        kin, dpos, _ = self._point_jacobians(commands, params, keys)
+        return dpos[:, self._tp] / MM
+
+    def task_jacobian(self, commands, params: Mapping[str, float] | None = None,
+                      keys: list[str] | None = None) -> np.ndarray:
+        """Exact d task coordinates / d errors (N, C, P) at fixed commands (N, M): how far each error moves
+        the task site, in the coordinates' units (mm, deg) per key unit. ``J Cov J^T`` is the task-space
+        covariance a compensation with identified errors of covariance ``Cov`` leaves."""
+        kin, dpos, drot = self._point_jacobians(commands, params, keys)
+        coords = self.spec.task.coordinates
+        out = np.full((len(kin.qpos), len(coords), dpos.shape[-1]), np.nan)
+        tp = self._task_p
+        for i, c in enumerate(coords):
+            if c in POSITION:
+                out[:, i] = dpos[:, tp, POSITION.index(c)] / MM
+        ang = [i for i, c in enumerate(coords) if c not in POSITION]
+        if ang:
+            for n in range(len(kin.qpos)):
+                if np.isfinite(kin.qpos[n]).all():
+                    D = self._angle_rates(kin.site_xpos[n, tp] / MM, kin.site_xmat[n, tp])
+                    out[n, ang] = D @ drot[n, tp]
+        return out
+
+    def _point_jacobians(self, commands, params, keys):
+        """Kinematics at the assembled commands and the total derivatives (N, npoints, 3, P) of every
+        point's position (m) and orientation (rad) per key unit: the IFT of the module docstring."""
         keys = list(keys or self.error_keys)
         kin = self.kinematics(self.solve(commands, params))
         dP, dW = self._error_derivatives(kin, [self._index(k) for k in keys])   # (N, npts, 3, P) SI
@@ -524,14 +550,15 @@ class ClosedChainTwin:
         Ce = np.concatenate([dP[:, self._c1] - dP[:, self._c2],
                              dW[:, self._c1[self._weld]] - dW[:, self._c2[self._weld]]],
                             axis=1).reshape(N, -1, len(keys))
-        out = np.full((N, self.n_targets, 3, len(keys)), np.nan)
+        dpos = np.full(dP.shape, np.nan)
+        drot = np.full(dW.shape, np.nan)
         ok = np.isfinite(kin.qpos).all(axis=1)
         if ok.any():
             Cp = C[ok][:, :, self.passive]
             dq = -np.linalg.pinv(Cp, rcond=1e-10) @ Ce[ok]                  # (n, npassive, P)
-            Jy = kin.jacp[ok][:, self._tp][..., self.passive]              # (n, K, 3, npassive)
-            out[ok] = (np.einsum("nkcv,nvp->nkcp", Jy, dq) + dP[ok][:, self._tp]) / MM
-        return out
+            dpos[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacp[ok][..., self.passive], dq) + dP[ok]
+            drot[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacr[ok][..., self.passive], dq) + dW[ok]
+        return kin, dpos, drot
 
     def _error_derivatives(self, kin: Kinematics, idx: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """d position (m) and d orientation (rad) of every point per unit of each error ``idx`` at fixed
@@ -585,6 +612,21 @@ class ClosedChainTwin:
         cannot assemble."""
         return self.task_of(self.solve(commands, params))
 
+    def _angle_rates(self, p_mm: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """d (angle task coordinates, deg) / d (world rotation vector of the task frame, rad), (C_ang, 3):
+        central differences of the closed-form angles of ``R`` (not of the chain), step 1e-7 rad."""
+        coords = self.spec.task.coordinates
+        ang = [i for i, c in enumerate(coords) if c not in POSITION]
+        h = 1e-7
+        D = np.zeros((len(ang), 3))
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = h
+            a = task_coordinates(p_mm[None], (rotvec_matrix(e) @ R)[None], coords)[0]
+            b = task_coordinates(p_mm[None], (rotvec_matrix(-e) @ R)[None], coords)[0]
+            D[:, k] = task_difference(a, b, coords)[ang] / (2 * h)
+        return D
+
     def _task_rows(self, goal: np.ndarray):
         """Task equations for :meth:`_newton`: residual (C,) (m, rad) and Jacobian (C, nv)."""
         coords = self.spec.task.coordinates
@@ -601,15 +643,7 @@ class ClosedChainTwin:
             J = np.zeros((len(coords), self.model.nv))
             J[[coords.index(POSITION[k]) for k in pos]] = jp[tp][pos]
             if ang:
-                h = 1e-7                                    # d angles / d world rotation, central differences
-                D = np.zeros((len(ang), 3))
-                for k in range(3):
-                    e = np.zeros(3)
-                    e[k] = h
-                    a = task_coordinates(p[None], (rotvec_matrix(e) @ R)[None], coords)[0]
-                    b = task_coordinates(p[None], (rotvec_matrix(-e) @ R)[None], coords)[0]
-                    D[:, k] = task_difference(a, b, coords)[ang] * DEG / (2 * h)
-                J[ang] = D @ jr[tp]
+                J[ang] = self._angle_rates(p, R) * DEG @ jr[tp]
             return r, J
 
         return rows
