@@ -225,14 +225,20 @@ def evaluate(args) -> int:
     return 0
 
 
+#: most axes a compensation table holds
+TABLE_AXES_MAX = 3
+
+
 def table_refusal(machine) -> str:
     """Why ``compensate --table`` is refused for a machine folder, and what it gets instead."""
-    axes = machine.spec.table_axes
-    coords = machine.spec.task.coordinates
-    if not axes or len(coords) > len(axes):
+    axes, coords = machine.spec.table_axes, machine.spec.task.coordinates
+    if len(coords) > TABLE_AXES_MAX:
         why = (f"its {len(coords)} task coordinates ({', '.join(coords)}) are more than a compensation table "
-               f"holds ({len(axes)} axes in machine.toml [table])" if axes else
-               "machine.toml names no [table] axes")
+               f"holds ({TABLE_AXES_MAX} axes at most)")
+    elif not axes:
+        why = "machine.toml names no [table] axes"
+    elif len(axes) < len(coords):
+        why = f"the [table] axes ({', '.join(axes)}) cover {len(axes)} of its {len(coords)} task coordinates"
     else:
         why = "compensation tables of a machine folder are not supported by the PLC bridge yet"
     return (f"no compensation table for machine {machine.name}: {why}; this machine gets offline compensation "
