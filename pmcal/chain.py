@@ -75,6 +75,7 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
                              field=machine.spec.task.coordinates[0])
     else:
         commands = twin.sample_commands(poses, rng)
+
     def measured(cmd):
         """The rows of ``cmd`` the erroneous machine assembles on the nominal one's branch, and their
         readings."""

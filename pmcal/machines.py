@@ -3,8 +3,8 @@ and ``machine.toml``, routed to the application module that implements its comma
 
 An application module implements the subcommands that make sense for its machine as functions taking
 the parsed ``argparse`` namespace and returning an exit status (``identify``, ``compensate``,
-``twin_measure``, ...), and ``option_help(machine)``: the table of per-machine help texts of
-:mod:`pmcal.commands.options`. A command a machine does not implement is refused with a clear message.
+``twin_measure``, ...), ``option_help(machine)`` (the table of per-machine help texts of
+:mod:`pmcal.commands.options`) and ``command_defaults(machine)``. A command a machine does not implement is refused with a clear message.
 """
 
 from __future__ import annotations
@@ -16,10 +16,11 @@ from types import ModuleType
 from pmcal.errors import InputError
 from pmcal.mechanism.machine_spec import MachineSpec
 from pmcal.mjcf import ROOT as MJCF_ROOT
+from pmcal.mjcf import machine_dir
 
 #: the machine of ``pmcal`` without ``--machine``
 DEFAULT_MACHINE = "ocpm_2dof"
-#: the seeded machines with application modules of their own (their TOML files say ``legacy``)
+#: the seeded machines with application modules of their own, by the ``[machine] kind`` of their TOML
 LEGACY_APPS: dict[str, str] = {
     "ocpm_2dof": "pmcal.apps.ocpm",
     "planar_2dof": "pmcal.apps.planar",
@@ -33,11 +34,6 @@ TOML_NAME = "machine.toml"
 def builtin_names() -> list[str]:
     """Names of the built-in machines: folders under ``mjcf/`` holding a ``machine.toml``."""
     return sorted(p.parent.name for p in MJCF_ROOT.glob(f"*/{TOML_NAME}"))
-
-
-def machine_dir(name: str) -> Path:
-    """Folder of a built-in machine's model and configuration (``mjcf/<name>/``)."""
-    return MJCF_ROOT / name
 
 
 def machine_folder(value: str | Path) -> Path:
@@ -81,7 +77,11 @@ class Machine:
     >>> Machine.from_folder("/home/me/my_delta").twin.error_keys   # doctest: +SKIP
     """
 
-    def __init__(self, spec):
+    def __init__(self, spec: MachineSpec):
+        if spec.legacy and spec.folder != machine_dir(spec.kind).resolve():
+            raise InputError(f"a copy of the seeded machine {spec.kind} runs its dedicated code, which reads the "
+                             f"built-in folder only (edits here would be ignored): use --machine {spec.kind}",
+                             file=str(spec.folder / TOML_NAME), field="machine.kind")
         self.spec = spec
         self.name: str = spec.name
         self.folder: Path = spec.folder
@@ -146,10 +146,6 @@ class Machine:
 def resolve(value: str | Path) -> Machine:
     """The machine ``--machine VALUE`` selects."""
     return Machine.resolve(value)
-
-
-def get_app(name: str) -> ModuleType:
-    return resolve(name).app
 
 
 def dispatch(command: str, args) -> int:

@@ -138,6 +138,13 @@ def test_a_bad_machine_folder_is_one_line_naming_file_and_key(capsys, tmp_path, 
     assert not (tmp_path / "t.csv").exists()
 
 
+def test_a_copy_of_a_seeded_machine_says_to_use_its_name(capsys, tmp_path):
+    folder = copy_machine("ocpm_2dof", tmp_path)
+    one_line_error(capsys, "--machine", folder, "targets", "-o", tmp_path / "t.csv",
+                   says=["machine.toml", "machine.kind", "--machine ocpm_2dof"])
+    assert not (tmp_path / "t.csv").exists()
+
+
 # ---------------------------------------------------------------- its files
 def test_files_have_the_machines_columns(delta):
     folder, d = delta
