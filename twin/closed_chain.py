@@ -151,6 +151,11 @@ class ClosedChainTwin:
         self._warm_qpos = np.zeros((0, m.nq))
         self.home_commands = self._commands_of(self.home_qpos[None])[0]
 
+    @classmethod
+    def from_folder(cls, folder) -> "ClosedChainTwin":
+        """The twin of the machine folder ``folder`` (``MachineSpec.load(folder)``; InputError if invalid)."""
+        return cls(MachineSpec.load(folder))
+
     # ------------------------------------------------------------------ structure
     def _read_motors(self) -> None:
         m = self.model
