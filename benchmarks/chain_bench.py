@@ -35,6 +35,7 @@ from benchmarks.common import print_table, write_json  # noqa: E402
 from pmcal.calib.closed_chain import compensate_targets, crlb, identify_chain  # noqa: E402
 from pmcal.mechanism.machine_spec import MachineSpec  # noqa: E402
 from pmcal.mjcf import machine_dir  # noqa: E402
+from pmcal.threads import apply_blas_policy  # noqa: E402
 from pmcal.twin.closed_chain import ClosedChainTwin  # noqa: E402
 
 TARGET_RATIO = 1.5
@@ -129,6 +130,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="output (default benchmarks/results/chain_bench.json; "
                                                  "chain_bench_<machine>.json for one machine)")
     args = ap.parse_args(argv)
+    apply_blas_policy()                   # one BLAS thread (pmcal.threads): small matrices, shared cores
     results = [run_machine(m, args.seeds, args.poses) for m in args.machines]
     rows = []
     for r in results:

@@ -211,6 +211,7 @@ class ClosedChainTwin:
                 pts.append(int(s))
         #: Site ids whose poses and Jacobians every solve computes (closure sites, targets, task site).
         self.points = np.array(pts, int)
+        self._n_closure_points = len({c.site1 for c in self.closures} | {c.site2 for c in self.closures})
         pos = {s: i for i, s in enumerate(pts)}
         self._c1 = np.array([pos[c.site1] for c in self.closures])
         self._c2 = np.array([pos[c.site2] for c in self.closures])
@@ -366,8 +367,9 @@ class ClosedChainTwin:
         return c
 
     # ------------------------------------------------------------------ kinematics of one configuration
-    def _kin(self, q: np.ndarray, jac: bool = True):
-        """Forward kinematics at ``q``; with ``jac`` the points' Jacobians (3, nv) each."""
+    def _kin(self, q: np.ndarray, jac: bool = True, closure_only: bool = False):
+        """Forward kinematics at ``q``; with ``jac`` the points' Jacobians (3, nv) each (with
+        ``closure_only`` those of the closure sites only, the first points; the others stay zero)."""
         m, d = self.model, self.data
         d.qpos[:] = q
         mujoco.mj_kinematics(m, d)
@@ -377,8 +379,8 @@ class ClosedChainTwin:
         P = len(self.points)
         jp = np.zeros((P, 3, m.nv))
         jr = np.zeros((P, 3, m.nv))
-        for i, s in enumerate(self.points):
-            mujoco.mj_jacSite(m, d, jp[i], jr[i], int(s))
+        for i in range(self._n_closure_points if closure_only else P):
+            mujoco.mj_jacSite(m, d, jp[i], jr[i], int(self.points[i]))
         return jp, jr
 
     def _closure(self, jp: np.ndarray | None, jr: np.ndarray | None, with_jac: bool = True):
@@ -395,21 +397,26 @@ class ClosedChainTwin:
                 J.append((jr[w1] - jr[w2]).reshape(-1, self.model.nv))
         return np.concatenate(r), (np.concatenate(J) if with_jac else None)
 
-    def _newton(self, q: np.ndarray, rows=None, goal=None) -> tuple[np.ndarray, bool]:
+    #: Residual tolerance (m / rad) of the intermediate sub-steps of a continuation (the last is exact).
+    PATH_TOL = 1e-7
+
+    def _newton(self, q: np.ndarray, rows=None, tol: float | None = None) -> tuple[np.ndarray, bool]:
         """Assemble from ``q`` with the motor joints held (``rows`` None), or, for inverse kinematics, with
-        every dof free and the extra equations ``rows(jp, jr) -> (residual, Jacobian)`` (the task)."""
+        every dof free and the extra equations ``rows(jp, jr) -> (residual, Jacobian)`` (the task);
+        converged when the largest residual is below ``tol`` (default :data:`TOL_M`)."""
         m = self.model
         q = q.copy()
+        tol = self.TOL_M if tol is None else tol
         cols = self.passive if rows is None else np.arange(m.nv)
         for _ in range(self.MAX_ITER):
-            jp, jr = self._kin(q)
+            jp, jr = self._kin(q, closure_only=rows is None)
             r, J = self._closure(jp, jr)
             if rows is not None:
                 rt, Jt = rows(jp, jr)
                 r, J = np.concatenate([r, rt]), np.vstack([J, Jt])
-            if np.max(np.abs(r)) < self.TOL_M:
+            if np.max(np.abs(r)) < tol:
                 return q, True
-            step = -np.linalg.lstsq(J[:, cols], r, rcond=1e-12)[0]
+            step = -_least_squares_step(J[:, cols], r)
             size = np.max(np.abs(step))
             if not np.isfinite(size):
                 return q, False
@@ -434,7 +441,7 @@ class ClosedChainTwin:
             for t in np.linspace(0.0, 1.0, n_sub + 1)[1:]:
                 q = q.copy()
                 q[self.motor_qadr] = j0 + t * (joints - j0)
-                q, ok = self._newton(q)
+                q, ok = self._newton(q, tol=None if t == 1.0 else self.PATH_TOL)
                 if not ok:
                     break
             if ok:
@@ -663,23 +670,19 @@ class ClosedChainTwin:
         home_task = self.task_of(self.home_qpos[None])[0]
         cmd = np.full((len(task), self.n_motors), np.nan)
         reasons = [""] * len(task)
-        box = np.array([self.spec.workspace[c] for c in coords])
+        width = np.array([self.spec.workspace[c][1] - self.spec.workspace[c][0] for c in coords])
+        known_task, known_q = [home_task], [self.home_qpos]           # starts on the home branch
         for i, goal in enumerate(task):
-            q, ok = self.home_qpos, False
-            far = np.max(np.abs(task_difference(goal, home_task, coords)) / (box[:, 1] - box[:, 0]))
-            n = max(1, int(np.ceil(far / self.PATH_STEP)))
-            for n_sub in (n, 4 * n):
-                q, ok = self.home_qpos, True
-                for t in np.linspace(0.0, 1.0, n_sub + 1)[1:]:
-                    sub = home_task + t * task_difference(goal, home_task, coords)
-                    q, ok = self._newton(q, rows=self._task_rows(sub))
-                    if not ok:
-                        break
-                if ok:
-                    break
+            dist = np.max(np.abs(task_difference(goal, np.array(known_task), coords)) / width, axis=1)
+            j = int(np.argmin(dist))
+            q, ok = self._reach_task(goal, known_task[j], known_q[j], dist[j])
+            if not ok and j != 0:
+                q, ok = self._reach_task(goal, home_task, self.home_qpos, dist[0])
             if not ok:
                 reasons[i] = "no assembly of the chain reaches this target (out of the workspace or singular)"
                 continue
+            known_task.append(goal)
+            known_q.append(q)
             c = self._commands_of(q[None])[0]
             lo, hi = self.motor_range[:, 0], self.motor_range[:, 1]
             out = np.flatnonzero((c < lo) | (c > hi))
@@ -693,10 +696,29 @@ class ClosedChainTwin:
             self._remember(np.concatenate([self._warm_cmd, c[None]]), np.concatenate([self._warm_qpos, q[None]]))
         return cmd, reasons
 
+    def _reach_task(self, goal: np.ndarray, start_task: np.ndarray, start_q: np.ndarray, dist: float):
+        """Configuration reaching task coordinates ``goal`` from an assembled ``start_q`` (at
+        ``start_task``) by continuation along the straight task-space path, in sub-steps of at most
+        :data:`PATH_STEP` of the workspace box (``dist``: the whole path in those units)."""
+        coords = self.spec.task.coordinates
+        n = max(1, int(np.ceil(dist / self.PATH_STEP)))
+        q, ok = start_q, False
+        for n_sub in (n, 4 * n):
+            q, ok = start_q, True
+            for t in np.linspace(0.0, 1.0, n_sub + 1)[1:]:
+                sub = start_task + t * task_difference(goal, start_task, coords)
+                q, ok = self._newton(q, rows=self._task_rows(sub), tol=None if t == 1.0 else self.PATH_TOL)
+                if not ok:
+                    break
+            if ok:
+                break
+        return q, ok
+
     def inverse(self, task, params: Mapping[str, float] | None = None) -> np.ndarray:
         """Commands (N, M) (deg / mm) that put the task site at ``task`` (N, C) (coordinates of
         ``spec.task``, mm / deg) on the machine with errors ``params``: Newton on the closure and task
-        equations together, from ``home`` (continuation along the straight task path when needed). NaN rows
+        equations together, by continuation along the straight task path from the nearest target already
+        reached in this call (or ``home``), on the home branch. NaN rows
         where out of reach or outside a motor's range (:meth:`inverse_report` says which)."""
         return self.inverse_report(task, params)[0]
 
@@ -720,6 +742,18 @@ class ClosedChainTwin:
                 return np.concatenate(got)[:n]
         raise RuntimeError(f"only {count} of {n} workspace samples of {self.spec.name} are reachable: check "
                            f"[workspace] in machine.toml")
+
+
+def _least_squares_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``x`` minimising ``|J x - r|`` (minimum norm): LU for a regular square ``J``, else SVD."""
+    if J.shape[0] == J.shape[1]:
+        try:
+            x = np.linalg.solve(J, r)
+            if np.all(np.isfinite(x)):
+                return x
+        except np.linalg.LinAlgError:
+            pass
+    return np.linalg.lstsq(J, r, rcond=1e-12)[0]
 
 
 def _rotation_error(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
