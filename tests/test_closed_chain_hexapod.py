@@ -95,3 +95,16 @@ def test_task_jacobian_matches_central_differences(twin):
     J = twin.task_jacobian(cmd, params, keys)
     np.testing.assert_allclose(J, central_differences(lambda p: twin.forward(cmd, p), params, keys), atol=1e-6)
     assert np.abs(J).max() > 0.5
+
+
+def test_pose_from_nests_by_rigid_fit(twin, poses):
+    """measure = "pose": a rigid fit of the nests onto their task-frame coordinates gives the platform pose."""
+    from pmcal.mechanism.rigid import fit_pose
+    from pmcal.mechanism.task_space import rpy_angles
+
+    X = twin.targets_in_task_frame()
+    np.testing.assert_allclose(X[0], [120 * np.cos(np.deg2rad(30)), 60.0, 30.0], atol=TOL_MM)
+    r, R, rms = fit_pose(twin.targets(hexapod_ik(poses)), X)
+    np.testing.assert_allclose(r, poses[:, :3], atol=TOL_MM)
+    np.testing.assert_allclose(np.rad2deg(rpy_angles(R)), poses[:, 3:], atol=1e-7)
+    assert np.all(rms < 1e-6)

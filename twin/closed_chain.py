@@ -607,6 +607,16 @@ class ClosedChainTwin:
         return getattr(self, "_rot", {}).get(body, np.zeros(3))
 
     # ------------------------------------------------------------------ task space
+    def targets_in_task_frame(self, params: Mapping[str, float] | None = None) -> np.ndarray:
+        """The nests' coordinates (K, 3) mm in the task site's frame at ``home`` (rigid on the same part:
+        the same everywhere). With ``measure = "pose"`` a tracker reading ``Y`` (N, K, 3) gives the task
+        frame's pose by ``pmcal.mechanism.rigid.fit_pose(Y, twin.targets_in_task_frame())``."""
+        self.set_params(params)
+        self._kin(self.solve(self.home_commands[None])[0], jac=False)
+        d = self.data
+        R = d.site_xmat[self.task_site].reshape(3, 3)
+        return (d.site_xpos[self.target_sites] - d.site_xpos[self.task_site]) @ R / MM
+
     def task_of(self, qpos: np.ndarray) -> np.ndarray:
         """Task coordinates (N, C) of configurations ``qpos`` (N, nq); NaN rows stay NaN."""
         coords = self.spec.task.coordinates
