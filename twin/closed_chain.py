@@ -20,10 +20,18 @@ continuation from the ``home`` keyframe: every solve stays on the assembly branc
 and Jacobians come from MuJoCo (``mj_kinematics``, ``mj_comPos``, ``mj_jacSite``); quaternion joints are
 stepped with ``mj_integratePos``.
 
+**Compliant closures** (optional ``[closures]`` of the machine.toml, for over-constrained machines whose
+loops conflict once they carry errors): the rows are weighted by the square roots of the closure
+stiffnesses (N/m), passive joints with an MJCF ``stiffness`` add spring rows, and the assembly is the
+least-squares equilibrium of that elastic energy (converged when the Newton step vanishes).
+
 **Derivatives** (:meth:`jacobian`) by the implicit-function theorem at the assembled configuration: with
-closure equations ``c(q_p, q_m, p) = 0``,
+(weighted) closure equations ``c(q_p, q_m, p) = 0``,
 
     dq_p/dp = -C_p^+ (dc/dp),      d y/dp = J_y,p dq_p/dp + dy/dp|_q
+
+(for compliant, conflicting closures this is the Gauss-Newton derivative of the equilibrium: it leaves out
+the closure residual times the second derivatives, second order in the errors)
 
 where ``C_p`` is the closure Jacobian over the passive dofs (MuJoCo), ``dc/dp`` and ``dy/dp|_q`` the
 derivatives of the closure points and targets with respect to the frame errors at fixed joints, in
@@ -198,6 +206,28 @@ class ClosedChainTwin:
                              file=self._file)
         self.closures = tuple(out)
         self.n_equations = sum(6 if c.weld else 3 for c in out)
+        self._read_compliance()
+
+    def _read_compliance(self) -> None:
+        """Row weights of the closure equations (sqrt of the stiffness, N/m) and the passive joint springs
+        of ``spec.closures`` (none: unit weights, rigid closures)."""
+        m, cs = self.model, self.spec.closures
+        k_pos = [cs.stiffness.get(c.name, cs.default_n_per_mm) / MM if cs else 1.0 for c in self.closures]
+        rows = [np.full(3, k) for k in k_pos] + [np.full(3, k) for k, c in zip(k_pos, self.closures) if c.weld]
+        self._sqrt_w = np.sqrt(np.concatenate(rows))
+        springs = []
+        if cs and cs.joint_springs:
+            for j in range(m.njnt):
+                if (m.jnt_stiffness[j] > 0 and int(m.jnt_type[j]) in (_JNT.mjJNT_HINGE, _JNT.mjJNT_SLIDE)
+                        and j not in self.motor_joints):
+                    springs.append(j)
+        self._spring_qadr = m.jnt_qposadr[springs].astype(int)
+        self._spring_dof = m.jnt_dofadr[springs].astype(int)
+        self._spring_sqrt_k = np.sqrt(m.jnt_stiffness[springs])
+        self._spring_ref = m.qpos_spring[self._spring_qadr].copy()
+        #: weight of the task equations in inverse kinematics: far above every closure (met exactly)
+        self._task_sqrt_w = 1e3 * max(float(self._sqrt_w.max()), float(self._spring_sqrt_k.max(initial=0.0))) \
+            if cs else 1.0
 
     def _read_sites(self) -> None:
         m = self.model
@@ -384,7 +414,8 @@ class ClosedChainTwin:
         return jp, jr
 
     def _closure(self, jp: np.ndarray | None, jr: np.ndarray | None, with_jac: bool = True):
-        """Closure residual (n_eq,) m / rad and its Jacobian (n_eq, nv) at the current kinematics."""
+        """Weighted closure residual (n_eq + springs,) and its Jacobian (.., nv) at the current kinematics:
+        rows ``sqrt(k) gap`` (unit weights without ``[closures]``) and ``sqrt(k_j) (q_j - ref_j)``."""
         d = self.data
         sp = d.site_xpos[self.points]
         r = [(sp[self._c1] - sp[self._c2]).reshape(-1)]
@@ -395,7 +426,15 @@ class ClosedChainTwin:
             r.append(_rotation_error(sm[w1], sm[w2]).reshape(-1))
             if with_jac:
                 J.append((jr[w1] - jr[w2]).reshape(-1, self.model.nv))
-        return np.concatenate(r), (np.concatenate(J) if with_jac else None)
+        r = np.concatenate(r) * self._sqrt_w
+        J = np.concatenate(J) * self._sqrt_w[:, None] if with_jac else None
+        if len(self._spring_dof):
+            r = np.concatenate([r, self._spring_sqrt_k * (d.qpos[self._spring_qadr] - self._spring_ref)])
+            if with_jac:
+                Js = np.zeros((len(self._spring_dof), self.model.nv))
+                Js[np.arange(len(self._spring_dof)), self._spring_dof] = self._spring_sqrt_k
+                J = np.vstack([J, Js])
+        return r, J
 
     #: Residual tolerance (m / rad) of the intermediate sub-steps of a continuation (the last is exact).
     PATH_TOL = 1e-7
@@ -403,7 +442,8 @@ class ClosedChainTwin:
     def _newton(self, q: np.ndarray, rows=None, tol: float | None = None) -> tuple[np.ndarray, bool]:
         """Assemble from ``q`` with the motor joints held (``rows`` None), or, for inverse kinematics, with
         every dof free and the extra equations ``rows(jp, jr) -> (residual, Jacobian)`` (the task);
-        converged when the largest residual is below ``tol`` (default :data:`TOL_M`)."""
+        converged when the largest residual (rigid closures) or the largest step (compliant closures, whose
+        least-squares equilibrium keeps a residual) is below ``tol`` (default :data:`TOL_M`)."""
         m = self.model
         q = q.copy()
         tol = self.TOL_M if tol is None else tol
@@ -414,12 +454,17 @@ class ClosedChainTwin:
             if rows is not None:
                 rt, Jt = rows(jp, jr)
                 r, J = np.concatenate([r, rt]), np.vstack([J, Jt])
-            if np.max(np.abs(r)) < tol:
-                return q, True
+            if self.spec.closures is None and np.max(np.abs(r)) < tol:
+                return q, True                             # rigid closures: met exactly
             step = -_least_squares_step(J[:, cols], r)
             size = np.max(np.abs(step))
             if not np.isfinite(size):
                 return q, False
+            if size < tol:                                 # stationary: the least-squares equilibrium
+                dv = np.zeros(m.nv)
+                dv[cols] = step
+                mujoco.mj_integratePos(m, q, dv, 1.0)
+                return q, True
             if size > self.MAX_STEP:
                 step *= self.MAX_STEP / size
             dv = np.zeros(m.nv)
@@ -562,6 +607,12 @@ class ClosedChainTwin:
         Ce = np.concatenate([dP[:, self._c1] - dP[:, self._c2],
                              dW[:, self._c1[self._weld]] - dW[:, self._c2[self._weld]]],
                             axis=1).reshape(N, -1, len(keys))
+        C, Ce = C * self._sqrt_w[:, None], Ce * self._sqrt_w[:, None]      # compliance weights
+        if len(self._spring_dof):                                          # passive joint springs
+            ns = len(self._spring_dof)
+            Cs = np.zeros((N, ns, nv))
+            Cs[:, np.arange(ns), self._spring_dof] = self._spring_sqrt_k
+            C, Ce = np.concatenate([C, Cs], axis=1), np.concatenate([Ce, np.zeros((N, ns, len(keys)))], axis=1)
         dpos = np.full(dP.shape, np.nan)
         drot = np.full(dW.shape, np.nan)
         ok = np.isfinite(kin.qpos).all(axis=1)
@@ -666,7 +717,7 @@ class ClosedChainTwin:
             J[[coords.index(POSITION[k]) for k in pos]] = jp[tp][pos]
             if ang:
                 J[ang] = self._angle_rates(p, R) * DEG @ jr[tp]
-            return r, J
+            return r * self._task_sqrt_w, J * self._task_sqrt_w
 
         return rows
 
