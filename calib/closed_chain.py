@@ -54,6 +54,7 @@ from pmcal.calib.chain_model import ChainModel
 from pmcal.calib.solvers.local import lm
 from pmcal.calib.solvers.problem import box_problem
 from pmcal.calib.solvers.result import IdentResult
+from pmcal.threads import blas_policy
 
 #: Relative threshold on the pivoted QR diagonal below which a direction counts as unseen (structural rank).
 RANK_TOL = 1e-7
@@ -228,6 +229,7 @@ def _flat_jacobian(model: ChainModel, commands, params, keys) -> np.ndarray:
     return J.reshape(-1, len(keys))
 
 
+@blas_policy()
 def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None = None,
                    keys: list[str] | None = None, *, prior: bool = True, rank_tol: float = RANK_TOL,
                    max_nfev: int | None = 100) -> ChainIdentResult:
@@ -243,6 +245,9 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     prior : add the Tikhonov prior (module docstring); False: plain LM on the base set.
     rank_tol : relative QR threshold of the base-set reduction (:func:`base_parameters`).
     max_nfev : LM evaluation limit.
+
+    Runs under pmcal's BLAS thread policy (:func:`pmcal.threads.blas_policy`: one thread unless
+    ``PMCAL_BLAS_THREADS`` says otherwise; threads spinning on these small matrices cost 10-100x).
 
     Returns
     -------

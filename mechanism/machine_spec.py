@@ -105,6 +105,21 @@ class ErrorSpec:
 
 
 @dataclass(frozen=True)
+class ClosureSpec:
+    """Compliance of the loop closures, for an over-constrained machine (optional ``[closures]``).
+
+    With it, assembly minimises the elastic energy ``1/2 sum k_c |gap_c|^2 + 1/2 sum k_j (q_j - q0_j)^2``
+    instead of solving the closures exactly: ``stiffness`` closure name -> N/mm (the others get
+    ``default_n_per_mm``), and with ``joint_springs`` the passive joints that have an MJCF ``stiffness``
+    (N/m or N m/rad, MuJoCo's units) act as springs about their ``springref``.
+    """
+
+    default_n_per_mm: float = 1.0
+    stiffness: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    joint_springs: bool = False
+
+
+@dataclass(frozen=True)
 class MachineSpec:
     """A validated machine folder (see module docstring and ``docs/machine_toml.md``).
 
@@ -122,6 +137,8 @@ class MachineSpec:
     table_axes : up to 3 task coordinates spanning a compensation table; empty: offline compensation of
         target lists only.
     home : name of the MJCF keyframe of an assembled configuration (the branch every solve stays on).
+    closures : :class:`ClosureSpec` of an over-constrained machine, or None: closures solved exactly (a
+        least-squares compromise with equal weights if they conflict).
     legacy : True for the seeded machines' TOML (only ``name``, ``folder``, ``model_path``, ``title``, ``kind``
         are set; the application routes them to their dedicated code).
     kind : ``"chain"`` or a legacy kind (``"ocpm_2dof"``, ``"planar_2dof"``).
@@ -140,6 +157,7 @@ class MachineSpec:
     sigma_mm: float = 0.01
     table_axes: tuple[str, ...] = ()
     home: str = "home"
+    closures: ClosureSpec | None = None
     legacy: bool = False
     kind: str = "chain"
 
@@ -281,7 +299,8 @@ class _Loader:
             raise self.err("machine.model", f"model file not found: {self.model} (write the MJCF file name, "
                                             f"relative to the folder)")
         self.names = self.model_names(self.model)
-        self.known(self.doc, "", ("machine", "motors", "tracker", "task", "workspace", "errors", "table"))
+        self.known(self.doc, "", ("machine", "motors", "tracker", "task", "workspace", "errors", "table",
+                                  "closures"))
         self.known(mach, "machine", ("kind", "name", "title", "model", "home"))
         home = self.text(mach, "home", "machine", default="home")
         if home not in self.names.keyframes:
@@ -306,7 +325,27 @@ class _Loader:
         return MachineSpec(name=name, folder=self.folder, model_path=self.model, title=title, motors=motors,
                            targets=targets, measure=measure, task=task, workspace=workspace,
                            errors=self.errors(motors), sigma_mm=sigma, table_axes=table_axes, home=home,
-                           legacy=False, kind="chain")
+                           closures=self.closures(), legacy=False, kind="chain")
+
+    def closures(self) -> ClosureSpec | None:
+        tab = self.table("closures", required=False)
+        if not tab:
+            return None
+        self.known(tab, "closures", ("default_n_per_mm", "stiffness", "joint_springs"))
+        default = self.number(tab, "default_n_per_mm", "closures", default=1.0, positive=True)
+        per = tab.get("stiffness", {})
+        if not isinstance(per, dict):
+            raise self.err("closures.stiffness", "must be a table {closure name = N/mm}")
+        out = {}
+        for name in per:
+            if name not in self.names.equalities:
+                raise self.err(f"closures.stiffness.{name}", f"{name!r} is not an equality of {self.model.name} "
+                                                              f"(equalities: {', '.join(self.names.equalities)})")
+            out[name] = self.number(per, name, "closures.stiffness", positive=True)
+        springs = tab.get("joint_springs", False)
+        if not isinstance(springs, bool):
+            raise self.err("closures.joint_springs", f"must be true or false, got {springs!r}")
+        return ClosureSpec(default_n_per_mm=default, stiffness=MappingProxyType(out), joint_springs=springs)
 
     def motors(self) -> tuple[MotorSpec, ...]:
         rows = self.doc.get("motors")

@@ -25,13 +25,14 @@ class MjcfNames:
     """Names declared by a model file.
 
     joints : joint name -> type (``"hinge"``, ``"slide"``, ``"ball"``, ``"free"``).
-    bodies, sites, keyframes : declared names, in file order.
+    bodies, sites, keyframes, equalities : declared names, in file order.
     """
 
     joints: dict[str, str] = field(default_factory=dict)
     bodies: list[str] = field(default_factory=list)
     sites: list[str] = field(default_factory=list)
     keyframes: list[str] = field(default_factory=list)
+    equalities: list[str] = field(default_factory=list)
 
 
 def _expand(path: Path, seen: set[Path]) -> ET.Element:
@@ -108,6 +109,8 @@ def read_names(path: Path) -> MjcfNames:
 
     for world in root.findall("worldbody"):
         walk(world, "main")
+    for eq in root.findall("equality"):
+        out.equalities += [e.get("name") for e in eq if e.get("name")]
     for kf in root.findall("keyframe"):
         out.keyframes += [k.get("name") for k in kf.findall("key") if k.get("name")]
     return out

@@ -118,3 +118,16 @@ def hexapod_fk(lengths: np.ndarray, d: dict = HEXAPOD, start=None, tol: float = 
             x = x - np.linalg.solve(J, r)
         out[n] = x
     return out
+
+
+# ------------------------------------------------------------------------------- finite differences
+def central_differences(fn, params: dict, keys: list[str], h: float = 1e-4) -> np.ndarray:
+    """d fn(params) / d params[k] for every k in ``keys`` by central differences (step ``h`` in the keys'
+    units): ``fn`` maps a parameter dict to an array; the result has a last axis over ``keys``."""
+    cols = []
+    for k in keys:
+        up, dn = dict(params), dict(params)
+        up[k] = up.get(k, 0.0) + h
+        dn[k] = dn.get(k, 0.0) - h
+        cols.append((fn(up) - fn(dn)) / (2 * h))
+    return np.stack(cols, axis=-1)

@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 
-from chain_references import DELTA, delta_fk, delta_ik
+from chain_references import DELTA, central_differences, delta_fk, delta_ik
 from pmcal.mechanism.machine_spec import MachineSpec
 from pmcal.mjcf import machine_dir
 from pmcal.twin.closed_chain import ClosedChainTwin
@@ -83,14 +83,33 @@ def test_ift_jacobian_matches_central_differences(twin, commands):
     params = dict(zip(keys, rng.normal(0.0, 1.0, len(keys)) * twin.prior_std(keys)))
     cmd = commands[:4]
     J = twin.jacobian(cmd, params)
-    h = 1e-4
-    worst = 0.0
-    for i, k in enumerate(keys):
-        up, dn = dict(params), dict(params)
-        up[k] += h
-        dn[k] -= h
-        fd = (twin.targets(cmd, up) - twin.targets(cmd, dn)) / (2 * h)
-        worst = max(worst, float(np.max(np.abs(fd - J[..., i]))))
+    worst = float(np.max(np.abs(central_differences(lambda p: twin.targets(cmd, p), params, keys) - J)))
     # central differences: truncation ~ h^2 * third derivative (~1e-8 mm per unit), round-off ~ 1e-13 m / h
     assert worst < 1e-6, worst
     assert np.abs(J).max() > 1.0                      # a real Jacobian, not zeros
+
+
+def test_unknown_error_key_is_named(twin):
+    with pytest.raises(KeyError, match="unknown error key 'arm9.dx'"):
+        twin.targets(np.zeros((1, 3)), {"arm9.dx": 0.1})
+
+
+def test_body_based_closure_is_refused(tmp_path):
+    """A body-based connect would re-derive its anchor from the compiled geometry and absorb errors."""
+    import shutil
+
+    from pmcal.errors import InputError
+
+    folder = tmp_path / "d"
+    shutil.copytree(machine_dir("delta_3dof"), folder)
+    xml = folder / "delta_3dof.xml"
+    xml.write_text(xml.read_text().replace('<connect name="closure_3b" site1="rod3b_tip" site2="platform_3b"/>',
+                                           '<connect name="closure_3b" body1="rod3b" body2="platform" '
+                                           'anchor="0 0 -0.8"/>'))
+    with pytest.raises(InputError, match="closure_3b.*must be site-based"):
+        ClosedChainTwin.from_folder(folder)
+
+
+def test_seeded_machines_are_not_chain_twins():
+    with pytest.raises(ValueError, match="seeded machine"):
+        ClosedChainTwin.from_folder(machine_dir("ocpm_2dof"))

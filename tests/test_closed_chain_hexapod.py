@@ -4,7 +4,7 @@ leg-length inverse kinematics and a separately written Newton forward kinematics
 import numpy as np
 import pytest
 
-from chain_references import HEXAPOD, hexapod_fk, hexapod_ik, hexapod_points, rpy_matrix
+from chain_references import central_differences, hexapod_fk, hexapod_ik, rpy_matrix
 from pmcal.calib.closed_chain import identify_chain
 from pmcal.mechanism.machine_spec import MachineSpec
 from pmcal.mjcf import machine_dir
@@ -71,13 +71,7 @@ def test_ift_jacobian_matches_central_differences(twin):
     keys = twin.error_keys
     params = dict(zip(keys, rng.normal(0.0, 1.0, len(keys)) * twin.prior_std(keys)))
     J = twin.jacobian(cmd, params)
-    h = 1e-4
-    worst = 0.0
-    for i, k in enumerate(keys):
-        up, dn = dict(params), dict(params)
-        up[k] += h
-        dn[k] -= h
-        worst = max(worst, float(np.max(np.abs((twin.targets(cmd, up) - twin.targets(cmd, dn)) / (2 * h) - J[..., i]))))
+    worst = float(np.max(np.abs(central_differences(lambda p: twin.targets(cmd, p), params, keys) - J)))
     assert worst < 1e-6, worst
 
 
@@ -99,11 +93,18 @@ def test_task_jacobian_matches_central_differences(twin):
     keys = twin.error_keys[::5]
     params = dict(zip(twin.error_keys, rng.normal(0.0, 0.2, len(twin.error_keys))))
     J = twin.task_jacobian(cmd, params, keys)
-    h = 1e-4
-    for i, k in enumerate(keys):
-        up, dn = dict(params), dict(params)
-        up[k] += h
-        dn[k] -= h
-        fd = (twin.forward(cmd, up) - twin.forward(cmd, dn)) / (2 * h)
-        np.testing.assert_allclose(J[..., i], fd, atol=1e-6)
+    np.testing.assert_allclose(J, central_differences(lambda p: twin.forward(cmd, p), params, keys), atol=1e-6)
     assert np.abs(J).max() > 0.5
+
+
+def test_pose_from_nests_by_rigid_fit(twin, poses):
+    """measure = "pose": a rigid fit of the nests onto their task-frame coordinates gives the platform pose."""
+    from pmcal.mechanism.rigid import fit_pose
+    from pmcal.mechanism.task_space import rpy_angles
+
+    X = twin.targets_in_task_frame()
+    np.testing.assert_allclose(X[0], [120 * np.cos(np.deg2rad(30)), 60.0, 30.0], atol=TOL_MM)
+    r, R, rms = fit_pose(twin.targets(hexapod_ik(poses)), X)
+    np.testing.assert_allclose(r, poses[:, :3], atol=TOL_MM)
+    np.testing.assert_allclose(np.rad2deg(rpy_angles(R)), poses[:, 3:], atol=1e-7)
+    assert np.all(rms < 1e-6)

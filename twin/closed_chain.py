@@ -20,10 +20,18 @@ continuation from the ``home`` keyframe: every solve stays on the assembly branc
 and Jacobians come from MuJoCo (``mj_kinematics``, ``mj_comPos``, ``mj_jacSite``); quaternion joints are
 stepped with ``mj_integratePos``.
 
+**Compliant closures** (optional ``[closures]`` of the machine.toml, for over-constrained machines whose
+loops conflict once they carry errors): the rows are weighted by the square roots of the closure
+stiffnesses (N/m), passive joints with an MJCF ``stiffness`` add spring rows, and the assembly is the
+least-squares equilibrium of that elastic energy (converged when the Newton step vanishes).
+
 **Derivatives** (:meth:`jacobian`) by the implicit-function theorem at the assembled configuration: with
-closure equations ``c(q_p, q_m, p) = 0``,
+(weighted) closure equations ``c(q_p, q_m, p) = 0``,
 
     dq_p/dp = -C_p^+ (dc/dp),      d y/dp = J_y,p dq_p/dp + dy/dp|_q
+
+(for compliant, conflicting closures this is the Gauss-Newton derivative of the equilibrium: it leaves out
+the closure residual times the second derivatives, second order in the errors)
 
 where ``C_p`` is the closure Jacobian over the passive dofs (MuJoCo), ``dc/dp`` and ``dy/dp|_q`` the
 derivatives of the closure points and targets with respect to the frame errors at fixed joints, in
@@ -151,6 +159,11 @@ class ClosedChainTwin:
         self._warm_qpos = np.zeros((0, m.nq))
         self.home_commands = self._commands_of(self.home_qpos[None])[0]
 
+    @classmethod
+    def from_folder(cls, folder) -> "ClosedChainTwin":
+        """The twin of the machine folder ``folder`` (``MachineSpec.load(folder)``; InputError if invalid)."""
+        return cls(MachineSpec.load(folder))
+
     # ------------------------------------------------------------------ structure
     def _read_motors(self) -> None:
         m = self.model
@@ -193,6 +206,28 @@ class ClosedChainTwin:
                              file=self._file)
         self.closures = tuple(out)
         self.n_equations = sum(6 if c.weld else 3 for c in out)
+        self._read_compliance()
+
+    def _read_compliance(self) -> None:
+        """Row weights of the closure equations (sqrt of the stiffness, N/m) and the passive joint springs
+        of ``spec.closures`` (none: unit weights, rigid closures)."""
+        m, cs = self.model, self.spec.closures
+        k_pos = [cs.stiffness.get(c.name, cs.default_n_per_mm) / MM if cs else 1.0 for c in self.closures]
+        rows = [np.full(3, k) for k in k_pos] + [np.full(3, k) for k, c in zip(k_pos, self.closures) if c.weld]
+        self._sqrt_w = np.sqrt(np.concatenate(rows))
+        springs = []
+        if cs and cs.joint_springs:
+            for j in range(m.njnt):
+                if (m.jnt_stiffness[j] > 0 and int(m.jnt_type[j]) in (_JNT.mjJNT_HINGE, _JNT.mjJNT_SLIDE)
+                        and j not in self.motor_joints):
+                    springs.append(j)
+        self._spring_qadr = m.jnt_qposadr[springs].astype(int)
+        self._spring_dof = m.jnt_dofadr[springs].astype(int)
+        self._spring_sqrt_k = np.sqrt(m.jnt_stiffness[springs])
+        self._spring_ref = m.qpos_spring[self._spring_qadr].copy()
+        #: weight of the task equations in inverse kinematics: far above every closure (met exactly)
+        self._task_sqrt_w = 1e3 * max(float(self._sqrt_w.max()), float(self._spring_sqrt_k.max(initial=0.0))) \
+            if cs else 1.0
 
     def _read_sites(self) -> None:
         m = self.model
@@ -206,6 +241,7 @@ class ClosedChainTwin:
                 pts.append(int(s))
         #: Site ids whose poses and Jacobians every solve computes (closure sites, targets, task site).
         self.points = np.array(pts, int)
+        self._n_closure_points = len({c.site1 for c in self.closures} | {c.site2 for c in self.closures})
         pos = {s: i for i, s in enumerate(pts)}
         self._c1 = np.array([pos[c.site1] for c in self.closures])
         self._c2 = np.array([pos[c.site2] for c in self.closures])
@@ -361,8 +397,9 @@ class ClosedChainTwin:
         return c
 
     # ------------------------------------------------------------------ kinematics of one configuration
-    def _kin(self, q: np.ndarray, jac: bool = True):
-        """Forward kinematics at ``q``; with ``jac`` the points' Jacobians (3, nv) each."""
+    def _kin(self, q: np.ndarray, jac: bool = True, closure_only: bool = False):
+        """Forward kinematics at ``q``; with ``jac`` the points' Jacobians (3, nv) each (with
+        ``closure_only`` those of the closure sites only, the first points; the others stay zero)."""
         m, d = self.model, self.data
         d.qpos[:] = q
         mujoco.mj_kinematics(m, d)
@@ -372,12 +409,13 @@ class ClosedChainTwin:
         P = len(self.points)
         jp = np.zeros((P, 3, m.nv))
         jr = np.zeros((P, 3, m.nv))
-        for i, s in enumerate(self.points):
-            mujoco.mj_jacSite(m, d, jp[i], jr[i], int(s))
+        for i in range(self._n_closure_points if closure_only else P):
+            mujoco.mj_jacSite(m, d, jp[i], jr[i], int(self.points[i]))
         return jp, jr
 
     def _closure(self, jp: np.ndarray | None, jr: np.ndarray | None, with_jac: bool = True):
-        """Closure residual (n_eq,) m / rad and its Jacobian (n_eq, nv) at the current kinematics."""
+        """Weighted closure residual (n_eq + springs,) and its Jacobian (.., nv) at the current kinematics:
+        rows ``sqrt(k) gap`` (unit weights without ``[closures]``) and ``sqrt(k_j) (q_j - ref_j)``."""
         d = self.data
         sp = d.site_xpos[self.points]
         r = [(sp[self._c1] - sp[self._c2]).reshape(-1)]
@@ -388,26 +426,45 @@ class ClosedChainTwin:
             r.append(_rotation_error(sm[w1], sm[w2]).reshape(-1))
             if with_jac:
                 J.append((jr[w1] - jr[w2]).reshape(-1, self.model.nv))
-        return np.concatenate(r), (np.concatenate(J) if with_jac else None)
+        r = np.concatenate(r) * self._sqrt_w
+        J = np.concatenate(J) * self._sqrt_w[:, None] if with_jac else None
+        if len(self._spring_dof):
+            r = np.concatenate([r, self._spring_sqrt_k * (d.qpos[self._spring_qadr] - self._spring_ref)])
+            if with_jac:
+                Js = np.zeros((len(self._spring_dof), self.model.nv))
+                Js[np.arange(len(self._spring_dof)), self._spring_dof] = self._spring_sqrt_k
+                J = np.vstack([J, Js])
+        return r, J
 
-    def _newton(self, q: np.ndarray, rows=None, goal=None) -> tuple[np.ndarray, bool]:
+    #: Residual tolerance (m / rad) of the intermediate sub-steps of a continuation (the last is exact).
+    PATH_TOL = 1e-7
+
+    def _newton(self, q: np.ndarray, rows=None, tol: float | None = None) -> tuple[np.ndarray, bool]:
         """Assemble from ``q`` with the motor joints held (``rows`` None), or, for inverse kinematics, with
-        every dof free and the extra equations ``rows(jp, jr) -> (residual, Jacobian)`` (the task)."""
+        every dof free and the extra equations ``rows(jp, jr) -> (residual, Jacobian)`` (the task);
+        converged when the largest residual (rigid closures) or the largest step (compliant closures, whose
+        least-squares equilibrium keeps a residual) is below ``tol`` (default :data:`TOL_M`)."""
         m = self.model
         q = q.copy()
+        tol = self.TOL_M if tol is None else tol
         cols = self.passive if rows is None else np.arange(m.nv)
         for _ in range(self.MAX_ITER):
-            jp, jr = self._kin(q)
+            jp, jr = self._kin(q, closure_only=rows is None)
             r, J = self._closure(jp, jr)
             if rows is not None:
                 rt, Jt = rows(jp, jr)
                 r, J = np.concatenate([r, rt]), np.vstack([J, Jt])
-            if np.max(np.abs(r)) < self.TOL_M:
-                return q, True
-            step = -np.linalg.lstsq(J[:, cols], r, rcond=1e-12)[0]
+            if self.spec.closures is None and np.max(np.abs(r)) < tol:
+                return q, True                             # rigid closures: met exactly
+            step = -_least_squares_step(J[:, cols], r)
             size = np.max(np.abs(step))
             if not np.isfinite(size):
                 return q, False
+            if size < tol:                                 # stationary: the least-squares equilibrium
+                dv = np.zeros(m.nv)
+                dv[cols] = step
+                mujoco.mj_integratePos(m, q, dv, 1.0)
+                return q, True
             if size > self.MAX_STEP:
                 step *= self.MAX_STEP / size
             dv = np.zeros(m.nv)
@@ -429,7 +486,7 @@ class ClosedChainTwin:
             for t in np.linspace(0.0, 1.0, n_sub + 1)[1:]:
                 q = q.copy()
                 q[self.motor_qadr] = j0 + t * (joints - j0)
-                q, ok = self._newton(q)
+                q, ok = self._newton(q, tol=None if t == 1.0 else self.PATH_TOL)
                 if not ok:
                     break
             if ok:
@@ -550,6 +607,12 @@ class ClosedChainTwin:
         Ce = np.concatenate([dP[:, self._c1] - dP[:, self._c2],
                              dW[:, self._c1[self._weld]] - dW[:, self._c2[self._weld]]],
                             axis=1).reshape(N, -1, len(keys))
+        C, Ce = C * self._sqrt_w[:, None], Ce * self._sqrt_w[:, None]      # compliance weights
+        if len(self._spring_dof):                                          # passive joint springs
+            ns = len(self._spring_dof)
+            Cs = np.zeros((N, ns, nv))
+            Cs[:, np.arange(ns), self._spring_dof] = self._spring_sqrt_k
+            C, Ce = np.concatenate([C, Cs], axis=1), np.concatenate([Ce, np.zeros((N, ns, len(keys)))], axis=1)
         dpos = np.full(dP.shape, np.nan)
         drot = np.full(dW.shape, np.nan)
         ok = np.isfinite(kin.qpos).all(axis=1)
@@ -595,6 +658,16 @@ class ClosedChainTwin:
         return getattr(self, "_rot", {}).get(body, np.zeros(3))
 
     # ------------------------------------------------------------------ task space
+    def targets_in_task_frame(self, params: Mapping[str, float] | None = None) -> np.ndarray:
+        """The nests' coordinates (K, 3) mm in the task site's frame at ``home`` (rigid on the same part:
+        the same everywhere). With ``measure = "pose"`` a tracker reading ``Y`` (N, K, 3) gives the task
+        frame's pose by ``pmcal.mechanism.rigid.fit_pose(Y, twin.targets_in_task_frame())``."""
+        self.set_params(params)
+        self._kin(self.solve(self.home_commands[None])[0], jac=False)
+        d = self.data
+        R = d.site_xmat[self.task_site].reshape(3, 3)
+        return (d.site_xpos[self.target_sites] - d.site_xpos[self.task_site]) @ R / MM
+
     def task_of(self, qpos: np.ndarray) -> np.ndarray:
         """Task coordinates (N, C) of configurations ``qpos`` (N, nq); NaN rows stay NaN."""
         coords = self.spec.task.coordinates
@@ -644,7 +717,7 @@ class ClosedChainTwin:
             J[[coords.index(POSITION[k]) for k in pos]] = jp[tp][pos]
             if ang:
                 J[ang] = self._angle_rates(p, R) * DEG @ jr[tp]
-            return r, J
+            return r * self._task_sqrt_w, J * self._task_sqrt_w
 
         return rows
 
@@ -658,23 +731,19 @@ class ClosedChainTwin:
         home_task = self.task_of(self.home_qpos[None])[0]
         cmd = np.full((len(task), self.n_motors), np.nan)
         reasons = [""] * len(task)
-        box = np.array([self.spec.workspace[c] for c in coords])
+        width = np.array([self.spec.workspace[c][1] - self.spec.workspace[c][0] for c in coords])
+        known_task, known_q = [home_task], [self.home_qpos]           # starts on the home branch
         for i, goal in enumerate(task):
-            q, ok = self.home_qpos, False
-            far = np.max(np.abs(task_difference(goal, home_task, coords)) / (box[:, 1] - box[:, 0]))
-            n = max(1, int(np.ceil(far / self.PATH_STEP)))
-            for n_sub in (n, 4 * n):
-                q, ok = self.home_qpos, True
-                for t in np.linspace(0.0, 1.0, n_sub + 1)[1:]:
-                    sub = home_task + t * task_difference(goal, home_task, coords)
-                    q, ok = self._newton(q, rows=self._task_rows(sub))
-                    if not ok:
-                        break
-                if ok:
-                    break
+            dist = np.max(np.abs(task_difference(goal, np.array(known_task), coords)) / width, axis=1)
+            j = int(np.argmin(dist))
+            q, ok = self._reach_task(goal, known_task[j], known_q[j], dist[j])
+            if not ok and j != 0:
+                q, ok = self._reach_task(goal, home_task, self.home_qpos, dist[0])
             if not ok:
                 reasons[i] = "no assembly of the chain reaches this target (out of the workspace or singular)"
                 continue
+            known_task.append(goal)
+            known_q.append(q)
             c = self._commands_of(q[None])[0]
             lo, hi = self.motor_range[:, 0], self.motor_range[:, 1]
             out = np.flatnonzero((c < lo) | (c > hi))
@@ -688,10 +757,29 @@ class ClosedChainTwin:
             self._remember(np.concatenate([self._warm_cmd, c[None]]), np.concatenate([self._warm_qpos, q[None]]))
         return cmd, reasons
 
+    def _reach_task(self, goal: np.ndarray, start_task: np.ndarray, start_q: np.ndarray, dist: float):
+        """Configuration reaching task coordinates ``goal`` from an assembled ``start_q`` (at
+        ``start_task``) by continuation along the straight task-space path, in sub-steps of at most
+        :data:`PATH_STEP` of the workspace box (``dist``: the whole path in those units)."""
+        coords = self.spec.task.coordinates
+        n = max(1, int(np.ceil(dist / self.PATH_STEP)))
+        q, ok = start_q, False
+        for n_sub in (n, 4 * n):
+            q, ok = start_q, True
+            for t in np.linspace(0.0, 1.0, n_sub + 1)[1:]:
+                sub = start_task + t * task_difference(goal, start_task, coords)
+                q, ok = self._newton(q, rows=self._task_rows(sub), tol=None if t == 1.0 else self.PATH_TOL)
+                if not ok:
+                    break
+            if ok:
+                break
+        return q, ok
+
     def inverse(self, task, params: Mapping[str, float] | None = None) -> np.ndarray:
         """Commands (N, M) (deg / mm) that put the task site at ``task`` (N, C) (coordinates of
         ``spec.task``, mm / deg) on the machine with errors ``params``: Newton on the closure and task
-        equations together, from ``home`` (continuation along the straight task path when needed). NaN rows
+        equations together, by continuation along the straight task path from the nearest target already
+        reached in this call (or ``home``), on the home branch. NaN rows
         where out of reach or outside a motor's range (:meth:`inverse_report` says which)."""
         return self.inverse_report(task, params)[0]
 
@@ -715,6 +803,18 @@ class ClosedChainTwin:
                 return np.concatenate(got)[:n]
         raise RuntimeError(f"only {count} of {n} workspace samples of {self.spec.name} are reachable: check "
                            f"[workspace] in machine.toml")
+
+
+def _least_squares_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``x`` minimising ``|J x - r|`` (minimum norm): LU for a regular square ``J``, else SVD."""
+    if J.shape[0] == J.shape[1]:
+        try:
+            x = np.linalg.solve(J, r)
+            if np.all(np.isfinite(x)):
+                return x
+        except np.linalg.LinAlgError:
+            pass
+    return np.linalg.lstsq(J, r, rcond=1e-12)[0]
 
 
 def _rotation_error(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
