@@ -324,3 +324,28 @@ def test_the_api_gives_one_machine_object(tmp_path):
         seeded.twin
     with pytest.raises(InputError, match="no built-in machine"):
         pmcal.Machine.builtin(str(folder))
+
+
+def test_ctrl_c_stops_a_long_campaign_with_130_and_nothing_written(delta, tmp_path):
+    """A real SIGINT to a real process while it measures 2000 poses on the twin."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    folder, _ = delta
+    out = tmp_path / "long.csv"
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    proc = subprocess.Popen([sys.executable, "-m", "pmcal.cli", "--verbose", "--machine", str(folder), "twin",
+                             "measure", "--poses", "2000", "-o", str(out)], stderr=subprocess.PIPE, text=True,
+                            env=env)
+    try:
+        for line in proc.stderr:
+            if "measuring 2000 poses" in line:
+                break
+        proc.send_signal(signal.SIGINT)
+        rest = proc.stderr.read()
+        assert proc.wait(timeout=120) == 130
+    finally:
+        proc.kill()
+    assert "interrupted" in rest and "Traceback" not in rest and not list(tmp_path.iterdir())

@@ -59,6 +59,7 @@ def twin_measure(args) -> int:
     task = read_targets(args.targets, machine.spec) if args.targets else None
     errors = _error_set(machine, args.errors)
     poses = args.poses or command_defaults(machine)["poses"]
+    progress.status(f"measuring {len(task) if task is not None else poses} poses on the twin of {machine.name}")
     meas, truth = campaign(machine, poses, seed=args.seed, errors=errors, sigma_mm=sigma, task=task,
                            seconds_per_pose=args.seconds_per_pose, source=args.targets)
     what = args.errors if isinstance(errors, dict) else errors
