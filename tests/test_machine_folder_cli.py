@@ -283,6 +283,19 @@ def test_twin_options_of_a_folder_machine(capsys, delta, tmp_path):
     assert not (tmp_path / "x.csv").exists()
 
 
+def test_identify_leaves_out_poses_with_a_blocked_target_and_says_so(capsys, delta, tmp_path):
+    folder, d = delta
+
+    def block(lines):
+        for row in (2, 5):
+            for a in "xyz":
+                lines[row][lines[0].index(f"t2_{a}")] = ""
+    meas = _edit_csv(d / "m.csv", tmp_path / "blocked.csv", block)
+    status, out, err = run(capsys, "--machine", folder, "identify", meas, "-o", tmp_path / "p.json")
+    assert status == 0 and "2 pose(s) with a blocked target left out (P2, P5)" in err
+    assert json.loads((tmp_path / "p.json").read_text())["n_poses"] == 10
+
+
 def test_commands_a_folder_machine_does_not_have_say_so(capsys, delta, tmp_path):
     folder, d = delta
     one_line_error(capsys, "--machine", folder, "diagnose", d / "m.csv", "--json", tmp_path / "d.json",

@@ -81,7 +81,12 @@ def identify(args) -> int:
     meas = read_measurements(args.measurements, machine.spec)
     progress.set_long(len(meas) > LONG_POSES)
     progress.status(f"identifying {len(machine.twin.error_keys)} errors of {machine.name} from {len(meas)} poses")
+    partial = [pid for pid, row in zip(meas.pose_id, meas.targets) if np.isnan(row).any()]
     res = run_identification(machine, meas, sigma)
+    if partial:
+        progress.warning(f"{len(partial)} pose(s) with a blocked target left out ({', '.join(partial[:3])}"
+                         f"{', ...' if len(partial) > 3 else ''}): identification uses the poses with every "
+                         "target measured")
     write_json(args.output, params_document(machine, res, str(args.measurements)))
     print(f"{res.rank} of {len(res.params)} errors identifiable (base set), {len(res.weak)} weak; residual "
           f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}")
