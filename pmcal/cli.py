@@ -30,6 +30,7 @@ import sys
 from pathlib import Path
 
 from pmcal import __version__, machines, progress, threads
+from pmcal.commands.options import CommandSet
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import check_output
 
@@ -83,12 +84,11 @@ def _finish_command(cmd) -> None:
 
 def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
     """The ``pmcal`` parser for ``machine`` (a built-in name or a machine folder): its commands' options
-    worded for that machine (:func:`pmcal.machines.option_help`), options it does not have hidden or
+    worded for that machine (its application's ``option_help``), options it does not have hidden or
     absent. ``parser.pmcal_commands`` maps every full command name to its
-    :class:`pmcal.commands.options.Command`."""
-    from pmcal.commands.options import CommandSet
-
-    entry = machines.resolve(machine)
+    :class:`pmcal.commands.options.Command`; ``selected_machine`` in the parsed namespace is the
+    :class:`pmcal.machines.Machine`."""
+    selected = machines.resolve(machine)
     parser = argparse.ArgumentParser(
         prog="pmcal",
         description="Calibrate parallel mechanisms against a MuJoCo digital twin and push the "
@@ -106,8 +106,8 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
                         help="BLAS threads per process (default: $PMCAL_BLAS_THREADS, else 1; 0 = the "
                              "libraries' own default); see docs/speed.md")
     record: dict = {}
-    describe = "" if entry.name == DEFAULT_MACHINE else f"(machine {entry.name}) "
-    commands = CommandSet(parser.add_subparsers(dest="command", metavar="COMMAND"), entry.option_help(),
+    describe = "" if selected.name == DEFAULT_MACHINE else f"(machine {selected.name}) "
+    commands = CommandSet(parser.add_subparsers(dest="command", metavar="COMMAND"), selected.option_help(),
                           record, _finish_command, describe=describe)
     import pmcal.commands as command_modules
     for info in sorted(pkgutil.iter_modules(command_modules.__path__), key=lambda i: i.name):
@@ -116,7 +116,7 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
         if register is not None:
             register(commands)
     commands.finish_all()
-    parser.set_defaults(machine_entry=entry)
+    parser.set_defaults(selected_machine=selected)
     parser.pmcal_commands = record
     return parser
 

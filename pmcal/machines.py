@@ -150,7 +150,7 @@ def resolve(value: str | Path) -> Machine:
 
 def dispatch(command: str, args) -> int:
     """Run ``command`` of the machine selected by ``args.machine``."""
-    machine = getattr(args, "machine_entry", None) or resolve(args.machine)
+    machine = getattr(args, "selected_machine", None) or resolve(args.machine)
     func = getattr(machine.app, command, None)
     if func is None:
         raise InputError(f"'{command.replace('_', ' ')}' is not available for machine '{machine.name}'",

@@ -22,7 +22,7 @@ from pmcal.io_chain import (read_measurements, read_params, read_targets, write_
 
 
 def _machine(args):
-    return args.machine_entry
+    return args.selected_machine
 
 
 def _sigma(value: float | None, option: str) -> float | None:
