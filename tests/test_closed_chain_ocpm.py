@@ -1,8 +1,6 @@
 """The generic closed-chain core on the seeded over-constrained machine (ocpm_2dof's MJCF described as data,
 with compliant closures) against the machine's own, separately written twin (pmcal.twin.machine.Twin)."""
 
-import shutil
-
 import numpy as np
 import pytest
 
@@ -11,47 +9,9 @@ from pmcal.mjcf import machine_dir
 from pmcal.twin.closed_chain import ClosedChainTwin
 from pmcal.twin.machine import Twin
 
-# The dedicated twin's closure compliance (machine.toml [compliance]: passive closures 1e3 N/mm, actuated
-# closures and the SS limb 1000x stiffer; the SS spring is the MJCF's ss_slide stiffness, 1e9 N/m).
-CHAIN_TOML = """
-[machine]
-kind = "chain"
-name = "ocpm_chain"
-model = "ocpm_2dof.xml"
-
-[[motors]]
-joint = "limb1_B"
-range = [-150.0, 60.0]
-
-[[motors]]
-joint = "limb2_B"
-range = [-150.0, 60.0]
-
-[tracker]
-targets = ["T1", "T2", "T3"]
-sigma_mm = 0.01
-
-[task]
-site = "C_E"
-coordinates = ["phi_deg", "theta_deg"]
-
-[workspace]
-phi_deg = [0.0, 360.0]
-theta_deg = [5.0, 60.0]
-
-[closures]
-default_n_per_mm = 1.0e3
-joint_springs = true
-stiffness = { closure_S1 = 1.0e6, closure_S2 = 1.0e6 }
-"""
-
-
 @pytest.fixture(scope="module")
-def folder(tmp_path_factory):
-    d = tmp_path_factory.mktemp("ocpm_chain")
-    shutil.copy(machine_dir("ocpm_2dof") / "ocpm_2dof.xml", d)
-    (d / "machine.toml").write_text(CHAIN_TOML)
-    return d
+def folder():
+    return machine_dir("ocpm_2dof") / "chain"        # the seeded machine's MJCF, described as data
 
 
 CMD = np.array([[-30.0, -45.0], [-60.0, -20.0], [-10.0, -70.0], [-39.35, -39.35], [-80.0, -5.0]])

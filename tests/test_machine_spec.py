@@ -105,3 +105,25 @@ range = [0, 10]\n[tracker]\ntargets = ["s"]\nsigma_mm = 0.01\n[task]\nsite = "s"
 [workspace]\nx_mm = [0, 1]\n""")
     spec = MachineSpec.load(tmp_path)
     assert spec.motors[0].kind == "prismatic" and spec.motors[0].unit == "mm" and spec.motor_columns == ("m1_cmd_mm",)
+
+
+def test_closures_section(folder):
+    (folder / "machine.toml").write_text((folder / "machine.toml").read_text() + """
+[closures]
+default_n_per_mm = 1000.0
+joint_springs = true
+stiffness = { closure_1a = 1.0e6 }
+""")
+    spec = MachineSpec.load(folder)
+    assert spec.closures.default_n_per_mm == 1000.0 and spec.closures.stiffness["closure_1a"] == 1e6
+    assert spec.closures.joint_springs
+    _edit(folder, "closure_1a = 1.0e6", "closure_9 = 1.0e6")
+    with pytest.raises(InputError, match="'closure_9' is not an equality of delta_3dof.xml") as exc:
+        MachineSpec.load(folder)
+    assert exc.value.field == "closures.stiffness.closure_9"
+
+
+def test_seeded_machine_described_as_data():
+    spec = MachineSpec.load(machine_dir("ocpm_2dof") / "chain")
+    assert not spec.legacy and spec.name == "ocpm_2dof" and spec.model_path.name == "ocpm_2dof.xml"
+    assert spec.task.coordinates == ("phi_deg", "theta_deg") and spec.closures.joint_springs

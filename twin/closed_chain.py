@@ -70,6 +70,7 @@ from pmcal.errors import InputError
 from pmcal.mechanism.machine_spec import ERROR_COMPONENTS, MachineSpec
 from pmcal.mechanism.rotations import rotvec_matrix, so3_left_jacobian
 from pmcal.mechanism.task_space import POSITION, task_coordinates, task_difference
+from pmcal.twin.assembly import solve_stacked
 
 MM = 1e-3                                   # m per mm
 DEG = np.pi / 180.0                         # rad per deg
@@ -414,27 +415,93 @@ class ClosedChainTwin:
         return jp, jr
 
     def _closure(self, jp: np.ndarray | None, jr: np.ndarray | None, with_jac: bool = True):
-        """Weighted closure residual (n_eq + springs,) and its Jacobian (.., nv) at the current kinematics:
-        rows ``sqrt(k) gap`` (unit weights without ``[closures]``) and ``sqrt(k_j) (q_j - ref_j)``."""
+        """Weighted closure residual (n_eq + springs,) and its Jacobian (.., nv) at the current kinematics of
+        ``self.data`` (:meth:`_closure_rows` of one configuration)."""
         d = self.data
-        sp = d.site_xpos[self.points]
-        r = [(sp[self._c1] - sp[self._c2]).reshape(-1)]
-        J = [(jp[self._c1] - jp[self._c2]).reshape(-1, self.model.nv)] if with_jac else []
+        sm = d.site_xmat[self.points].reshape(1, -1, 3, 3) if self._weld.any() else None
+        r, J = self._closure_rows(d.site_xpos[self.points][None], sm, None if jp is None else jp[None],
+                                  None if jr is None else jr[None], d.qpos[None], with_jac)
+        return r[0], (J[0] if with_jac else None)
+
+    def _closure_rows(self, sp, sm, jp, jr, qpos, with_jac: bool = True):
+        """Weighted closure residuals (A, n_eq + springs) and Jacobians (A, .., nv) of A configurations
+        from their point positions ``sp`` (A, npoints, 3), orientations ``sm`` (A, npoints, 3, 3; welds
+        only), point Jacobians ``jp``, ``jr`` (A, npoints, 3, nv) and ``qpos`` (A, nq): rows
+        ``sqrt(k) gap`` (unit weights without ``[closures]``) and ``sqrt(k_j) (q_j - ref_j)``."""
+        A, nv = len(sp), self.model.nv
+        r = [(sp[:, self._c1] - sp[:, self._c2]).reshape(A, -1)]
+        J = [(jp[:, self._c1] - jp[:, self._c2]).reshape(A, -1, nv)] if with_jac else []
         if self._weld.any():
-            sm = d.site_xmat[self.points].reshape(-1, 3, 3)
             w1, w2 = self._c1[self._weld], self._c2[self._weld]
-            r.append(_rotation_error(sm[w1], sm[w2]).reshape(-1))
+            r.append(_rotation_error(sm[:, w1].reshape(-1, 3, 3), sm[:, w2].reshape(-1, 3, 3)).reshape(A, -1))
             if with_jac:
-                J.append((jr[w1] - jr[w2]).reshape(-1, self.model.nv))
-        r = np.concatenate(r) * self._sqrt_w
-        J = np.concatenate(J) * self._sqrt_w[:, None] if with_jac else None
+                J.append((jr[:, w1] - jr[:, w2]).reshape(A, -1, nv))
+        r = np.concatenate(r, axis=1) * self._sqrt_w
+        J = np.concatenate(J, axis=1) * self._sqrt_w[:, None] if with_jac else None
         if len(self._spring_dof):
-            r = np.concatenate([r, self._spring_sqrt_k * (d.qpos[self._spring_qadr] - self._spring_ref)])
+            ns = len(self._spring_dof)
+            r = np.concatenate([r, self._spring_sqrt_k * (qpos[:, self._spring_qadr] - self._spring_ref)], axis=1)
             if with_jac:
-                Js = np.zeros((len(self._spring_dof), self.model.nv))
-                Js[np.arange(len(self._spring_dof)), self._spring_dof] = self._spring_sqrt_k
-                J = np.vstack([J, Js])
+                Js = np.zeros((A, ns, nv))
+                Js[:, np.arange(ns), self._spring_dof] = self._spring_sqrt_k
+                J = np.concatenate([J, Js], axis=1)
         return r, J
+
+    def _newton_batch(self, Q: np.ndarray, tol: np.ndarray) -> np.ndarray:
+        """Assemble the configurations ``Q`` (A, nq) in place with the motor joints held: MuJoCo's
+        kinematics per configuration, residuals and Newton steps vectorised (the same iteration as
+        :meth:`_newton`). ``tol`` (A,) per configuration. Returns which converged."""
+        m, d = self.model, self.data
+        P, nv = self._n_closure_points, m.nv
+        pts = [int(p) for p in self.points[:P]]
+        weld = self._weld.any()
+        rigid = self.spec.closures is None
+        done = np.zeros(len(Q), bool)
+        active = np.arange(len(Q))
+        cols = self.passive
+        for _ in range(self.MAX_ITER):
+            if not active.size:
+                break
+            A = len(active)
+            sp = np.empty((A, self.points.size, 3))
+            sm = np.empty((A, self.points.size, 3, 3)) if weld else None
+            jp = np.zeros((A, self.points.size, 3, nv))
+            jr = np.zeros((A, self.points.size, 3, nv))
+            for a, i in enumerate(active):
+                d.qpos[:] = Q[i]
+                mujoco.mj_kinematics(m, d)
+                mujoco.mj_comPos(m, d)
+                sp[a] = d.site_xpos[self.points]
+                if weld:
+                    sm[a] = d.site_xmat[self.points].reshape(-1, 3, 3)
+                for k in range(P):
+                    mujoco.mj_jacSite(m, d, jp[a, k], jr[a, k], pts[k])
+            r, J = self._closure_rows(sp, sm, jp, jr, Q[active])
+            if rigid:
+                met = np.max(np.abs(r), axis=1) < tol[active]
+                done[active[met]] = True
+                active, r, J = active[~met], r[~met], J[~met]
+                if not active.size:
+                    break
+            Jc = J[:, :, cols]
+            if Jc.shape[1] == Jc.shape[2]:
+                step = -solve_stacked(Jc, r)
+            else:
+                JT = np.swapaxes(Jc, 1, 2)
+                step = -solve_stacked(JT @ Jc, (JT @ r[..., None])[..., 0])
+            size = np.max(np.abs(step), axis=1)
+            bad = ~np.isfinite(size)
+            step *= np.minimum(1.0, self.MAX_STEP / np.where(bad, 1.0, np.maximum(size, 1e-300)))[:, None]
+            dv = np.zeros(nv)
+            for a, i in enumerate(active):
+                if not bad[a]:
+                    dv[cols] = step[a]
+                    mujoco.mj_integratePos(m, Q[i], dv, 1.0)
+            small = (size < tol[active]) & ~bad
+            if not rigid:
+                done[active[small]] = True               # stationary: the least-squares equilibrium
+            active = active[~(bad | (small & (not rigid)))]
+        return done
 
     #: Residual tolerance (m / rad) of the intermediate sub-steps of a continuation (the last is exact).
     PATH_TOL = 1e-7
@@ -497,29 +564,51 @@ class ClosedChainTwin:
     def solve(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
         """Assembled configurations (N, nq) at commands (N, M) (deg / mm) with errors ``params``.
 
-        Each pose starts from the nearest configuration already assembled on this machine (``home``, earlier
-        solves with the same errors, the poses before it in this call) and moves the motors there by
-        continuation (:meth:`_assemble`), so every pose lies on the home branch. Rows that do not assemble
-        (out of reach, singular) are NaN.
+        Each pose starts from the nearest configuration already assembled on this machine (``home`` or an
+        earlier solve) and moves the motors there by continuation, in sub-steps of at most
+        :data:`PATH_STEP` of the motor ranges, all poses together (:meth:`_newton_batch`); a pose that fails
+        is redone alone in finer sub-steps from its nearest solved neighbour (:meth:`_assemble`). Every
+        pose lies on the home branch. Rows that do not assemble (out of reach, singular) are NaN.
         """
         self.set_params(params)
         cmd = self._as_commands(commands)
         joints = self._joints_of(cmd)
-        out = np.full((len(cmd), self.model.nq), np.nan)
         span = self.motor_range[:, 1] - self.motor_range[:, 0]
         known_cmd = np.concatenate([self.home_commands[None], self._warm_cmd])
         known_q = np.concatenate([self.home_qpos[None], self._warm_qpos])
-        for i in range(len(cmd)):
-            dist = np.max(np.abs(known_cmd - cmd[i]) / span, axis=1)
-            j = int(np.argmin(dist))
-            q, ok = self._assemble(joints[i], known_q[j])
+        # All poses together: each from its nearest assembled configuration, by continuation in lockstep.
+        dist = np.max(np.abs(known_cmd[None, :, :] - cmd[:, None, :]) / span, axis=2) if len(cmd) else \
+            np.zeros((0, 1))
+        start = np.argmin(dist, axis=1)
+        n_sub = np.maximum(1, np.ceil(dist[np.arange(len(cmd)), start] / self.PATH_STEP)).astype(int)
+        Q = known_q[start].copy()
+        j0 = Q[:, self.motor_qadr].copy()
+        alive = np.isfinite(joints).all(axis=1)
+        for step in range(1, int(n_sub.max(initial=0)) + 1):
+            idx = np.flatnonzero(alive & (step <= n_sub))
+            if not idx.size:
+                continue
+            t = (step / n_sub[idx])[:, None]
+            Qi = Q[idx]
+            Qi[:, self.motor_qadr] = j0[idx] + t * (joints[idx] - j0[idx])
+            ok = self._newton_batch(Qi, np.where(step == n_sub[idx], self.TOL_M, self.PATH_TOL))
+            Q[idx] = Qi
+            alive[idx[~ok]] = False
+        out = np.where(alive[:, None], Q, np.nan)
+        # The poses that failed: one by one, from their nearest neighbour solved so far, in finer sub-steps.
+        solved_cmd = np.concatenate([known_cmd, cmd[alive]])
+        solved_q = np.concatenate([known_q, out[alive]])
+        for i in np.flatnonzero(~alive & np.isfinite(joints).all(axis=1)):
+            j = int(np.argmin(np.max(np.abs(solved_cmd - cmd[i]) / span, axis=1)))
+            q, ok = self._assemble(joints[i], solved_q[j])
             if not ok and j != 0:
                 q, ok = self._assemble(joints[i], self.home_qpos)
             if ok:
                 out[i] = q
-                known_cmd = np.concatenate([known_cmd, cmd[i][None]])
-                known_q = np.concatenate([known_q, q[None]])
-        self._remember(known_cmd[1:], known_q[1:])
+                solved_cmd = np.concatenate([solved_cmd, cmd[i][None]])
+                solved_q = np.concatenate([solved_q, q[None]])
+        good = np.isfinite(out).all(axis=1)
+        self._remember(np.concatenate([self._warm_cmd, cmd[good]]), np.concatenate([self._warm_qpos, out[good]]))
         return out
 
     def _remember(self, cmd: np.ndarray, qpos: np.ndarray) -> None:
@@ -691,14 +780,9 @@ class ClosedChainTwin:
         coords = self.spec.task.coordinates
         ang = [i for i, c in enumerate(coords) if c not in POSITION]
         h = 1e-7
-        D = np.zeros((len(ang), 3))
-        for k in range(3):
-            e = np.zeros(3)
-            e[k] = h
-            a = task_coordinates(p_mm[None], (rotvec_matrix(e) @ R)[None], coords)[0]
-            b = task_coordinates(p_mm[None], (rotvec_matrix(-e) @ R)[None], coords)[0]
-            D[:, k] = task_difference(a, b, coords)[ang] / (2 * h)
-        return D
+        turns = rotvec_matrix(np.concatenate([np.eye(3), -np.eye(3)]) * h) @ R          # (6, 3, 3)
+        t = task_coordinates(np.broadcast_to(p_mm, (6, 3)), turns, coords)
+        return (task_difference(t[:3], t[3:], coords)[:, ang] / (2 * h)).T
 
     def _task_rows(self, goal: np.ndarray):
         """Task equations for :meth:`_newton`: residual (C,) (m, rad) and Jacobian (C, nv)."""
