@@ -81,6 +81,10 @@ def test_help_speaks_of_the_machines_own_columns_and_defaults(capsys, tmp_path):
         main(["--help"])
     out = " ".join(capsys.readouterr().out.split())
     assert "delta_3dof" in out and "NAME|DIR" in out
+    with pytest.raises(SystemExit):
+        main(["--machine", str(folder), "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "demo not available for a machine folder" in out and "diagnose not available" in out
 
 
 def test_options_a_folder_machine_does_not_have_are_refused(capsys, delta):

@@ -67,6 +67,8 @@ def option_help(machine) -> dict:
         ("compensate", "--table-version"): "table version (not available for a machine folder yet)",
         ("evaluate", ""): "position error of a parameter set against a measurement file (RMS, mm)",
     })
+    table.update({(cmd, ""): "not available for a machine folder (the seeded machines' command)"
+                  for cmd in ("demo", "diagnose", "loop", "twin plan", "twin render")})
     return table
 
 
