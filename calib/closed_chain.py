@@ -286,20 +286,25 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     def params_of(x: np.ndarray) -> dict[str, float]:
         return dict(zip(base, map(float, x)))
 
+    memo: dict[bytes, np.ndarray] = {}                 # the Jacobian at the last points asked (LM, result)
+
     def fun(X: np.ndarray) -> np.ndarray:
         return np.stack([y - model.targets(commands, params_of(x)).reshape(-1) for x in X])
 
     def jac(x: np.ndarray) -> np.ndarray:
-        return -_flat_jacobian(model, commands, params_of(x), base)
+        key = np.asarray(x, float).tobytes()
+        if key not in memo:
+            memo.clear()
+            memo[key] = -_flat_jacobian(model, commands, params_of(x), base)
+        return memo[key]
 
     problem = box_problem(fun, base, units, half_width=50.0 * sb, sigma=sigma, jac=jac, scale=sb,
                           info={"residual_unit": "mm"})
     work = problem.with_prior(sb) if prior else problem
     sol = lm(work, max_nfev=max_nfev)
-    x = np.asarray(sol.x[: len(base)], float)
     x = np.array([dict(zip(sol.names, sol.x))[k] for k in base])
-    Jb = _flat_jacobian(model, commands, params_of(x), base) / sigma
-    resid = (y - model.targets(commands, params_of(x)).reshape(-1))
+    Jb = -jac(x) / sigma
+    resid = sol.residuals if len(sol.residuals) == y.size else fun(x[None])[0]
     info_data = Jb.T @ Jb
     prec = info_data + (np.diag(1.0 / sb**2) if prior else 0.0)
     cov = np.linalg.pinv(prec)

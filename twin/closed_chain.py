@@ -447,18 +447,21 @@ class ClosedChainTwin:
                 J = np.concatenate([J, Js], axis=1)
         return r, J
 
-    def _newton_batch(self, Q: np.ndarray, tol: np.ndarray) -> np.ndarray:
-        """Assemble the configurations ``Q`` (A, nq) in place with the motor joints held: MuJoCo's
+    def _newton_batch(self, Q: np.ndarray, tol: np.ndarray, goals: np.ndarray | None = None) -> np.ndarray:
+        """Assemble the configurations ``Q`` (A, nq) in place with the motor joints held (or, with task
+        ``goals`` (A, C), every dof free and the task equations added: inverse kinematics): MuJoCo's
         kinematics per configuration, residuals and Newton steps vectorised (the same iteration as
         :meth:`_newton`). ``tol`` (A,) per configuration. Returns which converged."""
         m, d = self.model, self.data
-        P, nv = self._n_closure_points, m.nv
+        P = self._n_closure_points if goals is None else self.points.size
+        nv = m.nv
         pts = [int(p) for p in self.points[:P]]
         weld = self._weld.any()
         rigid = self.spec.closures is None
         done = np.zeros(len(Q), bool)
         active = np.arange(len(Q))
-        cols = self.passive
+        cols = self.passive if goals is None else np.arange(nv)
+        tp = self._task_p
         for _ in range(self.MAX_ITER):
             if not active.size:
                 break
@@ -467,6 +470,7 @@ class ClosedChainTwin:
             sm = np.empty((A, self.points.size, 3, 3)) if weld else None
             jp = np.zeros((A, self.points.size, 3, nv))
             jr = np.zeros((A, self.points.size, 3, nv))
+            Rt = np.empty((A, 3, 3))
             for a, i in enumerate(active):
                 d.qpos[:] = Q[i]
                 mujoco.mj_kinematics(m, d)
@@ -474,9 +478,14 @@ class ClosedChainTwin:
                 sp[a] = d.site_xpos[self.points]
                 if weld:
                     sm[a] = d.site_xmat[self.points].reshape(-1, 3, 3)
+                if goals is not None:
+                    Rt[a] = d.site_xmat[self.task_site].reshape(3, 3)
                 for k in range(P):
                     mujoco.mj_jacSite(m, d, jp[a, k], jr[a, k], pts[k])
             r, J = self._closure_rows(sp, sm, jp, jr, Q[active])
+            if goals is not None:
+                rt, Jt = self._task_rows_batch(sp[:, tp], Rt, jp[:, tp], jr[:, tp], goals[active])
+                r, J = np.concatenate([r, rt], axis=1), np.concatenate([J, Jt], axis=1)
             if rigid:
                 met = np.max(np.abs(r), axis=1) < tol[active]
                 done[active[met]] = True
@@ -486,9 +495,11 @@ class ClosedChainTwin:
             Jc = J[:, :, cols]
             if Jc.shape[1] == Jc.shape[2]:
                 step = -solve_stacked(Jc, r)
-            else:
+            elif goals is None:                           # least squares (compliant closures): normal eqs
                 JT = np.swapaxes(Jc, 1, 2)
                 step = -solve_stacked(JT @ Jc, (JT @ r[..., None])[..., 0])
+            else:                                         # with the heavily weighted task rows: SVD
+                step = -(np.linalg.pinv(Jc, rcond=1e-12) @ r[..., None])[..., 0]
             size = np.max(np.abs(step), axis=1)
             bad = ~np.isfinite(size)
             step *= np.minimum(1.0, self.MAX_STEP / np.where(bad, 1.0, np.maximum(size, 1e-300)))[:, None]
@@ -775,33 +786,43 @@ class ClosedChainTwin:
         return self.task_of(self.solve(commands, params))
 
     def _angle_rates(self, p_mm: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """d (angle task coordinates, deg) / d (world rotation vector of the task frame, rad), (C_ang, 3):
-        central differences of the closed-form angles of ``R`` (not of the chain), step 1e-7 rad."""
+        """d (angle task coordinates, deg) / d (world rotation vector of the task frame, rad), (..., C_ang,
+        3) at positions ``p_mm`` (..., 3) and orientations ``R`` (..., 3, 3): central differences of the
+        closed-form angles of ``R`` (not of the chain), step 1e-7 rad."""
         coords = self.spec.task.coordinates
         ang = [i for i, c in enumerate(coords) if c not in POSITION]
         h = 1e-7
-        turns = rotvec_matrix(np.concatenate([np.eye(3), -np.eye(3)]) * h) @ R          # (6, 3, 3)
-        t = task_coordinates(np.broadcast_to(p_mm, (6, 3)), turns, coords)
-        return (task_difference(t[:3], t[3:], coords)[:, ang] / (2 * h)).T
+        turns = rotvec_matrix(np.concatenate([np.eye(3), -np.eye(3)]) * h) @ R[..., None, :, :]   # (..., 6, 3, 3)
+        t = task_coordinates(np.broadcast_to(p_mm[..., None, :], turns.shape[:-1]), turns, coords)
+        return np.swapaxes(task_difference(t[..., :3, :], t[..., 3:, :], coords)[..., ang] / (2 * h), -1, -2)
+
+    def _task_rows_batch(self, p_m: np.ndarray, R: np.ndarray, jp: np.ndarray, jr: np.ndarray,
+                         goals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Weighted task equations of A configurations: residuals (A, C) (m, rad) and Jacobians (A, C, nv)
+        from the task site's position ``p_m`` (A, 3) m, orientation ``R`` (A, 3, 3) and Jacobians ``jp``,
+        ``jr`` (A, 3, nv), towards ``goals`` (A, C) (task units)."""
+        coords = self.spec.task.coordinates
+        is_pos = np.array([c in POSITION for c in coords])
+        now = task_coordinates(p_m / MM, R, coords)
+        diff = task_difference(now, goals, coords)
+        r = np.where(is_pos, diff * MM, diff * DEG)
+        J = np.zeros((len(p_m), len(coords), self.model.nv))
+        for i, c in enumerate(coords):
+            if c in POSITION:
+                J[:, i] = jp[:, POSITION.index(c)]
+        if not is_pos.all():
+            J[:, ~is_pos] = self._angle_rates(p_m / MM, R) * DEG @ jr
+        return r * self._task_sqrt_w, J * self._task_sqrt_w
 
     def _task_rows(self, goal: np.ndarray):
         """Task equations for :meth:`_newton`: residual (C,) (m, rad) and Jacobian (C, nv)."""
-        coords = self.spec.task.coordinates
-        pos = [POSITION.index(c) for c in coords if c in POSITION]
-        ang = [i for i, c in enumerate(coords) if c not in POSITION]
         d, tp = self.data, self._task_p
 
         def rows(jp, jr):
-            p = d.site_xpos[self.task_site] / MM
-            R = d.site_xmat[self.task_site].reshape(3, 3)
-            now = task_coordinates(p[None], R[None], coords)[0]
-            diff = task_difference(now, goal, coords)
-            r = np.where([c in POSITION for c in coords], diff * MM, diff * DEG)
-            J = np.zeros((len(coords), self.model.nv))
-            J[[coords.index(POSITION[k]) for k in pos]] = jp[tp][pos]
-            if ang:
-                J[ang] = self._angle_rates(p, R) * DEG @ jr[tp]
-            return r * self._task_sqrt_w, J * self._task_sqrt_w
+            R = d.site_xmat[self.task_site].reshape(1, 3, 3)
+            r, J = self._task_rows_batch(d.site_xpos[self.task_site][None], R, jp[tp][None], jr[tp][None],
+                                         goal[None])
+            return r[0], J[0]
 
         return rows
 
@@ -816,18 +837,40 @@ class ClosedChainTwin:
         cmd = np.full((len(task), self.n_motors), np.nan)
         reasons = [""] * len(task)
         width = np.array([self.spec.workspace[c][1] - self.spec.workspace[c][0] for c in coords])
-        known_task, known_q = [home_task], [self.home_qpos]           # starts on the home branch
+        # All targets together from home along straight task paths (lockstep continuation); the ones that
+        # fail are redone one by one from the nearest target reached, in finer sub-steps.
+        delta = task_difference(task, home_task, coords)
+        n_sub = np.maximum(1, np.ceil(np.max(np.abs(delta) / width, axis=1) / self.PATH_STEP)).astype(int)
+        Q = np.tile(self.home_qpos, (len(task), 1))
+        alive = np.isfinite(task).all(axis=1)
+        for step in range(1, int(n_sub[alive].max(initial=0)) + 1):
+            idx = np.flatnonzero(alive & (step <= n_sub))
+            if not idx.size:
+                continue
+            goals = home_task + (step / n_sub[idx])[:, None] * delta[idx]
+            Qi = Q[idx]
+            ok = self._newton_batch(Qi, np.where(step == n_sub[idx], self.TOL_M, self.PATH_TOL), goals)
+            Q[idx] = Qi
+            alive[idx[~ok]] = False
+        known_task = [home_task] + list(task[alive])
+        known_q = [self.home_qpos] + list(Q[alive])
         for i, goal in enumerate(task):
-            dist = np.max(np.abs(task_difference(goal, np.array(known_task), coords)) / width, axis=1)
-            j = int(np.argmin(dist))
-            q, ok = self._reach_task(goal, known_task[j], known_q[j], dist[j])
-            if not ok and j != 0:
-                q, ok = self._reach_task(goal, home_task, self.home_qpos, dist[0])
+            if alive[i]:
+                q, ok = Q[i], True
+            elif not np.isfinite(goal).all():
+                q, ok = self.home_qpos, False
+            else:
+                dist = np.max(np.abs(task_difference(goal, np.array(known_task), coords)) / width, axis=1)
+                j = int(np.argmin(dist))
+                q, ok = self._reach_task(goal, known_task[j], known_q[j], dist[j])
+                if not ok and j != 0:
+                    q, ok = self._reach_task(goal, home_task, self.home_qpos, dist[0])
             if not ok:
                 reasons[i] = "no assembly of the chain reaches this target (out of the workspace or singular)"
                 continue
-            known_task.append(goal)
-            known_q.append(q)
+            if not alive[i]:
+                known_task.append(goal)
+                known_q.append(q)
             c = self._commands_of(q[None])[0]
             lo, hi = self.motor_range[:, 0], self.motor_range[:, 1]
             out = np.flatnonzero((c < lo) | (c > hi))
@@ -862,8 +905,9 @@ class ClosedChainTwin:
     def inverse(self, task, params: Mapping[str, float] | None = None) -> np.ndarray:
         """Commands (N, M) (deg / mm) that put the task site at ``task`` (N, C) (coordinates of
         ``spec.task``, mm / deg) on the machine with errors ``params``: Newton on the closure and task
-        equations together, by continuation along the straight task path from the nearest target already
-        reached in this call (or ``home``), on the home branch. NaN rows
+        equations together, by continuation along the straight task path from ``home``, all targets at once
+        (:meth:`_newton_batch`); a target that fails is redone alone in finer sub-steps from the nearest one
+        reached. Every solution lies on the home branch. NaN rows
         where out of reach or outside a motor's range (:meth:`inverse_report` says which)."""
         return self.inverse_report(task, params)[0]
 
