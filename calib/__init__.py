@@ -15,4 +15,6 @@ interfaces to files and users are in degrees and converted at the edge.
 - :mod:`~pmcal.calib.ocpm` — the over-constrained PM: the paper's per-limb model and procedure, the whole
   closed chain, the discrepancy diagnosis, compensation.
 - :mod:`~pmcal.calib.planar` — the planar robot: identification on adjacent positions, TSVD, design.
+- :mod:`~pmcal.calib.closed_chain` — any closed-chain machine described as data, through the protocol
+  :class:`pmcal.calib.chain_model.ChainModel`: base-parameter reduction, identification, CRLB, compensation.
 """

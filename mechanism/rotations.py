@@ -71,3 +71,40 @@ def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
     tr = np.trace(M, axis1=-2, axis2=-1)
     skew = np.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
     return np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), 0.5 * (tr - 1.0))
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices ``[v]x`` (..., 3, 3) of vectors (..., 3): ``skew(v) @ u == cross(v, u)``."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape + (3,))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return S
+
+
+def rotvec_matrix(v: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``exp([v]x)`` (..., 3, 3) of rotation vectors ``v`` (..., 3), rad (Rodrigues)."""
+    v = np.asarray(v, dtype=float)
+    a = np.linalg.norm(v, axis=-1)[..., None, None]
+    S = skew(v)
+    small = a < 1e-8
+    a_ = np.where(small, 1.0, a)
+    c1 = np.where(small, 1.0 - a * a / 6.0, np.sin(a_) / a_)
+    c2 = np.where(small, 0.5 - a * a / 24.0, (1.0 - np.cos(a_)) / (a_ * a_))
+    return np.eye(3) + c1 * S + c2 * (S @ S)
+
+
+def so3_left_jacobian(v: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3) (..., 3, 3) at rotation vectors ``v`` (..., 3), rad.
+
+    ``d/dv_k exp([v]x) = [J_l(v) e_k]x exp([v]x)``: the angular velocity (in the frame ``v`` is written in) of
+    the rotation ``exp([v]x)`` per unit change of ``v_k``. ``J_l(0) = I``.
+    """
+    v = np.asarray(v, dtype=float)
+    a = np.linalg.norm(v, axis=-1)[..., None, None]
+    S = skew(v)
+    small = a < 1e-6
+    a_ = np.where(small, 1.0, a)
+    c1 = np.where(small, 0.5 - a * a / 24.0, (1.0 - np.cos(a_)) / (a_ * a_))
+    c2 = np.where(small, 1.0 / 6.0 - a * a / 120.0, (a_ - np.sin(a_)) / (a_ ** 3))
+    return np.eye(3) + c1 * S + c2 * (S @ S)

@@ -13,6 +13,15 @@ Examples
 >>> table = cal.compensation_table(version=7)                     # doctest: +SKIP
 >>> table.save("t.json")                                          # doctest: +SKIP
 >>> report = pmcal.push(table, ads="127.0.0.1.1.1@127.0.0.1:48898")  # doctest: +SKIP
+
+A machine of one's own is a folder (``docs/ADDING_A_MACHINE.md``): :class:`Machine` holds its validated
+``machine.toml``, its commands' defaults and its twin; :mod:`pmcal.chain` runs the job on it:
+
+>>> from pmcal import chain
+>>> m = pmcal.Machine.from_folder("my_delta")                     # doctest: +SKIP
+>>> meas, truth = chain.campaign(m, 48, seed=3)                   # doctest: +SKIP
+>>> res = chain.identify(m, meas)                                 # doctest: +SKIP
+>>> commands = chain.compensate(m, res.params, chain.sample_targets(m, 12))  # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -26,10 +35,11 @@ from pmcal.bridge.transfer import push as _push
 from pmcal.calibration import Calibration, identify
 from pmcal.errors import InputError
 from pmcal.io_ocpm import read_measurements as _read_measurements
+from pmcal.machines import Machine
 from pmcal.mechanism.ocpm.data import Measurements
 
-__all__ = ["Calibration", "CompTable", "Measurements", "PushReport", "identify", "load_calibration", "open_link",
-           "push", "read_measurements"]
+__all__ = ["Calibration", "CompTable", "Machine", "Measurements", "PushReport", "identify", "load_calibration",
+           "open_link", "push", "read_measurements"]
 
 
 def read_measurements(path: str | Path, frame: str = "base") -> Measurements:

@@ -30,11 +30,12 @@ import pkgutil
 import sys
 from pathlib import Path
 
-from pmcal import __version__, progress, threads
+from pmcal import __version__, machines, progress, threads
+from pmcal.commands.options import CommandSet
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import check_not_input, check_output
 
-DEFAULT_MACHINE = "ocpm_2dof"
+DEFAULT_MACHINE = machines.DEFAULT_MACHINE
 
 #: (command, attribute) of every file the commands write; folders in :data:`FOLDER_OUTPUTS`
 FILE_OUTPUTS: dict[str, tuple[str, ...]] = {
@@ -66,79 +67,22 @@ EPILOG = ("File formats (measurement, targets, setpoints, parameters, diagnosis 
           "docs/formats.md. Units at every interface: mm and degrees.")
 
 
-#: per-machine help: (command, option) -> help text, or None to hide an option that machine does not have
-MACHINE_HELP: dict[str, dict[tuple[str, str], str | None]] = {
-    "ocpm_2dof": {
-        ("twin measure", "--servo-noise"): None, ("identify", "--allow-rank-deficient"): None,
-        ("twin measure", "--poses"): "number of poses (default 24)",
-        ("identify", "--model"): "error model: whole closed chain (full, default) or the paper's per-limb real "
-                                 "IK (paper)",
-        ("identify", "--method"): "identification method: --model paper hga (default), ga, pso, sa, lm, "
-                                  "tikhonov, tsvd; --model full the whole-chain least squares",
-        ("twin measure", "--preset"): "built-in error set: nominal (default) or paper-table2",
-        ("twin render", "--preset"): "built-in error set: nominal (default) or paper-table2",
-    },
-    "planar_2dof": {
-        **{("twin measure", o): None for o in ("--stiffness-ratio", "--effect", "--payload", "--temperature",
-                                                "--shuffle", "--seconds-per-pose", "--theta-max",
-                                                "--no-random-approach", "--tracker-pose", "--nest-error",
-                                                "--blocked", "--outliers")},
-        **{("identify", o): None for o in ("--frame", "--nest-tolerance", "--robust")},
-        ("twin render", "--stiffness-ratio"): None, ("compensate", "--table"): None,
-        ("compensate", "--grid"): None, ("compensate", "--table-version"): None,
-        ("twin measure", "--poses"): "number of positions on the workspace boundary, even, >= 6 (default 6, "
-                                     "the paper's)",
-        ("twin measure", "--noise"): "linear-scale noise, standard deviation, mm (default the paper's eq. 34)",
-        ("twin measure", "--targets"): "explicit target positions (x_mm, y_mm) instead of the boundary layout",
-        ("twin measure", "--preset"): "built-in error set: nominal (default) or group1..group6 (the paper's "
-                                      "Table 3 groups)",
-        ("twin render", "--preset"): "built-in error set: nominal (default) or group1..group6",
-        ("twin render", "--pose"): "position X,Y of the platform, mm (seed frame, y < 0)",
-        ("identify", "--model"): "error model: the paper's 4 parameters (simplified = paper, default) or all "
-                                 "12 (full; rank 9, see --allow-rank-deficient)",
-        ("identify", "--method"): "tsvd (default, eq. 29), ls (eq. 25) or gls (whitened TSVD)",
-        ("identify", "--sigma"): "linear-scale noise, mm (default the paper's eq. 34)",
-        ("identify", "--seed"): None,
-        ("compensate", "--targets"): "targets CSV: x_mm, y_mm ('pmcal --machine planar_2dof targets' writes "
-                                     "one)",
-        ("compensate", "-o"): "setpoints CSV to write: the targets with theta1_deg, theta2_deg appended",
-    },
-}
-
-
 def _machine_from_argv(argv: list[str]) -> str:
-    """The ``--machine`` value before the subcommand (for per-machine help), else the default."""
-    for i, a in enumerate(argv):
-        if a == "--machine" and i + 1 < len(argv):
-            return argv[i + 1]
-        if a.startswith("--machine="):
-            return a.split("=", 1)[1]
-    return DEFAULT_MACHINE
+    """The ``--machine`` value (a built-in name or a folder), read by a pre-parser before the parser of
+    that machine is built; the default machine without one."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--machine", default=DEFAULT_MACHINE)
+    known, _ = pre.parse_known_args(argv)
+    return known.machine
 
 
-def specialise_help(parser: argparse.ArgumentParser, machine: str) -> None:
-    """Help texts of ``machine``: its own wording and defaults, options of other machines hidden."""
-    table = MACHINE_HELP.get(machine, {})
-    for name, sp in _named_subparsers(parser):
-        for action in sp._actions:
-            for opt in action.option_strings:
-                if (name, opt) in table:
-                    text = table[(name, opt)]
-                    action.help = argparse.SUPPRESS if text is None else text
-        if machine != DEFAULT_MACHINE:
-            sp.description = f"(machine {machine}) " + (sp.description or "")
+def _named_subparsers(parser: argparse.ArgumentParser):
+    """(full command name, parser) of every (sub)command of a parser made by :func:`build_parser`."""
+    for name, cmd in parser.pmcal_commands.items():
+        yield name, cmd.parser
 
 
-def _named_subparsers(parser: argparse.ArgumentParser, prefix: str = ""):
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            for name, sp in action.choices.items():
-                full = f"{prefix}{name}"
-                yield full, sp
-                yield from _named_subparsers(sp, full + " ")
-
-
-def _common_options(p: argparse.ArgumentParser, top: bool) -> None:
+def _common_options(p, top: bool) -> None:
     """``--quiet``/``--verbose`` on the top parser and, defaults suppressed, on every subcommand."""
     kw = {} if top else {"default": argparse.SUPPRESS}
     p.add_argument("--quiet", "-q", action="store_true",
@@ -147,7 +91,21 @@ def _common_options(p: argparse.ArgumentParser, top: bool) -> None:
                    help="more detail (and the traceback of an unexpected failure)", **kw)
 
 
+def _finish_command(cmd) -> None:
+    """What every subcommand shares: ``--quiet``/``--verbose`` (unless it has its own) and the epilog."""
+    if "--quiet" not in cmd.flags:
+        _common_options(cmd, top=False)
+    if cmd.parser.epilog is None:
+        cmd.parser.epilog = EPILOG
+
+
 def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
+    """The ``pmcal`` parser for ``machine`` (a built-in name or a machine folder): its commands' options
+    worded for that machine (its application's ``option_help``), options it does not have hidden or
+    absent. ``parser.pmcal_commands`` maps every full command name to its
+    :class:`pmcal.commands.options.Command`; ``selected_machine`` in the parsed namespace is the
+    :class:`pmcal.machines.Machine`."""
+    selected = machines.resolve(machine)
     parser = argparse.ArgumentParser(
         prog="pmcal",
         description="Calibrate parallel mechanisms against a MuJoCo digital twin and push the "
@@ -155,27 +113,28 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
         epilog=EPILOG)
     parser.add_argument("--version", action="version", version=f"pmcal {__version__}",
                         help="print the version and exit")
-    parser.add_argument("--machine", default=DEFAULT_MACHINE, metavar="NAME",
-                        help=f"machine: ocpm_2dof or planar_2dof (a folder under mjcf/); default "
-                             f"{DEFAULT_MACHINE}. 'pmcal --machine NAME COMMAND --help' shows that machine's "
-                             "options and defaults")
+    parser.add_argument("--machine", default=DEFAULT_MACHINE, metavar="NAME|DIR",
+                        help=f"machine: a built-in name ({', '.join(machines.builtin_names())}: folders under "
+                             "mjcf/) or the path of a folder holding NAME.xml and machine.toml "
+                             f"(docs/ADDING_A_MACHINE.md); default {DEFAULT_MACHINE}. "
+                             "'pmcal --machine NAME COMMAND --help' shows that machine's options and defaults")
     _common_options(parser, top=True)       # --quiet: nothing on stdout, errors only on stderr
     parser.add_argument("--blas-threads", type=int, default=None, metavar="N",
                         help="BLAS threads per process (default: $PMCAL_BLAS_THREADS, else 1; 0 = the "
                              "libraries' own default); see docs/speed.md")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    import pmcal.commands as commands
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda i: i.name):
+    record: dict = {}
+    describe = "" if selected.name == DEFAULT_MACHINE else f"(machine {selected.name}) "
+    commands = CommandSet(parser.add_subparsers(dest="command", metavar="COMMAND"), selected.option_help(),
+                          record, _finish_command, describe=describe)
+    import pmcal.commands as command_modules
+    for info in sorted(pkgutil.iter_modules(command_modules.__path__), key=lambda i: i.name):
         module = importlib.import_module(f"pmcal.commands.{info.name}")
         register = getattr(module, "register", None)
         if register is not None:
-            register(sub)
-    for _, sp in _named_subparsers(parser):
-        if not any("--quiet" in a.option_strings for a in sp._actions):
-            _common_options(sp, top=False)
-        if sp.epilog is None:
-            sp.epilog = EPILOG
-    specialise_help(parser, machine)
+            register(commands)
+    commands.finish_all()
+    parser.set_defaults(selected_machine=selected)
+    parser.pmcal_commands = record
     return parser
 
 
@@ -268,7 +227,11 @@ def _join_negative_lists(argv: list[str]) -> list[str]:
 
 def _main(argv: list[str] | None = None) -> int:
     argv = _join_negative_lists(sys.argv[1:] if argv is None else list(argv))
-    parser = build_parser(_machine_from_argv(argv))
+    try:
+        parser = build_parser(_machine_from_argv(argv))
+    except InputError as exc:            # a --machine that is no machine
+        print(f"pmcal: error: {exc}", file=sys.stderr)
+        return 2
     try:
         args = parser.parse_args(argv)
     except KeyboardInterrupt:

@@ -119,6 +119,72 @@ def read_csv(path: str | Path, max_rows: int | None = None) -> CsvTable:
     return CsvTable(path=p, header=header, rows=rows, comments=[c for c in comments if c])
 
 
+#: Most poses a measurement file may hold: identification and diagnosis solve dense problems whose cost
+#: grows with the poses (a campaign has 24..128; 2000 take minutes).
+MAX_POSES = 2000
+#: Above this many poses identify and diagnose take long (tens of seconds to minutes): they report their
+#: steps on stderr also when piped (:func:`pmcal.progress.set_long`).
+LONG_POSES = 200
+#: coordinates of a tracker target, in column order
+TARGET_AXES = ("x", "y", "z")
+
+
+def target_columns(k: int) -> list[str]:
+    """Columns of ``k`` tracker targets: ``t1_x, t1_y, t1_z, ..., tk_z`` (mm)."""
+    return [f"t{i}_{a}" for i in range(1, k + 1) for a in TARGET_AXES]
+
+
+def check_context(path: str, approach: np.ndarray | None = None, temp_c: np.ndarray | None = None,
+                  temp_field: str = "temp_c", payload_kg: np.ndarray | None = None) -> None:
+    """The context columns of a measurement or campaign file (those given): approach signs +1 / -1 only; a
+    temperature for every row or for none, within 20 +- 60 degC (a value outside is degrees Fahrenheit or
+    kelvin); no negative payload. An :class:`InputError` names file, row and field."""
+    if payload_kg is not None and np.any(payload_kg < 0):
+        raise InputError("payload must not be negative", file=path, row=int(np.flatnonzero(payload_kg < 0)[0]) + 1,
+                         field="payload_kg")
+    if approach is not None:
+        bad = np.argwhere(~np.isin(approach, (-1.0, 1.0)))
+        if bad.size:
+            i, j = (int(v) for v in bad[0])
+            raise InputError(f"approach must be +1 or -1, got {approach[i, j]:g}", file=path, row=i + 1,
+                             field=f"m{j + 1}_approach")
+    if temp_c is not None:
+        bad = np.flatnonzero(~np.isfinite(temp_c))
+        if 0 < bad.size < len(temp_c):
+            raise InputError("temperature missing in some rows (give it for every pose or for none)",
+                             file=path, row=int(bad[0]) + 1, field=temp_field)
+        far = np.flatnonzero(np.abs(temp_c - 20.0) > 60.0)
+        if far.size:
+            raise InputError(f"temperature {temp_c[far[0]]:g} degC is implausible for a machine in use "
+                             "(degrees Fahrenheit or kelvin?)", file=path, row=int(far[0]) + 1, field=temp_field)
+
+
+def check_blocked(coords: np.ndarray, path: str, min_visible: int = 2) -> None:
+    """Blocked targets (all three cells empty, NaN in ``coords`` of shape (n, k, 3)) are allowed; a
+    half-empty target or a row with fewer than ``min_visible`` measured targets is an :class:`InputError`
+    naming row and field."""
+    empty = np.isnan(coords)
+    for i, j in np.argwhere(empty.any(axis=2) & ~empty.all(axis=2)):
+        a = TARGET_AXES[int(np.flatnonzero(empty[i, j])[0])]
+        raise InputError(f"target t{j + 1} is half empty: leave all three of t{j + 1}_x, t{j + 1}_y, "
+                         f"t{j + 1}_z empty for a blocked target", file=path, row=int(i) + 1, field=f"t{j + 1}_{a}")
+    n_vis = (~empty.all(axis=2)).sum(axis=1)
+    for i in np.flatnonzero(n_vis < min_visible):
+        j = int(np.flatnonzero(empty[i].all(axis=1))[0])
+        raise InputError(f"only {n_vis[i]} target(s) measured: a row needs at least {min_visible}", file=path,
+                         row=int(i) + 1, field=f"t{j + 1}_x")
+
+
+def write_columns(path: str | Path, id_column: str, ids: Sequence[str], columns: Sequence[tuple[str, np.ndarray, str]],
+                  comments: Sequence[str] = ()) -> None:
+    """Write a CSV of one id column and numeric ``columns`` (name, values, format), atomically; NaN is an
+    empty cell (a blocked target, a missing value)."""
+    header = [id_column] + [name for name, _, _ in columns]
+    rows = ([pid] + ["" if math.isnan(float(v[i])) else f.format(float(v[i])) for _, v, f in columns]
+            for i, pid in enumerate(ids))
+    write_csv(path, header, rows, comments)
+
+
 def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence], comments: Sequence[str] = (),
               float_format: str = "{:.6f}") -> None:
     """Write a CSV atomically; floats with ``float_format``, comments as leading ``#`` lines."""

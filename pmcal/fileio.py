@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -55,6 +56,34 @@ def _json_default(o):
     if hasattr(o, "tolist"):          # numpy arrays and scalars
         return o.tolist()
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def read_json(path: str | os.PathLike) -> object:
+    """The JSON document in ``path`` (a byte-order mark accepted); :class:`InputError` naming the file for a
+    missing, unreadable or malformed file (with the line and column of a syntax error)."""
+    text = read_text(path)
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=p) from None
+
+
+def check_param_values(params: dict, path: str, unit_of, limits: dict[str, float], prefix: str = "params."
+                       ) -> dict[str, float]:
+    """The values of a parameters JSON's ``params`` object: each a finite number (not a boolean) whose
+    magnitude is at most ``limits[unit_of(key)]`` (beyond it a unit mix-up, radians or micrometres, is far
+    likelier than such a geometric error). Returns them as floats; an :class:`InputError` names the file
+    and the field ``prefix + key``."""
+    out = {}
+    for key, value in params.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise InputError(f"value {value!r} is not a finite number", file=path, field=prefix + key)
+        unit = unit_of(key)
+        if abs(value) > limits[unit]:
+            raise InputError(f"{value:g} {unit} is implausible for a geometric error (at most {limits[unit]:g} "
+                             f"{unit}; units are mm and degrees)", file=path, field=prefix + key)
+        out[key] = float(value)
+    return out
 
 
 def write_json(path: str | os.PathLike, doc, indent: int = 2) -> None:

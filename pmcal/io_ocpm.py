@@ -5,7 +5,6 @@ Validation happens here, at the edge: one :class:`InputError` naming file, row a
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -16,22 +15,16 @@ from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_fk
 from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, PAPER_LIMB_FIELDS, check_key
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
-from pmcal.csvio import read_csv, write_csv
+from pmcal.csvio import (LONG_POSES, MAX_POSES, check_blocked, check_context, read_csv, target_columns,  # noqa: F401
+                         write_columns, write_csv)
 from pmcal.errors import InputError
-from pmcal.fileio import read_text, write_json
+from pmcal.fileio import check_param_values, read_json, read_text, write_json
 
 MECHANISM = "ocpm_2dof"
-TARGET_AXES = ("x", "y", "z")
 
 #: Largest disagreement between the measured tilt and the tilt the commands give on the nominal machine
 #: that is still plausible for a machine with geometric errors (deg). Beyond it, a unit mix-up is likely.
 PLAUSIBLE_POINTING_DEG = 5.0
-#: Most poses a measurement file may hold: identification and diagnosis solve dense problems whose cost
-#: grows with the poses (a campaign has 24..128; 2000 take minutes).
-MAX_POSES = 2000
-#: Above this many poses identify and diagnose take long (tens of seconds to minutes): they report their
-#: steps on stderr also when piped (:func:`pmcal.progress.set_long`).
-LONG_POSES = 200
 #: Largest target coordinate a measurement file may hold, mm (100 m: beyond any laser tracker's range).
 MAX_COORDINATE_MM = 1e5
 #: Largest plausible error of a measured distance between two targets (mm).
@@ -39,10 +32,6 @@ PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
 #: The same in the tracker frame, where gross outliers are expected and rejected (named) by the robust fit:
 #: only a unit mix-up or a swapped column is an input error there (mm).
 PLAUSIBLE_TARGET_DISTANCE_TRACKER_MM = 20.0
-
-
-def target_columns(k: int) -> list[str]:
-    return [f"t{i}_{a}" for i in range(1, k + 1) for a in TARGET_AXES]
 
 
 def read_measurements(path: str | Path, geom: Geometry | None = None, check_units: bool = True,
@@ -83,31 +72,6 @@ def read_measurements(path: str | Path, geom: Geometry | None = None, check_unit
     return meas
 
 
-def check_context(path: str, approach: np.ndarray | None = None, temp_c: np.ndarray | None = None,
-                  temp_field: str = "temp_c", payload_kg: np.ndarray | None = None) -> None:
-    """The context columns of a measurement or campaign file (those given): approach signs +1 / -1 only; a
-    temperature for every row or for none, within 20 +- 60 degC (a value outside is degrees Fahrenheit or
-    kelvin); no negative payload. An :class:`InputError` names file, row and field."""
-    if payload_kg is not None and np.any(payload_kg < 0):
-        raise InputError("payload must not be negative", file=path, row=int(np.flatnonzero(payload_kg < 0)[0]) + 1,
-                         field="payload_kg")
-    if approach is not None:
-        bad = np.argwhere(~np.isin(approach, (-1.0, 1.0)))
-        if bad.size:
-            i, j = (int(v) for v in bad[0])
-            raise InputError(f"approach must be +1 or -1, got {approach[i, j]:g}", file=path, row=i + 1,
-                             field=f"m{j + 1}_approach")
-    if temp_c is not None:
-        bad = np.flatnonzero(~np.isfinite(temp_c))
-        if 0 < bad.size < len(temp_c):
-            raise InputError("temperature missing in some rows (give it for every pose or for none)",
-                             file=path, row=int(bad[0]) + 1, field=temp_field)
-        far = np.flatnonzero(np.abs(temp_c - 20.0) > 60.0)
-        if far.size:
-            raise InputError(f"temperature {temp_c[far[0]]:g} degC is implausible for a machine in use "
-                             "(degrees Fahrenheit or kelvin?)", file=path, row=int(far[0]) + 1, field=temp_field)
-
-
 def read_campaign_context(path: str | Path) -> dict[str, np.ndarray]:
     """The campaign context a targets file may carry besides the orientations, in its row order (the
     columns ``pmcal twin plan --for-diagnosis`` writes): ``payload_kg`` (kg, >= 0), ``time_s`` (s, not
@@ -129,21 +93,6 @@ def read_campaign_context(path: str | Path) -> dict[str, np.ndarray]:
         out["approach"] = np.stack([t.numbers("m1_approach"), t.numbers("m2_approach")], axis=1)
     check_context(t.path, out.get("approach"), out.get("temp_c"), temp_field or "temp_c", out.get("payload_kg"))
     return out
-
-
-def check_blocked(coords: np.ndarray, path: str) -> None:
-    """Blocked targets (all three cells empty) are allowed; a half-empty target or a row with fewer than
-    two measured targets is an :class:`InputError` naming row and field."""
-    empty = np.isnan(coords)
-    for i, j in np.argwhere(empty.any(axis=2) & ~empty.all(axis=2)):
-        a = TARGET_AXES[int(np.flatnonzero(empty[i, j])[0])]
-        raise InputError(f"target t{j + 1} is half empty: leave all three of t{j + 1}_x, t{j + 1}_y, "
-                         f"t{j + 1}_z empty for a blocked target", file=path, row=int(i) + 1, field=f"t{j + 1}_{a}")
-    n_vis = (~empty.all(axis=2)).sum(axis=1)
-    for i in np.flatnonzero(n_vis < 2):
-        j = int(np.flatnonzero(empty[i].all(axis=1))[0])
-        raise InputError(f"only {n_vis[i]} target(s) measured: a row needs at least two", file=path,
-                         row=int(i) + 1, field=f"t{j + 1}_x")
 
 
 def check_plausible(meas: Measurements, geom: Geometry, path: str, frame: str = "base") -> None:
@@ -188,23 +137,16 @@ def check_plausible(meas: Measurements, geom: Geometry, path: str, frame: str = 
 def write_measurements(path: str | Path, meas: Measurements, comments=()) -> None:
     """Write a measurement CSV (docs/formats.md), atomically; optional columns only when present."""
     k = meas.targets.shape[1]
-    header = ["pose_id", "m1_cmd_deg", "m2_cmd_deg"] + target_columns(k)
-    cols = [np.asarray(meas.m_cmd_deg)[:, 0], np.asarray(meas.m_cmd_deg)[:, 1]] + \
-        [meas.targets[:, i // 3, i % 3] for i in range(3 * k)]
-    fmts = ["{:.6f}", "{:.6f}"] + ["{:.5f}"] * (3 * k)
+    m = np.asarray(meas.m_cmd_deg)
+    cols = [("m1_cmd_deg", m[:, 0], "{:.6f}"), ("m2_cmd_deg", m[:, 1], "{:.6f}")]
+    cols += [(c, meas.targets[:, i // 3, i % 3], "{:.5f}") for i, c in enumerate(target_columns(k))]
     for name, arr, fmt in (("temp_c", meas.temp_c, "{:.3f}"), ("time_s", meas.time_s, "{:.2f}"),
                            ("payload_kg", meas.payload_kg, "{:.3f}")):
         if arr is not None:
-            header.append(name)
-            cols.append(np.asarray(arr))
-            fmts.append(fmt)
+            cols.append((name, np.asarray(arr), fmt))
     if meas.approach is not None:
-        header += ["m1_approach", "m2_approach"]
-        cols += [meas.approach[:, 0], meas.approach[:, 1]]
-        fmts += ["{:+.0f}", "{:+.0f}"]
-    cell = lambda f, v: "" if math.isnan(v) else f.format(v)  # noqa: E731  (blocked target: empty cells)
-    rows = ([pid] + [cell(f, float(c[i])) for c, f in zip(cols, fmts)] for i, pid in enumerate(meas.pose_id))
-    write_csv(path, header, rows, comments)
+        cols += [("m1_approach", meas.approach[:, 0], "{:+.0f}"), ("m2_approach", meas.approach[:, 1], "{:+.0f}")]
+    write_columns(path, "pose_id", meas.pose_id, cols, comments)
 
 
 #: The parameters file's schema (docs/formats.md): error models, and the largest plausible magnitude of a
@@ -235,28 +177,17 @@ def read_params(path: str | Path, geom: Geometry | None = None) -> tuple[dict[st
     """
     geom = geom or default_geometry()
     p = str(path)
-    text = read_text(path)
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=p) from None
+    doc = read_json(path)
     if not isinstance(doc, dict) or not isinstance(doc.get("params", None), dict):
         raise InputError("expected an object with a 'params' object", file=p, field="params")
     mech = doc.get("mechanism", MECHANISM)
     if mech != MECHANISM:
         raise InputError(f"parameters are for mechanism '{mech}', not '{MECHANISM}'", file=p, field="mechanism")
-    params = {}
-    for key, value in doc["params"].items():
+    for key in doc["params"]:
         msg = check_key(key, geom.n_limbs, geom.actuated)
         if msg:
             raise InputError(msg, file=p, field=key)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise InputError(f"value {value!r} is not a finite number", file=p, field=key)
-        unit = param_unit(key)
-        if abs(value) > PLAUSIBLE_PARAM[unit]:
-            raise InputError(f"{value:g} {unit} is implausible for a geometric error (at most "
-                             f"{PLAUSIBLE_PARAM[unit]:g} {unit}; units are mm and degrees)", file=p, field=key)
-        params[key] = float(value)
+    params = check_param_values(doc["params"], p, param_unit, PLAUSIBLE_PARAM, prefix="")
     model = doc.get("model")
     if model is not None and model not in PARAM_MODELS:
         raise InputError(f"unknown model {model!r} (known: {', '.join(PARAM_MODELS)})", file=p, field="model")

@@ -5,7 +5,6 @@ field; every output is written atomically. Units in files: mm and degrees.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +16,7 @@ from pmcal.mechanism.planar.kinematics import forward, inverse, mm_vector
 from pmcal.calib.solvers.result import IdentResult
 from pmcal.csvio import read_csv, write_csv
 from pmcal.errors import InputError
-from pmcal.fileio import read_text
+from pmcal.fileio import check_param_values, read_json, read_text
 
 MECHANISM = "planar_2dof"
 MEAS_COLUMNS = ("pose_id", "theta1_cmd_deg", "theta2_cmd_deg", "scale_change_mm")
@@ -174,6 +173,8 @@ def write_setpoints(path: str | Path, header: list[str], rows: list[list[str]], 
 
 #: error models of a planar parameters file (docs/planar_measurement_format.md)
 PARAM_MODELS = ("simplified", "full")
+#: largest plausible magnitude of a planar error, per unit (beyond: a unit mix-up)
+PLAUSIBLE_PARAM = {"deg": 30.0, "mm": 50.0}
 
 
 def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Errors, dict]:
@@ -183,11 +184,7 @@ def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Er
     Absent keys are zero. Returns the errors and the whole document.
     """
     p = str(path)
-    text = read_text(path)
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"not a readable JSON file ({exc})", file=p) from None
+    doc = read_json(path)
     if not isinstance(doc, dict):
         raise InputError("must be a JSON object", file=p)
     if "params" in doc or require_mechanism:
@@ -206,17 +203,11 @@ def read_params(path: str | Path, *, require_mechanism: bool = True) -> tuple[Er
         params, prefix = doc, ""
     if not isinstance(params, dict):
         raise InputError("must be an object of parameter values", file=p, field="params")
-    for k, v in params.items():
+    for k in params:
         if k not in ERROR_KEYS:
             raise InputError(f"unknown parameter (known: {', '.join(ERROR_KEYS)})", file=p, field=prefix + k)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise InputError(f"must be a finite number, got {v!r}", file=p, field=prefix + k)
-    limits = {"deg": 30.0, "mm": 50.0}
-    for k, v in params.items():
-        if abs(v) > limits[interface_unit(k)]:
-            raise InputError(f"{v:g} {interface_unit(k)} is not a plausible error (|value| <= "
-                             f"{limits[interface_unit(k)]:g})", file=p, field=prefix + k)
-    return Errors.from_interface(params), doc
+    values = check_param_values(params, p, interface_unit, PLAUSIBLE_PARAM, prefix)
+    return Errors.from_interface(values), doc
 
 
 def params_document(result: IdentResult, extra: dict | None = None) -> dict:

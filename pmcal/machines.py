@@ -1,9 +1,10 @@
-"""Registry of the machines the CLI knows, each with an application module in :mod:`pmcal.apps`.
+"""Registry of machines: a built-in name (a folder under ``mjcf/``) or any folder holding ``<name>.xml``
+and ``machine.toml``, routed to the application module that implements its commands.
 
 An application module implements the subcommands that make sense for its machine as functions taking
-the parsed ``argparse`` namespace and returning an exit status: ``demo``, ``identify``, ``compensate``,
-``evaluate``, ``diagnose``, ``twin_measure``, ``twin_render``. A command a machine does not implement is
-refused with a clear message.
+the parsed ``argparse`` namespace and returning an exit status (``identify``, ``compensate``,
+``twin_measure``, ...), ``option_help(machine)`` (the table of per-machine help texts of
+:mod:`pmcal.commands.options`) and ``command_defaults(machine)``. A command a machine does not implement is refused with a clear message.
 """
 
 from __future__ import annotations
@@ -13,34 +14,145 @@ from pathlib import Path
 from types import ModuleType
 
 from pmcal.errors import InputError
-from pmcal.mjcf import ROOT as MJCF_ROOT_DIR
+from pmcal.mechanism.machine_spec import MachineSpec
+from pmcal.mjcf import ROOT as MJCF_ROOT
+from pmcal.mjcf import machine_dir
 
-#: machine name (folder under ``mjcf/``) -> application module
-MACHINES: dict[str, str] = {
+#: the machine of ``pmcal`` without ``--machine``
+DEFAULT_MACHINE = "ocpm_2dof"
+#: the seeded machines with application modules of their own, by the ``[machine] kind`` of their TOML
+LEGACY_APPS: dict[str, str] = {
     "ocpm_2dof": "pmcal.apps.ocpm",
     "planar_2dof": "pmcal.apps.planar",
 }
-
-MJCF_ROOT = MJCF_ROOT_DIR
-
-
-def machine_dir(name: str) -> Path:
-    """Folder of a machine's model and configuration (``mjcf/<name>/``)."""
-    return MJCF_ROOT / name
+#: application of every other machine folder
+GENERIC_APP = "pmcal.apps.chain"
+#: the configuration file of a machine folder
+TOML_NAME = "machine.toml"
 
 
-def get_app(name: str) -> ModuleType:
-    if name not in MACHINES:
-        raise InputError(f"unknown machine '{name}' (known: {', '.join(sorted(MACHINES))})",
+def builtin_names() -> list[str]:
+    """Names of the built-in machines: folders under ``mjcf/`` holding a ``machine.toml``."""
+    return sorted(p.parent.name for p in MJCF_ROOT.glob(f"*/{TOML_NAME}"))
+
+
+def machine_folder(value: str | Path) -> Path:
+    """The folder ``value`` names: a built-in name, else a path to a folder with a ``machine.toml``.
+
+    Raises :class:`~pmcal.errors.InputError` (field ``--machine``) for anything else.
+    """
+    text = str(value)
+    if text in builtin_names():
+        return machine_dir(text)
+    path = Path(text).expanduser()
+    if path.is_dir():
+        return path                  # MachineSpec.load says what is missing in it
+    if path.exists():
+        raise InputError(f"{path} is a file; --machine takes a built-in name or a machine folder",
                          field="--machine")
-    return importlib.import_module(MACHINES[name])
+    raise InputError(f"unknown machine '{text}': neither a built-in name ({', '.join(builtin_names())}) nor a "
+                     "folder holding NAME.xml and machine.toml", field="--machine")
+
+
+class Machine:
+    """A machine: its validated ``machine.toml`` and MJCF, the application that runs its commands, its
+    commands' defaults and (built on first use) its digital twin.
+
+    Attributes
+    ----------
+    spec : :class:`pmcal.mechanism.machine_spec.MachineSpec`
+        The folder's configuration (docs/machine_toml.md): motors, targets, task coordinates, workspace,
+        errors, tracker noise, table axes. ``spec.legacy`` for the seeded machines.
+    name, folder : the machine's name (``[machine] name``, else the folder's) and its folder.
+    app_name : the application module of its commands (:data:`LEGACY_APPS` or :data:`GENERIC_APP`).
+    defaults : dict
+        Defaults of the machine's commands (``twin measure --poses``, ``--noise``, ``targets --count``, ...),
+        from the application module's ``command_defaults(machine)``.
+
+    Examples
+    --------
+    >>> m = Machine.builtin("delta_3dof")                        # doctest: +SKIP
+    >>> m.spec.motor_columns, m.defaults["poses"]                 # doctest: +SKIP
+    (('m1_cmd_deg', 'm2_cmd_deg', 'm3_cmd_deg'), 48)
+    >>> Machine.from_folder("/home/me/my_delta").twin.error_keys   # doctest: +SKIP
+    """
+
+    def __init__(self, spec: MachineSpec):
+        if spec.legacy and spec.folder != machine_dir(spec.kind).resolve():
+            raise InputError(f"a copy of the seeded machine {spec.kind} runs its dedicated code, which reads the "
+                             f"built-in folder only (edits here would be ignored): use --machine {spec.kind}",
+                             file=str(spec.folder / TOML_NAME), field="machine.kind")
+        self.spec = spec
+        self.name: str = spec.name
+        self.folder: Path = spec.folder
+        self.legacy: bool = spec.legacy
+        self.app_name = LEGACY_APPS[spec.kind] if spec.legacy else GENERIC_APP
+        self._twin = None
+
+    def __repr__(self) -> str:
+        return f"Machine({self.name!r}, folder={str(self.folder)!r}, app={self.app_name!r})"
+
+    @classmethod
+    def from_folder(cls, folder: str | Path) -> Machine:
+        """The machine of a folder holding ``<name>.xml`` and ``machine.toml`` (validated: an
+        :class:`~pmcal.errors.InputError` names the file, key and fix)."""
+        return cls(MachineSpec.load(folder))
+
+    @classmethod
+    def builtin(cls, name: str) -> Machine:
+        """A built-in machine by name (:func:`builtin_names`)."""
+        if name not in builtin_names():
+            raise InputError(f"no built-in machine '{name}' (built-in: {', '.join(builtin_names())})",
+                             field="--machine")
+        return cls.from_folder(machine_dir(name))
+
+    @classmethod
+    def resolve(cls, value: str | Path) -> Machine:
+        """The machine ``--machine VALUE`` selects: a built-in name or a folder (:func:`machine_folder`)."""
+        return cls.from_folder(machine_folder(value))
+
+    @property
+    def app(self) -> ModuleType:
+        return importlib.import_module(self.app_name)
+
+    def option_help(self) -> dict:
+        """The application's per-machine help table (:mod:`pmcal.commands.options`)."""
+        return self.app.option_help(self)
+
+    @property
+    def defaults(self) -> dict:
+        return self.app.command_defaults(self)
+
+    @property
+    def twin(self):
+        """The closed-chain digital twin (:class:`pmcal.twin.closed_chain.ClosedChainTwin`), compiled on
+        first use. The seeded machines have their own twins (``pmcal.twin.machine``, ``pmcal.twin.planar``)."""
+        if self.legacy:
+            raise InputError(f"machine '{self.name}' runs on its dedicated twin, not the closed-chain one",
+                             field="--machine")
+        if self._twin is None:
+            # imported here, not at the top: MuJoCo loads in ~2 s and the parser (pmcal --help) builds a
+            # Machine for every call; not a cycle (pmcal.twin is a lower layer)
+            from pmcal.twin.closed_chain import ClosedChainTwin
+
+            try:
+                self._twin = ClosedChainTwin(self.spec)
+            except ValueError as exc:         # MuJoCo's compiler refused the MJCF
+                text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+                raise InputError(f"MuJoCo cannot compile the model: {text}", file=str(self.spec.model_path)) from None
+        return self._twin
+
+
+def resolve(value: str | Path) -> Machine:
+    """The machine ``--machine VALUE`` selects."""
+    return Machine.resolve(value)
 
 
 def dispatch(command: str, args) -> int:
     """Run ``command`` of the machine selected by ``args.machine``."""
-    app = get_app(args.machine)
-    func = getattr(app, command, None)
+    machine = getattr(args, "selected_machine", None) or resolve(args.machine)
+    func = getattr(machine.app, command, None)
     if func is None:
-        raise InputError(f"'{command.replace('_', ' ')}' is not available for machine '{args.machine}'",
+        raise InputError(f"'{command.replace('_', ' ')}' is not available for machine '{machine.name}'",
                          field="--machine")
     return int(func(args) or 0)

@@ -36,7 +36,7 @@ def test_checked_versions_are_pinned():
 def test_top_level_layout():
     for name in ("mjcf", "twin", "calib", "bridge", "tests", "pyproject.toml"):
         assert (ROOT / name).exists(), name
-    for machine in ("ocpm_2dof",):
+    for machine in ("ocpm_2dof", "delta_3dof", "hexapod_6dof"):
         folder = ROOT / "mjcf" / machine
         for f in (f"{machine}.xml", "scene.xml", "README.md", "machine.toml"):
             assert (folder / f).exists(), f

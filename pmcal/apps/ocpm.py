@@ -8,6 +8,20 @@ from __future__ import annotations
 
 import importlib
 
+from pmcal.commands.options import HIDDEN
+
+#: this machine's wording of the commands' options (:mod:`pmcal.commands.options`)
+OPTION_HELP = {
+    ("twin measure", "--servo-noise"): HIDDEN, ("identify", "--allow-rank-deficient"): HIDDEN,
+    ("twin measure", "--poses"): "number of poses, 1..2000 (default 24)",
+    ("identify", "--model"): "error model: whole closed chain (full, default) or the paper's per-limb real "
+                             "IK (paper)",
+    ("identify", "--method"): "identification method: --model paper hga (default), ga, pso, sa, lm, "
+                              "tikhonov, tsvd; --model full the whole-chain least squares",
+    ("twin measure", "--preset"): "built-in error set: nominal (default) or paper-table2",
+    ("twin render", "--preset"): "built-in error set: nominal (default) or paper-table2",
+}
+
 #: command -> module that implements it (a function of the same name taking the parsed arguments)
 ROUTES = {
     "twin_measure": "pmcal.apps.ocpm_twin",
@@ -20,6 +34,20 @@ ROUTES = {
     "targets": "pmcal.apps.ocpm_twin",
     "diagnose": "pmcal.apps.ocpm_diagnose",
 }
+
+
+#: defaults of this machine's commands (:attr:`pmcal.machines.Machine.defaults`)
+DEFAULTS = {"poses": 24}
+
+
+def command_defaults(machine) -> dict:
+    """Defaults of the commands (the same for every folder of this machine)."""
+    return dict(DEFAULTS)
+
+
+def option_help(machine) -> dict:
+    """The help table of the command line (the same for every folder of this machine)."""
+    return OPTION_HELP
 
 
 def __getattr__(name: str):

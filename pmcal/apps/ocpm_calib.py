@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pmcal import progress
+from pmcal.apps import error_stats
 from pmcal.campaign_quality import CAMPAIGN_FIX, quality_line, refuse_unusable, save_table
 from pmcal.calibration import Calibration, identify as identify_campaign
 from pmcal.compensators import DEFAULT_GRID, PaperCompensation, build_table, check_grid, checked_commands
@@ -118,10 +119,8 @@ def evaluate_params(meas, cal: Calibration) -> dict:
         phi_m, theta_m = tilt_torsion_angles(R)
         motor = c.commands_deg(np.rad2deg(phi_m), np.rad2deg(theta_m)) - meas.m_cmd_deg
     err = np.rad2deg(pointing_error(tilt_torsion(phi, theta), R))
-    stats = lambda a: {"rms": float(np.sqrt(np.nanmean(a**2))), "mean": float(np.nanmean(np.abs(a))),  # noqa: E731
-                       "max": float(np.nanmax(np.abs(a)))}
-    return {"n_poses": len(meas), "pointing_error_deg": stats(err),
-            "motor_residual_deg": {"m1": stats(motor[:, 0]), "m2": stats(motor[:, 1])},
+    return {"n_poses": len(meas), "pointing_error_deg": error_stats(err),
+            "motor_residual_deg": {"m1": error_stats(motor[:, 0]), "m2": error_stats(motor[:, 1])},
             "per_pose": [{"pose_id": pid, "pointing_error_deg": float(e), "m1_residual_deg": float(a),
                           "m2_residual_deg": float(b)} for pid, e, (a, b) in zip(meas.pose_id, err, motor)]}
 

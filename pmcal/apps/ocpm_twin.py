@@ -7,6 +7,7 @@ import numpy as np
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 from pmcal import progress
+from pmcal.apps.ocpm import DEFAULTS
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write
 from pmcal.io_ocpm import MAX_POSES, read_campaign_context, read_params, read_targets, write_measurements
@@ -65,7 +66,7 @@ def twin_measure(args) -> int:
     if not np.isfinite(sigma) or sigma < 0:
         raise InputError(f"noise must be a non-negative number of mm, got {args.noise}", field="--noise")
     if args.poses is None:
-        args.poses = 24
+        args.poses = DEFAULTS["poses"]
     if not 1 <= args.poses <= MAX_POSES:
         raise InputError(f"number of poses must be 1..{MAX_POSES} (the most identify and diagnose read), got "
                          f"{args.poses}", field="--poses")

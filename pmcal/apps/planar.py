@@ -12,7 +12,50 @@ import math
 
 import numpy as np
 
+from pmcal.commands.options import HIDDEN
 from pmcal.errors import InputError, RunError
+
+#: this machine's wording of the commands' options (:mod:`pmcal.commands.options`)
+OPTION_HELP = {
+    **{("twin measure", o): HIDDEN for o in ("--stiffness-ratio", "--effect", "--payload", "--temperature",
+                                              "--shuffle", "--seconds-per-pose", "--theta-max",
+                                              "--no-random-approach", "--tracker-pose", "--nest-error",
+                                              "--blocked", "--outliers")},
+    **{("identify", o): HIDDEN for o in ("--frame", "--nest-tolerance", "--robust")},
+    ("twin render", "--stiffness-ratio"): HIDDEN, ("compensate", "--table"): HIDDEN,
+    ("compensate", "--grid"): HIDDEN, ("compensate", "--table-version"): HIDDEN,
+    ("twin measure", "--poses"): "number of positions on the workspace boundary, even, 6..2000 (default 6, "
+                                 "the paper's)",
+    ("twin measure", "--noise"): "linear-scale noise, standard deviation, mm (default the paper's eq. 34)",
+    ("twin measure", "--targets"): "explicit target positions (x_mm, y_mm) instead of the boundary layout",
+    ("twin measure", "--preset"): "built-in error set: nominal (default) or group1..group6 (the paper's "
+                                  "Table 3 groups)",
+    ("twin render", "--preset"): "built-in error set: nominal (default) or group1..group6",
+    ("twin render", "--pose"): "position X,Y of the platform, mm (seed frame, y < 0)",
+    ("identify", "--model"): "error model: the paper's 4 parameters (simplified = paper, default) or all "
+                             "12 (full; rank 9, see --allow-rank-deficient)",
+    ("identify", "--method"): "tsvd (default, eq. 29), ls (eq. 25) or gls (whitened TSVD)",
+    ("identify", "--sigma"): "linear-scale noise, mm (default the paper's eq. 34)",
+    ("identify", "--seed"): HIDDEN,
+    ("compensate", "--targets"): "targets CSV: x_mm, y_mm ('pmcal --machine planar_2dof targets' writes "
+                                 "one)",
+    ("compensate", "-o"): "setpoints CSV to write: the targets with theta1_deg, theta2_deg appended",
+}
+
+
+#: defaults of this machine's commands (:attr:`pmcal.machines.Machine.defaults`): 6 positions, the paper's
+DEFAULTS = {"poses": 6}
+
+
+def command_defaults(machine) -> dict:
+    """Defaults of the commands (the same for every folder of this machine)."""
+    return dict(DEFAULTS)
+
+
+def option_help(machine) -> dict:
+    """The help table of the command line (the same for every folder of this machine)."""
+    return OPTION_HELP
+
 
 MODEL_CHOICES = {None: "simplified", "paper": "simplified", "simplified": "simplified", "full": "full"}
 
@@ -213,7 +256,7 @@ def twin_measure(args) -> int:
         if len(r) < 2:
             raise InputError("a campaign needs at least two positions", file=args.targets, field="x_mm")
     else:
-        K = int(getattr(args, "poses", None) or 6)
+        K = int(getattr(args, "poses", None) or DEFAULTS["poses"])
         if K < 6 or K % 2 or K > MAX_POSITIONS:
             raise InputError(f"number of poses must be even and 6..{MAX_POSITIONS} (K = 2n > 5; the most identify "
                              f"reads), got {K}", field="--poses")

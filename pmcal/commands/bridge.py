@@ -9,20 +9,20 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import sys
 import time
 from pathlib import Path
 
+from pmcal.commands.options import Command, CommandSet
 from pmcal.errors import InputError
 from pmcal.fileio import atomic_write
 
 MAX_MOCK_SECONDS = 24 * 3600.0
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: CommandSet) -> None:
     p = sub.add_parser("push", help="send a compensation table to the PLC (ADS or Modbus TCP)")
     p.add_argument("table", metavar="TABLE", help="compensation table, .json or .csv")
     _target_args(p)
@@ -91,7 +91,7 @@ def _audit_default(args) -> None:
     args.audit = None if args.no_audit else (args.audit or str(Path(args.table).with_name("bridge_audit.log")))
 
 
-def _target_args(p: argparse.ArgumentParser) -> None:
+def _target_args(p: Command) -> None:
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--ads", default=None, metavar="NETID@HOST[:PORT]", help="TwinCAT ADS target")
     g.add_argument("--modbus", default=None, metavar="HOST[:PORT]", help="Modbus TCP target (TF6250)")

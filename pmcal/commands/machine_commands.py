@@ -3,8 +3,7 @@
 
 from __future__ import annotations
 
-import argparse
-
+from pmcal.commands.options import CommandSet
 from pmcal.machines import dispatch
 
 
@@ -19,7 +18,7 @@ def _demo_defaults(args) -> None:
         args.out = "pmcal-demo-hidden" if args.hidden_effect else "pmcal-demo"
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: CommandSet) -> None:
     p = sub.add_parser("demo", help="the whole job on the built-in machine, no arguments needed")
     p.add_argument("--out", default=None, metavar="DIR",
                    help="output folder (report, tables), replaced as a whole; default pmcal-demo, "

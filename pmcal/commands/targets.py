@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import argparse
-
+from pmcal.commands.options import CommandSet
 from pmcal.machines import dispatch
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: CommandSet) -> None:
     p = sub.add_parser(
         "targets", help="write a targets CSV: orientations (ocpm_2dof: phi_deg, theta_deg) or positions "
                         "(planar_2dof: x_mm, y_mm) spread over the workspace; format in docs/formats.md")

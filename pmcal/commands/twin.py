@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import argparse
-
+from pmcal.commands.options import Command, CommandSet
 from pmcal.errors import InputError
 from pmcal.machines import dispatch
 
@@ -19,7 +18,7 @@ def _render(args) -> int:
     return dispatch("twin_render", args)
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: CommandSet) -> None:
     p = sub.add_parser("twin", help="the digital twin: virtual measurement campaigns, pictures")
     tsub = p.add_subparsers(dest="twin_command", metavar="TWIN_COMMAND", required=True)
 
@@ -87,7 +86,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.set_defaults(func=_render)
 
 
-def _machine_errors(p: argparse.ArgumentParser) -> None:
+def _machine_errors(p: Command) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--preset", default=None, metavar="NAME",
                    help="built-in error set: ocpm_2dof nominal (default) or paper-table2; planar_2dof nominal "

@@ -1,0 +1,351 @@
+"""Identification, identifiability, CRLB and compensation of any closed-chain machine (a :class:`ChainModel`).
+
+The machine is reached only through :class:`pmcal.calib.chain_model.ChainModel` (the twin's
+:class:`pmcal.twin.closed_chain.ClosedChainTwin`, or another simulator): its exact identification
+Jacobian ``d targets / d errors`` is all this module needs.
+
+**Identifiability and the base set** (:func:`base_parameters`). The identification Jacobian, whitened by the
+tracker noise and with each column scaled by the error's prior size (so mm and deg compare), is reduced as
+figaroh does for serial robots (F. Thanh Nguyen et al., FIGAROH, github.com/thanhndv212/figaroh,
+``tools/qrdecomposition.py``: ``get_baseIndex`` / ``get_baseParams``): a QR decomposition with column
+pivoting ``J P = Q R`` gives the rank ``r`` (the diagonal ``|R_ii|`` above ``rank_tol * |R_00|``) and the
+base parameters (the first ``r`` pivots); the others are linear combinations of them,
+``J_dep = J_base B`` with ``B = R11^-1 R12`` (rescaled to the parameters' units). A base parameter's
+identified value therefore estimates the *combination* ``p_i + sum_j B_ij p_j`` (written out in words,
+e.g. ``"rod1a.dz + 1 rod1a_tip.dz"``), and each dependent parameter ``j`` spans a direction
+``e_j - sum_i B_ij e_i`` the data cannot see (listed in ``unidentifiable``).
+
+**Estimation** (:func:`identify_chain`): the base parameters by Levenberg-Marquardt
+(:func:`pmcal.calib.solvers.local.lm`, MINPACK through scipy) on the whitened target residuals with the
+exact Jacobian, plus a Tikhonov term: pseudo-observations ``p_i / s_i`` with ``s_i`` the prior size from
+``[errors]`` of the machine.toml (the maximum a-posteriori estimate under a Gaussian prior; it only
+matters for parameters the data barely see). The dependent parameters stay at 0: the base values absorb
+them, which is exactly what the machine's behaviour determines.
+
+**Uncertainty**: ``covariance`` is the posterior covariance ``(J^T J / sigma^2 + diag(1/s^2))^-1`` of the
+base parameters at the solution; ``crlb`` the Cramér-Rao bound ``sqrt(diag(sigma^2 (J^T J)^-1))`` without
+the prior (:func:`crlb`); ``weak`` the base parameters whose CRLB exceeds their prior size.
+
+**Compensation** (:func:`compensate_targets`): the commands that put the identified machine's task site on
+each target (the model's inverse kinematics with the identified errors).
+
+Units: parameters in mm or deg (the model's :meth:`~pmcal.calib.chain_model.ChainModel.error_units`),
+targets mm in the base frame, commands deg / mm.
+
+Example
+-------
+>>> rng = np.random.default_rng(3)                                       # doctest: +SKIP
+>>> cmd = twin.sample_commands(48, rng)
+>>> y = twin.measure(cmd, true_errors, rng)
+>>> res = identify_chain(twin, cmd, y, twin.sigma_mm)
+>>> res.rank, res.chi2_per_dof, res.combinations["arm1.dz"]
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+import scipy.linalg
+
+from pmcal.calib.chain_model import ChainModel
+from pmcal.calib.solvers.local import lm
+from pmcal.calib.solvers.problem import box_problem
+from pmcal.calib.solvers.result import IdentResult
+from pmcal.threads import blas_policy
+
+#: Relative threshold on the pivoted QR diagonal below which a direction counts as unseen (structural rank).
+RANK_TOL = 1e-7
+
+
+@dataclass
+class BaseSet:
+    """The base-parameter reduction of an identification Jacobian (:func:`base_parameters`).
+
+    keys : every parameter considered.
+    base : the identifiable base parameters (pivot order: the best-determined first).
+    dependent : the others (not separately identifiable).
+    regroup : (len(base), len(dependent)) ``B``: ``J[:, dependent] = J[:, base] @ B`` (parameter units).
+    combinations : base key -> the combination its identified value estimates, in words.
+    unidentifiable : for each dependent key, the direction the data cannot see, in words.
+    rank : number of base parameters.
+    condition_number : of the base columns (whitened, prior-scaled, unit-normalised).
+    diag_r : |R_ii| of the pivoted QR (whitened, prior-scaled units: noise sigmas per prior size).
+    """
+
+    keys: list[str]
+    base: list[str]
+    dependent: list[str]
+    regroup: np.ndarray
+    combinations: dict[str, str]
+    unidentifiable: list[str]
+    rank: int
+    condition_number: float
+    diag_r: np.ndarray
+
+    def combination_values(self, params: Mapping[str, float]) -> np.ndarray:
+        """The values (len(base),) the base parameters estimate on a machine with errors ``params``:
+        ``p_base + B p_dependent`` (the true values a fit of the base set should recover)."""
+        pb = np.array([params.get(k, 0.0) for k in self.base])
+        pd = np.array([params.get(k, 0.0) for k in self.dependent])
+        return pb + (self.regroup @ pd if len(pd) else 0.0)
+
+
+def _term(coef: float, name: str) -> str:
+    sign = "-" if coef < 0 else "+"
+    mag = abs(coef)
+    return f" {sign} {name}" if abs(mag - 1.0) < 1e-6 else f" {sign} {mag:.4g} {name}"
+
+
+def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = None,
+                    rank_tol: float = RANK_TOL) -> BaseSet:
+    """Base-parameter reduction of a Jacobian by QR with column pivoting (module docstring).
+
+    Parameters
+    ----------
+    J : (m, P) whitened Jacobian (residual units: noise sigmas) per parameter unit.
+    keys : the P parameter names.
+    scale : (P,) typical size of each parameter (its prior), so columns of mixed units compare; default 1.
+    rank_tol : relative threshold on ``|R_ii|`` (of column-normalised, scaled columns).
+
+    Example
+    -------
+    >>> J = np.array([[1.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0]])
+    >>> b = base_parameters(J, ["a", "b", "c"])
+    >>> b.rank, b.combinations[b.base[0]] in ("a + b", "b + a")
+    (2, True)
+    """
+    J = np.asarray(J, float)
+    P = J.shape[1]
+    scale = np.ones(P) if scale is None else np.asarray(scale, float)
+    Js = J * scale
+    norms = np.linalg.norm(Js, axis=0)
+    zero = norms <= rank_tol * 1e-3 * max(float(norms.max(initial=0.0)), 1e-300)   # numerically no effect
+    Jn = Js / np.where(zero, 1.0, norms)
+    _, R, piv = scipy.linalg.qr(Jn, mode="economic", pivoting=True)
+    d = np.abs(np.diag(R))
+    r = int(np.sum(d > rank_tol * d[0])) if d.size and d[0] > 0 else 0
+    base_idx, dep_idx = piv[:r], piv[r:]
+    beta = scipy.linalg.solve_triangular(R[:r, :r], R[:r, r:]) if r and len(dep_idx) else np.zeros((r, len(dep_idx)))
+    # Back to parameter units: Jn_dep = Jn_base beta  ->  J_dep = J_base B,  B_ij = beta_ij (n_j / s_j) (s_i / n_i)
+    nb = np.where(zero, 1.0, norms)
+    B = beta * (scale[base_idx] / nb[base_idx])[:, None] * (nb[dep_idx] / scale[dep_idx])[None, :]
+    B[:, zero[dep_idx]] = 0.0
+    base = [keys[i] for i in base_idx]
+    dep = [keys[i] for i in dep_idx]
+    combos = {}
+    for i, k in enumerate(base):
+        # relative size of each term in prior units: skip negligible ones
+        w = np.abs(B[i]) * scale[dep_idx] / scale[base_idx[i]]
+        order = np.argsort(-w)
+        combos[k] = k + "".join(_term(B[i, j], dep[j]) for j in order if w[j] > 1e-6)
+    unid = []
+    for j, k in enumerate(dep):
+        if zero[dep_idx[j]]:
+            unid.append(f"{k} (no effect on the targets)")
+            continue
+        w = np.abs(B[:, j]) * scale[base_idx] / scale[dep_idx[j]]
+        order = np.argsort(-w)
+        terms = "".join(_term(-B[i, j], base[i]) for i in order if w[i] > 1e-6)
+        unid.append(f"{k}{terms} (seen only through the base parameters)")
+    sv = np.linalg.svd(Jn[:, base_idx], compute_uv=False) if r else np.zeros(0)
+    cond = float(sv[0] / sv[-1]) if r and sv[-1] > 0 else np.inf
+    return BaseSet(keys=list(keys), base=base, dependent=dep, regroup=B, combinations=combos,
+                   unidentifiable=unid, rank=r, condition_number=cond, diag_r=d)
+
+
+@dataclass
+class ChainIdentResult:
+    """Outcome of :func:`identify_chain` (cf. ``scipy.optimize.OptimizeResult``).
+
+    Attributes
+    ----------
+    params : every considered key -> identified value (mm / deg): the base parameters' values, 0 for the
+        dependent ones (absorbed into the base values). Pass it to the model to predict or compensate.
+    base : the identified base parameters, in the order of ``x``, ``covariance``, ``std``.
+    units : unit of each base parameter (``"mm"`` / ``"deg"``).
+    x : (len(base),) identified values.
+    covariance : posterior covariance of ``x`` (data and Tikhonov prior), unit^2.
+    std : base key -> sqrt of the covariance diagonal.
+    crlb : base key -> Cramér-Rao standard deviation from the data alone (no prior); inf if not determined.
+    combinations : base key -> the combination of errors its value estimates, in words.
+    unidentifiable : the directions the data cannot see, in words (one per dependent parameter).
+    weak : base keys whose CRLB exceeds their prior size (the prior, not the data, sets them).
+    rank, condition_number : of the base Jacobian (whitened, prior-scaled, column-normalised).
+    chi2, dof, chi2_per_dof : whitened residual sum of squares at the solution, its degrees of freedom
+        (target coordinates minus effective parameters), their ratio (about 1 when the model fits to noise).
+    residual_rms_mm : RMS target residual, mm.
+    sigma_mm : the tracker noise used, mm.
+    n_poses : poses used (finite commands and targets).
+    success, message, nfev, wall_time : from the solver.
+    basis : the :class:`BaseSet` (regrouping matrix included).
+    solver : the underlying :class:`pmcal.calib.solvers.result.IdentResult`.
+    """
+
+    params: dict[str, float]
+    base: list[str]
+    units: list[str]
+    x: np.ndarray
+    covariance: np.ndarray
+    std: dict[str, float]
+    crlb: dict[str, float]
+    combinations: dict[str, str]
+    unidentifiable: list[str]
+    weak: list[str]
+    rank: int
+    condition_number: float
+    chi2: float
+    dof: float
+    chi2_per_dof: float
+    residual_rms_mm: float
+    sigma_mm: float
+    n_poses: int
+    success: bool
+    message: str
+    nfev: int
+    wall_time: float
+    basis: BaseSet
+    solver: IdentResult | None = None
+    info: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """JSON-friendly digest (parameters, uncertainties, identifiability, fit quality)."""
+        return {"params": self.params, "base": self.base, "units": self.units,
+                "std": self.std, "crlb": self.crlb, "combinations": self.combinations,
+                "unidentifiable": self.unidentifiable, "weak": self.weak, "rank": self.rank,
+                "condition_number": self.condition_number, "chi2_per_dof": self.chi2_per_dof,
+                "residual_rms_mm": self.residual_rms_mm, "sigma_mm": self.sigma_mm, "n_poses": self.n_poses,
+                "success": self.success, "message": self.message}
+
+
+def _valid(commands: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    return np.isfinite(commands).all(axis=1) & np.isfinite(targets).all(axis=(1, 2))
+
+
+def _flat_jacobian(model: ChainModel, commands, params, keys) -> np.ndarray:
+    J = model.jacobian(commands, params, keys)
+    return J.reshape(-1, len(keys))
+
+
+@blas_policy()
+def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None = None,
+                   keys: list[str] | None = None, *, prior: bool = True, rank_tol: float = RANK_TOL,
+                   max_nfev: int | None = 100) -> ChainIdentResult:
+    """Identify the geometric errors of a closed-chain machine from tracker measurements.
+
+    Parameters
+    ----------
+    model : the machine (:class:`~pmcal.calib.chain_model.ChainModel`).
+    commands : (N, M) motor commands of the campaign, deg / mm.
+    targets : (N, K, 3) measured nest positions, mm, base frame.
+    sigma_mm : tracker noise (1 sigma per coordinate), mm; default the model's ``sigma_mm``.
+    keys : the errors to consider (default every ``model.error_keys``); reduced to the base set.
+    prior : add the Tikhonov prior (module docstring); False: plain LM on the base set.
+    rank_tol : relative QR threshold of the base-set reduction (:func:`base_parameters`).
+    max_nfev : LM evaluation limit.
+
+    Runs under pmcal's BLAS thread policy (:func:`pmcal.threads.blas_policy`: one thread unless
+    ``PMCAL_BLAS_THREADS`` says otherwise; threads spinning on these small matrices cost 10-100x).
+
+    Returns
+    -------
+    ChainIdentResult
+
+    Raises
+    ------
+    ValueError
+        Shapes that do not match the model, or fewer valid poses than base parameters.
+    """
+    t0 = time.perf_counter()
+    commands = np.atleast_2d(np.asarray(commands, float))
+    targets = np.asarray(targets, float)
+    if targets.ndim != 3 or targets.shape[0] != commands.shape[0] or targets.shape[2] != 3:
+        raise ValueError(f"targets must be (N, K, 3) with N = {commands.shape[0]} poses, got {targets.shape}")
+    sigma = float(model.sigma_mm if sigma_mm is None else sigma_mm)
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma_mm must be positive, got {sigma_mm}")
+    ok = _valid(commands, targets)
+    commands, targets = commands[ok], targets[ok]
+    keys = list(keys or model.error_keys)
+    scale = model.prior_std(keys)
+    J0 = _flat_jacobian(model, commands, None, keys)
+    if not np.isfinite(J0).all():
+        bad = np.flatnonzero(~np.isfinite(J0.reshape(len(commands), -1)).all(axis=1))
+        raise ValueError(f"the nominal machine cannot assemble {len(bad)} measured pose(s) (rows "
+                         f"{', '.join(str(i + 1) for i in bad[:5])}): are they inside the workspace?")
+    basis = base_parameters(J0 / sigma, keys, scale, rank_tol)
+    base = basis.base
+    units = model.error_units(base)
+    sb = model.prior_std(base)
+    y = targets.reshape(-1)
+    if y.size < len(base):
+        raise ValueError(f"{len(commands)} poses give {y.size} coordinates for {len(base)} base parameters")
+
+    def params_of(x: np.ndarray) -> dict[str, float]:
+        return dict(zip(base, map(float, x)))
+
+    memo: dict[bytes, np.ndarray] = {}                 # the Jacobian at the last points asked (LM, result)
+
+    def fun(X: np.ndarray) -> np.ndarray:
+        return np.stack([y - model.targets(commands, params_of(x)).reshape(-1) for x in X])
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        key = np.asarray(x, float).tobytes()
+        if key not in memo:
+            memo.clear()
+            memo[key] = -_flat_jacobian(model, commands, params_of(x), base)
+        return memo[key]
+
+    problem = box_problem(fun, base, units, half_width=50.0 * sb, sigma=sigma, jac=jac, scale=sb,
+                          info={"residual_unit": "mm"})
+    work = problem.with_prior(sb) if prior else problem
+    sol = lm(work, max_nfev=max_nfev)
+    x = np.array([dict(zip(sol.names, sol.x))[k] for k in base])
+    Jb = -jac(x) / sigma
+    resid = sol.residuals if len(sol.residuals) == y.size else fun(x[None])[0]
+    info_data = Jb.T @ Jb
+    prec = info_data + (np.diag(1.0 / sb**2) if prior else 0.0)
+    cov = np.linalg.pinv(prec)
+    p_eff = float(np.trace(cov @ info_data))
+    fisher = np.linalg.pinv(info_data)
+    crlb_std = np.sqrt(np.clip(np.diag(fisher), 0.0, None))
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    chi2 = float(np.sum((resid / sigma) ** 2))
+    dof = max(y.size - p_eff, 1.0)
+    params = {k: 0.0 for k in keys}
+    params.update(params_of(x))
+    return ChainIdentResult(
+        params=params, base=list(base), units=units, x=x, covariance=cov, std=dict(zip(base, map(float, std))),
+        crlb=dict(zip(base, map(float, crlb_std))), combinations=basis.combinations,
+        unidentifiable=basis.unidentifiable, weak=[k for k, c, s in zip(base, crlb_std, sb) if c > s],
+        rank=basis.rank, condition_number=basis.condition_number, chi2=chi2, dof=dof, chi2_per_dof=chi2 / dof,
+        residual_rms_mm=float(np.sqrt(np.mean(resid**2))), sigma_mm=sigma, n_poses=int(len(commands)),
+        success=bool(sol.success), message=str(sol.message), nfev=int(sol.n_eval),
+        wall_time=time.perf_counter() - t0, basis=basis, solver=sol,
+        info={"effective_parameters": p_eff, "prior_std": dict(zip(base, map(float, sb)))})
+
+
+def crlb(model: ChainModel, commands, params: Mapping[str, float] | None, keys: list[str],
+         sigma: float | None = None) -> np.ndarray:
+    """Cramér-Rao standard deviations (len(keys),) of ``keys`` (their units) from a campaign at ``commands``
+    (N, M) on the machine with errors ``params``, tracker noise ``sigma`` mm (default the model's):
+    ``sqrt(diag(sigma^2 (J^T J)^-1))``; inf for keys the campaign does not determine (pass a base set)."""
+    sigma = float(model.sigma_mm if sigma is None else sigma)
+    J = _flat_jacobian(model, np.atleast_2d(commands), params, list(keys))
+    J = J[np.isfinite(J).all(axis=1)] / sigma
+    F = J.T @ J
+    try:
+        cov = np.linalg.inv(F)
+    except np.linalg.LinAlgError:
+        return np.full(len(keys), np.inf)
+    d = np.diag(cov)
+    return np.where(d > 0, np.sqrt(np.abs(d)), np.inf)
+
+
+def compensate_targets(model: ChainModel, params: Mapping[str, float] | None, task) -> np.ndarray:
+    """Commands (N, M) (deg / mm) that put the task site of the machine with the identified errors
+    ``params`` at the task coordinates ``task`` (N, C); NaN rows where out of reach or outside a motor's
+    range (the model's inverse kinematics)."""
+    return model.inverse(np.atleast_2d(np.asarray(task, float)), params)

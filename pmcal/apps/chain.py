@@ -1,0 +1,82 @@
+"""Application of a machine described by a folder (``--machine DIR``, or a built-in name of a
+``kind = "chain"`` folder): its command-line wording and defaults from its machine.toml, and the routing of
+its commands (``twin measure``, ``identify``, ``targets``, ``compensate``, ``evaluate``) to
+:mod:`pmcal.apps.chain_commands`, imported on first use like :mod:`pmcal.apps.ocpm`'s: building the parser
+(``--help``) needs only this module, a command imports the twin and SciPy.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from pmcal.commands.options import ABSENT
+from pmcal.io_chain import setpoint_columns
+
+#: options of the seeded machines' commands that a machine folder does not have (argparse refuses them)
+_NOT_HERE = {
+    "twin measure": ("--preset", "--servo-noise", "--theta-max", "--no-random-approach", "--effect",
+                     "--payload", "--temperature", "--shuffle", "--tracker-pose", "--nest-error", "--blocked",
+                     "--outliers", "--stiffness-ratio"),
+    "twin render": ("--preset", "--stiffness-ratio"),
+    "identify": ("--model", "--method", "--seed", "--allow-rank-deficient", "--frame", "--nest-tolerance",
+                 "--robust"),
+    "targets": ("--theta-max",),
+    "diagnose": ("--model", "--frame", "--nest-tolerance"),
+}
+#: choices of ``twin measure --errors`` besides a parameters file
+ERROR_CHOICES = ("random", "none")
+#: defaults of the commands
+DEFAULT_POSES = 48
+
+
+def command_defaults(machine) -> dict:
+    """Defaults of the commands for ``machine`` (:attr:`pmcal.machines.Machine.defaults`): campaign poses,
+    tracker noise (mm, from machine.toml), the twin's error set."""
+    return {"poses": DEFAULT_POSES, "sigma_mm": machine.spec.sigma_mm, "errors": "random"}
+
+
+def option_help(machine) -> dict:
+    """The command line's wording for ``machine`` (:mod:`pmcal.commands.options`): its columns, units and
+    defaults from its machine.toml; the seeded machines' options it does not have left out."""
+    spec = machine.spec
+    task = ", ".join(spec.task.coordinates)
+    motors = ", ".join(setpoint_columns(spec))
+    table = {(cmd, opt): ABSENT for cmd, opts in _NOT_HERE.items() for opt in opts}
+    sigma = f"{spec.sigma_mm:g} mm from machine.toml [tracker] sigma_mm"
+    table.update({
+        ("twin measure", "--errors"): {
+            "metavar": "random|none|PARAMS.json",
+            "help": "error set of the virtual machine: random (default; each error drawn with the size "
+                    "machine.toml [errors] gives, from --seed), none, or a parameters file (docs/formats.md)"},
+        ("twin measure", "--poses"): f"number of poses, commands drawn over the workspace (default "
+                                     f"{DEFAULT_POSES})",
+        ("twin measure", "--targets"): f"explicit targets ({task}) instead of drawn poses",
+        ("twin measure", "--noise"): f"tracker noise, standard deviation per coordinate, mm (default {sigma})",
+        ("twin measure", "--seed"): "random seed (errors, poses, noise)",
+        ("twin measure", "--seconds-per-pose"): "time between poses, s (time_s column; default 30)",
+        ("identify", "--sigma"): f"tracker noise, mm (default {sigma})",
+        ("identify", "-o"): "parameters file to write (values, uncertainty, identifiable set: docs/formats.md)",
+        ("targets", ""): f"write a targets CSV: {task} spread over the workspace of machine.toml",
+        ("targets", "--seed"): "random seed of the sample (default 1)",
+        ("compensate", ""): f"corrected motor commands for targets ({task})",
+        ("compensate", "--targets"): f"targets CSV: {task} ('pmcal --machine {spec.name} targets' writes one)",
+        ("compensate", "-o"): f"setpoints CSV to write: the targets with {motors} appended",
+        ("compensate", "--table"): "compensation table: not available for a machine folder yet (offline "
+                                   "compensation of target lists: --targets, -o)",
+        ("compensate", "--grid"): "table grid (not available for a machine folder yet)",
+        ("compensate", "--table-version"): "table version (not available for a machine folder yet)",
+        ("evaluate", ""): "position error of a parameter set against a measurement file (RMS, mm)",
+    })
+    table.update({(cmd, ""): "not available for a machine folder (the seeded machines' command)"
+                  for cmd in ("demo", "diagnose", "loop", "twin plan", "twin render")})
+    return table
+
+
+#: the commands, implemented in :mod:`pmcal.apps.chain_commands` (a function of the same name each)
+COMMANDS = ("twin_measure", "identify", "targets", "compensate", "evaluate")
+
+
+def __getattr__(name: str):
+    if name not in COMMANDS:
+        raise AttributeError(name)
+    return getattr(importlib.import_module("pmcal.apps.chain_commands"), name)

@@ -1,0 +1,185 @@
+"""The commands of a machine folder (routed from :mod:`pmcal.apps.chain`): ``twin measure``, ``identify``,
+``targets``, ``compensate``, ``evaluate``. Thin handlers over :mod:`pmcal.chain`; files in
+:mod:`pmcal.io_chain` (docs/formats.md, "Any machine"). Units: mm and degrees.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pmcal import progress
+from pmcal.apps import error_stats
+from pmcal.apps.chain import ERROR_CHOICES, command_defaults
+from pmcal.chain import (campaign, check_assembles, compensate as commands_for, identify as run_identification,
+                         params_document, residuals, sample_targets)
+from pmcal.csvio import LONG_POSES
+from pmcal.errors import InputError
+from pmcal.fileio import write_json
+from pmcal.io_chain import (read_measurements, read_params, read_targets, write_measurements, write_setpoints,
+                            write_targets)
+
+
+def _machine(args):
+    return args.selected_machine
+
+
+def _sigma(value: float | None, option: str) -> float | None:
+    if value is not None and not (np.isfinite(value) and value >= 0):
+        raise InputError(f"noise must be a non-negative number of mm, got {value}", field=option)
+    return value
+
+
+def _error_set(machine, text: str | None):
+    """``--errors``: random (default), none, or a parameters file of this machine."""
+    if text is None or text in ERROR_CHOICES:
+        return text or "random"
+    if not Path(text).is_file():
+        raise InputError(f"'{text}' is neither {' nor '.join(ERROR_CHOICES)} nor a parameters file",
+                         field="--errors")
+    params, _ = read_params(text, machine.spec, _units(machine))
+    return params
+
+
+def _units(machine) -> dict[str, str]:
+    twin = machine.twin
+    return dict(zip(twin.error_keys, twin.error_units()))
+
+
+def twin_measure(args) -> int:
+    """``pmcal --machine DIR twin measure --poses N --seed S -o MEAS.csv``: a virtual campaign on the twin
+    with random geometric errors (or ``--errors``) and the tracker noise of machine.toml (or ``--noise``)."""
+    machine = _machine(args)
+    if args.poses is not None and not 1 <= args.poses <= 2000:
+        raise InputError(f"number of poses must be 1..2000, got {args.poses}", field="--poses")
+    if not (np.isfinite(args.seconds_per_pose) and args.seconds_per_pose >= 0):
+        raise InputError(f"seconds per pose must be >= 0, got {args.seconds_per_pose}", field="--seconds-per-pose")
+    sigma = _sigma(args.noise, "--noise")
+    task = read_targets(args.targets, machine.spec) if args.targets else None
+    errors = _error_set(machine, args.errors)
+    poses = args.poses or command_defaults(machine)["poses"]
+    progress.status(f"measuring {len(task) if task is not None else poses} poses on the twin of {machine.name}")
+    meas, truth = campaign(machine, poses, seed=args.seed, errors=errors, sigma_mm=sigma, task=task,
+                           seconds_per_pose=args.seconds_per_pose, source=args.targets)
+    what = args.errors if isinstance(errors, dict) else errors
+    comments = [f"pmcal twin measure: machine {machine.name}, errors: {what}, poses {len(meas)}, tracker sigma "
+                f"{machine.twin.sigma_mm if sigma is None else sigma:g} mm, seed {args.seed}"]
+    if truth:
+        comments.append("true errors (mm, deg): " + ", ".join(f"{k}={v:.6g}" for k, v in truth.items()))
+    write_measurements(args.output, machine.spec, meas, comments)
+    return 0
+
+
+def identify(args) -> int:
+    """``pmcal --machine DIR identify MEAS.csv -o PARAMS.json [--sigma MM]``: the geometric errors the
+    campaign determines (base set), their uncertainty and what the data cannot see."""
+    machine = _machine(args)
+    sigma = _sigma(args.sigma, "--sigma")
+    if sigma == 0:
+        raise InputError("tracker noise must be positive", field="--sigma")
+    meas = read_measurements(args.measurements, machine.spec)
+    progress.set_long(len(meas) > LONG_POSES)
+    progress.status(f"identifying {len(machine.twin.error_keys)} errors of {machine.name} from {len(meas)} poses")
+    partial = [pid for pid, row in zip(meas.pose_id, meas.targets) if np.isnan(row).any()]
+    res = run_identification(machine, meas, sigma)
+    if partial:
+        progress.warning(f"{len(partial)} pose(s) with a blocked target left out ({', '.join(partial[:3])}"
+                         f"{', ...' if len(partial) > 3 else ''}): identification uses the poses with every "
+                         "target measured")
+    write_json(args.output, params_document(machine, res, str(args.measurements)))
+    print(f"{res.rank} of {len(res.params)} errors identifiable (base set), {len(res.weak)} weak; residual "
+          f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}")
+    for line in identify_warnings(res, len(meas)):
+        progress.warning(line)
+    return 0
+
+
+#: chi2 per degree of freedom above which the model does not explain the data down to the tracker noise
+CHI2_WARN = 2.0
+
+
+def identify_warnings(res, n_poses: int) -> list[str]:
+    """What a user must know about an identification that still succeeded (docs/ADDING_A_MACHINE.md,
+    "When fewer errors are identifiable than expected")."""
+    out = []
+    if not res.success:
+        out.append(f"the fit did not converge: {res.message}")
+    if res.weak:
+        out.append(f"{len(res.weak)} of the {res.rank} identifiable errors are set by the prior, not by the "
+                   f"{n_poses} poses ({', '.join(res.weak[:3])}{', ...' if len(res.weak) > 3 else ''}): measure "
+                   "more poses spread over the workspace")
+    if res.chi2_per_dof > CHI2_WARN:
+        out.append(f"the model leaves {res.residual_rms_mm:.4f} mm rms (chi2/dof {res.chi2_per_dof:.1f}, "
+                   f"{res.sigma_mm:g} mm tracker noise): an error frame missing from [errors], a wrong "
+                   "sigma_mm, or an effect the geometry does not hold")
+    return out
+
+
+def targets(args) -> int:
+    """``pmcal --machine DIR targets -o TARGETS.csv``: ``--count`` targets over the workspace of machine.toml."""
+    machine = _machine(args)
+    if not 1 <= args.count <= 100_000:
+        raise InputError(f"count must be 1..100000, got {args.count}", field="--count")
+    task = sample_targets(machine, args.count, args.seed)
+    write_targets(args.output, machine.spec, task,
+                  [f"pmcal targets: machine {machine.name}, {args.count} targets over the workspace of "
+                   f"machine.toml, seed {args.seed}"])
+    return 0
+
+
+def compensate(args) -> int:
+    """``pmcal --machine DIR compensate PARAMS.json --targets TARGETS.csv -o SETPOINTS.csv``: offline
+    compensation of a target list (the identified machine's inverse kinematics)."""
+    machine = _machine(args)
+    if getattr(args, "table", None) or getattr(args, "grid", None) or getattr(args, "table_version", None):
+        raise InputError(table_refusal(machine), field="--table")
+    if not args.targets or not args.output:
+        raise InputError(f"machine {machine.name} needs --targets TARGETS.csv and -o SETPOINTS.csv",
+                         field="--targets" if not args.targets else "-o")
+    params, _ = read_params(args.params, machine.spec, _units(machine))
+    task = read_targets(args.targets, machine.spec)
+    progress.status(f"compensating {len(task)} targets")
+    commands = commands_for(machine, params, task, args.targets)
+    write_setpoints(args.output, machine.spec, task, commands,
+                    [f"pmcal compensate: machine {machine.name}, parameters {args.params}"])
+    return 0
+
+
+def evaluate(args) -> int:
+    """``pmcal --machine DIR evaluate PARAMS.json MEAS.csv [--json OUT.json]``: how far the measured targets
+    are from where the machine with those parameters puts them (mm)."""
+    machine = _machine(args)
+    params, _ = read_params(args.params, machine.spec, _units(machine))
+    meas = read_measurements(args.measurements, machine.spec)
+    check_assembles(machine, meas)
+    d = residuals(machine, params, meas)
+    stats = error_stats(d)
+    print(f"target position error over {len(meas)} poses: rms {stats['rms']:.4f} mm, max {stats['max']:.4f} mm")
+    if args.json:
+        per_pose = [{"pose_id": pid, "position_error_mm": [None if np.isnan(v) else float(v) for v in row]}
+                    for pid, row in zip(meas.pose_id, d)]
+        write_json(args.json, {"mechanism": machine.name, "params_file": str(args.params),
+                               "measurements": str(args.measurements), "unit": "mm", "n_poses": len(meas),
+                               "position_error_mm": stats, "per_pose": per_pose})
+    return 0
+
+
+#: most axes a compensation table holds
+TABLE_AXES_MAX = 3
+
+
+def table_refusal(machine) -> str:
+    """Why ``compensate --table`` is refused for a machine folder, and what it gets instead."""
+    axes, coords = machine.spec.table_axes, machine.spec.task.coordinates
+    if len(coords) > TABLE_AXES_MAX:
+        why = (f"its {len(coords)} task coordinates ({', '.join(coords)}) are more than a compensation table "
+               f"holds ({TABLE_AXES_MAX} axes at most)")
+    elif not axes:
+        why = "machine.toml names no [table] axes"
+    elif len(axes) < len(coords):
+        why = f"the [table] axes ({', '.join(axes)}) cover {len(axes)} of its {len(coords)} task coordinates"
+    else:
+        why = "compensation tables of a machine folder are not supported by the PLC bridge yet"
+    return (f"no compensation table for machine {machine.name}: {why}; this machine gets offline compensation "
+            f"of target lists: compensate PARAMS.json --targets TARGETS.csv -o SETPOINTS.csv")

@@ -1,0 +1,206 @@
+"""The whole job on a machine described by a folder, as library functions: a virtual measurement campaign on
+its twin, identification to a parameters document, targets spread over its workspace, compensation of a
+target list. The command line (:mod:`pmcal.apps.chain`) is a thin layer over these.
+
+Units: commands deg (revolute) / mm (prismatic), targets and task positions mm (base frame), angles deg.
+Errors are ``{key: value}`` in each key's unit (``machine.twin.error_units``); an absent key is nominal.
+
+Example
+-------
+>>> from pmcal.machines import Machine
+>>> m = Machine.builtin("delta_3dof")                                  # doctest: +SKIP
+>>> meas, truth = campaign(m, 48, seed=3)                               # doctest: +SKIP
+>>> res = identify(m, meas)                                             # doctest: +SKIP
+>>> task = sample_targets(m, 12, seed=1)                                # doctest: +SKIP
+>>> commands = compensate(m, res.params, task)                          # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from pmcal import progress
+from pmcal.calib.closed_chain import compensate_targets, identify_chain
+from pmcal.errors import InputError, RunError
+from pmcal.io_chain import UNIT_SLIPS, ChainMeasurements
+
+#: poses measured per step of the progress bar
+_CHUNK = 8
+
+
+def random_errors(machine, rng: np.random.Generator) -> dict[str, float]:
+    """One geometric error set of the machine's size: each error of ``machine.twin.error_keys`` drawn
+    normal with the prior size ``machine.toml [errors]`` gives it (mm / deg)."""
+    twin = machine.twin
+    return {k: float(v) for k, v in zip(twin.error_keys, rng.normal(0.0, twin.prior_std()))}
+
+
+def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, float] = "random",
+             sigma_mm: float | None = None, task: np.ndarray | None = None,
+             seconds_per_pose: float = 30.0, source: str | None = None) -> tuple[ChainMeasurements, dict[str, float]]:
+    """A virtual measurement campaign on the machine's twin.
+
+    Parameters
+    ----------
+    machine : :class:`pmcal.machines.Machine` (not a seeded one).
+    poses : number of poses; their commands are drawn over the workspace box of machine.toml (the nominal
+        machine's inverse kinematics, as a controller would), unless ``task`` is given.
+    seed : seed of the errors, the commands and the tracker noise, drawn in this order.
+    errors : ``"random"`` (:func:`random_errors`), ``"none"``, or an error set ``{key: value}``.
+    sigma_mm : tracker noise, 1 sigma per coordinate, mm (default machine.toml's).
+    task : (n, C) explicit targets in the machine's task coordinates instead of drawn poses.
+    seconds_per_pose : time between poses, s (the ``time_s`` column).
+    source : the file ``task`` came from (for messages).
+
+    Returns
+    -------
+    (measurements, truth) : the measured targets (mm, base frame) and the error set measured. A pose the
+    erroneous machine cannot assemble, or assembles on another branch than the nominal machine's (a target
+    more than :data:`PLAUSIBLE_TARGET_MM` from the nominal one), is replaced by a further draw.
+    """
+    twin = machine.twin
+    rng = np.random.default_rng(seed)
+    if isinstance(errors, str):
+        truth = random_errors(machine, rng) if errors == "random" else {}
+    else:
+        truth = dict(errors)
+    sigma = twin.sigma_mm if sigma_mm is None else float(sigma_mm)
+    if task is not None:
+        commands = twin.inverse(task, None)
+        bad = np.flatnonzero(~np.isfinite(commands).all(axis=1))
+        if bad.size:
+            raise InputError("target out of reach of the nominal machine", file=source, row=int(bad[0]) + 1,
+                             field=machine.spec.task.coordinates[0])
+    else:
+        commands = twin.sample_commands(poses, rng)
+
+    def measured(cmd):
+        """The rows of ``cmd`` the erroneous machine assembles on the nominal one's branch, and their
+        readings."""
+        y = twin.measure(cmd, truth, rng, sigma)
+        ok = (distance_from_nominal(machine, cmd, y) <= PLAUSIBLE_TARGET_MM).all(axis=1)
+        return cmd[ok], y[ok]
+
+    got, wanted = [], len(commands)
+    with progress.progress(total=len(commands), desc="measuring", unit="pose") as bar:
+        for start in range(0, len(commands), _CHUNK):
+            got.append(measured(commands[start:start + _CHUNK]))
+            bar.update(min(_CHUNK, wanted - start))
+    commands, y = (np.concatenate(v) for v in zip(*got))
+    short = wanted - len(commands)
+    if short and task is not None:
+        raise RunError(f"{short} of the targets cannot be assembled on the erroneous machine (on the nominal "
+                       "machine's branch)")
+    for _ in range(20):
+        if short <= 0:
+            break
+        cmd, more = measured(twin.sample_commands(short, rng))
+        commands, y = np.concatenate([commands, cmd]), np.concatenate([y, more])
+        short -= len(cmd)
+    if short > 0:
+        raise RunError(f"the erroneous machine assembles too few of the drawn poses ({short} missing)")
+    n = len(commands)
+    meas = ChainMeasurements(pose_id=[f"P{i + 1}" for i in range(n)], commands=commands, targets=y,
+                             time_s=np.arange(n) * float(seconds_per_pose))
+    return meas, truth
+
+
+#: largest plausible distance (mm) between a measured target and where the nominal machine puts it:
+#: geometric errors move targets by millimetres; beyond this a unit mix-up, a mislabelled row or an
+#: assembly on another branch of the chain is likelier
+PLAUSIBLE_TARGET_MM = 50.0
+
+
+def distance_from_nominal(machine, commands: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """Distance (n, K) mm of measured ``targets`` from the nominal machine's at ``commands``; inf for a row
+    the nominal chain cannot assemble, NaN for a blocked target."""
+    y0 = machine.twin.targets(commands)
+    d = np.linalg.norm(targets - y0, axis=2)
+    d[~np.isfinite(y0).all(axis=(1, 2))] = np.inf
+    return d
+
+
+def check_assembles(machine, meas: ChainMeasurements, limit_mm: float = PLAUSIBLE_TARGET_MM) -> None:
+    """Catch a wrong unit or a mislabelled row before identifying: every row's commands assemble the
+    nominal chain, every measured target is within ``limit_mm`` of where the nominal machine puts it.
+    An :class:`InputError` names file, row and field."""
+    d = distance_from_nominal(machine, meas.commands, meas.targets)
+    for i in np.flatnonzero(np.isinf(d).any(axis=1)):
+        raise InputError("the nominal machine cannot assemble at these commands (wrong machine or units?)",
+                         file=meas.path, row=int(i) + 1, field=machine.spec.motor_columns[0])
+    bad = np.argwhere(d > limit_mm)
+    if bad.size:
+        i, k = (int(v) for v in bad[0])
+        y = meas.targets[i, k]
+        scale = np.linalg.norm(y) / max(np.linalg.norm(y) + d[i, k], 1e-9)
+        hint = " (values look like metres: the file must be in mm)" if scale < 2e-3 else ""
+        slips = np.array([UNIT_SLIPS[m.unit][0] for m in machine.spec.motors])
+        if not hint and np.all(distance_from_nominal(machine, meas.commands[i:i + 1] * slips,
+                                                     meas.targets[i:i + 1]) <= limit_mm):
+            hint = " (the commands look like radians or metres: the file must be in degrees and mm)"
+        raise InputError(f"target t{k + 1} is {d[i, k]:.4g} mm from where the nominal machine puts it (limit "
+                         f"{limit_mm:g} mm){hint}", file=meas.path, row=i + 1, field=f"t{k + 1}_x")
+
+
+def identify(machine, meas: ChainMeasurements, sigma_mm: float | None = None):
+    """Identify the machine's geometric errors from a measurement campaign: the base set the campaign
+    determines, by Levenberg-Marquardt with the Tikhonov prior of machine.toml
+    (:func:`pmcal.calib.closed_chain.identify_chain`). Checks first that the file is plausible for the
+    machine (:func:`check_assembles`). Returns the :class:`~pmcal.calib.closed_chain.ChainIdentResult`."""
+    check_assembles(machine, meas)
+    try:
+        return identify_chain(machine.twin, meas.commands, meas.targets, sigma_mm)
+    except ValueError as exc:            # too few poses for the base set, poses the machine cannot assemble
+        raise InputError(str(exc), file=meas.path) from None
+
+
+def params_document(machine, result, source: str | None = None) -> dict:
+    """The parameters JSON of an identification (docs/formats.md, "Any machine"): ``params`` every error
+    considered (mm / deg; the base parameters' values, 0 for those absorbed into them), ``units``, the base
+    parameters (``identifiable``), their ``uncertainty`` (1 sigma, posterior), ``covariance`` (posterior, in
+    the order of ``identifiable``) and ``crlb`` (data alone), what each base value
+    estimates (``combinations``), what the data cannot see (``unidentifiable``), ``weak`` ones, fit
+    quality."""
+    units = dict(zip(machine.twin.error_keys, machine.twin.error_units()))
+    return {
+        "mechanism": machine.name, "model": "closed_chain", "method": "lm+tikhonov",
+        "units": {k: units[k] for k in result.params},
+        "params": {k: float(v) for k, v in result.params.items()},
+        "identifiable": list(result.base), "uncertainty": dict(result.std),
+        "covariance": np.asarray(result.covariance, float).tolist(), "crlb": dict(result.crlb),
+        "combinations": dict(result.combinations), "unidentifiable": list(result.unidentifiable),
+        "weak": list(result.weak), "rank": int(result.rank), "n_errors": len(result.params),
+        "condition_number": float(result.condition_number), "chi2_per_dof": float(result.chi2_per_dof),
+        "residual_rms_mm": float(result.residual_rms_mm), "sigma_mm": float(result.sigma_mm),
+        "n_poses": int(result.n_poses), "source": source, "success": bool(result.success),
+        "message": result.message,
+    }
+
+
+def residuals(machine, params: Mapping[str, float] | None, meas: ChainMeasurements) -> np.ndarray:
+    """Distance (n, K) mm between each measured target and where the machine with errors ``params`` puts it
+    at the row's commands (NaN for a blocked target or a row it cannot assemble)."""
+    return np.linalg.norm(meas.targets - machine.twin.targets(meas.commands, params), axis=2)
+
+
+def sample_targets(machine, count: int, seed: int = 1) -> np.ndarray:
+    """``count`` targets (count, C) in the machine's task coordinates, drawn uniformly over the workspace
+    box of machine.toml and kept where the nominal machine reaches them within its motor ranges."""
+    twin = machine.twin
+    rng = np.random.default_rng(seed)
+    commands = twin.sample_commands(count, rng)
+    return twin.forward(commands)
+
+
+def compensate(machine, params: Mapping[str, float], task: np.ndarray, path: str | None = None) -> np.ndarray:
+    """Motor commands (n, M) that put the task site of the machine with errors ``params`` at ``task`` (n, C):
+    its inverse kinematics with the identified errors. A target it cannot reach is an :class:`InputError`
+    naming the row of ``path`` and the reason."""
+    commands = compensate_targets(machine.twin, dict(params), task)
+    for i in np.flatnonzero(~np.isfinite(commands).all(axis=1)):
+        _, why = machine.twin.inverse_report(task[i:i + 1], dict(params))
+        raise InputError(f"not reachable by the identified machine: {why[0]}", file=path, row=int(i) + 1,
+                         field=machine.spec.task.coordinates[0])
+    return commands

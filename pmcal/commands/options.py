@@ -1,0 +1,104 @@
+"""The subcommands' parsers built for one machine, from data, through argparse's public API only.
+
+Each command module's ``register(commands)`` adds its parsers with :meth:`CommandSet.add_parser` and
+their options with :meth:`Command.add_argument`, exactly as with argparse, giving the generic help
+text. The selected machine's application module supplies a table of help texts (``option_help``,
+see :mod:`pmcal.machines`): ``(command, option) -> text`` rewords an option for that machine,
+``-> HIDDEN`` keeps it accepted but out of ``--help``, ``-> ABSENT`` leaves it out (argparse then
+refuses it as an unrecognised argument), ``-> {"help": ..., "metavar": ...}`` changes further keywords of
+``add_argument``. ``command`` is the full command name (``"twin measure"``),
+``option`` any of the option's flags (``"-o"`` or ``"--output"``) or a positional's name; the key
+``(command, "")`` rewords the command's own one-line help.
+
+Example::
+
+    commands = CommandSet(parser.add_subparsers(dest="command"), table={("identify", "--sigma"): HIDDEN})
+    p = commands.add_parser("identify", help="calibrate")
+    p.add_argument("--sigma", type=float, help="tracker noise, mm")    # accepted, not listed
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Mapping
+
+#: table value: the option is accepted but not listed in ``--help``
+HIDDEN = None
+#: table value: the option does not exist for this machine
+ABSENT = "<absent>"
+
+HelpTable = Mapping[tuple[str, str], "str | dict | None"]
+
+
+class Command:
+    """One (sub)command's parser: ``add_argument`` with the machine's wording; ``parser`` is the
+    :class:`argparse.ArgumentParser` itself, ``flags`` every option string added."""
+
+    def __init__(self, parser: argparse.ArgumentParser, name: str, owner: CommandSet, target=None,
+                 flags: set[str] | None = None):
+        self.parser, self.name, self.owner = parser, name, owner
+        self._target = parser if target is None else target
+        self.flags: set[str] = set() if flags is None else flags
+
+    def _text(self, keys, default: str | None):
+        table = self.owner.table
+        for key in keys:
+            if (self.name, key) in table:
+                return table[(self.name, key)]
+        return default
+
+    def add_argument(self, *flags: str, help: str, **kwargs):
+        """:meth:`argparse.ArgumentParser.add_argument` with the machine's help text; None when the option
+        is ABSENT for this machine."""
+        text = self._text(flags, help)
+        if isinstance(text, dict):           # wording and other keywords (metavar, ...)
+            kwargs = {**kwargs, **text}
+            text = kwargs.pop("help", help)
+        if text == ABSENT:
+            return None
+        self.flags.update(flags)
+        return self._target.add_argument(*flags, help=argparse.SUPPRESS if text is HIDDEN else text, **kwargs)
+
+    def add_mutually_exclusive_group(self, **kwargs) -> Command:
+        """A group whose options are added as this command's (same table, same ``flags``)."""
+        group = self._target.add_mutually_exclusive_group(**kwargs)
+        return Command(self.parser, self.name, self.owner, group, self.flags)
+
+    def add_subparsers(self, **kwargs) -> CommandSet:
+        """Sub-commands of this command (``twin measure``): a :class:`CommandSet` named after it."""
+        kwargs.setdefault("parser_class", argparse.ArgumentParser)
+        o = self.owner
+        return CommandSet(self.parser.add_subparsers(**kwargs), o.table, o.record, o.finish,
+                          prefix=f"{self.name} ", describe=o.describe)
+
+    def set_defaults(self, **kwargs) -> None:
+        self.parser.set_defaults(**kwargs)
+
+
+class CommandSet:
+    """The sub-commands of one parser level. ``record`` collects every command by full name
+    (``"twin measure"``) in order of creation; ``finish`` runs on each once all are registered."""
+
+    def __init__(self, action, table: HelpTable, record: dict[str, Command],
+                 finish: Callable[[Command], None] | None = None, prefix: str = "", describe: str = ""):
+        self.action, self.table, self.record, self.finish = action, table, record, finish
+        self.prefix, self.describe = prefix, describe
+
+    def add_parser(self, name: str, **kwargs) -> Command:
+        """``add_parser`` of :meth:`argparse.ArgumentParser.add_subparsers` with the machine's wording of ``help``; the
+        description starts with ``describe`` (the machine, when not the default one)."""
+        full = self.prefix + name
+        if "help" in kwargs and (full, "") in self.table:
+            kwargs["help"] = self.table[(full, "")]
+        description = kwargs.pop("description", None) or ""
+        if self.describe or description:
+            kwargs["description"] = self.describe + description
+        cmd = Command(self.action.add_parser(name, **kwargs), full, self)
+        self.record[full] = cmd
+        return cmd
+
+    def finish_all(self) -> None:
+        """Run ``finish`` on every command registered (options every command shares, epilog)."""
+        if self.finish is not None:
+            for cmd in self.record.values():
+                self.finish(cmd)

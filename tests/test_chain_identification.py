@@ -1,0 +1,103 @@
+"""Identification of a data-only machine (the Delta) on twin data: the base set, the recovered errors
+against the CRLB, the fit's chi-square, and compensation at held-out targets."""
+
+import numpy as np
+import pytest
+
+from pmcal.calib.chain_model import ChainModel
+from pmcal.calib.closed_chain import base_parameters, compensate_targets, crlb, identify_chain
+from pmcal.mechanism.machine_spec import MachineSpec
+from pmcal.mjcf import machine_dir
+from pmcal.twin.closed_chain import ClosedChainTwin
+
+
+@pytest.fixture(scope="module")
+def twin():
+    return ClosedChainTwin(MachineSpec.load(machine_dir("delta_3dof")))
+
+
+def random_errors(twin, rng):
+    """Every error of the machine: 0.1-0.5 mm, 0.05-0.1 deg, random signs (the benchmark's sizes)."""
+    out = {}
+    for k, u in zip(twin.error_keys, twin.error_units()):
+        lo, hi = (0.05, 0.1) if u == "deg" else (0.1, 0.5)
+        out[k] = float(rng.uniform(lo, hi) * rng.choice([-1.0, 1.0]))
+    return out
+
+
+@pytest.fixture(scope="module")
+def campaign(twin):
+    rng = np.random.default_rng(7)
+    true = random_errors(twin, rng)
+    cmd = twin.sample_commands(48, rng)
+    y = twin.measure(cmd, true, rng)
+    return true, cmd, y, identify_chain(twin, cmd, y)
+
+
+def test_twin_is_a_chain_model(twin):
+    assert isinstance(twin, ChainModel)
+
+
+def test_base_parameters_of_a_known_regressor():
+    """Columns b = 2 a and d = a - c: rank 2 of 4, and the combinations say so."""
+    rng = np.random.default_rng(0)
+    a, c = rng.normal(size=(2, 30))
+    J = np.stack([a, 2 * a, c, a - c], axis=1)
+    bs = base_parameters(J, ["a", "b", "c", "d"])
+    assert bs.rank == 2 and len(bs.dependent) == 2
+    np.testing.assert_allclose(J[:, [bs.keys.index(k) for k in bs.dependent]],
+                               J[:, [bs.keys.index(k) for k in bs.base]] @ bs.regroup, atol=1e-12)
+    truth = {"a": 0.3, "b": -0.1, "c": 0.2, "d": 0.05}
+    x = np.linalg.lstsq(J[:, [bs.keys.index(k) for k in bs.base]], J @ [truth[k] for k in "abcd"], rcond=None)[0]
+    np.testing.assert_allclose(x, bs.combination_values(truth), atol=1e-12)
+
+
+def test_unidentifiable_directions_have_no_effect(twin, campaign):
+    _, cmd, _, res = campaign
+    J = twin.jacobian(cmd, None, res.basis.keys).reshape(-1, len(res.basis.keys)) / twin.sigma_mm
+    Jb = J[:, [res.basis.keys.index(k) for k in res.base]]
+    Jd = J[:, [res.basis.keys.index(k) for k in res.basis.dependent]]
+    # a dependent error of its prior size moves the targets by far less than the noise once regrouped
+    s = twin.prior_std(res.basis.dependent)
+    assert np.max(np.abs((Jd - Jb @ res.basis.regroup) * s)) < 1e-6
+    assert len(res.unidentifiable) == len(res.basis.dependent) > 0
+    assert all(" + " in c or " - " in c or c == k for k, c in res.combinations.items())
+
+
+def test_recovers_errors_within_their_uncertainty(twin, campaign):
+    true, _, _, res = campaign
+    assert res.success and res.rank == len(res.base)
+    truth = res.basis.combination_values(true)
+    z = (res.x - truth) / np.array([res.std[k] for k in res.base])
+    # len(base) ~ 40 standard normal z-scores: RMS within 1 +- 0.35, none beyond 4.
+    assert 0.65 < np.sqrt(np.mean(z**2)) < 1.35, z
+    assert np.max(np.abs(z)) < 4.0, z
+
+
+def test_chi2_per_dof_at_the_noise(campaign):
+    _, _, _, res = campaign
+    # dof ~ 390: chi2/dof has std sqrt(2/dof) ~ 0.07
+    assert abs(res.chi2_per_dof - 1.0) < 5 * np.sqrt(2.0 / res.dof)
+    assert abs(res.residual_rms_mm / res.sigma_mm - 1.0) < 0.2
+
+
+def test_crlb_matches_the_result(twin, campaign):
+    _, cmd, _, res = campaign
+    c = crlb(twin, cmd, res.params, res.base)
+    np.testing.assert_allclose(c, [res.crlb[k] for k in res.base], rtol=1e-6)
+    assert np.all(np.array([res.std[k] for k in res.base]) <= c * (1 + 1e-9))   # the prior only helps
+
+
+def test_compensation_at_held_out_targets(twin, campaign):
+    true, cmd, _, res = campaign
+    rng = np.random.default_rng(99)
+    held = twin.sample_commands(16, rng)
+    task = twin.forward(held, true)                   # targets the real machine can reach
+    before = twin.forward(twin.inverse(task), true) - task
+    after = twin.forward(compensate_targets(twin, res.params, task), true) - task
+    err_after = np.sqrt(np.mean(np.sum(after**2, axis=1)))
+    # the prediction error of the identified model at the held-out poses (nests, from the covariance)
+    Jh = twin.jacobian(held, res.params, res.base).reshape(len(held), -1, 3, len(res.base))
+    pred = np.sqrt(np.mean(np.einsum("nkcp,pq,nkcq->nk", Jh, res.covariance, Jh)))
+    assert np.sqrt(np.mean(np.sum(before**2, axis=1))) > 20 * err_after
+    assert err_after < 3.0 * pred, (err_after, pred)

@@ -1,0 +1,115 @@
+"""The generic closed-chain twin on the Delta (mjcf/delta_3dof, data only) against the Delta's closed form
+(tests/chain_references.py), and its IFT Jacobian against central differences."""
+
+import numpy as np
+import pytest
+
+from chain_references import DELTA, central_differences, delta_fk, delta_ik
+from pmcal.mechanism.machine_spec import MachineSpec
+from pmcal.mjcf import machine_dir
+from pmcal.twin.closed_chain import ClosedChainTwin
+
+TCP = np.array([0.0, 0.0, DELTA["tcp"]])
+
+
+@pytest.fixture(scope="module")
+def twin():
+    return ClosedChainTwin(MachineSpec.load(machine_dir("delta_3dof")))
+
+
+@pytest.fixture(scope="module")
+def commands(twin):
+    return twin.sample_commands(24, np.random.default_rng(11))
+
+
+def test_structure_read_from_the_model(twin):
+    assert [c.name for c in twin.closures] == [f"closure_{i}{s}" for i in (1, 2, 3) for s in "ab"]
+    assert twin.n_equations == 18 and twin.n_motors == 3 and twin.n_targets == 3
+    assert len(twin.passive) == 18                    # 6 rods x 2 (universal) + the floating platform's 6
+    assert "m1.dzero" in twin.error_keys and "arm1.drz" in twin.error_keys
+    assert not any(k.startswith("platform.") for k in twin.error_keys)       # free body: no frame error
+    assert not any(k.startswith("nest") for k in twin.error_keys)          # nests define the platform frame
+
+
+def test_home_keyframe_is_assembled(twin):
+    p = twin.forward(twin.home_commands)[0] - TCP
+    np.testing.assert_allclose(p, delta_fk(np.zeros((1, 3)))[0], atol=1e-9)
+    np.testing.assert_allclose(twin.home_commands, 0.0, atol=1e-12)
+
+
+def test_forward_matches_trilateration(twin, commands):
+    task = twin.forward(commands)
+    np.testing.assert_allclose(task - TCP, delta_fk(commands), atol=1e-8)     # mm
+    nests = twin.targets(commands)
+    for k, offset in enumerate(DELTA["nests"]):
+        np.testing.assert_allclose(nests[:, k], delta_fk(commands) + offset, atol=1e-8)
+
+
+def test_inverse_matches_closed_form(twin, commands):
+    task = delta_fk(commands) + TCP
+    np.testing.assert_allclose(twin.inverse(task), delta_ik(task - TCP), atol=1e-9)      # deg
+    np.testing.assert_allclose(delta_ik(task - TCP), commands, atol=1e-9)
+
+
+def test_inverse_out_of_reach_says_why(twin):
+    """z = -2000 mm: farther than arm + rod; z = -490 mm (tcp; platform at -450): the closed form needs
+    -46.3 deg on every motor, below the -35 deg limit of machine.toml."""
+    cmd, why = twin.inverse_report(np.array([[0.0, 0.0, -2000.0], [0.0, 0.0, -490.0], [0.0, 0.0, -700.0]]))
+    assert np.isnan(cmd[:2]).all() and np.isfinite(cmd[2]).all() and why[2] == ""
+    assert "no assembly" in why[0]
+    assert why[1].startswith("m1 command -46.28") and "outside its range [-35, 80]" in why[1]
+
+
+def test_samples_respect_workspace_and_motor_ranges(twin, commands):
+    assert commands.shape == (24, 3)
+    lo, hi = twin.motor_range[:, 0], twin.motor_range[:, 1]
+    assert np.all((commands >= lo) & (commands <= hi))
+    task = twin.forward(commands)
+    for c, (a, b) in zip(task.T, (twin.spec.workspace[k] for k in twin.spec.task.coordinates)):
+        assert np.all((c >= a - 1e-6) & (c <= b + 1e-6))
+
+
+def test_motor_zero_offset_acts_like_a_command_shift(twin, commands):
+    y1 = twin.targets(commands[:4], {"m2.dzero": 0.05})
+    shifted = commands[:4].copy()
+    shifted[:, 1] += 0.05
+    np.testing.assert_allclose(y1, twin.targets(shifted), atol=1e-9)
+
+
+def test_ift_jacobian_matches_central_differences(twin, commands):
+    """Exact at a machine with errors (not only at nominal): every key, 4 poses, step 1e-4 (mm / deg)."""
+    rng = np.random.default_rng(2)
+    keys = twin.error_keys
+    params = dict(zip(keys, rng.normal(0.0, 1.0, len(keys)) * twin.prior_std(keys)))
+    cmd = commands[:4]
+    J = twin.jacobian(cmd, params)
+    worst = float(np.max(np.abs(central_differences(lambda p: twin.targets(cmd, p), params, keys) - J)))
+    # central differences: truncation ~ h^2 * third derivative (~1e-8 mm per unit), round-off ~ 1e-13 m / h
+    assert worst < 1e-6, worst
+    assert np.abs(J).max() > 1.0                      # a real Jacobian, not zeros
+
+
+def test_unknown_error_key_is_named(twin):
+    with pytest.raises(KeyError, match="unknown error key 'arm9.dx'"):
+        twin.targets(np.zeros((1, 3)), {"arm9.dx": 0.1})
+
+
+def test_body_based_closure_is_refused(tmp_path):
+    """A body-based connect would re-derive its anchor from the compiled geometry and absorb errors."""
+    import shutil
+
+    from pmcal.errors import InputError
+
+    folder = tmp_path / "d"
+    shutil.copytree(machine_dir("delta_3dof"), folder)
+    xml = folder / "delta_3dof.xml"
+    xml.write_text(xml.read_text().replace('<connect name="closure_3b" site1="rod3b_tip" site2="platform_3b"/>',
+                                           '<connect name="closure_3b" body1="rod3b" body2="platform" '
+                                           'anchor="0 0 -0.8"/>'))
+    with pytest.raises(InputError, match="closure_3b.*must be site-based"):
+        ClosedChainTwin.from_folder(folder)
+
+
+def test_seeded_machines_are_not_chain_twins():
+    with pytest.raises(ValueError, match="seeded machine"):
+        ClosedChainTwin.from_folder(machine_dir("ocpm_2dof"))

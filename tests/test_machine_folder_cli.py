@@ -1,0 +1,368 @@
+"""A machine of one's own through the command line: ``--machine DIR`` on copies of the built-in machine
+folders placed outside ``mjcf/`` (as a user would), its files, and one line + exit 2 for every bad folder
+or file.
+
+Run in-process through :func:`pmcal.cli.main`. The acceptance chain (measure, identify, targets,
+compensate) is checked against the twin's own truth in :mod:`tests.test_machine_folder_chain`.
+"""
+
+import argparse
+import json
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+from pmcal.cli import _named_subparsers, build_parser, main
+from pmcal.mjcf import machine_dir
+
+NEW_MACHINES = [m for m in ("delta_3dof", "hexapod_6dof") if (machine_dir(m) / "machine.toml").is_file()]
+
+
+def run(capsys, *argv) -> tuple[int, str, str]:
+    capsys.readouterr()
+    status = main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err
+    return status, cap.out, cap.err
+
+
+def one_line_error(capsys, *argv, says=(), status=2) -> str:
+    got, _, err = run(capsys, *argv)
+    assert got == status, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    for text in ([says] if isinstance(says, str) else says):
+        assert text in lines[0], lines[0]
+    return lines[0]
+
+
+def copy_machine(src: str, dest) -> "Path":  # noqa: F821
+    """A copy of a built-in machine folder under another folder name (the TOML's name kept)."""
+    out = dest / f"my_{src}"
+    shutil.copytree(machine_dir(src), out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def delta(tmp_path_factory):
+    """A copy of the Delta's folder outside mjcf/, a campaign, targets and a parameters file on it."""
+    d = tmp_path_factory.mktemp("folder")
+    folder = copy_machine("delta_3dof", d)
+    for argv in (["twin", "measure", "--poses", "12", "--seed", "3", "-o", d / "m.csv"],
+                 ["targets", "--count", "5", "-o", d / "tg.csv"]):
+        assert main(["--quiet", "--machine", str(folder), *map(str, argv)]) == 0, argv
+    (d / "nominal.json").write_text(json.dumps({"mechanism": "delta_3dof", "params": {}}))
+    return folder, d
+
+
+# ---------------------------------------------------------------- the parser, built from data
+@pytest.mark.parametrize("machine", NEW_MACHINES)
+def test_every_argument_of_a_folder_machine_has_help(machine, tmp_path):
+    for value in (machine, str(copy_machine(machine, tmp_path))):
+        parser = build_parser(value)
+        missing = [f"{name} {a.dest}" for name, sp in _named_subparsers(parser) for a in sp._actions
+                   if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction)) and not a.help]
+        assert not missing
+
+
+def test_help_speaks_of_the_machines_own_columns_and_defaults(capsys, tmp_path):
+    folder = copy_machine("delta_3dof", tmp_path)
+    with pytest.raises(SystemExit):
+        main(["--machine", str(folder), "compensate", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "x_mm, y_mm, z_mm" in out and "m1_deg, m2_deg, m3_deg" in out and "(machine delta_3dof)" in out
+    with pytest.raises(SystemExit):
+        main(["--machine", str(folder), "twin", "measure", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "default 48" in out and "0.01 mm" in out and "--payload" not in out
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "delta_3dof" in out and "NAME|DIR" in out
+    with pytest.raises(SystemExit):
+        main(["--machine", str(folder), "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "demo not available for a machine folder" in out and "diagnose not available" in out
+
+
+def test_options_a_folder_machine_does_not_have_are_refused(capsys, delta):
+    folder, d = delta
+    with pytest.raises(SystemExit) as exc:
+        main(["--machine", str(folder), "twin", "measure", "--payload", "0,10", "-o", str(d / "x.csv")])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "unrecognized arguments: --payload" in err and not (d / "x.csv").exists()
+
+
+@pytest.mark.parametrize("value, says", [
+    ("no_such_machine", "neither a built-in name"),
+    ("{tmp}/missing_folder", "neither a built-in name"),
+    ("{tmp}/a_file.txt", "is a file"),
+    ("{tmp}", "machine.toml"),
+])
+def test_a_machine_that_is_no_machine_folder_is_one_line(capsys, tmp_path, value, says):
+    (tmp_path / "a_file.txt").write_text("x")
+    one_line_error(capsys, "--machine", value.format(tmp=tmp_path), "targets", "-o", tmp_path / "t.csv",
+                   says=says)
+    assert not (tmp_path / "t.csv").exists()
+
+
+# ---------------------------------------------------------------- bad machine folders
+def _break(folder, file, old, new):
+    p = folder / file
+    text = p.read_text()
+    assert old in text, old
+    p.write_text(text.replace(old, new))
+
+
+def _drop_equalities(path):
+    path.write_text(re.sub(r"<equality>.*?</equality>", "", path.read_text(), flags=re.S))
+
+
+BAD_FOLDERS = {
+    "missing TOML": (lambda f: (f / "machine.toml").unlink(), ["machine.toml"]),
+    "bad key": (lambda f: _break(f, "machine.toml", "sigma_mm = 0.01", "sigma_mm = 0.01\nsigmaa = 2"),
+                ["machine.toml", "tracker.sigmaa", "unknown key"]),
+    "unknown joint": (lambda f: _break(f, "machine.toml", 'joint = "arm2_motor"', 'joint = "hip2"'),
+                      ["machine.toml", "motors[2].joint", "hip2"]),
+    "no equality constraints": (lambda f: _drop_equalities(f / "delta_3dof.xml"),
+                                ["delta_3dof.xml", "no loop to close"]),
+    "MJCF that MuJoCo rejects": (lambda f: _break(f, "delta_3dof.xml", "<joint ", '<joint foo="1" '),
+                                 ["delta_3dof.xml", "foo"]),
+}
+
+
+@pytest.mark.parametrize("case", BAD_FOLDERS)
+def test_a_bad_machine_folder_is_one_line_naming_file_and_key(capsys, tmp_path, case):
+    folder = copy_machine("delta_3dof", tmp_path)
+    spoil, says = BAD_FOLDERS[case]
+    spoil(folder)
+    one_line_error(capsys, "--machine", folder, "targets", "-o", tmp_path / "t.csv", says=says)
+    assert not (tmp_path / "t.csv").exists()
+
+
+def test_a_copy_of_a_seeded_machine_says_to_use_its_name(capsys, tmp_path):
+    folder = copy_machine("ocpm_2dof", tmp_path)
+    one_line_error(capsys, "--machine", folder, "targets", "-o", tmp_path / "t.csv",
+                   says=["machine.toml", "machine.kind", "--machine ocpm_2dof"])
+    assert not (tmp_path / "t.csv").exists()
+
+
+# ---------------------------------------------------------------- its files
+def test_files_have_the_machines_columns(delta):
+    folder, d = delta
+    lines = [x for x in (d / "m.csv").read_text().splitlines() if not x.startswith("#")]
+    assert lines[0].split(",") == (["pose_id", "m1_cmd_deg", "m2_cmd_deg", "m3_cmd_deg"]
+                                   + [f"t{k}_{a}" for k in (1, 2, 3) for a in "xyz"] + ["time_s"])
+    assert len(lines) == 13
+    lines = [x for x in (d / "tg.csv").read_text().splitlines() if not x.startswith("#")]
+    assert lines[0] == "x_mm,y_mm,z_mm" and len(lines) == 6
+
+
+def _edit_csv(src, dest, edit):
+    comments = [x for x in src.read_text().splitlines() if x.startswith("#")]
+    lines = [x.split(",") for x in src.read_text().splitlines() if not x.startswith("#")]
+    edit(lines)
+    dest.write_text("\n".join(comments + [",".join(r) for r in lines]) + "\n")
+    return dest
+
+
+def _rename(old, new):
+    def edit(lines):
+        lines[0][lines[0].index(old)] = new
+    return edit
+
+
+def _cell(row, column, value):
+    def edit(lines):
+        lines[row][lines[0].index(column)] = value
+    return edit
+
+
+def _scale(columns, factor):
+    def edit(lines):
+        for c in columns:
+            k = lines[0].index(c)
+            for r in lines[1:]:
+                r[k] = repr(float(r[k]) * factor)
+    return edit
+
+
+def _add_column(name, value):
+    def edit(lines):
+        lines[0].append(name)
+        for r in lines[1:]:
+            r.append(value)
+    return edit
+
+
+BAD_MEASUREMENTS = {
+    "unknown column": (_add_column("speed", "1"), ["field 'speed'", "unknown column"]),
+    "a fourth motor": (_add_column("m4_cmd_deg", "1"), ["field 'm4_cmd_deg'", "3 motors"]),
+    "a fourth target": (_add_column("t4_x", "1"), ["field 't4_x'", "3 tracker targets"]),
+    "motor in the wrong unit": (_rename("m2_cmd_deg", "m2_cmd_mm"), ["field 'm2_cmd_mm'", "m2_cmd_deg"]),
+    "missing column": (lambda lines: [r.pop(lines[0].index("t2_y")) for r in lines[::-1]],
+                       ["field 't2_y'", "missing column"]),
+    "not a number": (_cell(4, "m3_cmd_deg", "abc"), ["row 4", "field 'm3_cmd_deg'"]),
+    "not finite": (_cell(5, "t1_z", "inf"), ["row 5", "field 't1_z'", "not finite"]),
+    "radians": (_scale(["m1_cmd_deg", "m2_cmd_deg", "m3_cmd_deg"], np.pi / 180.0), ["row 1", "radians"]),
+    "out of range": (_cell(2, "m1_cmd_deg", "95"), ["row 2", "field 'm1_cmd_deg'", "range -35..80 deg"]),
+    "metres": (_scale([f"t{k}_{a}" for k in (1, 2, 3) for a in "xyz"], 1e-3),
+               ["row 1", "field 't1_x'", "metres"]),
+    "half-blocked target": (_cell(3, "t2_y", ""), ["row 3", "field 't2_y'", "half empty"]),
+    "duplicate id": (_cell(2, "pose_id", "P1"), ["row 2", "field 'pose_id'", "duplicate"]),
+    "temperature in kelvin": (_add_column("temp_c", "293.15"), ["row 1", "field 'temp_c'", "kelvin"]),
+}
+
+
+@pytest.mark.parametrize("case", BAD_MEASUREMENTS)
+def test_a_bad_measurement_file_is_one_line_naming_row_and_field(capsys, delta, tmp_path, case):
+    folder, d = delta
+    edit, says = BAD_MEASUREMENTS[case]
+    bad = _edit_csv(d / "m.csv", tmp_path / "bad.csv", edit)
+    line = one_line_error(capsys, "--machine", folder, "evaluate", d / "nominal.json", bad, "--json",
+                          tmp_path / "e.json", says=says)
+    assert str(bad) in line and not (tmp_path / "e.json").exists()
+
+
+BAD_TARGETS = {
+    "outside the workspace": (_cell(2, "z_mm", "-2000"), ["row 2", "field 'z_mm'", "workspace"]),
+    "a task column of another machine": (_rename("z_mm", "theta_deg"), ["field 'theta_deg'"]),
+    "missing column": (lambda lines: [r.pop(lines[0].index("y_mm")) for r in lines[::-1]], ["field 'y_mm'"]),
+}
+
+
+@pytest.mark.parametrize("case", BAD_TARGETS)
+def test_a_bad_targets_file_is_one_line(capsys, delta, tmp_path, case):
+    folder, d = delta
+    edit, says = BAD_TARGETS[case]
+    bad = _edit_csv(d / "tg.csv", tmp_path / "bad.csv", edit)
+    one_line_error(capsys, "--machine", folder, "compensate", d / "nominal.json", "--targets", bad,
+                   "-o", tmp_path / "s.csv", says=says)
+    assert not (tmp_path / "s.csv").exists()
+
+
+BAD_PARAMS = {
+    "another machine": ({"mechanism": "ocpm_2dof", "params": {}}, ["field 'mechanism'", "ocpm_2dof"]),
+    "unknown key": ({"mechanism": "delta_3dof", "params": {"L1.dbx": 0.1}}, ["field 'params.L1.dbx'"]),
+    "implausible": ({"mechanism": "delta_3dof", "params": {"m1.dzero": 45.0}},
+                    ["field 'params.m1.dzero'", "implausible"]),
+    "not a number": ({"mechanism": "delta_3dof", "params": {"base.dx": "1"}}, ["field 'params.base.dx'"]),
+}
+
+
+@pytest.mark.parametrize("case", BAD_PARAMS)
+def test_a_bad_parameters_file_is_one_line(capsys, delta, tmp_path, case):
+    folder, d = delta
+    doc, says = BAD_PARAMS[case]
+    p = tmp_path / "p.json"
+    p.write_text(json.dumps(doc))
+    one_line_error(capsys, "--machine", folder, "compensate", p, "--targets", d / "tg.csv", "-o",
+                   tmp_path / "s.csv", says=says)
+    assert not (tmp_path / "s.csv").exists()
+
+
+def test_a_table_is_refused_with_what_the_machine_gets_instead(capsys, delta, tmp_path):
+    folder, d = delta
+    line = one_line_error(capsys, "--machine", folder, "compensate", d / "nominal.json", "--table",
+                          tmp_path / "t.json", says=["--table", "offline compensation of target lists"])
+    assert "--targets" in line and not list(tmp_path.iterdir())
+
+
+def test_twin_options_of_a_folder_machine(capsys, delta, tmp_path):
+    """--errors none --noise 0 at explicit targets: the nominal machine's exact targets (evaluate: 0);
+    --errors P.json: that machine; a value that is neither is one line."""
+    folder, d = delta
+    assert main(["-q", "--machine", str(folder), "twin", "measure", "--targets", str(d / "tg.csv"), "--errors",
+                 "none", "--noise", "0", "-o", str(tmp_path / "m0.csv")]) == 0
+    status, out, _ = run(capsys, "--machine", folder, "evaluate", d / "nominal.json", tmp_path / "m0.csv")
+    assert status == 0 and "rms 0.0000 mm, max 0.0000 mm" in out
+    text = (tmp_path / "m0.csv").read_text()
+    assert "errors: none" in text and "true errors" not in text and text.count("\nP") == 5
+    one_line_error(capsys, "--machine", folder, "twin", "measure", "--errors", "bogus", "-o", tmp_path / "x.csv",
+                   says=["--errors", "neither random nor none nor a parameters file"])
+    one_line_error(capsys, "--machine", folder, "twin", "measure", "--noise", "-1", "-o", tmp_path / "x.csv",
+                   says="--noise")
+    assert not (tmp_path / "x.csv").exists()
+
+
+def test_identify_leaves_out_poses_with_a_blocked_target_and_says_so(capsys, delta, tmp_path):
+    folder, d = delta
+
+    def block(lines):
+        for row in (2, 5):
+            for a in "xyz":
+                lines[row][lines[0].index(f"t2_{a}")] = ""
+    meas = _edit_csv(d / "m.csv", tmp_path / "blocked.csv", block)
+    status, out, err = run(capsys, "--machine", folder, "identify", meas, "-o", tmp_path / "p.json")
+    assert status == 0 and "2 pose(s) with a blocked target left out (P2, P5)" in err
+    assert json.loads((tmp_path / "p.json").read_text())["n_poses"] == 10
+
+
+def test_commands_a_folder_machine_does_not_have_say_so(capsys, delta, tmp_path):
+    folder, d = delta
+    one_line_error(capsys, "--machine", folder, "diagnose", d / "m.csv", "--json", tmp_path / "d.json",
+                   says=["'diagnose' is not available for machine 'delta_3dof'"])
+
+
+def test_nominal_compensation_reaches_the_targets_on_the_nominal_twin(capsys, delta, tmp_path):
+    """With a parameters file of zero errors the setpoints are the nominal inverse kinematics: driving the
+    nominal twin with them puts the task site on the targets."""
+    from pmcal.io_chain import read_targets
+    from pmcal.machines import Machine
+
+    folder, d = delta
+    status, out, _ = run(capsys, "--machine", folder, "compensate", d / "nominal.json", "--targets",
+                         d / "tg.csv", "-o", tmp_path / "s.csv")
+    assert status == 0 and out.strip().endswith(f"wrote {tmp_path / 's.csv'}")
+    m = Machine.from_folder(folder)
+    rows = [x.split(",") for x in (tmp_path / "s.csv").read_text().splitlines() if not x.startswith("#")]
+    assert rows[0] == ["x_mm", "y_mm", "z_mm", "m1_deg", "m2_deg", "m3_deg"]
+    values = np.array(rows[1:], float)
+    np.testing.assert_allclose(values[:, :3], read_targets(d / "tg.csv", m.spec), atol=1e-6)
+    np.testing.assert_allclose(m.twin.forward(values[:, 3:]), values[:, :3], atol=1e-4)
+
+
+def test_the_api_gives_one_machine_object(tmp_path):
+    import pmcal
+
+    folder = copy_machine("delta_3dof", tmp_path)
+    m = pmcal.Machine.from_folder(folder)
+    assert (m.name, m.folder, m.legacy, m.app_name) == ("delta_3dof", folder.resolve(), False, "pmcal.apps.chain")
+    assert m.spec.motor_columns == ("m1_cmd_deg", "m2_cmd_deg", "m3_cmd_deg")
+    assert m.defaults == {"poses": 48, "sigma_mm": m.spec.sigma_mm, "errors": "random"}
+    assert m._twin is None                              # compiled on first use only
+    assert m.twin is m.twin and "m1.dzero" in m.twin.error_keys
+    seeded = pmcal.Machine.builtin("ocpm_2dof")
+    assert seeded.legacy and seeded.app_name == "pmcal.apps.ocpm" and seeded.defaults["poses"] == 24
+    from pmcal.errors import InputError
+    with pytest.raises(InputError, match="dedicated twin"):
+        seeded.twin
+    with pytest.raises(InputError, match="no built-in machine"):
+        pmcal.Machine.builtin(str(folder))
+
+
+def test_ctrl_c_stops_a_long_campaign_with_130_and_nothing_written(delta, tmp_path):
+    """A real SIGINT to a real process while it measures 2000 poses on the twin."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    folder, _ = delta
+    out = tmp_path / "long.csv"
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    proc = subprocess.Popen([sys.executable, "-m", "pmcal.cli", "--verbose", "--machine", str(folder), "twin",
+                             "measure", "--poses", "2000", "-o", str(out)], stderr=subprocess.PIPE, text=True,
+                            env=env)
+    try:
+        for line in proc.stderr:
+            if "measuring 2000 poses" in line:
+                break
+        proc.send_signal(signal.SIGINT)
+        rest = proc.stderr.read()
+        assert proc.wait(timeout=120) == 130
+    finally:
+        proc.kill()
+    assert "interrupted" in rest and "Traceback" not in rest and not list(tmp_path.iterdir())

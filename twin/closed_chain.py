@@ -1,0 +1,952 @@
+"""Any closed-chain machine from its MJCF and machine.toml: assembly, exact derivatives, forward and inverse.
+
+:class:`ClosedChainTwin` reads the kinematic tree and the loop closures from the compiled MuJoCo model
+(active equality constraints: **site-based** ``connect``, 3 equations each, and site-based ``weld``, 6
+each) and the motors, targets and task from a :class:`pmcal.mechanism.machine_spec.MachineSpec`. Nothing
+in it is specific to a machine.
+
+**Geometric errors** (``docs/machine_toml.md``, section ``[errors]``) are small displacements of frames of the
+model: a body frame carries ``dx, dy, dz`` (mm) and ``drx, dry, drz`` (deg), a translation along and a
+rotation vector about its *parent's* axes through the body's frame origin (``body_pos``; joints, geoms
+and sites written in the body frame move with it); a site carries ``dx, dy, dz`` (mm) in its body's frame;
+a motor a zero offset ``mK.dzero`` (deg or mm): joint position = command - zero + dzero. Errors are applied
+by editing the compiled ``body_pos``, ``body_quat`` and ``site_pos`` (no recompilation; nothing else of
+the model depends on them for kinematics).
+
+**Assembly** (:meth:`solve`): with the motor joints held, Newton (Gauss-Newton with a minimum-norm step, so
+an over-constrained chain settles on the least-squares compromise) on the closure equations over the
+passive degrees of freedom, from the nearest earlier solution (warm start) or, failing that, by
+continuation from the ``home`` keyframe: every solve stays on the assembly branch of ``home``. Residuals
+and Jacobians come from MuJoCo (``mj_kinematics``, ``mj_comPos``, ``mj_jacSite``); quaternion joints are
+stepped with ``mj_integratePos``.
+
+**Compliant closures** (optional ``[closures]`` of the machine.toml, for over-constrained machines whose
+loops conflict once they carry errors): the rows are weighted by the square roots of the closure
+stiffnesses (N/m), passive joints with an MJCF ``stiffness`` add spring rows, and the assembly is the
+least-squares equilibrium of that elastic energy (converged when the Newton step vanishes).
+
+**Derivatives** (:meth:`jacobian`) by the implicit-function theorem at the assembled configuration: with
+(weighted) closure equations ``c(q_p, q_m, p) = 0``,
+
+    dq_p/dp = -C_p^+ (dc/dp),      d y/dp = J_y,p dq_p/dp + dy/dp|_q
+
+(for compliant, conflicting closures this is the Gauss-Newton derivative of the equilibrium: it leaves out
+the closure residual times the second derivatives, second order in the errors)
+
+where ``C_p`` is the closure Jacobian over the passive dofs (MuJoCo), ``dc/dp`` and ``dy/dp|_q`` the
+derivatives of the closure points and targets with respect to the frame errors at fixed joints, in
+closed form from the frames' world poses (a translation error moves every point of the frame's subtree
+along the parent axis; a rotation error turns it about the frame origin, the axis mapped through the left
+Jacobian of SO(3) at the current error so the derivative is exact at any error, not only at zero).
+No finite differences and no recompiling; the tests check it against central differences.
+
+**Inverse kinematics** (:meth:`inverse`): Newton on the closure equations together with the task
+equations over all dofs, from ``home`` with continuation along the straight task-space path when the
+direct step fails; NaN and a reason (:meth:`inverse_report`) where no assembly reaches the target or a
+motor would leave its range.
+
+Units at the interface: commands deg / mm, targets mm (world frame = base frame), task coordinates as
+named, errors mm / deg. Inside MuJoCo: SI.
+
+Example
+-------
+>>> from pmcal.mechanism.machine_spec import MachineSpec
+>>> from pmcal.mjcf import machine_dir
+>>> twin = ClosedChainTwin(MachineSpec.load(machine_dir("delta_3dof")))
+>>> cmd = twin.sample_commands(48, np.random.default_rng(3))         # (48, 3) deg
+>>> y = twin.targets(cmd, {"arm1.dz": 0.2})                          # (48, 3, 3) mm
+>>> J = twin.jacobian(cmd, None, ["arm1.dz", "m1.dzero"])             # (48, 3, 3, 2) mm/mm, mm/deg
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import mujoco
+import numpy as np
+
+from pmcal.errors import InputError
+from pmcal.mechanism.machine_spec import ERROR_COMPONENTS, MachineSpec
+from pmcal.mechanism.rotations import rotvec_matrix, so3_left_jacobian
+from pmcal.mechanism.task_space import POSITION, task_coordinates, task_difference
+from pmcal.twin.assembly import solve_stacked
+
+MM = 1e-3                                   # m per mm
+DEG = np.pi / 180.0                         # rad per deg
+_OBJ = mujoco.mjtObj
+_EQ = mujoco.mjtEq
+_JNT = mujoco.mjtJoint
+
+# Kinds of error parameters.
+_BODY_T, _BODY_R, _SITE_T, _ZERO = range(4)
+
+
+@dataclass(frozen=True)
+class Closure:
+    """One loop closure: equality ``name`` between sites ``site1`` and ``site2`` (ids); ``weld`` adds the
+    three orientation equations to the three position ones."""
+
+    name: str
+    site1: int
+    site2: int
+    weld: bool
+
+
+@dataclass
+class Kinematics:
+    """World poses at assembled configurations (N poses, SI), what :meth:`ClosedChainTwin.jacobian` needs.
+
+    qpos (N, nq); xpos (N, nbody, 3); xmat (N, nbody, 3, 3); site_xpos (N, npoint, 3), site_xmat
+    (N, npoint, 3, 3) and jacp, jacr (N, npoint, 3, nv) of the twin's points (closure sites, targets, task
+    site; :attr:`ClosedChainTwin.points`).
+    """
+
+    qpos: np.ndarray
+    xpos: np.ndarray
+    xmat: np.ndarray
+    site_xpos: np.ndarray
+    site_xmat: np.ndarray
+    jacp: np.ndarray
+    jacr: np.ndarray
+
+
+class ClosedChainTwin:
+    """The digital twin of a closed-chain machine described as data (see module docstring).
+
+    Parameters
+    ----------
+    spec : a loaded, non-legacy :class:`~pmcal.mechanism.machine_spec.MachineSpec`.
+    model : an already compiled model of ``spec.model_path`` (default: compiled here).
+
+    Attributes
+    ----------
+    spec, model : the machine and its compiled MuJoCo model (SI; errors are applied in place).
+    error_keys : every geometric error of the machine, ``"<frame>.<component>"`` and ``"mK.dzero"``.
+    closures : the loop closures read from the model.
+    sigma_mm : tracker noise from the spec, mm.
+    """
+
+    #: Closure residual (m, largest component) below which a configuration counts as assembled.
+    TOL_M = 1e-12
+    MAX_ITER = 40
+    #: Largest Newton step per coordinate (rad or m); longer steps are scaled down.
+    MAX_STEP = 0.2
+    #: Largest motor move per continuation sub-step, as a fraction of the motor's range (the task-space
+    #: path of the inverse kinematics: of the workspace box).
+    PATH_STEP = 0.1
+
+    def __init__(self, spec: MachineSpec, model: mujoco.MjModel | None = None):
+        if spec.legacy:
+            raise ValueError(f"{spec.name} is a seeded machine with its own code (kind {spec.kind!r})")
+        self.spec = spec
+        self.sigma_mm = float(spec.sigma_mm)
+        self.model = model if model is not None else mujoco.MjModel.from_xml_path(str(spec.model_path))
+        m = self.model
+        self.data = mujoco.MjData(m)
+        self._file = str(spec.model_path)
+        self._nominal_body_pos = m.body_pos.copy()
+        self._nominal_body_quat = m.body_quat.copy()
+        self._nominal_site_pos = m.site_pos.copy()
+        self._read_motors()
+        self._read_closures()
+        self._read_sites()
+        key = mujoco.mj_name2id(m, _OBJ.mjOBJ_KEY, spec.home)
+        self.home_qpos = m.key_qpos[key].copy()
+        self._build_errors()
+        self._x = np.zeros(len(self.error_keys))
+        self._zero_offset = np.zeros(self.n_motors)
+        self._warm_cmd = np.zeros((0, self.n_motors))
+        self._warm_qpos = np.zeros((0, m.nq))
+        self.home_commands = self._commands_of(self.home_qpos[None])[0]
+
+    @classmethod
+    def from_folder(cls, folder) -> "ClosedChainTwin":
+        """The twin of the machine folder ``folder`` (``MachineSpec.load(folder)``; InputError if invalid)."""
+        return cls(MachineSpec.load(folder))
+
+    # ------------------------------------------------------------------ structure
+    def _read_motors(self) -> None:
+        m = self.model
+        jids, units = [], []
+        for mot in self.spec.motors:
+            j = mujoco.mj_name2id(m, _OBJ.mjOBJ_JOINT, mot.joint)
+            want = _JNT.mjJNT_HINGE if mot.kind == "revolute" else _JNT.mjJNT_SLIDE
+            if j < 0 or m.jnt_type[j] != want:
+                raise InputError(f"motor joint {mot.joint!r} is not a {mot.kind} joint of the compiled model",
+                                 file=self._file, field=f"{mot.name}.joint")
+            jids.append(j)
+            units.append(DEG if mot.kind == "revolute" else MM)
+        self.motor_joints = np.array(jids, int)
+        self.motor_qadr = m.jnt_qposadr[self.motor_joints].astype(int)
+        self.motor_dof = m.jnt_dofadr[self.motor_joints].astype(int)
+        self.motor_unit = np.array(units)                 # SI per command unit
+        self.motor_zero = np.array([mot.zero for mot in self.spec.motors], float)
+        self.motor_range = np.array([mot.range for mot in self.spec.motors], float)
+        self.n_motors = len(jids)
+        self.passive = np.setdiff1d(np.arange(m.nv), self.motor_dof)
+
+    def _read_closures(self) -> None:
+        m = self.model
+        out = []
+        for e in range(m.neq):
+            name = mujoco.mj_id2name(m, _OBJ.mjOBJ_EQUALITY, e) or f"equality {e}"
+            if not m.eq_active0[e]:
+                continue
+            kind = int(m.eq_type[e])
+            if kind not in (_EQ.mjEQ_CONNECT, _EQ.mjEQ_WELD):
+                raise InputError("only connect and weld equalities can close loops (make other equalities "
+                                 "inactive, active=\"false\")", file=self._file, field=name)
+            if int(m.eq_objtype[e]) != _OBJ.mjOBJ_SITE:
+                raise InputError("a loop closure must be site-based (site1=, site2=): body-based anchors are "
+                                 "re-derived from the compiled geometry and would absorb geometric errors",
+                                 file=self._file, field=name)
+            out.append(Closure(name, int(m.eq_obj1id[e]), int(m.eq_obj2id[e]), kind == _EQ.mjEQ_WELD))
+        if not out:
+            raise InputError("the model has no active site-based connect/weld: no loop to close",
+                             file=self._file)
+        self.closures = tuple(out)
+        self.n_equations = sum(6 if c.weld else 3 for c in out)
+        self._read_compliance()
+
+    def _read_compliance(self) -> None:
+        """Row weights of the closure equations (sqrt of the stiffness, N/m) and the passive joint springs
+        of ``spec.closures`` (none: unit weights, rigid closures)."""
+        m, cs = self.model, self.spec.closures
+        k_pos = [cs.stiffness.get(c.name, cs.default_n_per_mm) / MM if cs else 1.0 for c in self.closures]
+        rows = [np.full(3, k) for k in k_pos] + [np.full(3, k) for k, c in zip(k_pos, self.closures) if c.weld]
+        self._sqrt_w = np.sqrt(np.concatenate(rows))
+        springs = []
+        if cs and cs.joint_springs:
+            for j in range(m.njnt):
+                if (m.jnt_stiffness[j] > 0 and int(m.jnt_type[j]) in (_JNT.mjJNT_HINGE, _JNT.mjJNT_SLIDE)
+                        and j not in self.motor_joints):
+                    springs.append(j)
+        self._spring_qadr = m.jnt_qposadr[springs].astype(int)
+        self._spring_dof = m.jnt_dofadr[springs].astype(int)
+        self._spring_sqrt_k = np.sqrt(m.jnt_stiffness[springs])
+        self._spring_ref = m.qpos_spring[self._spring_qadr].copy()
+        #: weight of the task equations in inverse kinematics: far above every closure (met exactly)
+        self._task_sqrt_w = 1e3 * max(float(self._sqrt_w.max()), float(self._spring_sqrt_k.max(initial=0.0))) \
+            if cs else 1.0
+
+    def _read_sites(self) -> None:
+        m = self.model
+        sid = lambda n: mujoco.mj_name2id(m, _OBJ.mjOBJ_SITE, n)  # noqa: E731
+        self.target_sites = np.array([sid(t) for t in self.spec.targets], int)
+        self.task_site = sid(self.spec.task.site)
+        pts: list[int] = []
+        for s in [c.site1 for c in self.closures] + [c.site2 for c in self.closures] + list(self.target_sites) \
+                + [self.task_site]:
+            if s not in pts:
+                pts.append(int(s))
+        #: Site ids whose poses and Jacobians every solve computes (closure sites, targets, task site).
+        self.points = np.array(pts, int)
+        self._n_closure_points = len({c.site1 for c in self.closures} | {c.site2 for c in self.closures})
+        pos = {s: i for i, s in enumerate(pts)}
+        self._c1 = np.array([pos[c.site1] for c in self.closures])
+        self._c2 = np.array([pos[c.site2] for c in self.closures])
+        self._weld = np.array([c.weld for c in self.closures])
+        self._tp = np.array([pos[s] for s in self.target_sites])
+        self._task_p = pos[self.task_site]
+        self.n_targets = len(self.target_sites)
+
+    def _free_bodies(self) -> set[int]:
+        m = self.model
+        return {int(m.jnt_bodyid[j]) for j in range(m.njnt) if m.jnt_type[j] == _JNT.mjJNT_FREE}
+
+    def _build_errors(self) -> None:
+        """Error keys from ``spec.errors`` and the parameter table used to apply and differentiate them."""
+        m, es = self.model, self.spec.errors
+        body_name = lambda b: mujoco.mj_id2name(m, _OBJ.mjOBJ_BODY, b)  # noqa: E731
+        site_name = lambda s: mujoco.mj_id2name(m, _OBJ.mjOBJ_SITE, s)  # noqa: E731
+        free = self._free_bodies()
+        # The tracker nests define the moving frames they sit on (their coordinates there come from a CMM
+        # or the drawing): under "all" they carry no error, nor does the task site (it is not measured).
+        used_sites = [int(s) for s in self.points if s != self.task_site and s not in self.target_sites]
+        if es.frames == "all":
+            bodies = [b for b in range(1, m.nbody) if b not in free]
+            sites = used_sites
+        else:
+            bodies, sites = [], []
+            for f in es.frames:
+                b = mujoco.mj_name2id(m, _OBJ.mjOBJ_BODY, f)
+                if b >= 0:
+                    if b in free:
+                        raise InputError(f"body {f!r} floats on a free joint: its frame is a coordinate of the "
+                                         f"solve, not an error (name its sites instead)",
+                                         file=str(self.spec.folder / "machine.toml"), field="errors.frames")
+                    bodies.append(b)
+                else:
+                    sites.append(mujoco.mj_name2id(m, _OBJ.mjOBJ_SITE, f))
+        bodies = [b for b in bodies if body_name(b) not in es.exclude]
+        sites = [s for s in sites if site_name(s) not in es.exclude]
+        keys, table, units, prior = [], [], [], []
+        for b in bodies:
+            for k, c in enumerate(ERROR_COMPONENTS):
+                if c in es.components:
+                    rot = k >= 3
+                    keys.append(f"{body_name(b)}.{c}")
+                    table.append((_BODY_R if rot else _BODY_T, b, k % 3))
+                    units.append("deg" if rot else "mm")
+                    prior.append(es.angle_deg if rot else es.position_mm)
+        for s in sites:
+            for k, c in enumerate(ERROR_COMPONENTS[:3]):
+                if c in es.components:
+                    keys.append(f"{site_name(s)}.{c}")
+                    table.append((_SITE_T, s, k))
+                    units.append("mm")
+                    prior.append(es.position_mm)
+        if es.motor_zero:
+            for j, mot in enumerate(self.spec.motors):
+                keys.append(f"{mot.name}.dzero")
+                table.append((_ZERO, j, 0))
+                units.append(mot.unit)
+                prior.append(es.zero_deg if mot.unit == "deg" else es.zero_mm)
+        self.error_keys = keys
+        self._table = table
+        self._units = units
+        self._prior = np.array(prior, float)
+        self._key_index = {k: i for i, k in enumerate(keys)}
+        # For each error: which points it moves (the points on its frame's subtree, or the site itself).
+        point_body = m.site_bodyid[self.points]
+        self._moves = np.zeros((len(keys), len(self.points)), bool)
+        for i, (kind, obj, _) in enumerate(table):
+            if kind in (_BODY_T, _BODY_R):
+                self._moves[i] = [self._is_ancestor(obj, int(b)) for b in point_body]
+            elif kind == _SITE_T:
+                self._moves[i] = self.points == obj
+            else:
+                self._moves[i] = True
+
+    def _is_ancestor(self, a: int, b: int) -> bool:
+        """Whether body ``a`` is ``b`` or one of its ancestors."""
+        while b > 0:
+            if b == a:
+                return True
+            b = int(self.model.body_parentid[b])
+        return a == 0
+
+    # ------------------------------------------------------------------ parameters
+    def error_units(self, keys: list[str] | None = None) -> list[str]:
+        """Unit of each error key (``"mm"`` or ``"deg"``); default every :attr:`error_keys`."""
+        return [self._units[self._index(k)] for k in (keys or self.error_keys)]
+
+    def prior_std(self, keys: list[str] | None = None) -> np.ndarray:
+        """Prior size (1 sigma) of each key in its unit, from ``[errors]`` of the machine.toml."""
+        return np.array([self._prior[self._index(k)] for k in (keys or self.error_keys)])
+
+    def _index(self, key: str) -> int:
+        try:
+            return self._key_index[key]
+        except KeyError:
+            raise KeyError(f"unknown error key {key!r} of {self.spec.name} (known: e.g. "
+                           f"{', '.join(self.error_keys[:4])}, ...; twin.error_keys lists all)") from None
+
+    def set_params(self, params: Mapping[str, float] | None) -> None:
+        """Apply geometric errors ``{key: value}`` (mm / deg; missing keys 0, None: nominal) to the model."""
+        x = np.zeros(len(self.error_keys))
+        for k, v in (params or {}).items():
+            x[self._index(k)] = float(v)
+        if np.array_equal(x, self._x):
+            return
+        m = self.model
+        m.body_pos[:] = self._nominal_body_pos
+        m.body_quat[:] = self._nominal_body_quat
+        m.site_pos[:] = self._nominal_site_pos
+        rot: dict[int, np.ndarray] = {}
+        zero = np.zeros(self.n_motors)
+        for (kind, obj, k), v in zip(self._table, x):
+            if v == 0.0:
+                continue
+            if kind == _BODY_T:
+                m.body_pos[obj, k] += v * MM
+            elif kind == _BODY_R:
+                rot.setdefault(obj, np.zeros(3))[k] = v * DEG
+            elif kind == _SITE_T:
+                m.site_pos[obj, k] += v * MM
+            else:
+                zero[obj] = v
+        for b, w in rot.items():
+            dq = np.zeros(4)
+            mujoco.mju_mat2Quat(dq, rotvec_matrix(w).reshape(9))
+            q = np.zeros(4)
+            mujoco.mju_mulQuat(q, dq, self._nominal_body_quat[b])
+            m.body_quat[b] = q
+        self._rot = rot
+        self._zero_offset = zero
+        self._x = x
+        # The warm starts stay: configurations of a machine with slightly other errors are the best starts.
+
+    @property
+    def params(self) -> dict[str, float]:
+        """The errors currently applied (non-zero ones), ``{key: value}`` mm / deg."""
+        return {k: float(v) for k, v in zip(self.error_keys, self._x) if v != 0.0}
+
+    # ------------------------------------------------------------------ commands <-> joints
+    def _joints_of(self, commands: np.ndarray) -> np.ndarray:
+        """Motor joint positions (N, M) SI of commands (N, M)."""
+        return (commands - self.motor_zero + self._zero_offset) * self.motor_unit
+
+    def _commands_of(self, qpos: np.ndarray) -> np.ndarray:
+        return qpos[:, self.motor_qadr] / self.motor_unit + self.motor_zero - self._zero_offset
+
+    def _as_commands(self, commands) -> np.ndarray:
+        c = np.atleast_2d(np.asarray(commands, float))
+        if c.shape[-1] != self.n_motors:
+            raise ValueError(f"commands need {self.n_motors} columns (m1..m{self.n_motors}), got shape {c.shape}")
+        return c
+
+    # ------------------------------------------------------------------ kinematics of one configuration
+    def _kin(self, q: np.ndarray, jac: bool = True, closure_only: bool = False):
+        """Forward kinematics at ``q``; with ``jac`` the points' Jacobians (3, nv) each (with
+        ``closure_only`` those of the closure sites only, the first points; the others stay zero)."""
+        m, d = self.model, self.data
+        d.qpos[:] = q
+        mujoco.mj_kinematics(m, d)
+        if not jac:
+            return None
+        mujoco.mj_comPos(m, d)
+        P = len(self.points)
+        jp = np.zeros((P, 3, m.nv))
+        jr = np.zeros((P, 3, m.nv))
+        for i in range(self._n_closure_points if closure_only else P):
+            mujoco.mj_jacSite(m, d, jp[i], jr[i], int(self.points[i]))
+        return jp, jr
+
+    def _closure(self, jp: np.ndarray | None, jr: np.ndarray | None, with_jac: bool = True):
+        """Weighted closure residual (n_eq + springs,) and its Jacobian (.., nv) at the current kinematics of
+        ``self.data`` (:meth:`_closure_rows` of one configuration)."""
+        d = self.data
+        sm = d.site_xmat[self.points].reshape(1, -1, 3, 3) if self._weld.any() else None
+        r, J = self._closure_rows(d.site_xpos[self.points][None], sm, None if jp is None else jp[None],
+                                  None if jr is None else jr[None], d.qpos[None], with_jac)
+        return r[0], (J[0] if with_jac else None)
+
+    def _closure_rows(self, sp, sm, jp, jr, qpos, with_jac: bool = True):
+        """Weighted closure residuals (A, n_eq + springs) and Jacobians (A, .., nv) of A configurations
+        from their point positions ``sp`` (A, npoints, 3), orientations ``sm`` (A, npoints, 3, 3; welds
+        only), point Jacobians ``jp``, ``jr`` (A, npoints, 3, nv) and ``qpos`` (A, nq): rows
+        ``sqrt(k) gap`` (unit weights without ``[closures]``) and ``sqrt(k_j) (q_j - ref_j)``."""
+        A, nv = len(sp), self.model.nv
+        r = [(sp[:, self._c1] - sp[:, self._c2]).reshape(A, -1)]
+        J = [(jp[:, self._c1] - jp[:, self._c2]).reshape(A, -1, nv)] if with_jac else []
+        if self._weld.any():
+            w1, w2 = self._c1[self._weld], self._c2[self._weld]
+            r.append(_rotation_error(sm[:, w1].reshape(-1, 3, 3), sm[:, w2].reshape(-1, 3, 3)).reshape(A, -1))
+            if with_jac:
+                J.append((jr[:, w1] - jr[:, w2]).reshape(A, -1, nv))
+        r = np.concatenate(r, axis=1) * self._sqrt_w
+        J = np.concatenate(J, axis=1) * self._sqrt_w[:, None] if with_jac else None
+        if len(self._spring_dof):
+            ns = len(self._spring_dof)
+            r = np.concatenate([r, self._spring_sqrt_k * (qpos[:, self._spring_qadr] - self._spring_ref)], axis=1)
+            if with_jac:
+                Js = np.zeros((A, ns, nv))
+                Js[:, np.arange(ns), self._spring_dof] = self._spring_sqrt_k
+                J = np.concatenate([J, Js], axis=1)
+        return r, J
+
+    def _newton_batch(self, Q: np.ndarray, tol: np.ndarray, goals: np.ndarray | None = None) -> np.ndarray:
+        """Assemble the configurations ``Q`` (A, nq) in place with the motor joints held (or, with task
+        ``goals`` (A, C), every dof free and the task equations added: inverse kinematics): MuJoCo's
+        kinematics per configuration, residuals and Newton steps vectorised (the same iteration as
+        :meth:`_newton`). ``tol`` (A,) per configuration. Returns which converged."""
+        m, d = self.model, self.data
+        P = self._n_closure_points if goals is None else self.points.size
+        nv = m.nv
+        pts = [int(p) for p in self.points[:P]]
+        weld = self._weld.any()
+        rigid = self.spec.closures is None
+        done = np.zeros(len(Q), bool)
+        active = np.arange(len(Q))
+        cols = self.passive if goals is None else np.arange(nv)
+        tp = self._task_p
+        for _ in range(self.MAX_ITER):
+            if not active.size:
+                break
+            A = len(active)
+            sp = np.empty((A, self.points.size, 3))
+            sm = np.empty((A, self.points.size, 3, 3)) if weld else None
+            jp = np.zeros((A, self.points.size, 3, nv))
+            jr = np.zeros((A, self.points.size, 3, nv))
+            Rt = np.empty((A, 3, 3))
+            for a, i in enumerate(active):
+                d.qpos[:] = Q[i]
+                mujoco.mj_kinematics(m, d)
+                mujoco.mj_comPos(m, d)
+                sp[a] = d.site_xpos[self.points]
+                if weld:
+                    sm[a] = d.site_xmat[self.points].reshape(-1, 3, 3)
+                if goals is not None:
+                    Rt[a] = d.site_xmat[self.task_site].reshape(3, 3)
+                for k in range(P):
+                    mujoco.mj_jacSite(m, d, jp[a, k], jr[a, k], pts[k])
+            r, J = self._closure_rows(sp, sm, jp, jr, Q[active])
+            if goals is not None:
+                rt, Jt = self._task_rows_batch(sp[:, tp], Rt, jp[:, tp], jr[:, tp], goals[active])
+                r, J = np.concatenate([r, rt], axis=1), np.concatenate([J, Jt], axis=1)
+            if rigid:
+                met = np.max(np.abs(r), axis=1) < tol[active]
+                done[active[met]] = True
+                active, r, J = active[~met], r[~met], J[~met]
+                if not active.size:
+                    break
+            Jc = J[:, :, cols]
+            if Jc.shape[1] == Jc.shape[2]:
+                step = -solve_stacked(Jc, r)
+            elif goals is None:                           # least squares (compliant closures): normal eqs
+                JT = np.swapaxes(Jc, 1, 2)
+                step = -solve_stacked(JT @ Jc, (JT @ r[..., None])[..., 0])
+            else:                                         # with the heavily weighted task rows: SVD
+                step = -(np.linalg.pinv(Jc, rcond=1e-12) @ r[..., None])[..., 0]
+            size = np.max(np.abs(step), axis=1)
+            bad = ~np.isfinite(size)
+            step *= np.minimum(1.0, self.MAX_STEP / np.where(bad, 1.0, np.maximum(size, 1e-300)))[:, None]
+            dv = np.zeros(nv)
+            for a, i in enumerate(active):
+                if not bad[a]:
+                    dv[cols] = step[a]
+                    mujoco.mj_integratePos(m, Q[i], dv, 1.0)
+            small = (size < tol[active]) & ~bad
+            if not rigid:
+                done[active[small]] = True               # stationary: the least-squares equilibrium
+            active = active[~(bad | (small & (not rigid)))]
+        return done
+
+    #: Residual tolerance (m / rad) of the intermediate sub-steps of a continuation (the last is exact).
+    PATH_TOL = 1e-7
+
+    def _newton(self, q: np.ndarray, rows=None, tol: float | None = None) -> tuple[np.ndarray, bool]:
+        """Assemble from ``q`` with the motor joints held (``rows`` None), or, for inverse kinematics, with
+        every dof free and the extra equations ``rows(jp, jr) -> (residual, Jacobian)`` (the task);
+        converged when the largest residual (rigid closures) or the largest step (compliant closures, whose
+        least-squares equilibrium keeps a residual) is below ``tol`` (default :data:`TOL_M`)."""
+        m = self.model
+        q = q.copy()
+        tol = self.TOL_M if tol is None else tol
+        cols = self.passive if rows is None else np.arange(m.nv)
+        for _ in range(self.MAX_ITER):
+            jp, jr = self._kin(q, closure_only=rows is None)
+            r, J = self._closure(jp, jr)
+            if rows is not None:
+                rt, Jt = rows(jp, jr)
+                r, J = np.concatenate([r, rt]), np.vstack([J, Jt])
+            if self.spec.closures is None and np.max(np.abs(r)) < tol:
+                return q, True                             # rigid closures: met exactly
+            step = -_least_squares_step(J[:, cols], r)
+            size = np.max(np.abs(step))
+            if not np.isfinite(size):
+                return q, False
+            if size < tol:                                 # stationary: the least-squares equilibrium
+                dv = np.zeros(m.nv)
+                dv[cols] = step
+                mujoco.mj_integratePos(m, q, dv, 1.0)
+                return q, True
+            if size > self.MAX_STEP:
+                step *= self.MAX_STEP / size
+            dv = np.zeros(m.nv)
+            dv[cols] = step
+            mujoco.mj_integratePos(m, q, dv, 1.0)
+        return q, False
+
+    def _assemble(self, joints: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Assemble at motor joint positions ``joints`` (M,) SI from configuration ``start`` by continuation:
+        the motors move in sub-steps of at most :data:`PATH_STEP` of their range, each closed by Newton from
+        the previous one (a long direct step can land on another assembly branch); the sub-steps halve
+        when one fails."""
+        j0 = start[self.motor_qadr].copy()
+        span = (self.motor_range[:, 1] - self.motor_range[:, 0]) * self.motor_unit
+        n = max(1, int(np.ceil(np.max(np.abs(joints - j0) / span) / self.PATH_STEP)))
+        q = start
+        for n_sub in (n, 4 * n):
+            q, ok = start, True
+            for t in np.linspace(0.0, 1.0, n_sub + 1)[1:]:
+                q = q.copy()
+                q[self.motor_qadr] = j0 + t * (joints - j0)
+                q, ok = self._newton(q, tol=None if t == 1.0 else self.PATH_TOL)
+                if not ok:
+                    break
+            if ok:
+                return q, True
+        return q, False
+
+    # ------------------------------------------------------------------ public API
+    def solve(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
+        """Assembled configurations (N, nq) at commands (N, M) (deg / mm) with errors ``params``.
+
+        Each pose starts from the nearest configuration already assembled on this machine (``home`` or an
+        earlier solve) and moves the motors there by continuation, in sub-steps of at most
+        :data:`PATH_STEP` of the motor ranges, all poses together (:meth:`_newton_batch`); a pose that fails
+        is redone alone in finer sub-steps from its nearest solved neighbour (:meth:`_assemble`). Every
+        pose lies on the home branch. Rows that do not assemble (out of reach, singular) are NaN.
+        """
+        self.set_params(params)
+        cmd = self._as_commands(commands)
+        joints = self._joints_of(cmd)
+        span = self.motor_range[:, 1] - self.motor_range[:, 0]
+        known_cmd = np.concatenate([self.home_commands[None], self._warm_cmd])
+        known_q = np.concatenate([self.home_qpos[None], self._warm_qpos])
+        # All poses together: each from its nearest assembled configuration, by continuation in lockstep.
+        dist = np.max(np.abs(known_cmd[None, :, :] - cmd[:, None, :]) / span, axis=2) if len(cmd) else \
+            np.zeros((0, 1))
+        start = np.argmin(dist, axis=1)
+        n_sub = np.maximum(1, np.ceil(dist[np.arange(len(cmd)), start] / self.PATH_STEP)).astype(int)
+        Q = known_q[start].copy()
+        j0 = Q[:, self.motor_qadr].copy()
+        alive = np.isfinite(joints).all(axis=1)
+        for step in range(1, int(n_sub.max(initial=0)) + 1):
+            idx = np.flatnonzero(alive & (step <= n_sub))
+            if not idx.size:
+                continue
+            t = (step / n_sub[idx])[:, None]
+            Qi = Q[idx]
+            Qi[:, self.motor_qadr] = j0[idx] + t * (joints[idx] - j0[idx])
+            ok = self._newton_batch(Qi, np.where(step == n_sub[idx], self.TOL_M, self.PATH_TOL))
+            Q[idx] = Qi
+            alive[idx[~ok]] = False
+        out = np.where(alive[:, None], Q, np.nan)
+        # The poses that failed: one by one, from their nearest neighbour solved so far, in finer sub-steps.
+        solved_cmd = np.concatenate([known_cmd, cmd[alive]])
+        solved_q = np.concatenate([known_q, out[alive]])
+        for i in np.flatnonzero(~alive & np.isfinite(joints).all(axis=1)):
+            j = int(np.argmin(np.max(np.abs(solved_cmd - cmd[i]) / span, axis=1)))
+            q, ok = self._assemble(joints[i], solved_q[j])
+            if not ok and j != 0:
+                q, ok = self._assemble(joints[i], self.home_qpos)
+            if ok:
+                out[i] = q
+                solved_cmd = np.concatenate([solved_cmd, cmd[i][None]])
+                solved_q = np.concatenate([solved_q, q[None]])
+        good = np.isfinite(out).all(axis=1)
+        self._remember(np.concatenate([self._warm_cmd, cmd[good]]), np.concatenate([self._warm_qpos, out[good]]))
+        return out
+
+    def _remember(self, cmd: np.ndarray, qpos: np.ndarray) -> None:
+        """Keep assembled configurations (latest last, at most 4096) as warm starts of later solves."""
+        self._warm_cmd = cmd[-4096:]
+        self._warm_qpos = qpos[-4096:]
+
+    def kinematics(self, qpos: np.ndarray) -> Kinematics:
+        """World poses and point Jacobians (:class:`Kinematics`) at configurations ``qpos`` (N, nq), SI."""
+        m, d = self.model, self.data
+        qpos = np.atleast_2d(qpos)
+        N, P = len(qpos), len(self.points)
+        out = Kinematics(qpos=qpos, xpos=np.full((N, m.nbody, 3), np.nan), xmat=np.full((N, m.nbody, 3, 3), np.nan),
+                         site_xpos=np.full((N, P, 3), np.nan), site_xmat=np.full((N, P, 3, 3), np.nan),
+                         jacp=np.full((N, P, 3, m.nv), np.nan), jacr=np.full((N, P, 3, m.nv), np.nan))
+        for i in range(N):
+            if not np.isfinite(qpos[i]).all():
+                continue
+            out.jacp[i], out.jacr[i] = self._kin(qpos[i])
+            out.xpos[i] = d.xpos
+            out.xmat[i] = d.xmat.reshape(-1, 3, 3)
+            out.site_xpos[i] = d.site_xpos[self.points]
+            out.site_xmat[i] = d.site_xmat[self.points].reshape(-1, 3, 3)
+        return out
+
+    def targets(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
+        """Tracker nest positions (N, K, 3) mm, world frame; NaN rows where the chain cannot assemble."""
+        qpos = self.solve(commands, params)
+        return self._sites_mm(qpos, self.target_sites)
+
+    def _sites_mm(self, qpos: np.ndarray, sites: np.ndarray) -> np.ndarray:
+        out = np.full((len(qpos), len(sites), 3), np.nan)
+        for i, q in enumerate(qpos):
+            if np.isfinite(q).all():
+                self._kin(q, jac=False)
+                out[i] = self.data.site_xpos[sites] / MM
+        return out
+
+    def measure(self, commands, params: Mapping[str, float] | None = None,
+                rng: np.random.Generator | None = None, sigma: float | None = None) -> np.ndarray:
+        """A tracker reading (N, K, 3) mm: :meth:`targets` plus Gaussian noise of ``sigma`` mm per coordinate
+        (default the machine's ``sigma_mm``) drawn from ``rng``."""
+        rng = rng if rng is not None else np.random.default_rng()
+        y = self.targets(commands, params)
+        return y + rng.normal(0.0, self.sigma_mm if sigma is None else sigma, y.shape)
+
+    def jacobian(self, commands, params: Mapping[str, float] | None = None,
+                 keys: list[str] | None = None) -> np.ndarray:
+        """Exact d targets / d errors (N, K, 3, P) at commands (N, M), mm per key unit (mm/mm, mm/deg),
+        by the implicit-function theorem (module docstring). ``keys`` default :attr:`error_keys`. NaN rows
+        where the chain cannot assemble."""
+        kin, dpos, _ = self._point_jacobians(commands, params, keys)
+        return dpos[:, self._tp] / MM
+
+    def task_jacobian(self, commands, params: Mapping[str, float] | None = None,
+                      keys: list[str] | None = None) -> np.ndarray:
+        """Exact d task coordinates / d errors (N, C, P) at fixed commands (N, M): how far each error moves
+        the task site, in the coordinates' units (mm, deg) per key unit. ``J Cov J^T`` is the task-space
+        covariance a compensation with identified errors of covariance ``Cov`` leaves."""
+        kin, dpos, drot = self._point_jacobians(commands, params, keys)
+        coords = self.spec.task.coordinates
+        out = np.full((len(kin.qpos), len(coords), dpos.shape[-1]), np.nan)
+        tp = self._task_p
+        for i, c in enumerate(coords):
+            if c in POSITION:
+                out[:, i] = dpos[:, tp, POSITION.index(c)] / MM
+        ang = [i for i, c in enumerate(coords) if c not in POSITION]
+        if ang:
+            for n in range(len(kin.qpos)):
+                if np.isfinite(kin.qpos[n]).all():
+                    D = self._angle_rates(kin.site_xpos[n, tp] / MM, kin.site_xmat[n, tp])
+                    out[n, ang] = D @ drot[n, tp]
+        return out
+
+    def _point_jacobians(self, commands, params, keys):
+        """Kinematics at the assembled commands and the total derivatives (N, npoints, 3, P) of every
+        point's position (m) and orientation (rad) per key unit: the IFT of the module docstring."""
+        keys = list(keys or self.error_keys)
+        kin = self.kinematics(self.solve(commands, params))
+        dP, dW = self._error_derivatives(kin, [self._index(k) for k in keys])   # (N, npts, 3, P) SI
+        N, nv = len(kin.qpos), self.model.nv
+        C = np.concatenate([kin.jacp[:, self._c1] - kin.jacp[:, self._c2],
+                            kin.jacr[:, self._c1[self._weld]] - kin.jacr[:, self._c2[self._weld]]],
+                           axis=1).reshape(N, -1, nv)
+        Ce = np.concatenate([dP[:, self._c1] - dP[:, self._c2],
+                             dW[:, self._c1[self._weld]] - dW[:, self._c2[self._weld]]],
+                            axis=1).reshape(N, -1, len(keys))
+        C, Ce = C * self._sqrt_w[:, None], Ce * self._sqrt_w[:, None]      # compliance weights
+        if len(self._spring_dof):                                          # passive joint springs
+            ns = len(self._spring_dof)
+            Cs = np.zeros((N, ns, nv))
+            Cs[:, np.arange(ns), self._spring_dof] = self._spring_sqrt_k
+            C, Ce = np.concatenate([C, Cs], axis=1), np.concatenate([Ce, np.zeros((N, ns, len(keys)))], axis=1)
+        dpos = np.full(dP.shape, np.nan)
+        drot = np.full(dW.shape, np.nan)
+        ok = np.isfinite(kin.qpos).all(axis=1)
+        if ok.any():
+            Cp = C[ok][:, :, self.passive]
+            dq = -np.linalg.pinv(Cp, rcond=1e-10) @ Ce[ok]                  # (n, npassive, P)
+            dpos[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacp[ok][..., self.passive], dq) + dP[ok]
+            drot[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacr[ok][..., self.passive], dq) + dW[ok]
+        return kin, dpos, drot
+
+    def _error_derivatives(self, kin: Kinematics, idx: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """d position (m) and d orientation (rad) of every point per unit of each error ``idx`` at fixed
+        joints: (N, npoints, 3, P) each."""
+        m = self.model
+        N, P = len(kin.qpos), len(idx)
+        dP = np.zeros((N, len(self.points), 3, P))
+        dW = np.zeros((N, len(self.points), 3, P))
+        for c, i in enumerate(idx):
+            kind, obj, k = self._table[i]
+            mv = self._moves[i]
+            dp, dw = dP[..., c], dW[..., c]                                 # views (N, npoints, 3)
+            if kind == _BODY_T:
+                parent = int(m.body_parentid[obj])
+                dp[:, mv] = kin.xmat[:, parent, :, k][:, None, :] * MM
+            elif kind == _BODY_R:
+                parent = int(m.body_parentid[obj])
+                Rp = kin.xmat[:, parent]                                    # (N, 3, 3)
+                w_local = so3_left_jacobian(self._rot_of(obj))[:, k]
+                w = np.einsum("nij,j->ni", Rp, w_local) * DEG               # (N, 3) rad per deg
+                origin = kin.xpos[:, parent] + np.einsum("nij,j->ni", Rp, m.body_pos[obj])
+                dp[:, mv] = np.cross(w[:, None, :], kin.site_xpos[:, mv] - origin[:, None, :])
+                dw[:, mv] = w[:, None, :]
+            elif kind == _SITE_T:
+                body = int(m.site_bodyid[obj])
+                dp[:, mv] = kin.xmat[:, body, :, k][:, None, :] * MM
+            else:
+                dof, unit = self.motor_dof[obj], self.motor_unit[obj]
+                dp[:] = kin.jacp[..., dof] * unit
+                dw[:] = kin.jacr[..., dof] * unit
+        return dP, dW
+
+    def _rot_of(self, body: int) -> np.ndarray:
+        return getattr(self, "_rot", {}).get(body, np.zeros(3))
+
+    # ------------------------------------------------------------------ task space
+    def targets_in_task_frame(self, params: Mapping[str, float] | None = None) -> np.ndarray:
+        """The nests' coordinates (K, 3) mm in the task site's frame at ``home`` (rigid on the same part:
+        the same everywhere). With ``measure = "pose"`` a tracker reading ``Y`` (N, K, 3) gives the task
+        frame's pose by ``pmcal.mechanism.rigid.fit_pose(Y, twin.targets_in_task_frame())``."""
+        self.set_params(params)
+        self._kin(self.solve(self.home_commands[None])[0], jac=False)
+        d = self.data
+        R = d.site_xmat[self.task_site].reshape(3, 3)
+        return (d.site_xpos[self.target_sites] - d.site_xpos[self.task_site]) @ R / MM
+
+    def task_of(self, qpos: np.ndarray) -> np.ndarray:
+        """Task coordinates (N, C) of configurations ``qpos`` (N, nq); NaN rows stay NaN."""
+        coords = self.spec.task.coordinates
+        out = np.full((len(qpos), len(coords)), np.nan)
+        for i, q in enumerate(qpos):
+            if np.isfinite(q).all():
+                self._kin(q, jac=False)
+                p = self.data.site_xpos[self.task_site] / MM
+                R = self.data.site_xmat[self.task_site].reshape(3, 3)
+                out[i] = task_coordinates(p[None], R[None], coords)[0]
+        return out
+
+    def forward(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
+        """Task coordinates (N, C) reached at commands (N, M) (forward kinematics); NaN where the chain
+        cannot assemble."""
+        return self.task_of(self.solve(commands, params))
+
+    def _angle_rates(self, p_mm: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """d (angle task coordinates, deg) / d (world rotation vector of the task frame, rad), (..., C_ang,
+        3) at positions ``p_mm`` (..., 3) and orientations ``R`` (..., 3, 3): central differences of the
+        closed-form angles of ``R`` (not of the chain), step 1e-7 rad."""
+        coords = self.spec.task.coordinates
+        ang = [i for i, c in enumerate(coords) if c not in POSITION]
+        h = 1e-7
+        turns = rotvec_matrix(np.concatenate([np.eye(3), -np.eye(3)]) * h) @ R[..., None, :, :]   # (..., 6, 3, 3)
+        t = task_coordinates(np.broadcast_to(p_mm[..., None, :], turns.shape[:-1]), turns, coords)
+        return np.swapaxes(task_difference(t[..., :3, :], t[..., 3:, :], coords)[..., ang] / (2 * h), -1, -2)
+
+    def _task_rows_batch(self, p_m: np.ndarray, R: np.ndarray, jp: np.ndarray, jr: np.ndarray,
+                         goals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Weighted task equations of A configurations: residuals (A, C) (m, rad) and Jacobians (A, C, nv)
+        from the task site's position ``p_m`` (A, 3) m, orientation ``R`` (A, 3, 3) and Jacobians ``jp``,
+        ``jr`` (A, 3, nv), towards ``goals`` (A, C) (task units)."""
+        coords = self.spec.task.coordinates
+        is_pos = np.array([c in POSITION for c in coords])
+        now = task_coordinates(p_m / MM, R, coords)
+        diff = task_difference(now, goals, coords)
+        r = np.where(is_pos, diff * MM, diff * DEG)
+        J = np.zeros((len(p_m), len(coords), self.model.nv))
+        for i, c in enumerate(coords):
+            if c in POSITION:
+                J[:, i] = jp[:, POSITION.index(c)]
+        if not is_pos.all():
+            J[:, ~is_pos] = self._angle_rates(p_m / MM, R) * DEG @ jr
+        return r * self._task_sqrt_w, J * self._task_sqrt_w
+
+    def _task_rows(self, goal: np.ndarray):
+        """Task equations for :meth:`_newton`: residual (C,) (m, rad) and Jacobian (C, nv)."""
+        d, tp = self.data, self._task_p
+
+        def rows(jp, jr):
+            R = d.site_xmat[self.task_site].reshape(1, 3, 3)
+            r, J = self._task_rows_batch(d.site_xpos[self.task_site][None], R, jp[tp][None], jr[tp][None],
+                                         goal[None])
+            return r[0], J[0]
+
+        return rows
+
+    def inverse_report(self, task, params: Mapping[str, float] | None = None) -> tuple[np.ndarray, list[str]]:
+        """:meth:`inverse` with the reason for each NaN row (``""`` where reached)."""
+        self.set_params(params)
+        coords = self.spec.task.coordinates
+        task = np.atleast_2d(np.asarray(task, float))
+        if task.shape[-1] != len(coords):
+            raise ValueError(f"task needs {len(coords)} columns ({', '.join(coords)}), got shape {task.shape}")
+        home_task = self.task_of(self.home_qpos[None])[0]
+        cmd = np.full((len(task), self.n_motors), np.nan)
+        reasons = [""] * len(task)
+        width = np.array([self.spec.workspace[c][1] - self.spec.workspace[c][0] for c in coords])
+        # All targets together from home along straight task paths (lockstep continuation); the ones that
+        # fail are redone one by one from the nearest target reached, in finer sub-steps.
+        delta = task_difference(task, home_task, coords)
+        n_sub = np.maximum(1, np.ceil(np.max(np.abs(delta) / width, axis=1) / self.PATH_STEP)).astype(int)
+        Q = np.tile(self.home_qpos, (len(task), 1))
+        alive = np.isfinite(task).all(axis=1)
+        for step in range(1, int(n_sub[alive].max(initial=0)) + 1):
+            idx = np.flatnonzero(alive & (step <= n_sub))
+            if not idx.size:
+                continue
+            goals = home_task + (step / n_sub[idx])[:, None] * delta[idx]
+            Qi = Q[idx]
+            ok = self._newton_batch(Qi, np.where(step == n_sub[idx], self.TOL_M, self.PATH_TOL), goals)
+            Q[idx] = Qi
+            alive[idx[~ok]] = False
+        known_task = [home_task] + list(task[alive])
+        known_q = [self.home_qpos] + list(Q[alive])
+        for i, goal in enumerate(task):
+            if alive[i]:
+                q, ok = Q[i], True
+            elif not np.isfinite(goal).all():
+                q, ok = self.home_qpos, False
+            else:
+                dist = np.max(np.abs(task_difference(goal, np.array(known_task), coords)) / width, axis=1)
+                j = int(np.argmin(dist))
+                q, ok = self._reach_task(goal, known_task[j], known_q[j], dist[j])
+                if not ok and j != 0:
+                    q, ok = self._reach_task(goal, home_task, self.home_qpos, dist[0])
+            if not ok:
+                reasons[i] = "no assembly of the chain reaches this target (out of the workspace or singular)"
+                continue
+            if not alive[i]:
+                known_task.append(goal)
+                known_q.append(q)
+            c = self._commands_of(q[None])[0]
+            lo, hi = self.motor_range[:, 0], self.motor_range[:, 1]
+            out = np.flatnonzero((c < lo) | (c > hi))
+            if out.size:
+                j = out[0]
+                mot = self.spec.motors[j]
+                reasons[i] = (f"{mot.name} command {c[j]:.3f} {mot.unit} outside its range "
+                              f"[{lo[j]:g}, {hi[j]:g}]")
+                continue
+            cmd[i] = c
+            self._remember(np.concatenate([self._warm_cmd, c[None]]), np.concatenate([self._warm_qpos, q[None]]))
+        return cmd, reasons
+
+    def _reach_task(self, goal: np.ndarray, start_task: np.ndarray, start_q: np.ndarray, dist: float):
+        """Configuration reaching task coordinates ``goal`` from an assembled ``start_q`` (at
+        ``start_task``) by continuation along the straight task-space path, in sub-steps of at most
+        :data:`PATH_STEP` of the workspace box (``dist``: the whole path in those units)."""
+        coords = self.spec.task.coordinates
+        n = max(1, int(np.ceil(dist / self.PATH_STEP)))
+        q, ok = start_q, False
+        for n_sub in (n, 4 * n):
+            q, ok = start_q, True
+            for t in np.linspace(0.0, 1.0, n_sub + 1)[1:]:
+                sub = start_task + t * task_difference(goal, start_task, coords)
+                q, ok = self._newton(q, rows=self._task_rows(sub), tol=None if t == 1.0 else self.PATH_TOL)
+                if not ok:
+                    break
+            if ok:
+                break
+        return q, ok
+
+    def inverse(self, task, params: Mapping[str, float] | None = None) -> np.ndarray:
+        """Commands (N, M) (deg / mm) that put the task site at ``task`` (N, C) (coordinates of
+        ``spec.task``, mm / deg) on the machine with errors ``params``: Newton on the closure and task
+        equations together, by continuation along the straight task path from ``home``, all targets at once
+        (:meth:`_newton_batch`); a target that fails is redone alone in finer sub-steps from the nearest one
+        reached. Every solution lies on the home branch. NaN rows
+        where out of reach or outside a motor's range (:meth:`inverse_report` says which)."""
+        return self.inverse_report(task, params)[0]
+
+    def sample_task(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """``n`` task points (n, C) drawn uniformly from the workspace box of the machine.toml."""
+        box = np.array([self.spec.workspace[c] for c in self.spec.task.coordinates])
+        return rng.uniform(box[:, 0], box[:, 1], size=(n, len(box)))
+
+    def sample_commands(self, n: int, rng: np.random.Generator, params: Mapping[str, float] | None = None,
+                        max_rounds: int = 20) -> np.ndarray:
+        """``n`` commands (n, M) whose poses are uniform over the workspace box, filtered by reach and motor
+        ranges (the inverse kinematics of the machine with ``params``, default nominal)."""
+        got: list[np.ndarray] = []
+        count = 0
+        for _ in range(max_rounds):
+            cmd = self.inverse(self.sample_task(max(2 * (n - count), 4), rng), params)
+            cmd = cmd[np.isfinite(cmd).all(axis=1)]
+            got.append(cmd)
+            count += len(cmd)
+            if count >= n:
+                return np.concatenate(got)[:n]
+        raise RuntimeError(f"only {count} of {n} workspace samples of {self.spec.name} are reachable: check "
+                           f"[workspace] in machine.toml")
+
+
+def _least_squares_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``x`` minimising ``|J x - r|`` (minimum norm): LU for a regular square ``J``, else SVD."""
+    if J.shape[0] == J.shape[1]:
+        try:
+            x = np.linalg.solve(J, r)
+            if np.all(np.isfinite(x)):
+                return x
+        except np.linalg.LinAlgError:
+            pass
+    return np.linalg.lstsq(J, r, rcond=1e-12)[0]
+
+
+def _rotation_error(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
+    """Rotation vectors (n, 3) rad of ``R1 R2^T`` (world frame): the weld residual, zero when aligned."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R1 @ np.swapaxes(R2, -1, -2)).as_rotvec().reshape(-1, 3)
