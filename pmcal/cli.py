@@ -39,7 +39,8 @@ DEFAULT_MACHINE = "ocpm_2dof"
 FILE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "identify": ("output",), "compensate": ("output", "table"), "evaluate": ("json",),
     "diagnose": ("json",), "twin measure": ("output",), "twin plan": ("output",), "twin render": ("output",), "targets": ("output",),
-    "push": ("json", "audit"), "loop": ("json",),
+    "push": ("json", "audit"), "loop": ("json",), "import": ("output",), "export-model": ("output",),
+    "history": ("report",),
 }
 FOLDER_OUTPUTS: dict[str, tuple[str, ...]] = {"demo": ("out",), "diagnose": ("report",)}
 #: (command, attribute) of a file output that brings a second file beside it: suffix of that file

@@ -1,0 +1,65 @@
+"""``pmcal import | export-model | history``: exchange with the tools a calibration engineer already uses.
+
+``import`` joins a tracker export and a controller log into the measurement CSV; ``export-model`` writes
+the calibrated MuJoCo model (MJCF); ``history`` tables and plots a machine's calibrations over time.
+Formats: docs/formats.md ("Tracker exports and controller logs", "Calibration history").
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from pmcal.errors import InputError
+
+
+def _import(args) -> int:
+    from pmcal import progress
+    from pmcal.io_ocpm import write_measurements
+    from pmcal.io_tracker import join, parse_columns, read_controller_log, read_point_csv, read_sa_ascii
+
+    if args.machine != "ocpm_2dof":
+        raise InputError(f"'import' writes the ocpm_2dof measurement file; not available for machine "
+                         f"'{args.machine}'", field="--machine")
+    if args.time_tolerance is not None and not args.time_tolerance > 0:
+        raise InputError(f"time tolerance must be a positive number of seconds, got {args.time_tolerance}",
+                         field="--time-tolerance")
+    if args.columns:
+        export = read_point_csv(args.tracker, parse_columns(args.columns), args.units)
+    else:
+        export = read_sa_ascii(args.tracker, args.units)
+    log = read_controller_log(args.log)
+    res = join(export, log, names=args.names, time_tolerance_s=args.time_tolerance)
+    for w in res.warnings:
+        progress.warning(w)
+    if res.frame != "base":
+        progress.warning(f"{args.tracker}: {res.comments[2].removeprefix('frame: tracker ')}: "
+                         f"pmcal identify {args.output} --frame tracker")
+    write_measurements(args.output, res.meas, comments=res.comments)
+    progress.status(f"imported {len(res.meas)} poses ({res.join}, {res.frame} frame)")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("import", help="join a tracker export and a controller log into a measurement CSV")
+    p.add_argument("tracker", metavar="TRACKER.txt",
+                   help="tracker export: Spatial Analyzer's ASCII point export (names, x y z, optional tolerance, "
+                        "uncertainty and time stamp; space or comma separated; '//' comments), or a CSV with "
+                        "--columns; docs/formats.md")
+    p.add_argument("--log", required=True, metavar="LOG.csv",
+                   help="controller log CSV: pose_id, m1_cmd_deg, m2_cmd_deg (deg), optional time_s (s), temp_c "
+                        "(degC)")
+    p.add_argument("-o", "--output", required=True, metavar="MEAS.csv",
+                   help="measurement CSV to write (docs/formats.md); frame and units in its '#' header")
+    p.add_argument("--units", default=None, choices=["mm", "in"],
+                   help="length unit of the export: mm or in (inches); default the export header's, else mm")
+    p.add_argument("--names", default=None, metavar="REGEX",
+                   help="pattern of the point names (name fields joined by one space) with named groups "
+                        "'pose' (its digits are the log's pose number: P007 is pose 7) and 'target' (the nest: "
+                        "T1, T2, ...); default: last field target, the one before it pose, a collection ignored")
+    p.add_argument("--columns", default=None, metavar="name=COL,x=COL,y=COL,z=COL[,time=COL]",
+                   help="read a plain CSV of points instead, with this column map (pose=COL,target=COL instead "
+                        "of name=COL allowed); coordinates in --units")
+    p.add_argument("--time-tolerance", type=float, default=None, metavar="S",
+                   help="join points without a pose in their name to the log row nearest in time within this "
+                        "many seconds (time stamps on both sides, same clock)")
+    p.set_defaults(func=_import)
