@@ -44,7 +44,7 @@ FILE_OUTPUTS: dict[str, tuple[str, ...]] = {
 }
 FOLDER_OUTPUTS: dict[str, tuple[str, ...]] = {"demo": ("out",), "diagnose": ("report",)}
 #: (command, attribute) of a file output that brings a second file beside it: suffix of that file
-COMPANIONS: dict[tuple[str, str], str] = {("compensate", "table"): ".csv"}
+COMPANIONS: dict[tuple[str, str], str] = {("compensate", "table"): ".csv", ("export-model", "output"): ".toml"}
 
 EPILOG = ("File formats (measurement, targets, setpoints, parameters, diagnosis JSON, compensation table): "
           "docs/formats.md. Units at every interface: mm and degrees.")

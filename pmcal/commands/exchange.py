@@ -39,6 +39,20 @@ def _import(args) -> int:
     return 0
 
 
+def _export_model(args) -> int:
+    from pmcal import progress
+    from pmcal.export_model import export_model
+    from pmcal.machines import get_app
+
+    get_app(args.machine)                                   # an unknown machine: one line, exit 2
+    out = export_model(args.params, args.output, args.machine)
+    for name, where in out["in_mjcf"].items():
+        progress.status(f"{name}: in the MJCF ({where})")
+    for name in out["comment_only"] + out["not_in_mjcf"]:
+        progress.warning(f"{name} cannot be held by MJCF: written to {out['toml']} (and the file's comment)")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("import", help="join a tracker export and a controller log into a measurement CSV")
     p.add_argument("tracker", metavar="TRACKER.txt",
@@ -63,3 +77,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="join points without a pose in their name to the log row nearest in time within this "
                         "many seconds (time stamps on both sides, same clock)")
     p.set_defaults(func=_import)
+
+    p = sub.add_parser("export-model", help="write the calibrated machine as a MuJoCo model (MJCF)")
+    p.add_argument("params", metavar="PARAMS.json",
+                   help="parameters file of identify (or params.json of 'diagnose --report DIR': adds the named "
+                        "effects); docs/formats.md")
+    p.add_argument("-o", "--output", required=True, metavar="CALIBRATED.xml",
+                   help="MJCF file to write (self-contained, SI units); a machine.toml with the calibration and "
+                        "the effects MJCF cannot hold is written beside it with the suffix .toml")
+    p.set_defaults(func=_export_model)
