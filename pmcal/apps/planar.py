@@ -38,6 +38,8 @@ def _noise(machine, sigma: float | None):
 
 def identify(args) -> int:
     """``pmcal --machine planar_2dof identify MEAS.csv -o PARAMS.json [--model full] [--method tsvd|ls|gls]``."""
+    if getattr(args, "history", None):
+        raise InputError("--history files ocpm_2dof calibrations only", field="--history")
     from pmcal.calib.planar.identification import METHODS, identify as run
     from pmcal.fileio import write_json
     from pmcal.io_planar import params_document, read_measurements

@@ -53,6 +53,31 @@ def _export_model(args) -> int:
     return 0
 
 
+def _history(args) -> int:
+    from pmcal.history import compare, history_table, read_history, unit_of
+
+    records = read_history(args.folder)
+    changes = compare(records[-2], records[-1], args.alpha) if len(records) > 1 else None
+    header, rows = history_table(records, changes)
+    print(f"{len(records)} calibration(s) of {records[-1].machine} in {args.folder}, last "
+          f"{records[-1].date:%Y-%m-%d %H:%M} UTC" + ("" if changes is None else
+                                                     f", previous {records[-2].date:%Y-%m-%d %H:%M} UTC"))
+    fmt = lambda v, sign: v if isinstance(v, str) else ("–" if v != v else f"{v:{sign}.4f}")  # noqa: E731
+    table = [header] + [[fmt(c, "" if header[i].startswith("+-") else "+") for i, c in enumerate(row)] for row in rows]
+    widths = [max(len(r[i]) for r in table) for i in range(len(header))]
+    for row in table:
+        print("  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))))
+    moved = [c for c in changes or [] if c.flagged]
+    if changes is not None:
+        print("moved: " + (", ".join(f"{c.name} {c.estimate:+.4g} {unit_of(c.name)}"
+                                     for c in moved) if moved else "nothing") + f" (family-wise alpha {args.alpha:g})")
+    if args.report:
+        from pmcal.reports.history import history_report
+
+        history_report(records, changes, str(args.folder), args.alpha).write(args.report)
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("import", help="join a tracker export and a controller log into a measurement CSV")
     p.add_argument("tracker", metavar="TRACKER.txt",
@@ -86,3 +111,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="MJCF file to write (self-contained, SI units); a machine.toml with the calibration and "
                         "the effects MJCF cannot hold is written beside it with the suffix .toml")
     p.set_defaults(func=_export_model)
+
+    p = sub.add_parser("history", help="a machine's calibrations over time: what moved since the last one")
+    p.add_argument("folder", metavar="DIR", help="history folder that 'pmcal identify ... --history DIR' files into")
+    p.add_argument("--report", default=None, metavar="HISTORY.html",
+                   help="also write an HTML report (every parameter over time with its 95 %% band)")
+    p.add_argument("--alpha", type=float, default=0.05, metavar="P",
+                   help="family-wise false-flag rate of the test between the last two calibrations (default 0.05)")
+    p.set_defaults(func=_history)
