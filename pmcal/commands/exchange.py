@@ -56,6 +56,8 @@ def _export_model(args) -> int:
 def _history(args) -> int:
     from pmcal.history import compare, history_table, read_history, unit_of
 
+    if not 0 < args.alpha < 1:
+        raise InputError(f"alpha must be in (0, 1), got {args.alpha}", field="--alpha")
     records = read_history(args.folder)
     changes = compare(records[-2], records[-1], args.alpha) if len(records) > 1 else None
     header, rows = history_table(records, changes)
