@@ -298,11 +298,13 @@ class ImportResult:
     """What :func:`join` made: the measurements, how it joined, and every point it could not place.
 
     ``meas`` rows are the log's poses in log order (poses with fewer than two points left out, listed in
-    ``left_out``); ``frame`` is ``base`` or ``tracker`` (:func:`in_base_frame`); ``warnings`` one line each
+    ``left_out``); ``frame`` is ``base`` or ``tracker`` (:func:`in_base_frame`, ``frame_reason`` why not
+    the base frame); ``warnings`` one line each
     (unmatched, re-shot, ambiguous points by name and line); ``comments`` the header lines of the file."""
 
     meas: Measurements
     frame: str
+    frame_reason: str
     join: str
     warnings: list[str]
     left_out: list[str]
@@ -434,7 +436,7 @@ def join(export: TrackerExport, log: ControllerLog, names: str | None = None,
                 f"frame: {frame}" + ("" if base else f" ({reason}): identify with --frame tracker"),
                 f"joined {how}: {len(slots)} points, {len(idx)} poses, {len(blocked)} blocked targets"
                 + (f" ({', '.join(blocked)})" if blocked else "")]
-    return ImportResult(meas=meas, frame=frame, join=how, warnings=export.warnings + warnings, left_out=left_out,
+    return ImportResult(meas=meas, frame=frame, frame_reason=reason, join=how, warnings=export.warnings + warnings, left_out=left_out,
                         blocked=blocked, comments=comments)
 
 

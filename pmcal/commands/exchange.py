@@ -32,8 +32,8 @@ def _import(args) -> int:
     for w in res.warnings:
         progress.warning(w)
     if res.frame != "base":
-        progress.warning(f"{args.tracker}: {res.comments[2].removeprefix('frame: tracker ')}: "
-                         f"pmcal identify {args.output} --frame tracker")
+        progress.warning(f"{args.tracker}: the points are not in the machine's base frame ({res.frame_reason}): "
+                         f"identify with 'pmcal identify {args.output} --frame tracker' (recorded in its header)")
     write_measurements(args.output, res.meas, comments=res.comments)
     progress.status(f"imported {len(res.meas)} poses ({res.join}, {res.frame} frame)")
     return 0

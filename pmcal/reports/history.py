@@ -100,10 +100,11 @@ def history_report(records: list[Record], changes: list[Change] | None, folder: 
     header, rows = history_table(records, changes)
     rep.table(header, rows, left_cols=2)
     rep.heading("Calibrations")
-    rep.table(["date (UTC)", "campaign file", "SHA-256", "poses", "residual RMS mm", "tracker noise mm", "record"],
-              [[f"{r.date:%Y-%m-%d %H:%M:%S}", str(r.campaign.get("file", "")), str(r.campaign.get("sha256", ""))[:16],
+    rep.table(["date (UTC)", "record", "campaign file", "SHA-256", "poses", "residual RMS mm", "tracker noise mm"],
+              [[f"{r.date:%Y-%m-%d %H:%M:%S}", r.path.rsplit("/", 1)[-1], str(r.campaign.get("file", "")),
+                str(r.campaign.get("sha256", ""))[:16],
                 r.campaign.get("n_poses") if r.campaign.get("n_poses") is not None else "–",
                 float(r.fit.get("residual_rms_mm", math.nan)),
-                float(r.noise_mm) if r.noise_mm is not None else math.nan, r.path.rsplit("/", 1)[-1]]
-               for r in records], left_cols=3)
+                float(r.noise_mm) if r.noise_mm is not None else math.nan]
+               for r in records], left_cols=4)
     return rep
