@@ -10,7 +10,11 @@ tests A -> B and A -> C at the family-wise rate 0.05.
 Target: the dent flagged in every dent pair and nothing else flagged; at most 1 of 20 clean pairs with a
 false flag.
 
-Run: python benchmarks/history_bench.py [--seeds 20] [--json PATH]
+Run: python benchmarks/history_bench.py [--seeds 20] [--json PATH] [--example DIR]
+
+``--example DIR`` also files the history of docs/report_history.png into DIR/history: the paper's Table 2
+machine calibrated four times, three months apart, L1's first link dented by 0.2 mm before the last
+(``pmcal history DIR/history --report history.html``).
 """
 
 from __future__ import annotations
@@ -62,11 +66,33 @@ def history_pair(seed: int, folder: Path) -> dict:
             "dent_extra_flags": sorted(n for n in dent if n != link)}
 
 
+def example_history(folder: Path) -> Path:
+    """Four calibrations of the paper's Table 2 machine, 91 days apart, a 0.2 mm dent in L1.dl1 before the
+    last; returns the history folder."""
+    from datetime import datetime, timedelta, timezone
+
+    from pmcal.mechanism.ocpm.params import PAPER_TABLE2
+
+    dented = dict(PAPER_TABLE2, **{"L1.dl1": PAPER_TABLE2.get("L1.dl1", 0.0) + DENT_MM})
+    t0 = datetime(2026, 3, 2, 9, 0, tzinfo=timezone.utc)
+    for i, errors in enumerate([PAPER_TABLE2] * 3 + [dented]):
+        meas = run_campaign(Twin(errors), plan_campaign(POSES, THETA_MAX, seed=i + 1),
+                            LaserTracker(SIGMA, np.random.default_rng(50 + i)))
+        write_measurements(folder / f"campaign{i + 1}.csv", meas)
+        file_calibration(identify(meas), folder / f"campaign{i + 1}.csv", folder / "history",
+                         date=t0 + timedelta(days=91 * i))
+    return folder / "history"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--example", default=None, metavar="DIR", help="also file the example history into DIR")
     args = ap.parse_args(argv)
+    if args.example:
+        Path(args.example).mkdir(parents=True, exist_ok=True)
+        print(f"example history: {example_history(Path(args.example))}")
     rows, results = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(args.seeds):

@@ -148,3 +148,9 @@ def test_export_bad_input(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "p.json" in err[0] and "L1.dbx" in err[0]
     assert not (tmp_path / "c.xml").exists()
+
+
+def test_export_refuses_the_paper_model(tmp_path, capsys):
+    (tmp_path / "p.json").write_text('{"mechanism": "ocpm_2dof", "model": "paper", "params": {"L1.dbx": 0.1}}')
+    assert main(["export-model", str(tmp_path / "p.json"), "-o", str(tmp_path / "c.xml")]) == 2
+    assert "field 'model'" in capsys.readouterr().err and not (tmp_path / "c.xml").exists()

@@ -87,3 +87,16 @@ def test_bad_history_files(tmp_path, capsys):
     assert "field '--history'" in capsys.readouterr().err
     assert main(["history", str(tmp_path / "h"), "--alpha", "2"]) == 2
     assert "field '--alpha'" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_twenty_seeds_dents_found_clean_pairs_quiet(tmp_path):
+    """The issue's study (benchmarks/history_bench.py prints it): 20 dents found, <= 1 of 20 clean pairs
+    with a false flag; extra flags in dent pairs at most the family-wise rate allows (1 of 20)."""
+    results = []
+    for seed in range(20):
+        (tmp_path / f"s{seed}").mkdir()
+        results.append(history_pair(seed, tmp_path / f"s{seed}"))
+    assert all(r["dent_found"] for r in results)
+    assert sum(bool(r["clean_flags"]) for r in results) <= 1
+    assert sum(bool(r["dent_extra_flags"]) for r in results) <= 1
