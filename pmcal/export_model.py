@@ -29,8 +29,18 @@ from pathlib import Path
 
 import numpy as np
 
+from pmcal.calibration import Calibration
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write
+from pmcal.io_planar import read_params as read_planar_params
+from pmcal.mechanism.ocpm.config import MACHINE_DIR, default_geometry
+from pmcal.mechanism.ocpm.params import ErrorSet
+from pmcal.twin.export import calibrated_xml
+from pmcal.twin.machine import Twin
+from pmcal.twin.model import MM, MODEL_XML, build_model, load_model
+from pmcal.twin.planar.config import MODEL_XML as PLANAR_XML, default_machine
+from pmcal.twin.planar.model import build_spec
+from pmcal.twin.planar.twin import PlanarTwin
 
 #: Simulation settings of the exported ocpm_2dof model, those of the dynamic twin (:mod:`pmcal.twin.dynamics`):
 #: the template's implicitfast at 1 ms diverges with stiff servos and hard closures; Euler at 0.2 ms with
@@ -82,12 +92,6 @@ def read_effects(doc: dict, path: str) -> dict[str, dict]:
 
 
 def _ocpm(params_path: str):
-    from pmcal.calibration import Calibration
-    from pmcal.mechanism.ocpm.config import MACHINE_DIR, default_geometry
-    from pmcal.mechanism.ocpm.params import ErrorSet
-    from pmcal.twin.machine import Twin
-    from pmcal.twin.model import MM, MODEL_XML, build_model, load_model
-
     geom = default_geometry()
     cal = Calibration.load(params_path, geom)
     if cal.model != "full":
@@ -123,12 +127,7 @@ def _ocpm(params_path: str):
 
 
 def _planar(params_path: str):
-    from pmcal.io_planar import read_params
-    from pmcal.twin.planar.config import MODEL_XML, default_machine
-    from pmcal.twin.planar.model import build_spec
-    from pmcal.twin.planar.twin import PlanarTwin
-
-    errors, doc = read_params(params_path)
+    errors, doc = read_planar_params(params_path)
     machine = default_machine()
     m = build_spec(machine, errors).compile()
     home = np.asarray(machine.geometry.home, float)          # motor commands of home P0, rad
@@ -139,7 +138,7 @@ def _planar(params_path: str):
     facts = {"machine": "planar_2dof", "model": doc.get("model", ""),
              "zero_offsets_deg": list(np.rad2deg(errors.dtheta)),
              "zero_offsets_as": "active links' body frames turned by dtheta: the motor joint reads the command"}
-    return MODEL_XML, MODEL_XML.parent / "machine.toml", m, edits, doc.get("params", {}), doc, facts
+    return PLANAR_XML, PLANAR_XML.parent / "machine.toml", m, edits, doc.get("params", {}), doc, facts
 
 
 def export_model(params_path: str | Path, output: str | Path, machine: str = "ocpm_2dof") -> dict:
@@ -164,8 +163,6 @@ def export_model(params_path: str | Path, output: str | Path, machine: str = "oc
     >>> export_model("params.json", "calibrated.xml")                          # doctest: +SKIP
     >>> import mujoco; mujoco.MjModel.from_xml_path("calibrated.xml")           # doctest: +SKIP
     """
-    from pmcal.twin.export import calibrated_xml
-
     params_path = str(params_path)
     template, toml_path, model, edits, params, doc, facts = (_ocpm if machine == "ocpm_2dof" else _planar)(params_path)
     effects = read_effects(doc, params_path)

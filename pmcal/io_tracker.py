@@ -21,8 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pmcal.csvio import read_csv
+from pmcal.csvio import MAX_CSV_BYTES, read_csv
 from pmcal.errors import InputError
+from pmcal.io_ocpm import MAX_POSES, check_context
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_fk, nominal_pose
@@ -208,8 +209,6 @@ def read_sa_ascii(path: str | Path, units: str | None = None) -> TrackerExport:
 
 
 def _read_text(path: str | Path) -> str:
-    from pmcal.csvio import MAX_CSV_BYTES
-
     p = str(path)
     try:
         if Path(path).is_file() and Path(path).stat().st_size > MAX_CSV_BYTES:
@@ -277,8 +276,6 @@ class ControllerLog:
 def read_controller_log(path: str | Path) -> ControllerLog:
     """Read the controller log CSV: ``pose_id``, ``m1_cmd_deg``, ``m2_cmd_deg`` (deg), optional ``time_s``
     (s; or ``time``, a date and time) and ``temp_c`` (degC). Ids unique; InputError naming row and field."""
-    from pmcal.io_ocpm import MAX_POSES, check_context
-
     t = read_csv(path, max_rows=MAX_POSES)
     t.require(["pose_id", "m1_cmd_deg", "m2_cmd_deg"])
     ids = t.unique_ids("pose_id")
