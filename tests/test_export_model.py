@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from pmcal.calibration import Calibration, identify
+from pmcal.calibration import identify
 from pmcal.cli import main
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet

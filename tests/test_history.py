@@ -6,7 +6,6 @@ much); the 20-seed study is ``benchmarks/history_bench.py`` (the same pairs, 2 s
 
 import json
 
-import numpy as np
 import pytest
 
 from benchmarks.history_bench import DENT_MM, history_pair

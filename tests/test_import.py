@@ -143,3 +143,13 @@ def test_twin_export_in_inches_calibrates_as_native(tmp_path):
     assert np.max(np.abs(err(cal) - err(native)) / std) < 0.5
     ratio = np.sqrt(np.mean((err(cal) / std) ** 2)) / np.sqrt(np.mean((err(native) / std) ** 2))
     assert 0.8 < ratio < 1.25
+
+
+def test_group_target_names_space_separated(tmp_path):
+    meas = run_campaign(Twin(), plan_campaign(5, 40, seed=4), LaserTracker(0.01, np.random.default_rng(5)))
+    write_sa_export(tmp_path / "gt.txt", meas, units="mm", names="Group Target", stamps=False, blocked={(2, 0)})
+    write_log(tmp_path / "log.csv", meas)
+    res = join(read_sa_ascii(tmp_path / "gt.txt"), read_controller_log(tmp_path / "log.csv"))
+    assert res.warnings == [] and res.blocked == ["pose 3 T1"] and res.frame == "base"
+    assert np.allclose(res.meas.targets[np.isfinite(res.meas.targets)], meas.targets[np.isfinite(res.meas.targets)],
+                       atol=5e-7)

@@ -7,7 +7,6 @@ optional tolerance / uncertainty / time-stamp fields, space or comma separators)
 
 from datetime import datetime, timedelta, timezone
 
-import numpy as np
 
 START = datetime(2026, 11, 25, 8, 0, 0, tzinfo=timezone.utc)
 
