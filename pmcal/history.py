@@ -105,6 +105,7 @@ def record_document(cal, campaign_path: str | Path, machine: str = "ocpm_2dof", 
     fit = cal.document.get("fit", {})
     return {
         "pmcal_history": RECORD_VERSION, "machine": machine, "model": cal.model, "method": cal.method,
+        "frame": cal.document.get("frame", "base"),
         "date": date.isoformat(timespec="seconds"),
         "campaign": {"file": str(campaign_path), "sha256": sha256(campaign_path), "n_poses": fit.get("n_poses")},
         "units": {"length": "mm", "angle": "deg"},
@@ -191,7 +192,7 @@ def read_record(path: str | Path) -> Record:
 
 def read_history(folder: str | Path) -> list[Record]:
     """Every record (``*.json``) of a history folder, oldest first. InputError if there is none, if the
-    folder is missing, or if records of different machines or models are mixed."""
+    folder is missing, or if records of different machines, models or frames are mixed."""
     p = Path(folder)
     if not p.is_dir():
         raise InputError("no such history folder", file=str(p))
@@ -199,10 +200,13 @@ def read_history(folder: str | Path) -> list[Record]:
     if not records:
         raise InputError("no calibration records (*.json) in the folder; file them with 'pmcal identify ... "
                          "--history DIR'", file=str(p))
+    kind = lambda r: (r.machine, r.model, r.doc.get("frame", "base"))  # noqa: E731
     for r in records[1:]:
-        if (r.machine, r.model) != (records[0].machine, records[0].model):
-            raise InputError(f"record of {r.machine}/{r.model} among records of {records[0].machine}/"
-                             f"{records[0].model}", file=r.path, field="machine")
+        if kind(r) != kind(records[0]):
+            raise InputError(f"record of {'/'.join(kind(r))} among records of {'/'.join(kind(records[0]))} "
+                             "(machine/model/frame: a tracker-frame fit fixes the base frame to the motor axes, a "
+                             "base-frame fit to the measured frame; their parameters are not comparable)",
+                             file=r.path, field="frame")
     return records
 
 

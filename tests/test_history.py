@@ -99,3 +99,14 @@ def test_twenty_seeds_dents_found_clean_pairs_quiet(tmp_path):
     assert all(r["dent_found"] for r in results)
     assert sum(bool(r["clean_flags"]) for r in results) <= 1
     assert sum(bool(r["dent_extra_flags"]) for r in results) <= 1
+
+
+def test_records_of_other_frames_are_not_mixed(history_folder, tmp_path, capsys):
+    import shutil
+    shutil.copytree(history_folder / "hist", tmp_path / "h")
+    f = sorted((tmp_path / "h").glob("*.json"))[0]
+    doc = json.loads(f.read_text())
+    doc["frame"] = "tracker"
+    f.write_text(json.dumps(doc))
+    assert main(["history", str(tmp_path / "h")]) == 2
+    assert "field 'frame'" in capsys.readouterr().err
