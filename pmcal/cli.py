@@ -41,7 +41,8 @@ DEFAULT_MACHINE = machines.DEFAULT_MACHINE
 FILE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "identify": ("output",), "compensate": ("output", "table"), "evaluate": ("json",),
     "diagnose": ("json",), "twin measure": ("output",), "twin plan": ("output",), "twin render": ("output",), "targets": ("output",),
-    "push": ("json", "audit"), "loop": ("json",),
+    "push": ("json", "audit"), "loop": ("json",), "import": ("output",), "export-model": ("output",),
+    "history": ("report",),
 }
 FOLDER_OUTPUTS: dict[str, tuple[str, ...]] = {"demo": ("out",), "diagnose": ("report",)}
 #: command -> {attribute: how the user names it} of every file the command reads: no output may be one
@@ -52,16 +53,18 @@ FILE_INPUTS: dict[str, dict[str, str]] = {
     "twin measure": {"targets": "--targets", "errors": "--errors"}, "twin render": {"errors": "--errors"},
     "twin plan": {"from_diagnosis": "--from"}, "push": {"table": "TABLE"},
     "loop": {"table": "--table", "errors": "--errors"},
+    "import": {"tracker": "TRACKER.txt", "log": "--log"}, "export-model": {"params": "PARAMS.json"},
 }
 #: (command, attribute) of a file output -> the suffixes its format may have (case-insensitive)
 OUTPUT_SUFFIXES: dict[tuple[str, str], tuple[str, ...]] = {
     ("identify", "output"): (".json",), ("compensate", "output"): (".csv",), ("compensate", "table"): (".json",),
     ("evaluate", "json"): (".json",), ("diagnose", "json"): (".json",), ("twin measure", "output"): (".csv",),
     ("twin plan", "output"): (".csv",), ("twin render", "output"): (".png",), ("targets", "output"): (".csv",),
-    ("push", "json"): (".json",), ("loop", "json"): (".json",),
+    ("push", "json"): (".json",), ("loop", "json"): (".json",), ("import", "output"): (".csv",),
+    ("export-model", "output"): (".xml",), ("history", "report"): (".html",),
 }
 #: (command, attribute) of a file output that brings a second file beside it: suffix of that file
-COMPANIONS: dict[tuple[str, str], str] = {("compensate", "table"): ".csv"}
+COMPANIONS: dict[tuple[str, str], str] = {("compensate", "table"): ".csv", ("export-model", "output"): ".toml"}
 
 EPILOG = ("File formats (measurement, targets, setpoints, parameters, diagnosis JSON, compensation table): "
           "docs/formats.md. Units at every interface: mm and degrees.")

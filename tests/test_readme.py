@@ -50,7 +50,7 @@ def test_readme_walkthrough_runs_verbatim(tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     for name in ("targets.csv", "m.csv", "pm.png", "params.json", "paper.json", "setpoints.csv",
                  "comp_table.json", "diagnosis.json", "diag/index.html", "t.csv", "params_t.json", "planar.csv",
-                 "planar.json"):
+                 "planar.json", "calibrated.xml", "calibrated.toml", "history.html"):
         assert (tmp_path / name).is_file(), name
     assert "pmcal: wrote setpoints.csv" in res.stdout
     assert "dry_run" in res.stdout

@@ -19,6 +19,7 @@ from pmcal.calibration import Calibration, identify as identify_campaign
 from pmcal.compensators import DEFAULT_GRID, PaperCompensation, build_table, check_grid, checked_commands
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
+from pmcal.history import check_history_dir, file_calibration
 from pmcal.io_ocpm import LONG_POSES, MECHANISM, read_measurements, read_targets, write_setpoints
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.kinematics import real_ik_commands
@@ -47,6 +48,9 @@ def identify(args) -> int:
 
     frame, reg0 = parse_frame(getattr(args, "frame", None))
     nest_std = check_nest_tolerance(getattr(args, "nest_tolerance", None))
+    history = getattr(args, "history", None)
+    if history:
+        check_history_dir(history)
     meas = read_measurements(args.measurements, default_geometry(), frame=frame)
     progress.set_long(len(meas) > LONG_POSES)
     if (args.model or "full") == "full" and args.method is None:
@@ -64,6 +68,8 @@ def identify(args) -> int:
         else:
             progress.status(line)
     cal.save(args.output)
+    if history:
+        print(f"pmcal: wrote {file_calibration(cal, args.measurements, history)}")
     fit = cal.document["fit"]
     quality = (f"chi2/dof {fit['chi2_per_dof']:.3g}" if cal.model == "full" else
                f"residual {fit['residual_rms_sigma']:.3g} sigma")

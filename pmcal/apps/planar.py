@@ -81,6 +81,8 @@ def _noise(machine, sigma: float | None):
 
 def identify(args) -> int:
     """``pmcal --machine planar_2dof identify MEAS.csv -o PARAMS.json [--model full] [--method tsvd|ls|gls]``."""
+    if getattr(args, "history", None):
+        raise InputError("--history files ocpm_2dof calibrations only", field="--history")
     from pmcal.calib.planar.identification import METHODS, identify as run
     from pmcal.campaign_quality import judge
     from pmcal.fileio import write_json

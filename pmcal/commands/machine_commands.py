@@ -59,6 +59,9 @@ def register(sub: CommandSet) -> None:
     p.add_argument("--robust", action="store_true",
                    help="robust fit with named outlier rejection also in the base frame (always on with "
                         "--frame tracker or blocked targets)")
+    p.add_argument("--history", default=None, metavar="DIR",
+                   help="ocpm_2dof: also file the result into this machine history folder (one JSON per "
+                        "calibration, never overwritten; 'pmcal history DIR' compares them), docs/formats.md")
     p.set_defaults(func=_cmd("identify"))
 
     p = sub.add_parser("compensate", help="corrected motor commands for target orientations")

@@ -1,0 +1,125 @@
+"""``pmcal import | export-model | history``: exchange with the tools a calibration engineer already uses.
+
+``import`` joins a tracker export and a controller log into the measurement CSV; ``export-model`` writes
+the calibrated MuJoCo model (MJCF); ``history`` tables and plots a machine's calibrations over time.
+Formats: docs/formats.md ("Tracker exports and controller logs", "Calibration history").
+"""
+
+from __future__ import annotations
+
+from pmcal.commands.options import CommandSet
+from pmcal.errors import InputError
+
+
+def _import(args) -> int:
+    from pmcal import progress
+    from pmcal.io_ocpm import write_measurements
+    from pmcal.io_tracker import join, parse_columns, read_controller_log, read_point_csv, read_sa_ascii
+
+    if args.machine != "ocpm_2dof":
+        raise InputError(f"'import' writes the ocpm_2dof measurement file; not available for machine "
+                         f"'{args.machine}'", field="--machine")
+    if args.time_tolerance is not None and not args.time_tolerance > 0:
+        raise InputError(f"time tolerance must be a positive number of seconds, got {args.time_tolerance}",
+                         field="--time-tolerance")
+    if args.columns:
+        export = read_point_csv(args.tracker, parse_columns(args.columns), args.units)
+    else:
+        export = read_sa_ascii(args.tracker, args.units)
+    log = read_controller_log(args.log)
+    res = join(export, log, names=args.names, time_tolerance_s=args.time_tolerance)
+    for w in res.warnings:
+        progress.warning(w)
+    if res.frame != "base":
+        progress.warning(f"{args.tracker}: the points are not in the machine's base frame ({res.frame_reason}): "
+                         f"identify with 'pmcal identify {args.output} --frame tracker' (recorded in its header)")
+    write_measurements(args.output, res.meas, comments=res.comments)
+    progress.status(f"imported {len(res.meas)} poses ({res.join}, {res.frame} frame)")
+    return 0
+
+
+def _export_model(args) -> int:
+    from pmcal import progress
+    from pmcal.export_model import export_model
+    from pmcal.machines import resolve
+
+    machine = getattr(args, "selected_machine", None) or resolve(args.machine)   # unknown: one line, exit 2
+    if not machine.spec.legacy:
+        raise InputError(f"'export-model' writes the calibrated model of ocpm_2dof and planar_2dof; not yet "
+                         f"available for machine '{machine.name}'", field="--machine")
+    out = export_model(args.params, args.output, machine.name)
+    for name, where in out["in_mjcf"].items():
+        progress.status(f"{name}: in the MJCF ({where})")
+    for name in out["comment_only"] + out["not_in_mjcf"]:
+        progress.warning(f"{name} cannot be held by MJCF: written to {out['toml']} (and the file's comment)")
+    return 0
+
+
+def _history(args) -> int:
+    from pmcal.history import compare, history_table, read_history, unit_of
+
+    if not 0 < args.alpha < 1:
+        raise InputError(f"alpha must be in (0, 1), got {args.alpha}", field="--alpha")
+    records = read_history(args.folder)
+    changes = compare(records[-2], records[-1], args.alpha) if len(records) > 1 else None
+    header, rows = history_table(records, changes)
+    print(f"{len(records)} calibration(s) of {records[-1].machine} in {args.folder}, last "
+          f"{records[-1].date:%Y-%m-%d %H:%M} UTC" + ("" if changes is None else
+                                                     f", previous {records[-2].date:%Y-%m-%d %H:%M} UTC"))
+    fmt = lambda v, sign: v if isinstance(v, str) else ("–" if v != v else f"{v:{sign}.4f}")  # noqa: E731
+    table = [header] + [[fmt(c, "" if header[i].startswith("+-") else "+") for i, c in enumerate(row)] for row in rows]
+    widths = [max(len(r[i]) for r in table) for i in range(len(header))]
+    for row in table:
+        print("  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))))
+    moved = [c for c in changes or [] if c.flagged]
+    if changes is not None:
+        print("moved: " + (", ".join(f"{c.name} {c.estimate:+.4g} {unit_of(c.name)}"
+                                     for c in moved) if moved else "nothing") + f" (family-wise alpha {args.alpha:g})")
+    if args.report:
+        from pmcal.reports.history import history_report
+
+        history_report(records, changes, str(args.folder), args.alpha).write(args.report)
+    return 0
+
+
+def register(sub: CommandSet) -> None:
+    p = sub.add_parser("import", help="join a tracker export and a controller log into a measurement CSV")
+    p.add_argument("tracker", metavar="TRACKER.txt",
+                   help="tracker export: Spatial Analyzer's ASCII point export (names, x y z, optional tolerance, "
+                        "uncertainty and time stamp; space or comma separated; '//' comments), or a CSV with "
+                        "--columns; docs/formats.md")
+    p.add_argument("--log", required=True, metavar="LOG.csv",
+                   help="controller log CSV: pose_id, m1_cmd_deg, m2_cmd_deg (deg), optional time_s (s), temp_c "
+                        "(degC)")
+    p.add_argument("-o", "--output", required=True, metavar="MEAS.csv",
+                   help="measurement CSV to write (docs/formats.md); frame and units in its '#' header")
+    p.add_argument("--units", default=None, choices=["mm", "in"],
+                   help="length unit of the export: mm or in (inches); default the export header's, else mm")
+    p.add_argument("--names", default=None, metavar="REGEX",
+                   help="pattern of the point names (name fields joined by one space) with named groups "
+                        "'pose' (its digits are the log's pose number: P007 is pose 7) and 'target' (the nest: "
+                        "T1, T2, ...); default: last field target, the one before it pose, a collection ignored")
+    p.add_argument("--columns", default=None, metavar="name=COL,x=COL,y=COL,z=COL[,time=COL]",
+                   help="read a plain CSV of points instead, with this column map (pose=COL,target=COL instead "
+                        "of name=COL allowed); coordinates in --units")
+    p.add_argument("--time-tolerance", type=float, default=None, metavar="S",
+                   help="join points without a pose in their name to the log row nearest in time within this "
+                        "many seconds (time stamps on both sides, same clock)")
+    p.set_defaults(func=_import)
+
+    p = sub.add_parser("export-model", help="write the calibrated machine as a MuJoCo model (MJCF)")
+    p.add_argument("params", metavar="PARAMS.json",
+                   help="parameters file of identify (or params.json of 'diagnose --report DIR': adds the named "
+                        "effects); docs/formats.md")
+    p.add_argument("-o", "--output", required=True, metavar="CALIBRATED.xml",
+                   help="MJCF file to write (self-contained, SI units); a machine.toml with the calibration and "
+                        "the effects MJCF cannot hold is written beside it with the suffix .toml")
+    p.set_defaults(func=_export_model)
+
+    p = sub.add_parser("history", help="a machine's calibrations over time: what moved since the last one")
+    p.add_argument("folder", metavar="DIR", help="history folder that 'pmcal identify ... --history DIR' files into")
+    p.add_argument("--report", default=None, metavar="HISTORY.html",
+                   help="also write an HTML report (every parameter over time with its 95 %% band)")
+    p.add_argument("--alpha", type=float, default=0.05, metavar="P",
+                   help="family-wise false-flag rate of the test between the last two calibrations (default 0.05)")
+    p.set_defaults(func=_history)

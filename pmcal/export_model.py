@@ -1,0 +1,210 @@
+"""``pmcal export-model``: the calibrated machine as a MuJoCo model (MJCF) and a machine.toml beside it.
+
+Where each identified quantity goes (docs/formats.md, "Calibrated model"):
+
+- geometry (every ``L<j>.*`` and ``SS.*`` key; planar: ``de*``, ``dL*``, ``dl*``, ``drM*``): body, site and
+  joint frames of the machine's MJCF, as the twin inserts them (:func:`pmcal.twin.export.calibrated_xml`);
+- nest offsets of a tracker-frame calibration: the target sites ``T1``..;
+- ``ocpm_2dof`` motor zero offsets ``L1.dtheta``, ``L2.dtheta``: the motor joints' ``ref = -dtheta``, so
+  the joint coordinate (and the position servo's control) is the commanded angle while the link sits
+  ``dtheta`` further on; ``planar_2dof`` zero offsets: the active links' body frames turned by ``dtheta``
+  (the planar twin's convention), the motor joint again reads the command;
+- closure stiffness ratio (``ocpm_2dof``): ``custom`` numerics ``pmcal_stiffness_ratio`` and
+  ``pmcal_passive_closure_stiffness`` (N/m) and the machine.toml; MuJoCo's soft constraints have no
+  stiffness in N/m, so the exported model simulates like the dynamic twin (:data:`SIMULATION_OPTIONS`,
+  closures hard, the SS limb's axial spring locked), while the quasi-static assembly of the twin reads
+  the ratio from the numerics and reproduces the identified model;
+- effects named by ``diagnose``: ``joint_compliance`` K as the motors' position-servo gain ``kp`` (a
+  servo of gain K is the torsional spring K in series between command and joint; a joint ``stiffness``
+  would pull towards a fixed ``springref`` instead), ``backlash`` as a comment and in the machine.toml;
+  those MJCF cannot hold (thermal expansion, zero-offset drift, encoder eccentricity, over-constraint)
+  are listed in the comment and the machine.toml.
+"""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from pmcal.calibration import Calibration
+from pmcal.errors import InputError, RunError
+from pmcal.fileio import atomic_write
+from pmcal.io_planar import read_params as read_planar_params
+from pmcal.mechanism.ocpm.config import MACHINE_DIR, default_geometry
+from pmcal.mechanism.ocpm.params import ErrorSet
+from pmcal.twin.export import calibrated_xml
+from pmcal.twin.machine import Twin
+from pmcal.twin.model import MM, MODEL_XML, build_model, load_model
+from pmcal.twin.planar.config import MODEL_XML as PLANAR_XML, default_machine
+from pmcal.twin.planar.model import build_spec
+from pmcal.twin.planar.twin import PlanarTwin
+
+#: Simulation settings of the exported ocpm_2dof model, those of the dynamic twin (:mod:`pmcal.twin.dynamics`):
+#: the template's implicitfast at 1 ms diverges with stiff servos and hard closures; Euler at 0.2 ms with
+#: the SS limb's axial spring locked (rigid) settles (tests/test_export_model.py)
+SIMULATION_OPTIONS = {"integrator": "Euler", "timestep": "0.0002"}
+#: effects an MJCF model holds, and where (``diagnose`` family names)
+IN_MJCF = {"joint_compliance": "motor position servos: kp = K (N m/rad)"}
+#: effects written as a comment and in the machine.toml only
+AS_COMMENT = {"backlash": "half-width of lost motion per motor (deg): joint = command + dtheta - b * approach sign"}
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(float(v))
+
+
+def toml_text(sections: dict[str, dict]) -> str:
+    """A TOML document of flat sections (str, number, list values)."""
+    out = []
+    for name, items in sections.items():
+        out.append(f"[{name}]")
+        out += [f'"{k}" = {_toml_value(v)}' if not k.replace("_", "").isalnum() else f"{k} = {_toml_value(v)}"
+                for k, v in items.items()]
+        out.append("")
+    return "\n".join(out)
+
+
+def read_effects(doc: dict, path: str) -> dict[str, dict]:
+    """Named effects of a parameters file (``diagnose --report DIR`` writes ``params.json`` with an
+    ``effects`` object: name -> {value, interval, unit, params}); {} when there is none."""
+    effects = doc.get("effects") or {}
+    if not isinstance(effects, dict):
+        raise InputError("'effects' must be an object of effect name -> {value, unit}", file=path, field="effects")
+    out = {}
+    for name, e in effects.items():
+        e = e if isinstance(e, dict) else {"value": e}
+        value = e.get("value")
+        vals = value if isinstance(value, list) else [value]
+        if not vals or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
+                           for v in vals):
+            raise InputError(f"effect value {value!r} is not a finite number", file=path, field=f"effects.{name}")
+        out[name] = {"value": value, "unit": e.get("unit", ""), "interval": e.get("interval")}
+    return out
+
+
+def _ocpm(params_path: str):
+    geom = default_geometry()
+    cal = Calibration.load(params_path, geom)
+    if cal.model != "full":
+        raise InputError("the paper's per-limb model (model 'paper') is not a whole machine; export a whole-chain "
+                         "calibration (pmcal identify without --model paper)", file=params_path, field="model")
+    errors = ErrorSet.from_dict(cal.params, geom.n_limbs, geom.actuated)
+    ratio = float(cal.document.get("stiffness_ratio") or geom.stiffness_ratio)
+    m, idx = build_model(errors, geom)
+    nests = (cal.document.get("nests") or {}).get("offsets_mm") or {}
+    for k, site in enumerate(idx.site_targets):
+        m.site_pos[site] += np.asarray(nests.get(f"t{k + 1}", [0.0, 0.0, 0.0]), float) * MM
+    nominal = load_model(MODEL_XML)
+    key = 0
+    home_cmd = np.rad2deg(nominal.key_ctrl[key])          # the nominal home commands (the keyframe's)
+    twin = Twin(errors, geom, stiffness_ratio=ratio)
+    state = twin.reach(home_cmd[None])
+    if not state.converged.all():
+        raise RunError("the calibrated machine does not assemble at the home commands")
+    qpos = state.qpos[0].copy()
+    qpos[idx.qadr_base[:2]] = np.deg2rad(home_cmd)         # joint coordinate = command (ref = -dtheta)
+    k_p = geom.passive_closure_stiffness / MM               # N/m
+    dtheta = errors.dtheta[:2]
+    edits = dict(joint_ref_rad={"limb1_B": -dtheta[0], "limb2_B": -dtheta[1]},
+                 joint_stiffness={"ss_slide": 0.0}, equality_active={"ss_axial_lock": True},
+                 option=SIMULATION_OPTIONS,
+                 keyframe=("home", qpos, np.deg2rad(home_cmd)),
+                 custom={"pmcal_stiffness_ratio": [ratio], "pmcal_passive_closure_stiffness": [k_p],
+                         "pmcal_zero_offset_deg": list(np.rad2deg(dtheta))})
+    facts = {"machine": "ocpm_2dof", "model": cal.model, "stiffness_ratio": ratio,
+             "zero_offsets_deg": list(np.rad2deg(dtheta)),
+             "zero_offsets_as": "motor joints' ref = -dtheta: joint coordinate = commanded angle"}
+    return MODEL_XML, MACHINE_DIR / "machine.toml", m, edits, cal.params, cal.document, facts
+
+
+def _planar(params_path: str):
+    errors, doc = read_planar_params(params_path)
+    machine = default_machine()
+    m = build_spec(machine, errors).compile()
+    home = np.asarray(machine.geometry.home, float)          # motor commands of home P0, rad
+    poses = PlanarTwin(errors, machine).assemble(home[None])
+    if not poses.converged.all():
+        raise RunError("the calibrated machine does not assemble at home")
+    edits = dict(keyframe=("home", poses.qpos[0], home))
+    facts = {"machine": "planar_2dof", "model": doc.get("model", ""),
+             "zero_offsets_deg": list(np.rad2deg(errors.dtheta)),
+             "zero_offsets_as": "active links' body frames turned by dtheta: the motor joint reads the command"}
+    return PLANAR_XML, PLANAR_XML.parent / "machine.toml", m, edits, doc.get("params", {}), doc, facts
+
+
+def export_model(params_path: str | Path, output: str | Path, machine: str = "ocpm_2dof") -> dict:
+    """Write the calibrated MJCF (``output``) and its machine.toml (``output`` with suffix ``.toml``).
+
+    Parameters
+    ----------
+    params_path : path
+        Parameters JSON of ``pmcal identify`` (or ``params.json`` of ``diagnose --report``, which adds the
+        named effects), of ``machine``.
+    output : path
+        MJCF file to write (self-contained: the machines' models include no other file).
+    machine : {"ocpm_2dof", "planar_2dof"}
+
+    Returns
+    -------
+    dict
+        ``in_mjcf`` (effect -> where), ``comment_only`` and ``not_in_mjcf`` (effect names), ``toml`` (path).
+
+    Examples
+    --------
+    >>> export_model("params.json", "calibrated.xml")                          # doctest: +SKIP
+    >>> import mujoco; mujoco.MjModel.from_xml_path("calibrated.xml")           # doctest: +SKIP
+    """
+    params_path = str(params_path)
+    template, toml_path, model, edits, params, doc, facts = (_ocpm if machine == "ocpm_2dof" else _planar)(params_path)
+    effects = read_effects(doc, params_path)
+    in_mjcf = {n: IN_MJCF[n] for n in effects if n in IN_MJCF and machine == "ocpm_2dof"}
+    comment_only = [n for n in effects if n in AS_COMMENT]
+    not_in = [n for n in effects if n not in in_mjcf and n not in comment_only]
+    if "joint_compliance" in in_mjcf:
+        K = effects["joint_compliance"]["value"]
+        K = K if isinstance(K, list) else [K, K]
+        edits["actuator_kp"] = {"motor1": K[0], "motor2": K[1]}
+    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    header = [f" Calibrated {facts['machine']}: written by pmcal export-model from {params_path} ({stamp}).",
+              f" The machine's MJCF ({template.name}) with the identified geometry in the body, joint and site "
+              "frames (SI units).",
+              f" Zero offsets {', '.join(f'{v:.6g}' for v in facts['zero_offsets_deg'])} deg: {facts['zero_offsets_as']}."]
+    if "stiffness_ratio" in facts:
+        header.append(f" Closure stiffness ratio {facts['stiffness_ratio']:.6g} (quasi-static assembly): custom numerics "
+                      "pmcal_stiffness_ratio, pmcal_passive_closure_stiffness (N/m). For simulation the closures are "
+                      "hard and the SS axial spring locked (Euler, 0.2 ms), as pmcal's dynamic twin.")
+    header += [f" Effect {n} = {effects[n]['value']} {effects[n]['unit']}: {w}." for n, w in in_mjcf.items()]
+    header += [f" Effect {n} = {effects[n]['value']} {effects[n]['unit']}: not representable in MJCF ({AS_COMMENT[n]});"
+               f" in {Path(output).with_suffix('.toml').name}." for n in comment_only]
+    header += [f" Effect {n} = {effects[n]['value']} {effects[n]['unit']}: not representable in MJCF; listed in "
+               f"{Path(output).with_suffix('.toml').name}." for n in not_in]
+    try:
+        text = calibrated_xml(template, model, header=header, **edits)
+    except ValueError as exc:
+        raise RunError(str(exc)) from None
+    nominal = toml_path.read_text(encoding="utf-8").replace(f'model = "{template.name}"',
+                                                             f'model = "{Path(output).name}"')
+    extra = {"calibration": {"source": params_path, "written": stamp, "mjcf": Path(output).name,
+                             **{k: v for k, v in facts.items() if k != "machine"}},
+             "calibration.params": {k: float(v) for k, v in params.items()}}
+    for n, e in effects.items():
+        where = in_mjcf.get(n) or ("comment and this file" if n in comment_only else "not representable in MJCF")
+        extra[f"effects.{n}"] = {"value": e["value"], "unit": e["unit"], "in_mjcf": where,
+                                 **({"interval": e["interval"]} if e.get("interval") else {})}
+    toml_out = Path(output).with_suffix(".toml")
+    with atomic_write(output) as fh:
+        fh.write(text)
+    with atomic_write(toml_out) as fh:
+        fh.write(f"# Calibrated {facts['machine']} (pmcal export-model, {stamp}): the nominal machine.toml and the\n"
+                 "# calibration below it. Units: mm, degrees (the MJCF itself is SI).\n" + nominal.rstrip() + "\n\n"
+                 + toml_text(extra))
+    return {"in_mjcf": in_mjcf, "comment_only": comment_only, "not_in_mjcf": not_in, "toml": str(toml_out)}

@@ -1,0 +1,156 @@
+"""``pmcal export-model`` (issue 23): the calibrated MJCF reproduces the identified model and simulates.
+
+The exported file is loaded with ``mujoco.MjModel.from_xml_path`` only (nothing of pmcal's model building);
+its closed chain is assembled at the campaign's commands from a nominal start and compared with the
+identified model's own predictions (ocpm_2dof: :class:`FullChainModel`, the model identify fits; planar:
+the closed-form forward kinematics of the perturbed geometry, eq. 5-8 of the paper).
+"""
+
+import json
+import tomllib
+
+import mujoco
+import numpy as np
+import pytest
+
+from pmcal.calibration import identify
+from pmcal.cli import main
+from pmcal.mechanism.ocpm.config import default_geometry
+from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet
+from pmcal.mechanism.planar.kinematics import forward, mm_vector
+from pmcal.twin.assembly import BatchAssembler, Stiffness
+from pmcal.twin.campaign import plan_campaign, run_campaign
+from pmcal.twin.export import simulate
+from pmcal.twin.forward import FullChainModel
+from pmcal.twin.machine import Twin
+from pmcal.twin.model import MM, ModelIndex
+from pmcal.twin.planar.model import CLOSURES, PlanarIndex
+from pmcal.twin.planar.twin import PlanarTwin
+from pmcal.twin.tracker import LaserTracker
+from pmcal.io_planar import read_measurements as read_planar, read_params as read_planar_params
+from pmcal.twin.planar.config import default_machine
+
+TOL_MM = 1e-6
+
+
+def custom(m, name):
+    i = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_NUMERIC, name)
+    a = m.numeric_adr[i]
+    return m.numeric_data[a:a + m.numeric_size[i]]
+
+
+def no_warnings(d):
+    return all(w.number == 0 for w in d.warning)
+
+
+@pytest.fixture(scope="module")
+def ocpm_case(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("ocpm")
+    meas = run_campaign(Twin(PAPER_TABLE2), plan_campaign(24, 60, seed=5), LaserTracker(0.01, np.random.default_rng(6)))
+    cal = identify(meas)
+    cal.save(tmp / "params.json")
+    assert main(["export-model", str(tmp / "params.json"), "-o", str(tmp / "calibrated.xml")]) == 0
+    return tmp, meas, cal
+
+
+def test_ocpm_export_reproduces_identified_model(ocpm_case):
+    tmp, meas, cal = ocpm_case
+    geom = default_geometry()
+    fm = FullChainModel(geom)
+    fm.set(ErrorSet.from_dict(cal.params, geom.n_limbs, geom.actuated), cal.document["stiffness_ratio"])
+    predicted = fm.predict(meas.m_cmd_deg)[0]
+    m = mujoco.MjModel.from_xml_path(str(tmp / "calibrated.xml"))
+    idx = ModelIndex.of(m, geom.n_limbs, geom.target_names)
+    k_p, ratio = custom(m, "pmcal_passive_closure_stiffness")[0], custom(m, "pmcal_stiffness_ratio")[0]
+    assert ratio == pytest.approx(cal.document["stiffness_ratio"], rel=1e-15)
+    asm = BatchAssembler(m, idx, Stiffness.reference(k_p, ratio, geom.n_limbs, geom.actuated))
+    # start: the nominal machine's configuration; the motor joints at the *commands* (ref carries dtheta)
+    q0 = Twin(None, geom).initial_qpos(np.deg2rad(meas.m_cmd_deg))
+    res = asm.solve(q0)
+    assert res.converged.all()
+    targets = asm.sites(len(meas), idx.site_targets) / MM
+    assert np.abs(targets - predicted).max() < TOL_MM
+    # the zero offsets really are in the model: the commands alone give the identified machine
+    assert np.abs(np.rad2deg(m.qpos0[idx.qadr_base[:2]]) + [cal.params["L1.dtheta"], cal.params["L2.dtheta"]]).max() < 1e-12
+
+
+def test_ocpm_export_simulates_and_holds_home(ocpm_case):
+    tmp, _, _ = ocpm_case
+    m, d = simulate(tmp / "calibrated.xml", steps=500)
+    assert no_warnings(d) and np.isfinite(d.qpos).all()
+    m0 = mujoco.MjModel.from_xml_path(str(tmp / "calibrated.xml"))
+    d0 = mujoco.MjData(m0)
+    mujoco.mj_resetDataKeyframe(m0, d0, 0)
+    mujoco.mj_forward(m0, d0)
+    sites = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, t) for t in ("T1", "T2", "T3")]
+    drift_mm = np.abs(d.site_xpos[sites] - d0.site_xpos[sites]).max() / MM
+    assert drift_mm < 1.0                  # gravity sag under servos of 2e5 N m/rad: far below a mm
+    doc = tomllib.loads((tmp / "calibrated.toml").read_text())
+    assert doc["calibration"]["params"]["L1.dbx"] == cal_value(tmp, "L1.dbx")
+    assert doc["machine"]["model"] == "calibrated.xml"
+
+
+def cal_value(tmp, key):
+    return json.loads((tmp / "params.json").read_text())["params"][key]
+
+
+def test_effects_written_where_mjcf_can_hold_them(ocpm_case, tmp_path, capsys):
+    tmp, _, _ = ocpm_case
+    doc = json.loads((tmp / "params.json").read_text())
+    doc["effects"] = {"joint_compliance": {"value": 5.0e4, "unit": "N m/rad", "interval": [4.8e4, 5.2e4]},
+                      "backlash": {"value": 0.0125, "unit": "deg"},
+                      "thermal_expansion": {"value": 1.9e-5, "unit": "1/K"}}
+    (tmp_path / "p.json").write_text(json.dumps(doc))
+    assert main(["export-model", str(tmp_path / "p.json"), "-o", str(tmp_path / "c.xml")]) == 0
+    err = capsys.readouterr().err
+    assert "backlash" in err and "thermal_expansion" in err
+    m = mujoco.MjModel.from_xml_path(str(tmp_path / "c.xml"))
+    a = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, "motor1")
+    assert m.actuator_gainprm[a, 0] == 5.0e4 and m.actuator_biasprm[a, 1] == -5.0e4
+    text = (tmp_path / "c.xml").read_text()
+    assert "backlash = 0.0125 deg" in text and "thermal_expansion" in text
+    toml = tomllib.loads((tmp_path / "c.toml").read_text())
+    assert toml["effects"]["backlash"]["value"] == 0.0125
+    assert toml["effects"]["thermal_expansion"]["in_mjcf"] == "not representable in MJCF"
+    assert no_warnings(simulate(tmp_path / "c.xml", steps=300)[1])
+
+
+def test_planar_export_reproduces_identified_model(tmp_path):
+    run = lambda *a: main(["--machine", "planar_2dof", *a])  # noqa: E731
+    assert run("twin", "measure", "--preset", "group3", "--seed", "2", "-o", str(tmp_path / "m.csv")) == 0
+    assert run("identify", str(tmp_path / "m.csv"), "-o", str(tmp_path / "p.json")) == 0     # the paper's 4
+    assert run("export-model", str(tmp_path / "p.json"), "-o", str(tmp_path / "planar.xml")) == 0
+    machine = default_machine()
+    errors, _ = read_planar_params(tmp_path / "p.json")
+    theta = read_planar(tmp_path / "m.csv", machine.geometry).theta_cmd
+    g = machine.geometry.perturbed(errors)
+    predicted = forward(g, theta + errors.dtheta)
+    length = np.linalg.norm(mm_vector(g, predicted), axis=1)              # |O1 O2|: what the scale measures
+    assert abs(errors.drM).max() > 0.1 and abs(errors.dtheta).max() > 1e-3
+    m = mujoco.MjModel.from_xml_path(str(tmp_path / "planar.xml"))
+    idx = PlanarIndex.of(m)
+    asm = BatchAssembler(m, idx, Stiffness(closure=np.ones(len(CLOSURES)), ss_axial=0.0),
+                         held_dofs=idx.dadr_base, tol=1e-13, max_iter=40)
+    res = asm.solve(PlanarTwin(None, machine).initial_qpos(theta))       # nominal start, motors at commands
+    P = asm.sites(len(theta), np.array([idx.site_P]))[:, 0]
+    z0 = m.body_pos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "base")][2]
+    xy = np.stack([P[:, 0], P[:, 2] - z0], axis=1) / MM
+    assert res.converged.all() and np.abs(xy - predicted).max() < TOL_MM
+    O1O2 = asm.sites(len(theta), np.array([idx.site_O2]))[:, 0] - m.site_pos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "O1")] \
+        - m.body_pos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "base")]
+    assert np.abs(np.linalg.norm(O1O2, axis=1) / MM - length).max() < TOL_MM
+    assert no_warnings(simulate(tmp_path / "planar.xml", steps=500)[1])
+
+
+def test_export_bad_input(tmp_path, capsys):
+    (tmp_path / "p.json").write_text('{"mechanism": "ocpm_2dof", "params": {"L1.dbx": "x"}}')
+    assert main(["export-model", str(tmp_path / "p.json"), "-o", str(tmp_path / "c.xml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "p.json" in err[0] and "L1.dbx" in err[0]
+    assert not (tmp_path / "c.xml").exists()
+
+
+def test_export_refuses_the_paper_model(tmp_path, capsys):
+    (tmp_path / "p.json").write_text('{"mechanism": "ocpm_2dof", "model": "paper", "params": {"L1.dbx": 0.1}}')
+    assert main(["export-model", str(tmp_path / "p.json"), "-o", str(tmp_path / "c.xml")]) == 2
+    assert "field 'model'" in capsys.readouterr().err and not (tmp_path / "c.xml").exists()

@@ -1,0 +1,155 @@
+"""``pmcal import`` (issue 23): tracker exports + controller log -> measurement CSV.
+
+References independent of the reader: the numbers typed into the hand-written files in tests/data, and
+the twin's own campaign (its Measurements) written out in SA's layout by tests/tracker_files.py.
+"""
+
+import numpy as np
+import pytest
+
+from pmcal.calibration import identify
+from pmcal.cli import main
+from pmcal.io_ocpm import read_measurements, write_measurements
+from pmcal.io_tracker import join, read_controller_log, read_sa_ascii
+from pmcal.mechanism.ocpm.params import PAPER_TABLE2
+from pmcal.twin.campaign import plan_campaign, run_campaign
+from pmcal.twin.machine import Twin
+from pmcal.twin.tracker import LaserTracker, random_tracker_pose
+from tests.tracker_files import write_log, write_sa_export
+
+DATA = "tests/data"
+SA = f"{DATA}/sa_export_handwritten.txt"
+LOG = f"{DATA}/controller_log_handwritten.csv"
+
+
+def run(*argv):
+    return main(list(argv))
+
+
+def test_handwritten_export_joins_as_typed(tmp_path, capsys):
+    out = tmp_path / "m.csv"
+    assert run("import", SA, "--log", LOG, "-o", str(out)) == 0
+    err = capsys.readouterr().err
+    meas = read_measurements(out)
+    assert meas.pose_id == ["1", "2", "3", "4", "5"]
+    # the re-shot point: the second shot (line 11) kept, the first (x 136.9991) dropped, both lines named
+    assert meas.targets[1, 0].tolist() == [136.9482, -85.2386, 458.1845]
+    assert f"{SA}:11" in err and f"{SA}:8" in err and "measured again" in err
+    # the comma-separated lines (with and without blanks after the commas)
+    assert meas.targets[1, 1].tolist() == [-9.8605, -6.0247, 504.812]
+    assert meas.targets[3, 1].tolist() == [-190.8847, 10.2481, 449.8734]
+    # the blocked nest P003 T2: three empty cells
+    assert np.isnan(meas.targets[2, 1]).all() and np.isfinite(meas.targets[2, [0, 2]]).all()
+    # the reference point that is not a nest: left out, named with its line
+    assert f"{SA}:21" in err and "BASE1" in err
+    assert meas.m_cmd_deg[2].tolist() == [-32.8441, -17.373] and meas.temp_c.tolist()[-1] == 21.5
+    head = out.read_text().splitlines()[:4]
+    assert any("units: mm" in h for h in head) and any(h == "# frame: base" for h in head)
+    assert any("OCPM::Base" in h and "2023.1" in h for h in head)
+
+
+def test_inches_from_header_or_option(tmp_path):
+    text = open(SA).read().replace("Millimeters", "Inches")
+    (tmp_path / "in.txt").write_text(text)
+    exp = read_sa_ascii(tmp_path / "in.txt")
+    assert exp.units == "in" and np.allclose(exp.points[0].xyz, np.array([76.7069, 10.4168, 489.4456]) * 25.4)
+    assert read_sa_ascii(SA, units="in").points[0].xyz[0] == pytest.approx(76.7069 * 25.4)
+    # time stamps: 10:00:01 AM and 10:00:04 AM are 3 s apart
+    assert exp.points[1].time_s - exp.points[0].time_s == pytest.approx(3.0)
+
+
+def test_point_csv_with_column_map(tmp_path):
+    rows = ["Point,Xmm,Ymm,Zmm"]
+    for p in read_sa_ascii(SA).points[:6]:
+        rows.append(f"{p.name.replace(' ', '_')},{p.xyz[0]},{p.xyz[1]},{p.xyz[2]}")
+    (tmp_path / "pts.csv").write_text("\n".join(rows) + "\n")
+    out = tmp_path / "m.csv"
+    assert run("import", str(tmp_path / "pts.csv"), "--log", LOG, "-o", str(out), "--columns",
+               "name=Point,x=Xmm,y=Ymm,z=Zmm", "--names", r"OCPM_(?P<pose>P\d+)_(?P<target>T\d)") == 0
+    meas = read_measurements(out, check_units=False)
+    assert meas.pose_id == ["1", "2"] and meas.targets[0, 2].tolist() == [-72.9301, -76.3543, 480.3567]
+
+
+def test_join_by_time_and_ambiguity(tmp_path):
+    meas = run_campaign(Twin(), plan_campaign(6, 40, seed=2), LaserTracker(0.01, np.random.default_rng(3)))
+    write_sa_export(tmp_path / "t.txt", meas, units="mm", names="Target")   # no pose in the names
+    write_log(tmp_path / "log.csv", meas, posix_time=True)
+    exp, log = read_sa_ascii(tmp_path / "t.txt"), read_controller_log(tmp_path / "log.csv")
+    res = join(exp, log, time_tolerance_s=10.0)          # points 0, 3, 6 s after each pose; poses 30 s apart
+    assert res.warnings == [] and "time" in res.join
+    assert np.allclose(res.meas.targets, meas.targets, atol=5e-7)
+    res = join(exp, log, time_tolerance_s=25.0)          # T3, 6 s after its pose, is 24 s before the next
+    assert any("ambiguous" in w for w in res.warnings)
+    with pytest.raises(Exception, match="no point of the export matches"):
+        join(exp, log)                                   # no tolerance: nothing can be joined
+
+
+def test_tracker_frame_detected_and_recorded(tmp_path, capsys):
+    pose = random_tracker_pose(np.random.default_rng(4))
+    meas = run_campaign(Twin(), plan_campaign(6, 40, seed=2), LaserTracker(0.01, np.random.default_rng(3), pose=pose))
+    write_sa_export(tmp_path / "t.txt", meas, units="mm", frame="OCPM::Base")   # header claims base: check fails
+    write_log(tmp_path / "log.csv", meas)
+    out = tmp_path / "m.csv"
+    assert run("import", str(tmp_path / "t.txt"), "--log", str(tmp_path / "log.csv"), "-o", str(out)) == 0
+    assert "--frame tracker" in capsys.readouterr().err
+    assert any(line.startswith("# frame: tracker") for line in out.read_text().splitlines())
+    meas0 = run_campaign(Twin(), plan_campaign(6, 40, seed=2), LaserTracker(0.01, np.random.default_rng(3)))
+    write_sa_export(tmp_path / "w.txt", meas0, units="mm", frame="OCPM::Tracker1")   # named frame not the base
+    res = join(read_sa_ascii(tmp_path / "w.txt"), read_controller_log(tmp_path / "log.csv"))
+    assert res.frame == "tracker" and "Tracker1" in res.comments[2]
+
+
+@pytest.mark.parametrize("text,where,field", [
+    ("OCPM P001 T1 76.7 10.4 abc\n", ":1", "x"),
+    ("// Frame: Base\nOCPM P001 T1 76.7 10.4 489.4 0.05 0.01 13/45/2026 99:00:01 XM\n", ":2", "time"),
+    ("// only comments\n", "", None),
+])
+def test_bad_export_one_line(tmp_path, capsys, text, where, field):
+    (tmp_path / "bad.txt").write_text(text)
+    assert run("import", str(tmp_path / "bad.txt"), "--log", LOG, "-o", str(tmp_path / "m.csv")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"bad.txt{where}" in err[0] and (field is None or f"field '{field}'" in err[0])
+    assert not (tmp_path / "m.csv").exists()
+
+
+def test_bad_log_and_options(tmp_path, capsys):
+    (tmp_path / "log.csv").write_text("pose_id,m1_cmd_deg,m2_cmd_deg\n1,-43.1,-37.7\n2,x,-54.2\n")
+    assert run("import", SA, "--log", str(tmp_path / "log.csv"), "-o", str(tmp_path / "m.csv")) == 2
+    assert "log.csv, row 2, field 'm1_cmd_deg'" in capsys.readouterr().err
+    assert run("import", SA, "--log", LOG, "-o", str(tmp_path / "m.csv"), "--columns", "x=X") == 2
+    assert "--columns" in capsys.readouterr().err
+    assert run("import", SA, "--log", LOG, "-o", str(tmp_path / "m.csv"), "--names", "(?P<pose>P") == 2
+
+
+def test_twin_export_in_inches_calibrates_as_native(tmp_path):
+    """Acceptance: SA layout, inches, two blocked points: identify gives the native CSV's accuracy."""
+    twin = Twin(PAPER_TABLE2)
+    meas = run_campaign(twin, plan_campaign(24, 60, seed=11), LaserTracker(0.01, np.random.default_rng(12)))
+    write_measurements(tmp_path / "native.csv", meas)
+    write_sa_export(tmp_path / "sa.txt", meas, units="in", blocked={(3, 1), (17, 2)}, reshoot={(5, 0)},
+                    separator=",")
+    write_log(tmp_path / "log.csv", meas)
+    assert run("import", str(tmp_path / "sa.txt"), "--log", str(tmp_path / "log.csv"),
+               "-o", str(tmp_path / "imported.csv")) == 0
+    imported = read_measurements(tmp_path / "imported.csv")
+    assert (~imported.visible).sum() == 2 and np.isnan(imported.targets[3, 1]).all()
+    assert np.nanmax(np.abs(imported.targets - meas.targets)) < 3e-5       # 1e-6 in: 2.5e-5 mm
+    native = identify(read_measurements(tmp_path / "native.csv"))
+    cal = identify(imported)
+    keys = sorted(set(native.params) | set(cal.params))
+    err = lambda c: np.array([c.params.get(k, 0.0) - PAPER_TABLE2.get(k, 0.0) for k in keys])  # noqa: E731
+    std = np.array([native.document["uncertainty"].get(k, 1.0) for k in keys])
+    # same accuracy: the two fits differ by far less than their uncertainty (two of 72 points missing)
+    assert np.max(np.abs(err(cal) - err(native)) / std) < 0.5
+    ratio = np.sqrt(np.mean((err(cal) / std) ** 2)) / np.sqrt(np.mean((err(native) / std) ** 2))
+    assert 0.8 < ratio < 1.25
+
+
+def test_group_target_names_space_separated(tmp_path):
+    meas = run_campaign(Twin(), plan_campaign(5, 40, seed=4), LaserTracker(0.01, np.random.default_rng(5)))
+    write_sa_export(tmp_path / "gt.txt", meas, units="mm", names="Group Target", stamps=False, blocked={(2, 0)})
+    write_log(tmp_path / "log.csv", meas)
+    res = join(read_sa_ascii(tmp_path / "gt.txt"), read_controller_log(tmp_path / "log.csv"))
+    assert res.warnings == [] and res.blocked == ["pose 3 T1"] and res.frame == "base"
+    assert np.allclose(res.meas.targets[np.isfinite(res.meas.targets)], meas.targets[np.isfinite(res.meas.targets)],
+                       atol=5e-7)

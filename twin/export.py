@@ -1,0 +1,199 @@
+"""The calibrated machine as MJCF: the machine's model file with a compiled model's geometry written in.
+
+The twin inserts errors by compiled-model edits (:func:`pmcal.twin.model.apply_errors`) or ``MjSpec`` edits
+(:mod:`pmcal.twin.planar.model`); either way the compiled model holds the real machine's frames. This
+module copies them back into the machine's own MJCF text, so the exported file is the familiar model
+(classes, materials, comments, actuators kept) with only numbers changed:
+
+- every named ``body``: ``pos`` and ``quat`` (``euler``/``axisangle``/``xyaxes``/``zaxis`` removed);
+- every named ``site``: ``pos`` and ``quat``; every named ``joint``: ``pos`` and ``axis``;
+- optional joint ``ref`` values, actuator gains, joint stiffness, a keyframe, ``custom`` numerics and a
+  header comment.
+
+Numbers are written with Python's shortest round-trip repr (17 significant digits when needed): MjSpec's
+own ``to_xml`` keeps 6, which moves a 0.4 m body by up to 5e-7 m. Units: whatever the template uses (SI
+lengths; ``ref`` converted to the template's ``compiler angle``). Visual geoms keep their nominal shapes.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+#: attributes that give an element's orientation besides ``quat`` (removed when ``quat`` is written)
+ORIENTATIONS = ("euler", "axisangle", "xyaxes", "zaxis")
+
+
+def numbers(values) -> str:
+    """Space-separated shortest round-trip representation of floats."""
+    return " ".join(repr(float(v)) for v in np.ravel(values))
+
+
+def _parse(path: Path) -> ET.ElementTree:
+    parser = ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))
+    return ET.parse(str(path), parser)
+
+
+def check_self_contained(root: ET.Element, path: Path) -> None:
+    """The exported file stands alone: the template must not include files or load file assets."""
+    for el in root.iter():
+        if el.tag == "include" or "file" in el.attrib or any(k.startswith("file") for k in el.attrib):
+            raise ValueError(f"{path}: <{el.tag}> refers to a file; the exporter writes self-contained models "
+                             "only (copy the included files beside the output)")
+
+
+def _angle_scale(root: ET.Element) -> float:
+    """Template units per radian (MJCF's default compiler angle is degrees)."""
+    comp = root.find("compiler")
+    angle = comp.get("angle", "degree") if comp is not None else "degree"
+    return 1.0 if angle == "radian" else 180.0 / math.pi
+
+
+def calibrated_xml(template: str | Path, model: mujoco.MjModel, *, header: list[str] = (),
+                   joint_ref_rad: dict[str, float] | None = None, actuator_kp: dict[str, float] | None = None,
+                   joint_stiffness: dict[str, float] | None = None, keyframe: tuple[str, np.ndarray, np.ndarray] | None = None,
+                   custom: dict[str, list[float]] | None = None, option: dict[str, str] | None = None,
+                   equality_active: dict[str, bool] | None = None) -> str:
+    """MJCF text of ``template`` with ``model``'s body, site and joint frames written in.
+
+    Parameters
+    ----------
+    template : path
+        The machine's MJCF file (the one ``model`` was compiled from, before the edits).
+    model : mujoco.MjModel
+        The compiled real machine (SI); elements are matched by name.
+    header : list of str
+        Lines of the comment written before ``<mujoco>``.
+    joint_ref_rad : dict, optional
+        Joint name -> ``ref`` (rad; written in the template's angle unit).
+    actuator_kp : dict, optional
+        Position actuator name -> ``kp`` (N m/rad for a hinge).
+    joint_stiffness : dict, optional
+        Joint name -> ``stiffness`` (N/m for a slide, N m/rad for a hinge).
+    keyframe : (name, qpos, ctrl), optional
+        Replace (or add) the keyframe ``name``.
+    custom : dict, optional
+        ``<custom><numeric name=... data=...>`` entries.
+    option : dict, optional
+        Attributes of ``<option>`` (e.g. ``integrator``, ``timestep``).
+    equality_active : dict, optional
+        Equality constraint name -> active.
+
+    Returns
+    -------
+    str
+        The MJCF document.
+
+    Examples
+    --------
+    >>> m = mujoco.MjModel.from_xml_path("mjcf/ocpm_2dof/ocpm_2dof.xml")     # doctest: +SKIP
+    >>> text = calibrated_xml("mjcf/ocpm_2dof/ocpm_2dof.xml", m)             # doctest: +SKIP
+    """
+    path = Path(template)
+    tree = _parse(path)
+    root = tree.getroot()
+    check_self_contained(root, path)
+    obj = mujoco.mjtObj
+
+    def ident(kind, name):
+        i = mujoco.mj_name2id(model, kind, name)
+        if i < 0:
+            raise ValueError(f"{path}: {name!r} is not in the compiled model")
+        return i
+
+    world = root.find("worldbody")
+    for el in world.iter():
+        name = el.get("name")
+        if not name or el.tag not in ("body", "site", "joint"):
+            continue
+        if el.tag == "body":
+            i = ident(obj.mjOBJ_BODY, name)
+            el.set("pos", numbers(model.body_pos[i]))
+            for a in ORIENTATIONS:
+                el.attrib.pop(a, None)
+            el.set("quat", numbers(model.body_quat[i]))
+        elif el.tag == "site":
+            if "fromto" in el.attrib:
+                raise ValueError(f"{path}: site {name!r} uses fromto; not supported by the exporter")
+            i = ident(obj.mjOBJ_SITE, name)
+            el.set("pos", numbers(model.site_pos[i]))
+            if any(a in el.attrib for a in ORIENTATIONS + ("quat",)) or not np.allclose(model.site_quat[i], [1, 0, 0, 0]):
+                for a in ORIENTATIONS:
+                    el.attrib.pop(a, None)
+                el.set("quat", numbers(model.site_quat[i]))
+        else:
+            i = ident(obj.mjOBJ_JOINT, name)
+            if model.jnt_type[i] != mujoco.mjtJoint.mjJNT_FREE:
+                el.set("pos", numbers(model.jnt_pos[i]))
+                if model.jnt_type[i] in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+                    el.set("axis", numbers(model.jnt_axis[i]))
+    scale = _angle_scale(root)
+    joints = {el.get("name"): el for el in world.iter("joint") if el.get("name")}
+    for name, ref in (joint_ref_rad or {}).items():
+        joints[name].set("ref", repr(float(ref) * scale))
+    for name, k in (joint_stiffness or {}).items():
+        joints[name].set("stiffness", repr(float(k)))
+    acts = {el.get("name"): el for el in root.iter() if el.get("name") and el.tag in ("position", "general")}
+    for name, kp in (actuator_kp or {}).items():
+        el = acts[name]
+        if el.tag != "position":
+            raise ValueError(f"{path}: actuator {name!r} is not a <position> actuator")
+        el.set("kp", repr(float(kp)))
+    if option:
+        opt = root.find("option")
+        if opt is None:
+            opt = ET.Element("option")
+            root.insert(0, opt)
+        for k, v in option.items():
+            opt.set(k, str(v))
+    eqs = {el.get("name"): el for el in (root.find("equality") if root.find("equality") is not None else [])}
+    for name, active in (equality_active or {}).items():
+        eqs[name].set("active", "true" if active else "false")
+    if keyframe is not None:
+        kname, qpos, ctrl = keyframe
+        kf = root.find("keyframe")
+        if kf is None:
+            kf = ET.SubElement(root, "keyframe")
+        key = next((k for k in kf.iter("key") if k.get("name") == kname), None)
+        if key is None:
+            key = ET.SubElement(kf, "key", name=kname)
+        key.set("qpos", numbers(qpos))
+        key.set("ctrl", numbers(ctrl))
+    if custom:
+        cu = root.find("custom")
+        if cu is None:
+            cu = ET.Element("custom")
+            root.insert(_index_before(root, ("worldbody", "asset")), cu)
+        for name, data in custom.items():
+            ET.SubElement(cu, "numeric", name=name, data=numbers(data))
+    ET.indent(tree, space="  ")
+    body = ET.tostring(root, encoding="unicode")
+    text = "\n".join(line.replace("--", "- -") for line in header)
+    raw = path.read_text(encoding="utf-8")
+    leading = raw[:raw.find("<mujoco")].strip()           # the template's own opening comment, kept
+    return (f"<!--\n{text}\n-->\n" if header else "") + (leading + "\n" if leading.startswith("<!--") else "") \
+        + body + "\n"
+
+
+def _index_before(root: ET.Element, tags: tuple[str, ...]) -> int:
+    for i, el in enumerate(root):
+        if el.tag in tags:
+            return i
+    return len(root)
+
+
+def simulate(path: str | Path, steps: int = 500, keyframe: str | None = "home") -> tuple[mujoco.MjModel, mujoco.MjData]:
+    """Load an MJCF file and step it ``steps`` times from ``keyframe`` (the default pose if None), the
+    controls held at the keyframe's. Returns the model and the data (``data.warning`` counts MuJoCo's
+    warnings)."""
+    m = mujoco.MjModel.from_xml_path(str(path))
+    d = mujoco.MjData(m)
+    if keyframe is not None:
+        mujoco.mj_resetDataKeyframe(m, d, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, keyframe))
+    for _ in range(steps):
+        mujoco.mj_step(m, d)
+    return m, d
