@@ -837,23 +837,32 @@ class ClosedChainTwin:
         cmd = np.full((len(task), self.n_motors), np.nan)
         reasons = [""] * len(task)
         width = np.array([self.spec.workspace[c][1] - self.spec.workspace[c][0] for c in coords])
-        # All targets together from home along straight task paths (lockstep continuation); the ones that
+        # All targets together, each from the nearest assembled configuration (home, or one of earlier
+        # solves: all on the home branch) along a straight task path (lockstep continuation); the ones that
         # fail are redone one by one from the nearest target reached, in finer sub-steps.
-        delta = task_difference(task, home_task, coords)
-        n_sub = np.maximum(1, np.ceil(np.max(np.abs(delta) / width, axis=1) / self.PATH_STEP)).astype(int)
-        Q = np.tile(self.home_qpos, (len(task), 1))
+        known_q = np.concatenate([self.home_qpos[None], self._warm_qpos[-512:]])
+        known_t = np.concatenate([home_task[None], self.task_of(known_q[1:])])
         alive = np.isfinite(task).all(axis=1)
+        dist = np.array([np.max(np.abs(task_difference(t, known_t, coords)) / width, axis=1) if ok else
+                         np.zeros(len(known_t)) for t, ok in zip(task, alive)]).reshape(len(task), len(known_t))
+        dist[~np.isfinite(dist)] = np.inf
+        dist[:, 0] = np.where(np.isfinite(dist[:, 0]), dist[:, 0], 0.0)
+        start = np.argmin(dist, axis=1)
+        start_task = known_t[start]
+        delta = task_difference(task, start_task, coords)
+        n_sub = np.maximum(1, np.ceil(dist[np.arange(len(task)), start] / self.PATH_STEP)).astype(int)
+        Q = known_q[start].copy()
         for step in range(1, int(n_sub[alive].max(initial=0)) + 1):
             idx = np.flatnonzero(alive & (step <= n_sub))
             if not idx.size:
                 continue
-            goals = home_task + (step / n_sub[idx])[:, None] * delta[idx]
+            goals = start_task[idx] + (step / n_sub[idx])[:, None] * delta[idx]
             Qi = Q[idx]
             ok = self._newton_batch(Qi, np.where(step == n_sub[idx], self.TOL_M, self.PATH_TOL), goals)
             Q[idx] = Qi
             alive[idx[~ok]] = False
         known_task = [home_task] + list(task[alive])
-        known_q = [self.home_qpos] + list(Q[alive])
+        known_q = [self.home_qpos] + list(Q[alive])         # for the fallback: home and the targets reached
         for i, goal in enumerate(task):
             if alive[i]:
                 q, ok = Q[i], True
@@ -905,9 +914,10 @@ class ClosedChainTwin:
     def inverse(self, task, params: Mapping[str, float] | None = None) -> np.ndarray:
         """Commands (N, M) (deg / mm) that put the task site at ``task`` (N, C) (coordinates of
         ``spec.task``, mm / deg) on the machine with errors ``params``: Newton on the closure and task
-        equations together, by continuation along the straight task path from ``home``, all targets at once
-        (:meth:`_newton_batch`); a target that fails is redone alone in finer sub-steps from the nearest one
-        reached. Every solution lies on the home branch. NaN rows
+        equations together, by continuation along the straight task path from the nearest assembled
+        configuration (``home`` or a recent solve), all targets at once (:meth:`_newton_batch`); a target
+        that fails is redone alone in finer sub-steps from the nearest one reached. Every solution lies on
+        the home branch. NaN rows
         where out of reach or outside a motor's range (:meth:`inverse_report` says which)."""
         return self.inverse_report(task, params)[0]
 
