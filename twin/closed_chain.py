@@ -875,7 +875,8 @@ class ClosedChainTwin:
                 if not ok and j != 0:
                     q, ok = self._reach_task(goal, home_task, self.home_qpos, dist[0])
             if not ok:
-                reasons[i] = "no assembly of the chain reaches this target (out of the workspace or singular)"
+                reasons[i] = ("the target has missing (NaN) coordinates" if not np.isfinite(goal).all() else
+                              "no assembly of the chain reaches this target (out of the workspace or singular)")
                 continue
             if not alive[i]:
                 known_task.append(goal)
