@@ -147,9 +147,10 @@ class ClosedChainTwin:
         self._read_sites()
         key = mujoco.mj_name2id(m, _OBJ.mjOBJ_KEY, spec.home)
         self.home_qpos = m.key_qpos[key].copy()
-        # The tracker nests define the moving frames they sit on (their coordinates there come from a CMM
-        # or the drawing): under "all" they carry no error, nor does the task site (it is not measured).
-        error_sites = [int(p) for p in self.points if p != self.task_site and p not in self.target_sites]
+        # Under frames = "all" the closure sites carry errors; the tracker nests do not (they define the
+        # moving frames they sit on: their coordinates there come from a CMM or the drawing), nor does the
+        # task site unless it closes a loop (it is not measured).
+        error_sites = [int(p) for p in self.points[:self._n_closure_points] if p not in self.target_sites]
         #: the geometric errors (:class:`pmcal.twin.frame_errors.FrameErrors`)
         self.errors = FrameErrors(spec, m, self.points, error_sites, self.motor_dof, self.motor_unit)
         #: every geometric error of the machine, ``"<frame>.<component>"`` and ``"mK.dzero"``
