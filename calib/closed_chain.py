@@ -6,7 +6,7 @@ Jacobian ``d targets / d errors`` is all this module needs.
 
 **Identifiability and the base set** (:func:`base_parameters`). The identification Jacobian, whitened by the
 tracker noise and with each column scaled by the error's prior size (so mm and deg compare), is reduced as
-figaroh does for serial robots (F. Thanh Nguyen et al., FIGAROH, github.com/thanhndv212/figaroh,
+figaroh does for serial robots (D. V. T. Nguyen, V. Bonnet et al., FIGAROH, 2023; github.com/thanhndv212/figaroh,
 ``tools/qrdecomposition.py``: ``get_baseIndex`` / ``get_baseParams``): a QR decomposition with column
 pivoting ``J P = Q R`` gives the rank ``r`` (the diagonal ``|R_ii|`` above ``rank_tol * |R_00|``) and the
 base parameters (the first ``r`` pivots); the others are linear combinations of them,
