@@ -6,7 +6,7 @@ Jacobian ``d targets / d errors`` is all this module needs.
 
 **Identifiability and the base set** (:func:`base_parameters`). The identification Jacobian, whitened by the
 tracker noise and with each column scaled by the error's prior size (so mm and deg compare), is reduced as
-figaroh does for serial robots (F. Thanh Nguyen et al., FIGAROH, github.com/thanhndv212/figaroh,
+figaroh does for serial robots (D. V. T. Nguyen, V. Bonnet et al., FIGAROH, 2023; github.com/thanhndv212/figaroh,
 ``tools/qrdecomposition.py``: ``get_baseIndex`` / ``get_baseParams``): a QR decomposition with column
 pivoting ``J P = Q R`` gives the rank ``r`` (the diagonal ``|R_ii|`` above ``rank_tol * |R_00|``) and the
 base parameters (the first ``r`` pivots); the others are linear combinations of them,
@@ -51,6 +51,7 @@ import numpy as np
 import scipy.linalg
 
 from pmcal.calib.chain_model import ChainModel
+from pmcal.calib.solvers import METHODS, SOLVERS
 from pmcal.calib.solvers.local import lm
 from pmcal.calib.solvers.problem import box_problem
 from pmcal.calib.solvers.result import IdentResult
@@ -232,7 +233,8 @@ def _flat_jacobian(model: ChainModel, commands, params, keys) -> np.ndarray:
 @blas_policy()
 def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None = None,
                    keys: list[str] | None = None, *, prior: bool = True, rank_tol: float = RANK_TOL,
-                   max_nfev: int | None = 100) -> ChainIdentResult:
+                   max_nfev: int | None = 100, method: str = "lm", seed: int | None = None,
+                   **options) -> ChainIdentResult:
     """Identify the geometric errors of a closed-chain machine from tracker measurements.
 
     Parameters
@@ -245,6 +247,10 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     prior : add the Tikhonov prior (module docstring); False: plain LM on the base set.
     rank_tol : relative QR threshold of the base-set reduction (:func:`base_parameters`).
     max_nfev : LM evaluation limit.
+    method : ``"lm"`` (default) or another method of :data:`pmcal.calib.solvers.METHODS` (``"hga"``, the
+        paper's hybrid GA; ``"tikhonov"`` with the L-curve; ``"tsvd"``; ...) run on the same base-set
+        problem (with the prior unless ``prior=False``); ``seed`` and ``options`` go to it. The global
+        methods evaluate a population of machines per generation: slow on a whole chain.
 
     Runs under pmcal's BLAS thread policy (:func:`pmcal.threads.blas_policy`: one thread unless
     ``PMCAL_BLAS_THREADS`` says otherwise; threads spinning on these small matrices cost 10-100x).
@@ -258,6 +264,8 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     ValueError
         Shapes that do not match the model, or fewer valid poses than base parameters.
     """
+    if method not in METHODS:
+        raise ValueError(f"unknown identification method {method!r} (known: {', '.join(METHODS)})")
     t0 = time.perf_counter()
     commands = np.atleast_2d(np.asarray(commands, float))
     targets = np.asarray(targets, float)
@@ -301,7 +309,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     problem = box_problem(fun, base, units, half_width=50.0 * sb, sigma=sigma, jac=jac, scale=sb,
                           info={"residual_unit": "mm"})
     work = problem.with_prior(sb) if prior else problem
-    sol = lm(work, max_nfev=max_nfev)
+    sol = lm(work, max_nfev=max_nfev) if method == "lm" else SOLVERS[method](work, seed=seed, **options)
     x = np.array([dict(zip(sol.names, sol.x))[k] for k in base])
     Jb = -jac(x) / sigma
     resid = sol.residuals if len(sol.residuals) == y.size else fun(x[None])[0]

@@ -101,3 +101,19 @@ def test_compensation_at_held_out_targets(twin, campaign):
     pred = np.sqrt(np.mean(np.einsum("nkcp,pq,nkcq->nk", Jh, res.covariance, Jh)))
     assert np.sqrt(np.mean(np.sum(before**2, axis=1))) > 20 * err_after
     assert err_after < 3.0 * pred, (err_after, pred)
+
+
+def test_tikhonov_method_recovers_the_errors(twin, campaign):
+    """The same base-set problem through the paper's Tikhonov solver (its own regularisation, L-curve
+    lambda, no prior): the estimate lies as near the truth as LM's uncertainty says."""
+    true, cmd, y, res = campaign
+    tik = identify_chain(twin, cmd, y, method="tikhonov", prior=False)
+    assert tik.base == res.base and tik.solver.method == "tikhonov"
+    z = (tik.x - res.basis.combination_values(true)) / np.array([res.std[k] for k in res.base])
+    assert np.sqrt(np.mean(z**2)) < 1.5 and np.max(np.abs(z)) < 4.5, z
+
+
+def test_unknown_method_is_refused(twin, campaign):
+    _, cmd, y, _ = campaign
+    with pytest.raises(ValueError, match="unknown identification method 'bfgs'"):
+        identify_chain(twin, cmd, y, method="bfgs")

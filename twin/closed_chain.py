@@ -5,13 +5,13 @@
 each) and the motors, targets and task from a :class:`pmcal.mechanism.machine_spec.MachineSpec`. Nothing
 in it is specific to a machine.
 
-**Geometric errors** (``docs/machine_toml.md``, section ``[errors]``) are small displacements of frames of the
-model: a body frame carries ``dx, dy, dz`` (mm) and ``drx, dry, drz`` (deg), a translation along and a
-rotation vector about its *parent's* axes through the body's frame origin (``body_pos``; joints, geoms
-and sites written in the body frame move with it); a site carries ``dx, dy, dz`` (mm) in its body's frame;
-a motor a zero offset ``mK.dzero`` (deg or mm): joint position = command - zero + dzero. Errors are applied
-by editing the compiled ``body_pos``, ``body_quat`` and ``site_pos`` (no recompilation; nothing else of
-the model depends on them for kinematics).
+**Geometric errors** (``docs/machine_toml.md``, section ``[errors]``; :mod:`pmcal.twin.frame_errors`) are
+small displacements of frames of the model: a body frame carries ``dx, dy, dz`` (mm) and ``drx, dry, drz``
+(deg), a translation along and a rotation vector about its *parent's* axes through the body's frame origin
+(``body_pos``; joints, geoms and sites written in the body frame move with it); a site carries ``dx, dy,
+dz`` (mm) in its body's frame; a motor a zero offset ``mK.dzero`` (deg or mm): joint position = command -
+zero + dzero. Errors are applied by editing the compiled ``body_pos``, ``body_quat`` and ``site_pos`` (no
+recompilation; nothing else of the model depends on them for kinematics).
 
 **Assembly** (:meth:`solve`): with the motor joints held, Newton (Gauss-Newton with a minimum-norm step, so
 an over-constrained chain settles on the least-squares compromise) on the closure equations over the
@@ -67,19 +67,16 @@ import mujoco
 import numpy as np
 
 from pmcal.errors import InputError
-from pmcal.mechanism.machine_spec import ERROR_COMPONENTS, MachineSpec
-from pmcal.mechanism.rotations import rotvec_matrix, so3_left_jacobian
+from pmcal.mechanism.machine_spec import MachineSpec
+from pmcal.mechanism.rotations import rotvec_matrix
 from pmcal.mechanism.task_space import POSITION, task_coordinates, task_difference
 from pmcal.twin.assembly import solve_stacked
+from pmcal.twin.frame_errors import DEG, MM, FrameErrors
 
-MM = 1e-3                                   # m per mm
-DEG = np.pi / 180.0                         # rad per deg
 _OBJ = mujoco.mjtObj
 _EQ = mujoco.mjtEq
 _JNT = mujoco.mjtJoint
 
-# Kinds of error parameters.
-_BODY_T, _BODY_R, _SITE_T, _ZERO = range(4)
 
 
 @dataclass(frozen=True)
@@ -145,17 +142,19 @@ class ClosedChainTwin:
         m = self.model
         self.data = mujoco.MjData(m)
         self._file = str(spec.model_path)
-        self._nominal_body_pos = m.body_pos.copy()
-        self._nominal_body_quat = m.body_quat.copy()
-        self._nominal_site_pos = m.site_pos.copy()
         self._read_motors()
         self._read_closures()
         self._read_sites()
         key = mujoco.mj_name2id(m, _OBJ.mjOBJ_KEY, spec.home)
         self.home_qpos = m.key_qpos[key].copy()
-        self._build_errors()
-        self._x = np.zeros(len(self.error_keys))
-        self._zero_offset = np.zeros(self.n_motors)
+        # Under frames = "all" the closure sites carry errors; the tracker nests do not (they define the
+        # moving frames they sit on: their coordinates there come from a CMM or the drawing), nor does the
+        # task site unless it closes a loop (it is not measured).
+        error_sites = [int(p) for p in self.points[:self._n_closure_points] if p not in self.target_sites]
+        #: the geometric errors (:class:`pmcal.twin.frame_errors.FrameErrors`)
+        self.errors = FrameErrors(spec, m, self.points, error_sites, self.motor_dof, self.motor_unit)
+        #: every geometric error of the machine, ``"<frame>.<component>"`` and ``"mK.dzero"``
+        self.error_keys = self.errors.keys
         self._warm_cmd = np.zeros((0, self.n_motors))
         self._warm_qpos = np.zeros((0, m.nq))
         self.home_commands = self._commands_of(self.home_qpos[None])[0]
@@ -251,145 +250,32 @@ class ClosedChainTwin:
         self._task_p = pos[self.task_site]
         self.n_targets = len(self.target_sites)
 
-    def _free_bodies(self) -> set[int]:
-        m = self.model
-        return {int(m.jnt_bodyid[j]) for j in range(m.njnt) if m.jnt_type[j] == _JNT.mjJNT_FREE}
-
-    def _build_errors(self) -> None:
-        """Error keys from ``spec.errors`` and the parameter table used to apply and differentiate them."""
-        m, es = self.model, self.spec.errors
-        body_name = lambda b: mujoco.mj_id2name(m, _OBJ.mjOBJ_BODY, b)  # noqa: E731
-        site_name = lambda s: mujoco.mj_id2name(m, _OBJ.mjOBJ_SITE, s)  # noqa: E731
-        free = self._free_bodies()
-        # The tracker nests define the moving frames they sit on (their coordinates there come from a CMM
-        # or the drawing): under "all" they carry no error, nor does the task site (it is not measured).
-        used_sites = [int(s) for s in self.points if s != self.task_site and s not in self.target_sites]
-        if es.frames == "all":
-            bodies = [b for b in range(1, m.nbody) if b not in free]
-            sites = used_sites
-        else:
-            bodies, sites = [], []
-            for f in es.frames:
-                b = mujoco.mj_name2id(m, _OBJ.mjOBJ_BODY, f)
-                if b >= 0:
-                    if b in free:
-                        raise InputError(f"body {f!r} floats on a free joint: its frame is a coordinate of the "
-                                         f"solve, not an error (name its sites instead)",
-                                         file=str(self.spec.folder / "machine.toml"), field="errors.frames")
-                    bodies.append(b)
-                else:
-                    sites.append(mujoco.mj_name2id(m, _OBJ.mjOBJ_SITE, f))
-        bodies = [b for b in bodies if body_name(b) not in es.exclude]
-        sites = [s for s in sites if site_name(s) not in es.exclude]
-        keys, table, units, prior = [], [], [], []
-        for b in bodies:
-            for k, c in enumerate(ERROR_COMPONENTS):
-                if c in es.components:
-                    rot = k >= 3
-                    keys.append(f"{body_name(b)}.{c}")
-                    table.append((_BODY_R if rot else _BODY_T, b, k % 3))
-                    units.append("deg" if rot else "mm")
-                    prior.append(es.angle_deg if rot else es.position_mm)
-        for s in sites:
-            for k, c in enumerate(ERROR_COMPONENTS[:3]):
-                if c in es.components:
-                    keys.append(f"{site_name(s)}.{c}")
-                    table.append((_SITE_T, s, k))
-                    units.append("mm")
-                    prior.append(es.position_mm)
-        if es.motor_zero:
-            for j, mot in enumerate(self.spec.motors):
-                keys.append(f"{mot.name}.dzero")
-                table.append((_ZERO, j, 0))
-                units.append(mot.unit)
-                prior.append(es.zero_deg if mot.unit == "deg" else es.zero_mm)
-        self.error_keys = keys
-        self._table = table
-        self._units = units
-        self._prior = np.array(prior, float)
-        self._key_index = {k: i for i, k in enumerate(keys)}
-        # For each error: which points it moves (the points on its frame's subtree, or the site itself).
-        point_body = m.site_bodyid[self.points]
-        self._moves = np.zeros((len(keys), len(self.points)), bool)
-        for i, (kind, obj, _) in enumerate(table):
-            if kind in (_BODY_T, _BODY_R):
-                self._moves[i] = [self._is_ancestor(obj, int(b)) for b in point_body]
-            elif kind == _SITE_T:
-                self._moves[i] = self.points == obj
-            else:
-                self._moves[i] = True
-
-    def _is_ancestor(self, a: int, b: int) -> bool:
-        """Whether body ``a`` is ``b`` or one of its ancestors."""
-        while b > 0:
-            if b == a:
-                return True
-            b = int(self.model.body_parentid[b])
-        return a == 0
-
     # ------------------------------------------------------------------ parameters
     def error_units(self, keys: list[str] | None = None) -> list[str]:
         """Unit of each error key (``"mm"`` or ``"deg"``); default every :attr:`error_keys`."""
-        return [self._units[self._index(k)] for k in (keys or self.error_keys)]
+        return self.errors.units(keys)
 
     def prior_std(self, keys: list[str] | None = None) -> np.ndarray:
         """Prior size (1 sigma) of each key in its unit, from ``[errors]`` of the machine.toml."""
-        return np.array([self._prior[self._index(k)] for k in (keys or self.error_keys)])
-
-    def _index(self, key: str) -> int:
-        try:
-            return self._key_index[key]
-        except KeyError:
-            raise KeyError(f"unknown error key {key!r} of {self.spec.name} (known: e.g. "
-                           f"{', '.join(self.error_keys[:4])}, ...; twin.error_keys lists all)") from None
+        return self.errors.prior_std(keys)
 
     def set_params(self, params: Mapping[str, float] | None) -> None:
-        """Apply geometric errors ``{key: value}`` (mm / deg; missing keys 0, None: nominal) to the model."""
-        x = np.zeros(len(self.error_keys))
-        for k, v in (params or {}).items():
-            x[self._index(k)] = float(v)
-        if np.array_equal(x, self._x):
-            return
-        m = self.model
-        m.body_pos[:] = self._nominal_body_pos
-        m.body_quat[:] = self._nominal_body_quat
-        m.site_pos[:] = self._nominal_site_pos
-        rot: dict[int, np.ndarray] = {}
-        zero = np.zeros(self.n_motors)
-        for (kind, obj, k), v in zip(self._table, x):
-            if v == 0.0:
-                continue
-            if kind == _BODY_T:
-                m.body_pos[obj, k] += v * MM
-            elif kind == _BODY_R:
-                rot.setdefault(obj, np.zeros(3))[k] = v * DEG
-            elif kind == _SITE_T:
-                m.site_pos[obj, k] += v * MM
-            else:
-                zero[obj] = v
-        for b, w in rot.items():
-            dq = np.zeros(4)
-            mujoco.mju_mat2Quat(dq, rotvec_matrix(w).reshape(9))
-            q = np.zeros(4)
-            mujoco.mju_mulQuat(q, dq, self._nominal_body_quat[b])
-            m.body_quat[b] = q
-        self._rot = rot
-        self._zero_offset = zero
-        self._x = x
-        # The warm starts stay: configurations of a machine with slightly other errors are the best starts.
+        """Apply geometric errors ``{key: value}`` (mm / deg; missing keys 0, None: nominal) to the model.
+        The warm starts stay: configurations of a machine with slightly other errors are the best starts."""
+        self.errors.apply(params)
 
     @property
     def params(self) -> dict[str, float]:
         """The errors currently applied (non-zero ones), ``{key: value}`` mm / deg."""
-        return {k: float(v) for k, v in zip(self.error_keys, self._x) if v != 0.0}
+        return {k: float(v) for k, v in zip(self.error_keys, self.errors.x) if v != 0.0}
 
     # ------------------------------------------------------------------ commands <-> joints
     def _joints_of(self, commands: np.ndarray) -> np.ndarray:
         """Motor joint positions (N, M) SI of commands (N, M)."""
-        return (commands - self.motor_zero + self._zero_offset) * self.motor_unit
+        return (commands - self.motor_zero + self.errors.zero_offset) * self.motor_unit
 
     def _commands_of(self, qpos: np.ndarray) -> np.ndarray:
-        return qpos[:, self.motor_qadr] / self.motor_unit + self.motor_zero - self._zero_offset
+        return qpos[:, self.motor_qadr] / self.motor_unit + self.motor_zero - self.errors.zero_offset
 
     def _as_commands(self, commands) -> np.ndarray:
         c = np.atleast_2d(np.asarray(commands, float))
@@ -699,7 +585,7 @@ class ClosedChainTwin:
         point's position (m) and orientation (rad) per key unit: the IFT of the module docstring."""
         keys = list(keys or self.error_keys)
         kin = self.kinematics(self.solve(commands, params))
-        dP, dW = self._error_derivatives(kin, [self._index(k) for k in keys])   # (N, npts, 3, P) SI
+        dP, dW = self.errors.derivatives(kin, [self.errors.index(k) for k in keys])   # (N, npts, 3, P) SI
         N, nv = len(kin.qpos), self.model.nv
         C = np.concatenate([kin.jacp[:, self._c1] - kin.jacp[:, self._c2],
                             kin.jacr[:, self._c1[self._weld]] - kin.jacr[:, self._c2[self._weld]]],
@@ -722,40 +608,6 @@ class ClosedChainTwin:
             dpos[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacp[ok][..., self.passive], dq) + dP[ok]
             drot[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacr[ok][..., self.passive], dq) + dW[ok]
         return kin, dpos, drot
-
-    def _error_derivatives(self, kin: Kinematics, idx: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        """d position (m) and d orientation (rad) of every point per unit of each error ``idx`` at fixed
-        joints: (N, npoints, 3, P) each."""
-        m = self.model
-        N, P = len(kin.qpos), len(idx)
-        dP = np.zeros((N, len(self.points), 3, P))
-        dW = np.zeros((N, len(self.points), 3, P))
-        for c, i in enumerate(idx):
-            kind, obj, k = self._table[i]
-            mv = self._moves[i]
-            dp, dw = dP[..., c], dW[..., c]                                 # views (N, npoints, 3)
-            if kind == _BODY_T:
-                parent = int(m.body_parentid[obj])
-                dp[:, mv] = kin.xmat[:, parent, :, k][:, None, :] * MM
-            elif kind == _BODY_R:
-                parent = int(m.body_parentid[obj])
-                Rp = kin.xmat[:, parent]                                    # (N, 3, 3)
-                w_local = so3_left_jacobian(self._rot_of(obj))[:, k]
-                w = np.einsum("nij,j->ni", Rp, w_local) * DEG               # (N, 3) rad per deg
-                origin = kin.xpos[:, parent] + np.einsum("nij,j->ni", Rp, m.body_pos[obj])
-                dp[:, mv] = np.cross(w[:, None, :], kin.site_xpos[:, mv] - origin[:, None, :])
-                dw[:, mv] = w[:, None, :]
-            elif kind == _SITE_T:
-                body = int(m.site_bodyid[obj])
-                dp[:, mv] = kin.xmat[:, body, :, k][:, None, :] * MM
-            else:
-                dof, unit = self.motor_dof[obj], self.motor_unit[obj]
-                dp[:] = kin.jacp[..., dof] * unit
-                dw[:] = kin.jacr[..., dof] * unit
-        return dP, dW
-
-    def _rot_of(self, body: int) -> np.ndarray:
-        return getattr(self, "_rot", {}).get(body, np.zeros(3))
 
     # ------------------------------------------------------------------ task space
     def targets_in_task_frame(self, params: Mapping[str, float] | None = None) -> np.ndarray:
@@ -837,23 +689,32 @@ class ClosedChainTwin:
         cmd = np.full((len(task), self.n_motors), np.nan)
         reasons = [""] * len(task)
         width = np.array([self.spec.workspace[c][1] - self.spec.workspace[c][0] for c in coords])
-        # All targets together from home along straight task paths (lockstep continuation); the ones that
+        # All targets together, each from the nearest assembled configuration (home, or one of earlier
+        # solves: all on the home branch) along a straight task path (lockstep continuation); the ones that
         # fail are redone one by one from the nearest target reached, in finer sub-steps.
-        delta = task_difference(task, home_task, coords)
-        n_sub = np.maximum(1, np.ceil(np.max(np.abs(delta) / width, axis=1) / self.PATH_STEP)).astype(int)
-        Q = np.tile(self.home_qpos, (len(task), 1))
+        known_q = np.concatenate([self.home_qpos[None], self._warm_qpos[-512:]])
+        known_t = np.concatenate([home_task[None], self.task_of(known_q[1:])])
         alive = np.isfinite(task).all(axis=1)
+        dist = np.array([np.max(np.abs(task_difference(t, known_t, coords)) / width, axis=1) if ok else
+                         np.zeros(len(known_t)) for t, ok in zip(task, alive)]).reshape(len(task), len(known_t))
+        dist[~np.isfinite(dist)] = np.inf
+        dist[:, 0] = np.where(np.isfinite(dist[:, 0]), dist[:, 0], 0.0)
+        start = np.argmin(dist, axis=1)
+        start_task = known_t[start]
+        delta = task_difference(task, start_task, coords)
+        n_sub = np.maximum(1, np.ceil(dist[np.arange(len(task)), start] / self.PATH_STEP)).astype(int)
+        Q = known_q[start].copy()
         for step in range(1, int(n_sub[alive].max(initial=0)) + 1):
             idx = np.flatnonzero(alive & (step <= n_sub))
             if not idx.size:
                 continue
-            goals = home_task + (step / n_sub[idx])[:, None] * delta[idx]
+            goals = start_task[idx] + (step / n_sub[idx])[:, None] * delta[idx]
             Qi = Q[idx]
             ok = self._newton_batch(Qi, np.where(step == n_sub[idx], self.TOL_M, self.PATH_TOL), goals)
             Q[idx] = Qi
             alive[idx[~ok]] = False
         known_task = [home_task] + list(task[alive])
-        known_q = [self.home_qpos] + list(Q[alive])
+        known_q = [self.home_qpos] + list(Q[alive])         # for the fallback: home and the targets reached
         for i, goal in enumerate(task):
             if alive[i]:
                 q, ok = Q[i], True
@@ -866,7 +727,8 @@ class ClosedChainTwin:
                 if not ok and j != 0:
                     q, ok = self._reach_task(goal, home_task, self.home_qpos, dist[0])
             if not ok:
-                reasons[i] = "no assembly of the chain reaches this target (out of the workspace or singular)"
+                reasons[i] = ("the target has missing (NaN) coordinates" if not np.isfinite(goal).all() else
+                              "no assembly of the chain reaches this target (out of the workspace or singular)")
                 continue
             if not alive[i]:
                 known_task.append(goal)
@@ -905,9 +767,10 @@ class ClosedChainTwin:
     def inverse(self, task, params: Mapping[str, float] | None = None) -> np.ndarray:
         """Commands (N, M) (deg / mm) that put the task site at ``task`` (N, C) (coordinates of
         ``spec.task``, mm / deg) on the machine with errors ``params``: Newton on the closure and task
-        equations together, by continuation along the straight task path from ``home``, all targets at once
-        (:meth:`_newton_batch`); a target that fails is redone alone in finer sub-steps from the nearest one
-        reached. Every solution lies on the home branch. NaN rows
+        equations together, by continuation along the straight task path from the nearest assembled
+        configuration (``home`` or a recent solve), all targets at once (:meth:`_newton_batch`); a target
+        that fails is redone alone in finer sub-steps from the nearest one reached. Every solution lies on
+        the home branch. NaN rows
         where out of reach or outside a motor's range (:meth:`inverse_report` says which)."""
         return self.inverse_report(task, params)[0]
 
