@@ -12,6 +12,7 @@ from __future__ import annotations
 import ctypes
 import re
 from dataclasses import dataclass
+from importlib import resources
 
 import pyads
 
@@ -43,6 +44,19 @@ class AdsMap:
     @property
     def symbols(self) -> tuple[Symbol, ...]:
         return SYMBOLS
+
+
+def read_only_symbols(gvl_text: str | None = None) -> frozenset[str]:
+    """ST names of the GVL variables declared ``{attribute 'symbol' := 'read'}`` (or ``'none'``):
+    TwinCAT answers an ADS write to them with 0x704 (reading/writing not permitted).
+
+    ``gvl_text``: the .TcGVL source (default: the shipped ``plc/GVLs/GVL_CompTable.TcGVL``).
+    """
+    if gvl_text is None:
+        gvl_text = resources.files("pmcal.plc").joinpath("GVLs/GVL_CompTable.TcGVL").read_text(encoding="utf-8")
+    found = re.findall(r"\{attribute\s+'symbol'\s*:=\s*'(read|none)'\}\s*(?:\{[^}]*\}\s*)*(\w+)\s*:",
+                       gvl_text, re.I)
+    return frozenset(name for _, name in found)
 
 
 def ctype_of(sym: Symbol) -> type:
