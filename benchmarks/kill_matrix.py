@@ -5,9 +5,10 @@ within the staging lease + 5 s, and no mixed or half table may ever be active.
 The mock PLC runs in this process (so its active buffer can be compared bit for bit); the push that
 is disturbed is a subprocess ``python -m pmcal.cli push``; the next push runs :func:`push` in this
 process, retried every 0.25 s until it succeeds (so Python start-up, seconds on a loaded machine, does
-not blur the lock-out time), and ``recovered_s`` is the time from the event to its success. The moment of an event is a random request of the push as
-the mock sees it (so kills land in every phase: interface check and claim, staging, read-back,
-commit, acknowledgement), or, for some kills, a random time during the client's start-up. Events:
+not blur the lock-out time), and ``recovered_s`` is the time from the event to its success. The moment of an event is a request of the push as the mock
+sees it: the phases (interface check and claim, staging, read-back, commit, acknowledgement) in turn,
+a random request within the phase; every tenth kill lands at a random time during the client's
+start-up instead. Events:
 
 - ``kill``: SIGKILL of the push process while the mock holds that request 50 ms;
 - ``cut``: from that request on, the mock drops every connection of the push (the cable is pulled)
@@ -92,9 +93,11 @@ class Trial:
 class Trigger:
     """Stands in for a mock's FaultPlan: counts the push's requests and fires the event at the k-th."""
 
-    def __init__(self, k: int, action) -> None:
-        self.k, self.action = k, action
+    def __init__(self, k: int, action, at: Point | None = None) -> None:
+        """Fire ``action`` at the k-th request (of those at point ``at``, if given)."""
+        self.k, self.action, self.at = k, action, at
         self.count = 0
+        self.per_point: dict[Point, int] = {}
         self.point: Point | None = None
         self.fired_at: float | None = None
         self.cut = False
@@ -103,10 +106,12 @@ class Trigger:
 
     def trigger(self, point: Point) -> Fault | None:
         with self._lock:
+            self.per_point[point] = self.per_point.get(point, 0) + 1
             self.count += 1
             if self.cut:
                 return Fault(Kind.DROP, point)
-            if self.count != self.k or self.fired_at is not None:
+            seen = self.count if self.at is None else self.per_point[point] if point == self.at else 0
+            if seen != self.k or self.fired_at is not None:
                 return None
             self.point, self.fired_at = point, time.monotonic()
         return self.action(point)
@@ -157,6 +162,7 @@ class Matrix:
         self.mock.start()
         self.mock.set_staging_lease(lease_s)
         self.version = 1
+        self.per_point: dict[Point, int] = {}
         self.active = make_table(1, grid)
         self.mock.twin.seed(self.active)
 
@@ -182,24 +188,31 @@ class Matrix:
             return AdsLink(self.mock.address, timeout_s=self.timeout_s)
         return ModbusLink(self.mock.host, self.mock.port, rmap=self.mock.rmap, timeout_s=self.timeout_s)
 
-    def requests_per_push(self) -> int:
-        """Requests (as fault points see them) of one undisturbed push; pushes it."""
-        counter = Trigger(10 ** 9, lambda p: None)
-        self.mock.faults = counter
-        table = self._next_table()
-        proc = self.spawn(table)
-        out, err = proc.communicate(timeout=PUSH_TIMEOUT_S)
-        if proc.returncode != 0:
-            raise SystemExit(f"calibration push failed: {err.strip()}")
-        self.active = table
-        return counter.count
+    def requests_per_push(self, pushes: int = 1) -> int:
+        """Requests (as fault points see them) of an undisturbed push (the fewest of ``pushes``);
+        :attr:`per_point` keeps the fewest per phase. Pushes them."""
+        counts = []
+        for _ in range(pushes):
+            counter = Trigger(10 ** 9, lambda p: None)
+            self.mock.faults = counter
+            table = self._next_table()
+            proc = self.spawn(table)
+            out, err = proc.communicate(timeout=PUSH_TIMEOUT_S)
+            if proc.returncode != 0:
+                raise SystemExit(f"calibration push failed: {err.strip()}")
+            self.active = table
+            counts.append(counter.count)
+            self.per_point = {p: min(n, self.per_point.get(p, n)) for p, n in counter.per_point.items()}
+        return min(counts)
 
     def _next_table(self) -> CompTable:
         self.version += 1
         return make_table(self.version, self.grid)
 
     # ---- one event ------------------------------------------------------------------------------
-    def trial(self, event: str, k: int, startup_kill_s: float | None = None) -> Trial:
+    def trial(self, event: str, k: int, startup_kill_s: float | None = None, at: Point | None = None) -> Trial:
+        """One ``event`` at the push's k-th request (of those at phase ``at``, if given), or for a kill
+        ``startup_kill_s`` after the push process starts."""
         before, pushed = self.active, self._next_table()
         monitor = Monitor(self.mock.twin, [before, pushed])
         monitor.start()
@@ -218,7 +231,7 @@ class Matrix:
             th.start()
             return Fault(Kind.DROP, point)
 
-        trig = Trigger(k, action)
+        trig = Trigger(k, action, at)
         self.mock.faults = trig
         proc = self.spawn(pushed)
         procs.append(proc)
@@ -286,15 +299,17 @@ def run(transport: str, kills: int, cuts: int, power_cuts: int, lease_s: float, 
     with tempfile.TemporaryDirectory(prefix="pmcal-kill-") as tmp:
         m = Matrix(transport, lease_s, grid, Path(tmp))
         try:
-            n = m.requests_per_push()
+            n = m.requests_per_push(pushes=3)
+            phases = [p for p in Point if m.per_point.get(p, 0) > 0]
             events = ["kill"] * kills + ["cut"] * cuts + ["power"] * power_cuts
             trials = []
             for i, event in enumerate(events):
-                startup = event == "kill" and rng.random() < 0.1
-                k = int(rng.integers(1, n)) if not startup else 10 ** 9
-                t = m.trial(event, k, startup_kill_s=float(rng.uniform(0.05, 0.5)) if startup else None)
+                startup = event == "kill" and i % 10 == 9            # every tenth kill during start-up
+                at = phases[i % len(phases)]                         # every phase in turn
+                k = 10 ** 9 if startup else int(rng.integers(1, m.per_point[at] + 1))
+                t = m.trial(event, k, startup_kill_s=float(rng.uniform(0.05, 0.5)) if startup else None, at=at)
                 trials.append(t)
-                progress(f"{transport} {i + 1}/{len(events)}: {event} at request {t.at_request}/{n} ({t.point}) "
+                progress(f"{transport} {i + 1}/{len(events)}: {event} at {t.point} request {t.at_request} "
                          f"-> next push {'ok' if t.ok else 'FAILED'} after {t.recovered_s} s, "
                          f"{t.next_attempts} attempt(s), mixed {t.mixed} {t.note}")
             return trials
