@@ -9,7 +9,7 @@ Codes", texts as in ``pyads.errorcodes``):
   is accepted, partial ones too (a few LREALs into ``aShadow`` by offset, several variables at once);
   outside it: 0x703 invalid offset / 0x705 invalid size; another index group: 0x702.
 - **Symbols and handles.** 16#F003 handle by name, 16#F005 value by handle, 16#F006 release, 16#F004
-  value by name, 16#F009 symbol information. Names are case-insensitive; an array element
+  value by name, 16#F009 symbol information, 16#F00B/F00C/F00F the symbol table upload. Names are case-insensitive; an array element
   (``GVL_CompTable.aShadow[3,0,1]``) is a symbol of its own. Unknown names, unknown or released handles:
   0x710 symbol not found. A read or write by handle must carry exactly the symbol's size (0x705).
   Handles live until released or until the PLC restarts (then 0x710).
@@ -75,6 +75,7 @@ ERR_NOTIFY_HANDLE_INVALID = 0x714
 ERR_NOTIFY_SIZE_TOO_BIG = 0x717
 _ADS_TYPES = {"UINT": constants.ADST_UINT16, "UDINT": constants.ADST_UINT32}
 _NOTIFY_MODES = (constants.ADSTRANS_SERVERCYCLE, constants.ADSTRANS_SERVERONCHA)
+_UPLOAD_GROUPS = (constants.ADSIGRP_SYM_UPLOAD, constants.ADSIGRP_SYM_UPLOADINFO, constants.ADSIGRP_SYM_UPLOADINFO2)
 _FILETIME_EPOCH = 11644473600          # s from 1601-01-01 to 1970-01-01
 
 
@@ -258,6 +259,9 @@ class StrictHandler(AbstractHandler):
 
     # ---- the three services on one index group / offset ----------------------------------------
     def read(self, group: int, offset: int, length: int, req: _Request) -> tuple[int, bytes]:
+        if group in _UPLOAD_GROUPS:                  # the symbol table (pyads get_all_symbols)
+            out = self._upload(group)
+            return (0, out) if length >= len(out) else (ERR_INVALID_SIZE, b"")
         region, err = self._target(group, offset, length)
         if err:
             return err, b""
@@ -327,6 +331,15 @@ class StrictHandler(AbstractHandler):
             whole = len(touched) == 1 and touched[0][1] == 0 and length == first.size
             return Region(first.name if whole else f"{IG_PLC_DATA:#x}:{offset}", first.sym, offset, length), 0
         return None, ERR_INVALID_GROUP
+
+    def _upload(self, group: int) -> bytes:
+        """16#F00B symbol upload (every visible variable), 16#F00C / 16#F00F its sizes."""
+        entries = b"".join(_symbol_info(r) for r in self.area.regions)
+        if group == constants.ADSIGRP_SYM_UPLOAD:
+            return entries
+        if group == constants.ADSIGRP_SYM_UPLOADINFO:
+            return struct.pack("<II", len(self.area.regions), len(entries))
+        return struct.pack("<6I", len(self.area.regions), len(entries), 0, 0, 0, 0)
 
     # ---- sum commands -------------------------------------------------------------------------
     def _sum_items(self, n: int, wdata: bytes, width: int) -> list[tuple] | None:

@@ -242,3 +242,12 @@ def test_the_bridge_stages_in_one_request_and_reads_back_in_one(ads_plc):
     finally:
         conn.close()
     assert np.array_equal(staged.reshape(100, 100, 2), table.values)
+
+
+def test_symbol_upload_lists_the_visible_gvl(conn):
+    symbols = {s.name: s for s in conn.get_all_symbols()}
+    assert set(symbols) == {f"GVL_CompTable.{n}" for n in ("nInterfaceVersion", "stShadowHeader", "aShadow",
+                                                            "nCommitVersion", "nStagingClaim", "stState",
+                                                            "stActiveHeader", "stLookupIn", "stLookupOut")}
+    assert symbols[SHADOW].symbol_type.replace(" ", "") == "ARRAY[0..99,0..99,0..1]OFLREAL"
+    assert all(s.index_group == IG_PLC_DATA for s in symbols.values())
