@@ -23,7 +23,7 @@ from pyads.pyads_ex import adsSumReadBytes, adsSumWriteBytes
 
 from pmcal.bridge.ads_mock import AdsMockPlc
 from pmcal.bridge.plc_types import SHADOW_LREALS
-from tests.bridge_fixtures import ads_link, ads_plc, make_table, running  # noqa: F401 (fixture)
+from tests.bridge_fixtures import ads_link, ads_plc, ads_state_code, during_restart, make_table, running  # noqa: F401 (fixture)
 
 SHADOW = "GVL_CompTable.aShadow"
 IG_PLC_DATA = 0x4040           # TwinCAT 3: index group of PLC data area symbols
@@ -194,26 +194,8 @@ def test_a_stopped_plc_reports_stop_and_keeps_its_memory(ads_plc, conn):
 
 def test_a_restarting_runtime_refuses_then_answers_port_not_found_while_it_boots():
     with running(AdsMockPlc(lifetime_s=60.0, restart_s=1.2, boot_s=0.8)) as plc:
-        down = threading.Thread(target=plc.restart)
-        down.start()
-        time.sleep(0.05)
-        codes = []
-        while down.is_alive() and len(codes) < 200:
-            try:
-                conn = _connect(plc, timeout_ms=300)
-            except pyads.ADSError:
-                time.sleep(0.02)
-                continue
-            try:
-                conn.read_state()
-                codes.append(0)
-            except pyads.ADSError as exc:
-                codes.append(exc.err_code)
-            finally:
-                conn.close()
-            time.sleep(0.02)
-        down.join()
-        assert 6 in codes                                      # the router answered, port 851 not yet there
+        codes = during_restart(plc, lambda: ads_state_code(plc.netid, 851, plc, timeout_ms=300))
+        assert 6 in codes                 # the router answered, port 851 not yet there
         conn = _connect(plc)
         try:
             assert conn.read_state()[0] == constants.ADSSTATE_RUN

@@ -9,13 +9,12 @@ first) at 72..73, nCommitVersion at 60..61; base 16#3000.
 
 from __future__ import annotations
 
-import threading
 import time
 
 from pymodbus.client import ModbusTcpClient
 
 from pmcal.bridge.modbus_mock import ModbusMockPlc
-from tests.bridge_fixtures import running
+from tests.bridge_fixtures import during_restart, running
 
 BASE = 0x3000
 CYCLE = BASE + 72
@@ -51,19 +50,17 @@ def test_a_stopped_plc_serves_frozen_registers():
 
 def test_a_booting_runtime_answers_server_device_failure_then_serves():
     with running(ModbusMockPlc(lifetime_s=60.0, restart_s=1.2, boot_s=0.8)) as plc:
-        down = threading.Thread(target=plc.restart)
-        down.start()
-        time.sleep(0.05)
-        answers = []
-        while down.is_alive() and len(answers) < 400:
+        def probe():
             c = ModbusTcpClient("127.0.0.1", port=plc.port, timeout=0.3, retries=0)
-            if c.connect():
+            try:
+                if not c.connect():
+                    return None                               # nothing listens yet
                 rr = c.read_holding_registers(CYCLE, count=2, device_id=1)
-                answers.append(getattr(rr, "exception_code", 0) if rr.isError() else 0)
-            c.close()
-            time.sleep(0.02)
-        down.join()
-        assert 4 in answers                                       # TF6250 up, the PLC runtime not yet
+                return getattr(rr, "exception_code", 0) if rr.isError() else 0
+            finally:
+                c.close()
+
+        assert 4 in during_restart(plc, probe)                # TF6250 up, the PLC runtime not yet
         c = ModbusTcpClient("127.0.0.1", port=plc.port, timeout=1, retries=0)
         assert c.connect()
         try:
