@@ -11,7 +11,9 @@ Codes", texts as in ``pyads.errorcodes``):
 - **Symbols and handles.** 16#F003 handle by name, 16#F005 value by handle, 16#F006 release, 16#F004
   value by name, 16#F009 symbol information, 16#F00B/F00C/F00F the symbol table upload. Names are case-insensitive; an array element
   (``GVL_CompTable.aShadow[3,0,1]``) is a symbol of its own. Unknown names, unknown or released handles:
-  0x710 symbol not found. A read or write by handle must carry exactly the symbol's size (0x705).
+  0x710 symbol not found. Struct members (``GVL_CompTable.stState.nCycle``) are symbols too, laid out
+  from the shipped DUTs. By handle, as on TwinCAT, a read returns at most the symbol's bytes and a
+  shorter write changes only its first bytes (a zero-length write nothing); a longer write: 0x705.
   Handles live until released or until the PLC restarts (then 0x710).
 - **Sum commands** (16#F080 read, 16#F081 write, 16#F082 read-write, 16#F083 read-ex) with one
   result code per sub-request, a failed sub-request leaving the others done.
@@ -48,7 +50,7 @@ from pyads.testserver import AdsTestServer
 from pyads.testserver.handler import AbstractHandler, AmsPacket, AmsResponseData
 from pyads.testserver.testserver import AdsClientConnection
 
-from pmcal.bridge.ads_map import AdsMap, AdsTarget, read_only_symbols
+from pmcal.bridge.ads_map import AdsMap, AdsTarget, read_only_symbols, struct_members
 from pmcal.bridge.faults import Kind, Point
 from pmcal.bridge.mock import LOOPBACK, MockPlc
 from pmcal.bridge.plc_types import SYMBOLS, Symbol
@@ -73,7 +75,8 @@ ERR_SYMBOL_NOT_FOUND = 0x710
 ERR_TRANSMODE_NOT_SUPPORTED = 0x713
 ERR_NOTIFY_HANDLE_INVALID = 0x714
 ERR_NOTIFY_SIZE_TOO_BIG = 0x717
-_ADS_TYPES = {"UINT": constants.ADST_UINT16, "UDINT": constants.ADST_UINT32}
+_ADS_TYPES = {"UINT": constants.ADST_UINT16, "UDINT": constants.ADST_UINT32, "WORD": constants.ADST_UINT16,
+              "INT": constants.ADST_INT16, "LREAL": constants.ADST_REAL64}
 _NOTIFY_MODES = (constants.ADSTRANS_SERVERCYCLE, constants.ADSTRANS_SERVERONCHA)
 _UPLOAD_GROUPS = (constants.ADSIGRP_SYM_UPLOAD, constants.ADSIGRP_SYM_UPLOADINFO, constants.ADSIGRP_SYM_UPLOADINFO2)
 _FILETIME_EPOCH = 11644473600          # s from 1601-01-01 to 1970-01-01
@@ -87,6 +90,7 @@ class Region:
     sym: Symbol
     offset: int                 # in the data area, bytes
     size: int
+    st_type: str = ""           # the PLC type of a part (array element, struct member)
 
     @property
     def whole(self) -> bool:
@@ -109,10 +113,15 @@ class GvlArea:
         self._by_name = {r.name.casefold(): r for r in self.regions}
 
     def find(self, name: str) -> Region | None:
-        """The region of a symbol name (case-insensitive), an array element ``name[i,j,k]`` included."""
+        """The region of a symbol name (case-insensitive): a variable, one of its struct members
+        (``GVL_CompTable.stState.nCycle``, layouts from the shipped DUTs) or an array element
+        (``name[i,j,k]``)."""
         name = name.strip().rstrip("\0").strip()
         m = re.fullmatch(r"(.+?)\s*\[([\d\s,]+)\]", name)
-        base = self._by_name.get((m[1] if m else name).casefold())
+        key = (m[1] if m else name).casefold()
+        base = self._by_name.get(key)
+        if base is None and m is None:
+            return self._member(name)
         if base is None or m is None:
             return base
         dims = _array_dims(base.sym.st_type)
@@ -122,7 +131,18 @@ class GvlArea:
         flat = 0
         for i, (lo, hi) in zip(index, dims):
             flat = flat * (hi - lo + 1) + (i - lo)
-        return Region(f"{base.name}[{','.join(map(str, index))}]", base.sym, base.offset + 8 * flat, 8)
+        return Region(f"{base.name}[{','.join(map(str, index))}]", base.sym, base.offset + 8 * flat, 8, "LREAL")
+
+    def _member(self, name: str) -> Region | None:
+        for region in self.regions:
+            prefix = region.name.casefold() + "."
+            if name.casefold().startswith(prefix):
+                member = (struct_members(region.sym.st_type) or {}).get(name.casefold()[len(prefix):])
+                if member is None:
+                    return None
+                offset, size, st_type = member
+                return Region(name, region.sym, region.offset + offset, size, st_type)
+        return None
 
     def spans(self, offset: int, size: int) -> list[tuple[Region, int, int, int]]:
         """(region, offset in the variable, offset in the buffer, bytes) of every variable the range touches."""
@@ -273,9 +293,11 @@ class StrictHandler(AbstractHandler):
             if len(value) != 4:
                 return ERR_INVALID_SIZE
             return 0 if self.mock.handles.pop(struct.unpack("<I", value)[0], None) else ERR_SYMBOL_NOT_FOUND
-        region, err = self._target(group, offset, len(value))
+        region, err = self._target(group, offset, len(value), write=True)
         if err:
             return err
+        if region.size == 0:
+            return 0
         if any(r.sym.st_name in self.mock.read_only for r, *_ in self.area.spans(region.offset, region.size)):
             return ERR_ACCESS_DENIED
         req.writes.append((region, value))
@@ -315,13 +337,18 @@ class StrictHandler(AbstractHandler):
             return ERR_SERVICE_NOT_SUPPORTED, b""
         return ERR_INVALID_GROUP, b""
 
-    def _target(self, group: int, offset: int, length: int) -> tuple[Region | None, int]:
+    def _target(self, group: int, offset: int, length: int, write: bool = False) -> tuple[Region | None, int]:
         """The region a read/write addresses and the ADS error it earns (0: none)."""
         if group == constants.ADSIGRP_SYM_VALBYHND:
             region = self.mock.handles.get(offset)
             if region is None:
                 return None, ERR_SYMBOL_NOT_FOUND
-            return region, 0 if length == region.size else ERR_INVALID_SIZE
+            if write and length > region.size:
+                return None, ERR_INVALID_SIZE
+            # TwinCAT serves the symbol's first bytes: a shorter write (a STRING, or pyads' zero-length
+            # write of a 2-D array) changes only those, a read gets at most the symbol
+            n = min(length, region.size)
+            return Region(region.name, region.sym, region.offset, n, region.st_type), 0
         if group == IG_PLC_DATA:
             err = self.area.check(offset, length)
             if err:
@@ -355,7 +382,7 @@ class StrictHandler(AbstractHandler):
         for group, offset, size in items:
             err, value = self.read(group, offset, size, req)
             codes.append(struct.pack("<II", err, len(value)) if ex else struct.pack("<I", err))
-            blobs.append(value if ex or not err else bytes(size))
+            blobs.append(value if ex else (value + bytes(size))[:size])     # each item keeps its slot
         return 0, b"".join(codes) + b"".join(blobs)
 
     def _sum_write(self, n: int, wdata: bytes, rlen: int, req: _Request, corrupt: bool) -> tuple[int, bytes]:
@@ -479,12 +506,11 @@ def _accesses(cmd: int, data: bytes):
 
 def _symbol_info(region: Region) -> bytes:
     """ADS symbol information (AdsSymbolEntry) of a region, as TwinCAT 3 answers 16#F009."""
-    sym = region.sym
-    whole = region.whole
+    type_name = region.sym.st_type if region.whole else region.st_type
     name = region.name.encode()
-    st_type = (sym.st_type if whole else "LREAL").encode()
-    ads_type = _ADS_TYPES.get(sym.st_type, constants.ADST_REAL64 if "LREAL" in sym.st_type or not whole
-                              else constants.ADST_BIGTYPE) if whole else constants.ADST_REAL64
+    st_type = type_name.encode()
+    ads_type = _ADS_TYPES.get(type_name.upper(), constants.ADST_REAL64 if type_name.upper().endswith("LREAL")
+                              else constants.ADST_BIGTYPE)
     body = struct.pack("<IIIIIHHH", IG_PLC_DATA, region.offset, region.size, ads_type, 0x8, len(name),
                        len(st_type), 0) + name + b"\0" + st_type + b"\0" + b"\0"
     return struct.pack("<I", 4 + len(body)) + body

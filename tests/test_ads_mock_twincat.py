@@ -102,7 +102,7 @@ def test_error_codes_and_handle_lifetime(ads_plc, conn):
     assert _code(conn.read_by_name, "GVL_CompTable.nNoSuchThing", pyads.PLCTYPE_UDINT) == 0x710
     handle = conn.get_handle("GVL_CompTable.nCommitVersion")
     assert conn.read_by_name("", pyads.PLCTYPE_UDINT, handle=handle) == 0
-    assert _code(conn.read, constants.ADSIGRP_SYM_VALBYHND, handle, pyads.PLCTYPE_UINT) == 0x705   # wrong size
+    assert _code(conn.write, constants.ADSIGRP_SYM_VALBYHND, handle, 1, pyads.PLCTYPE_ULINT) == 0x705  # too long
     assert _code(conn.read_write, constants.ADSIGRP_SYM_VALBYHND, handle, pyads.PLCTYPE_UDINT, 1,
                  pyads.PLCTYPE_UDINT) == 0x710                   # no ReadWrite on a value handle
     conn.release_handle(handle)
@@ -233,3 +233,15 @@ def test_symbol_upload_lists_the_visible_gvl(conn):
                                                             "stActiveHeader", "stLookupIn", "stLookupOut")}
     assert symbols[SHADOW].symbol_type.replace(" ", "") == "ARRAY[0..99,0..99,0..1]OFLREAL"
     assert all(s.index_group == IG_PLC_DATA for s in symbols.values())
+
+
+def test_struct_members_are_symbols_of_their_own(ads_plc, conn):
+    first = conn.read_by_name("GVL_CompTable.stState.nCycle", pyads.PLCTYPE_UDINT)
+    time.sleep(0.05)
+    assert conn.read_by_name("gvl_comptable.ststate.ncycle", pyads.PLCTYPE_UDINT) > first
+    conn.write_by_name("GVL_CompTable.stShadowHeader.nTableVersion", 77, pyads.PLCTYPE_UDINT)
+    header = ads_plc.twin.read_symbol("shadow_header")
+    assert struct.unpack_from("<I", header, 56)[0] == 77 and header[:56] == bytes(56)   # byte 56 per the DUT
+    assert conn.read_by_name("GVL_CompTable.stShadowHeader.sMachine", pyads.PLCTYPE_STRING) == ""
+    assert _code(conn.read_by_name, "GVL_CompTable.stState.nNoSuchMember", pyads.PLCTYPE_UDINT) == 0x710
+    assert _code(conn.write_by_name, "GVL_CompTable.stState.nCycle", 1, pyads.PLCTYPE_ULINT) == 0x705
