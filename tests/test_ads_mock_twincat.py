@@ -22,6 +22,7 @@ from pyads import constants
 from pyads.pyads_ex import adsSumReadBytes, adsSumWriteBytes
 
 from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.faults import Fault, Kind, Point
 from pmcal.bridge.plc_types import SHADOW_LREALS
 from tests.bridge_fixtures import ads_link, ads_plc, ads_state_code, during_restart, make_table, running  # noqa: F401 (fixture)
 
@@ -245,3 +246,9 @@ def test_struct_members_are_symbols_of_their_own(ads_plc, conn):
     assert conn.read_by_name("GVL_CompTable.stShadowHeader.sMachine", pyads.PLCTYPE_STRING) == ""
     assert _code(conn.read_by_name, "GVL_CompTable.stState.nNoSuchMember", pyads.PLCTYPE_UDINT) == 0x710
     assert _code(conn.write_by_name, "GVL_CompTable.stState.nCycle", 1, pyads.PLCTYPE_ULINT) == 0x705
+
+
+def test_a_busy_device_answers_0x708(ads_plc, conn):
+    ads_plc.faults.arm(Fault(Kind.BUSY, Point.BEFORE_STAGE, times=1))
+    assert _code(conn.read_by_name, "GVL_CompTable.nCommitVersion", pyads.PLCTYPE_UDINT) == 0x708
+    assert conn.read_by_name("GVL_CompTable.nCommitVersion", pyads.PLCTYPE_UDINT) == 0      # once only

@@ -13,6 +13,7 @@ import time
 
 from pymodbus.client import ModbusTcpClient
 
+from pmcal.bridge.faults import Fault, Kind, Point
 from pmcal.bridge.modbus_mock import ModbusMockPlc
 from tests.bridge_fixtures import during_restart, running
 
@@ -67,5 +68,18 @@ def test_a_booting_runtime_answers_server_device_failure_then_serves():
             first = _cycle(c)
             time.sleep(0.05)
             assert _cycle(c) != first
+        finally:
+            c.close()
+
+
+def test_a_busy_server_answers_exception_6():
+    with running(ModbusMockPlc(lifetime_s=30.0)) as plc:
+        plc.faults.arm(Fault(Kind.BUSY, Point.BEFORE_STAGE, times=1))
+        c = ModbusTcpClient("127.0.0.1", port=plc.port, timeout=1, retries=0)
+        assert c.connect()
+        try:
+            rr = c.read_holding_registers(BASE, count=5, device_id=1)        # the information block
+            assert rr.isError() and rr.exception_code == 6
+            assert not c.read_holding_registers(BASE, count=5, device_id=1).isError()
         finally:
             c.close()
