@@ -8,6 +8,8 @@ tests run in parallel (pytest -n) without sharing anything.
 from __future__ import annotations
 
 import logging
+import threading
+import time
 from contextlib import contextmanager
 
 import numpy as np
@@ -89,9 +91,6 @@ ROOT_DIR = str(__import__("pathlib").Path(__file__).resolve().parent.parent)
 def during_restart(plc, probe, limit: int = 400) -> list:
     """Restart ``plc`` (taking its ``restart_s``) in a thread and collect what ``probe()`` returns,
     every 20 ms, until the PLC runs again; ``probe`` returns None when it could not connect."""
-    import threading
-    import time
-
     down = threading.Thread(target=plc.restart)
     down.start()
     time.sleep(0.05)

@@ -23,7 +23,7 @@ from pyads.pyads_ex import adsSumReadBytes, adsSumWriteBytes
 
 from pmcal.bridge.ads_mock import AdsMockPlc
 from pmcal.bridge.faults import Fault, Kind, Point
-from pmcal.bridge.plc_types import SHADOW_LREALS
+from pmcal.bridge.plc_types import SHADOW_LREALS, Header, shadow_rows
 from tests.bridge_fixtures import ads_link, ads_plc, ads_state_code, during_restart, make_table, running  # noqa: F401 (fixture)
 
 SHADOW = "GVL_CompTable.aShadow"
@@ -206,7 +206,6 @@ def test_a_restarting_runtime_refuses_then_answers_port_not_found_while_it_boots
 
 def test_the_bridge_stages_in_one_request_and_reads_back_in_one(ads_plc):
     table = make_table(version=1, n_phi=100, n_theta=100)
-    from pmcal.bridge.plc_types import Header, shadow_rows
     link = ads_link(ads_plc)
     with link:
         link.check_interface()
