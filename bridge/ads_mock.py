@@ -24,8 +24,9 @@ Codes", texts as in ``pyads.errorcodes``):
 - **Routes.** Frames from an AMS NetID without a route (``routes``) are dropped by the router without
   an answer: the client times out (pyads 1861). Another target NetID: AMS error 7; another AMS port,
   or port 851 while the runtime boots: 6.
-- **PLC state.** ``read_state`` answers RUN, or STOP after :meth:`AdsMockPlc.stop_plc` (the task does
-  not run; variables stay readable and writable, as on TwinCAT).
+- **PLC state.** ``read_state`` answers RUN, or STOP after :meth:`AdsMockPlc.stop_plc` or an ADS
+  WriteControl to STOP (the task does not run; variables stay readable and writable, as on TwinCAT);
+  WriteControl RUN starts it again.
 - **Write protection** only where the GVL declares it (``{attribute 'symbol' := 'read'}``: 0x704).
   Otherwise a write to a PLC-owned variable is accepted, as TwinCAT does, and lasts until the PLC
   task next writes it (its next cycle).
@@ -233,6 +234,9 @@ class StrictHandler(AbstractHandler):
                 self.mock.twin.corrupt_shadow()
                 fault = None
         corrupt = fault is not None and fault.kind == Kind.CORRUPT
+        if cmd == constants.ADSCOMMAND_WRITECTRL:            # start / stop the PLC (outside the task's lock)
+            code = self._write_control(data)
+            return _error(request, cmd, code) if code else AmsResponseData(_state(request), b"\0" * 4, b"\0" * 4)
         with self.mock.twin.lock:
             payload = self._dispatch(cmd, data, req, conn, corrupt_write=corrupt)
         self.mock.count(write=bool(req.writes))
@@ -248,8 +252,6 @@ class StrictHandler(AbstractHandler):
             return struct.pack("<IBBH16s", 0, 3, 1, 4024, b"Plc30 App")
         if cmd == constants.ADSCOMMAND_READSTATE:
             return struct.pack("<IHH", 0, self.mock.plc_state(), 0)
-        if cmd == constants.ADSCOMMAND_WRITECTRL:
-            return ERR_SERVICE_NOT_SUPPORTED
         if cmd == constants.ADSCOMMAND_ADDDEVICENOTE:
             return self._add_notification(data, conn)
         if cmd == constants.ADSCOMMAND_DELDEVICENOTE:
@@ -276,6 +278,17 @@ class StrictHandler(AbstractHandler):
             err, value = self.read_write(group, offset, length, wdata, req, corrupt_write)
             return err or struct.pack("<II", 0, len(value)) + value
         return ERR_SERVICE_NOT_SUPPORTED
+
+    def _write_control(self, data: bytes) -> int:
+        """ADS WriteControl: STOP stops the PLC task, RUN (or RESET) starts it; other states 0x706."""
+        state = struct.unpack("<H", data[:2])[0] if len(data) >= 2 else 0
+        if state == constants.ADSSTATE_STOP:
+            self.mock.stop_plc()
+        elif state in (constants.ADSSTATE_RUN, constants.ADSSTATE_RESET):
+            self.mock.start_plc()
+        else:
+            return ERR_INVALID_PARAM
+        return 0
 
     # ---- the three services on one index group / offset ----------------------------------------
     def read(self, group: int, offset: int, length: int, req: _Request) -> tuple[int, bytes]:
@@ -522,7 +535,8 @@ def _state(request: AmsPacket) -> bytes:
 
 def _error(request: AmsPacket, cmd: int, code: int) -> AmsResponseData:
     """An ADS response carrying ``code`` in its result field (and an empty payload)."""
-    tail = b"" if cmd in (constants.ADSCOMMAND_WRITE, constants.ADSCOMMAND_DELDEVICENOTE) else b"\0\0\0\0"
+    tail = b"" if cmd in (constants.ADSCOMMAND_WRITE, constants.ADSCOMMAND_DELDEVICENOTE,
+                          constants.ADSCOMMAND_WRITECTRL) else b"\0\0\0\0"
     return AmsResponseData(_state(request), b"\0\0\0\0", struct.pack("<I", code) + tail)
 
 

@@ -181,7 +181,7 @@ def test_a_route_for_this_client_answers():
 
 
 def test_a_stopped_plc_reports_stop_and_keeps_its_memory(ads_plc, conn):
-    ads_plc.stop_plc()
+    conn.write_control(constants.ADSSTATE_STOP, 0, 0, pyads.PLCTYPE_INT)       # as XAE's "Stop"
     assert conn.read_state()[0] == constants.ADSSTATE_STOP
     first = conn.read_by_name("GVL_CompTable.stState", ctypes.c_uint8 * 24, return_ctypes=True)
     conn.write_by_name("GVL_CompTable.nCommitVersion", 5, pyads.PLCTYPE_UDINT)      # accepted, as TwinCAT does
@@ -189,8 +189,11 @@ def test_a_stopped_plc_reports_stop_and_keeps_its_memory(ads_plc, conn):
     again = conn.read_by_name("GVL_CompTable.stState", ctypes.c_uint8 * 24, return_ctypes=True)
     assert bytes(first) == bytes(again)                            # the task does not run: nothing moves
     conn.write_by_name("GVL_CompTable.nCommitVersion", 0, pyads.PLCTYPE_UDINT)
-    ads_plc.start_plc()
+    conn.write_control(constants.ADSSTATE_RUN, 0, 0, pyads.PLCTYPE_INT)
     assert conn.read_state()[0] == constants.ADSSTATE_RUN
+    time.sleep(0.05)
+    again = conn.read_by_name("GVL_CompTable.stState", ctypes.c_uint8 * 24, return_ctypes=True)
+    assert bytes(first) != bytes(again)                            # running again
 
 
 def test_a_restarting_runtime_refuses_then_answers_port_not_found_while_it_boots():
