@@ -34,6 +34,10 @@ class AdsLink(LinkBase):
     """One ADS connection to GVL_CompTable. ``writes``: keys of the symbols it may write."""
 
     transport = "ads"
+    #: 16#F082, ADS sum read-write (not among pyads' constants)
+    SUMUP_READWRITE = 0xF082
+    #: read length asked for one symbol information entry (AdsSymbolEntry with our names fits easily)
+    INFO_READ_SIZE = 512
 
     def __init__(self, target: AdsTarget, *, amap: AdsMap = AdsMap(), writes: frozenset[str] = PUSH_WRITES,
                  timeout_s: float = 2.0) -> None:
@@ -44,11 +48,6 @@ class AdsLink(LinkBase):
         self.target = str(target)
         self._plc: pyads.Connection | None = None
         self._handles: dict[str, int] = {}
-
-    #: 16#F082, ADS sum read-write (not among pyads' constants)
-    SUMUP_READWRITE = 0xF082
-    #: read length asked for one symbol information entry (AdsSymbolEntry with our names fits easily)
-    INFO_READ_SIZE = 512
 
     # ---- connection -----------------------------------------------------------------------
     def open(self) -> None:
@@ -93,21 +92,21 @@ class AdsLink(LinkBase):
             requests += [(constants.ADSIGRP_SYM_INFOBYNAMEEX, 0, self.INFO_READ_SIZE, wire),
                          (constants.ADSIGRP_SYM_HNDBYNAME, 0, 4, wire)]
         answers = self._sum_read_write(requests, "look up the GVL_CompTable symbols")
-        fresh = {}
-        for k, (sym, name) in enumerate(zip(symbols, names)):
-            (code, info), (hcode, handle) = answers[2 * k], answers[2 * k + 1]
-            if code or hcode:
-                raise InterfaceError(f"PLC at {self.target} refused to look up {name}: ADS error "
-                                     f"{code or hcode} ({_text(code or hcode)}): PLC code does not declare {name}")
-            size, st_type = _parse_symbol_info(info)
-            if size != sym.size or _norm(st_type) != _norm(sym.st_type):
-                raise InterfaceError(f"{name} on the PLC is {st_type} ({size} bytes), "
-                                     f"expected {sym.st_type} ({sym.size} bytes): PLC code does not match")
-            fresh[sym.key] = struct.unpack("<I", handle[:4])[0]
-        stale, self._handles = list(self._handles.values()), fresh
+        stale = list(self._handles.values())
+        self._handles = {sym.key: struct.unpack("<I", answers[2 * k + 1][1][:4])[0]
+                         for k, sym in enumerate(symbols) if not answers[2 * k + 1][0]}   # close() frees them
         if stale:
             self._sum_write([(constants.ADSIGRP_SYM_RELEASEHND, 0, struct.pack("<I", h)) for h in stale],
                             "release the symbol handles")
+        for k, (sym, name) in enumerate(zip(symbols, names)):
+            code = answers[2 * k][0] or answers[2 * k + 1][0]
+            if code:
+                raise InterfaceError(f"PLC at {self.target} refused to look up {name}: ADS error "
+                                     f"{code} ({_text(code)}): PLC code does not declare {name}")
+            size, st_type = _parse_symbol_info(answers[2 * k][1])
+            if size != sym.size or _norm(st_type) != _norm(sym.st_type):
+                raise InterfaceError(f"{name} on the PLC is {st_type} ({size} bytes), "
+                                     f"expected {sym.st_type} ({sym.size} bytes): PLC code does not match")
         version = int.from_bytes(self.read_symbol("interface_version"), "little")
         if version != INTERFACE_VERSION:
             raise InterfaceError(f"GVL_CompTable interface version {version}, bridge speaks {INTERFACE_VERSION}")

@@ -22,8 +22,10 @@ from pyads import constants
 from pyads.pyads_ex import adsSumReadBytes, adsSumWriteBytes
 
 from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.errors import InterfaceError
 from pmcal.bridge.faults import Fault, Kind, Point
 from pmcal.bridge.plc_types import SHADOW_LREALS, Header, shadow_rows
+from pmcal.bridge.transfer import push
 from tests.bridge_fixtures import ads_link, ads_plc, ads_state_code, during_restart, make_table, running  # noqa: F401 (fixture)
 
 SHADOW = "GVL_CompTable.aShadow"
@@ -254,3 +256,13 @@ def test_a_busy_device_answers_0x708(ads_plc, conn):
     ads_plc.faults.arm(Fault(Kind.BUSY, Point.BEFORE_STAGE, times=1))
     assert _code(conn.read_by_name, "GVL_CompTable.nCommitVersion", pyads.PLCTYPE_UDINT) == 0x708
     assert conn.read_by_name("GVL_CompTable.nCommitVersion", pyads.PLCTYPE_UDINT) == 0      # once only
+
+
+def test_the_bridge_releases_every_handle_it_took(ads_plc):
+    assert push(ads_link(ads_plc), make_table(version=1)).result == "ok"
+    assert ads_plc.handles == {}
+    old_program = tuple(s for s in ads_plc.symbols if s.key != "lookup_out")
+    with running(AdsMockPlc(symbols=old_program, lifetime_s=30.0)) as plc:
+        with pytest.raises(InterfaceError, match="stLookupOut"):
+            push(ads_link(plc), make_table(version=1))
+        assert plc.handles == {}
