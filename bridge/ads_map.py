@@ -12,6 +12,7 @@ from __future__ import annotations
 import ctypes
 import re
 from dataclasses import dataclass
+from importlib import resources
 
 import pyads
 
@@ -43,6 +44,82 @@ class AdsMap:
     @property
     def symbols(self) -> tuple[Symbol, ...]:
         return SYMBOLS
+
+
+def read_only_symbols(gvl_text: str | None = None) -> frozenset[str]:
+    """ST names of the GVL variables declared ``{attribute 'symbol' := 'read'}`` (or ``'none'``):
+    TwinCAT answers an ADS write to them with 0x704 (reading/writing not permitted).
+
+    ``gvl_text``: the .TcGVL source (default: the shipped ``plc/GVLs/GVL_CompTable.TcGVL``).
+    """
+    if gvl_text is None:
+        gvl_text = resources.files("pmcal.plc").joinpath("GVLs/GVL_CompTable.TcGVL").read_text(encoding="utf-8")
+    found = re.findall(r"\{attribute\s+'symbol'\s*:=\s*'(read|none)'\}\s*(?:\{[^}]*\}\s*)*(\w+)\s*:",
+                       gvl_text, re.I)
+    return frozenset(name for _, name in found)
+
+
+#: sizes of the elementary IEC types, bytes
+_ELEMENTARY = {"BOOL": 1, "BYTE": 1, "SINT": 1, "USINT": 1, "WORD": 2, "INT": 2, "UINT": 2, "DWORD": 4, "DINT": 4,
+               "UDINT": 4, "REAL": 4, "TIME": 4, "LWORD": 8, "LINT": 8, "ULINT": 8, "LREAL": 8, "LTIME": 8}
+
+
+def struct_members(type_name: str) -> dict[str, tuple[int, int, str]] | None:
+    """Members of a DUT of the shipped PLC sources: lower-case name -> (byte offset, size, type), or None
+    if ``type_name`` is not a struct there. Follows ``pack_mode`` (1: packed; otherwise natural
+    alignment, at most 8), nested structs, enums (their base type), ``STRING(n)`` and one-dimensional
+    arrays with literal bounds. Nested members come as ``outer.inner``.
+    """
+    text = _dut_text(type_name)
+    if text is None or not re.search(r"\bSTRUCT\b", text):
+        return None
+    packed = re.search(r"'pack_mode'\s*:=\s*'1'", text) is not None
+    body = re.sub(r"//[^\n]*|\(\*.*?\*\)", "", text.split("STRUCT", 1)[1].rsplit("END_STRUCT", 1)[0], flags=re.S)
+    out, offset = {}, 0
+    for name, st_type in re.findall(r"(\w+)\s*:\s*([^;:=]+?)\s*(?::=[^;]*)?;", body):
+        size, align, inner = _type_size(st_type.strip())
+        if size is None:
+            return None
+        if not packed:
+            offset = -(-offset // align) * align
+        out[name.lower()] = (offset, size, st_type.strip())
+        for sub, (o, n, t) in (inner or {}).items():
+            out[f"{name.lower()}.{sub}"] = (offset + o, n, t)
+        offset += size
+    return out
+
+
+def _type_size(st_type: str) -> tuple[int | None, int, dict | None]:
+    """(size, alignment, members) of a member type."""
+    upper = st_type.upper()
+    if upper in _ELEMENTARY:
+        return _ELEMENTARY[upper], min(_ELEMENTARY[upper], 8), None
+    m = re.fullmatch(r"STRING\s*\(\s*(\d+)\s*\)", st_type, re.I)
+    if m:
+        return int(m[1]) + 1, 1, None
+    m = re.fullmatch(r"ARRAY\s*\[\s*(-?\d+)\s*\.\.\s*(-?\d+)\s*\]\s*OF\s+(.+)", st_type, re.I)
+    if m:
+        size, align, _ = _type_size(m[3].strip())
+        return (None if size is None else size * (int(m[2]) - int(m[1]) + 1)), align, None
+    members = struct_members(st_type)
+    if members is not None:
+        top = [v for k, v in members.items() if "." not in k]
+        end = max(o + n for o, n, _ in top) if top else 0
+        return end, 8, members
+    text = _dut_text(st_type)
+    if text is not None:                          # an enum: its base type after the closing bracket
+        m = re.search(r"\)\s*(\w+)\s*;", text)
+        base = (m[1] if m else "INT").upper()
+        return _ELEMENTARY.get(base, 2), min(_ELEMENTARY.get(base, 2), 8), None
+    return None, 1, None
+
+
+def _dut_text(type_name: str) -> str | None:
+    path = resources.files("pmcal.plc").joinpath(f"DUTs/{type_name}.TcDUT")
+    try:
+        return path.read_text(encoding="utf-8")
+    except (FileNotFoundError, OSError):
+        return None
 
 
 def ctype_of(sym: Symbol) -> type:

@@ -11,6 +11,8 @@ corrupt    writes are stored with one bit flipped, reads are answered with one b
            ``commit`` the staged table is damaged in PLC memory (the PLC's CRC must catch it)
 error      answer with an error: ADS error ``code`` (default 1796, access denied) or Modbus
            exception ``code`` (default 4, server device failure); not applied
+busy       answer "device busy": ADS error 0x708 (1800) or Modbus exception 6 (server device busy);
+           not applied
 =========  ==========================================================================================
 """
 
@@ -38,6 +40,7 @@ class Kind(str, Enum):
     DROP = "drop"
     CORRUPT = "corrupt"
     ERROR = "error"
+    BUSY = "busy"
 
 
 @dataclass

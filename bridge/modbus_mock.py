@@ -4,7 +4,10 @@ The SimDevice's holding registers stand for the TF6250 mapping of ``stMbArea AT 
 image lives in :class:`ModbusArea`, which also plays FB_CompTableModbus (plc/): before each PLC cycle
 it copies the bridge's inputs (header, commit, lookup request) into GVL_CompTable and serves a page
 request, after the cycle it copies the PLC's outputs (state, active header, lookup answer) back.
-Information and answer registers are read-only (a write answers ILLEGAL_ADDRESS).
+Every register of the mapped area can be written, as on TF6250 (the PLC overwrites its own outputs in
+its next cycle). While the PLC is stopped the registers stay readable and writable but nothing moves
+(the task does not run); while the runtime boots after a restart, requests answer exception 4
+(server device failure: TF6250's ADS access to the PLC fails).
 
 The server runs inside its own asyncio loop in a thread (pymodbus builds servers in a running loop),
 on 127.0.0.1, ephemeral port by default, and shuts down at the mock's deadline.
@@ -158,6 +161,8 @@ class ModbusMockPlc(MockPlc):
         """SimDevice hook for every access: faults, then the register image of the area."""
         off = address - self.rmap.base
         at = address - start
+        if self.booting():          # TF6250 runs, the PLC runtime does not yet: its ADS access fails
+            return ExcCodes.DEVICE_FAILURE
         self.count(write=values is not None)
         with self.twin.lock:
             point = self.area.point(fc, off, count, values)
@@ -174,6 +179,8 @@ class ModbusMockPlc(MockPlc):
                 return ExcCodes.DEVICE_FAILURE
             elif fault.kind == Kind.ERROR:
                 return ExcCodes(fault.code or ExcCodes.DEVICE_FAILURE)
+            elif fault.kind == Kind.BUSY:
+                return ExcCodes.DEVICE_BUSY
             elif fault.kind == Kind.CORRUPT and point == Point.COMMIT:
                 self.twin.corrupt_shadow()
             else:

@@ -8,6 +8,8 @@ tests run in parallel (pytest -n) without sharing anything.
 from __future__ import annotations
 
 import logging
+import threading
+import time
 from contextlib import contextmanager
 
 import numpy as np
@@ -84,3 +86,38 @@ def modbus_plc():
 
 #: repository root (for subprocesses running ``python -m pmcal.cli``)
 ROOT_DIR = str(__import__("pathlib").Path(__file__).resolve().parent.parent)
+
+
+def during_restart(plc, probe, limit: int = 400) -> list:
+    """Restart ``plc`` (taking its ``restart_s``) in a thread and collect what ``probe()`` returns,
+    every 20 ms, until the PLC runs again; ``probe`` returns None when it could not connect."""
+    down = threading.Thread(target=plc.restart)
+    down.start()
+    time.sleep(0.05)
+    seen = []
+    while down.is_alive() and len(seen) < limit:
+        got = probe()
+        if got is not None:
+            seen.append(got)
+        time.sleep(0.02)
+    down.join()
+    return seen
+
+
+def ads_state_code(netid: str, ams_port: int, plc, timeout_ms: int = 500) -> int | None:
+    """A plain pyads ``read_state`` against ``plc``: 0, the ADS error code, or None if nothing listens."""
+    import pyads
+
+    conn = pyads.Connection(netid, ams_port, f"{plc.host}:{plc.port}")
+    try:
+        conn.open()
+    except pyads.ADSError:
+        return None
+    try:
+        conn.set_timeout(timeout_ms)
+        conn.read_state()
+        return 0
+    except pyads.ADSError as exc:
+        return exc.err_code
+    finally:
+        conn.close()

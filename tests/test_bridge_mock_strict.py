@@ -13,7 +13,6 @@ from __future__ import annotations
 import socket
 import struct
 
-import pyads
 import pytest
 from pymodbus.client import ModbusTcpClient
 
@@ -21,20 +20,10 @@ from pmcal.bridge.ads_mock import AdsMockPlc
 from pmcal.bridge.errors import LinkError
 from pmcal.bridge.ads_map import AdsMap
 from pmcal.bridge.modbus_mock import ModbusMockPlc
-from tests.bridge_fixtures import ads_link, running
+from tests.bridge_fixtures import ads_link, ads_state_code, running
 
 
-def _read_state(netid: str, ams_port: int, plc) -> int:
-    conn = pyads.Connection(netid, ams_port, f"{plc.host}:{plc.port}")
-    conn.open()
-    try:
-        conn.set_timeout(500)
-        conn.read_state()
-        return 0
-    except pyads.ADSError as exc:
-        return exc.err_code
-    finally:
-        conn.close()
+_read_state = ads_state_code
 
 
 def test_ads_mock_answers_only_its_own_netid_and_port():

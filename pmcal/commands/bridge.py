@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+from pmcal.bridge.mock import RESTART_S
 from pmcal.commands.options import Command, CommandSet
 from pmcal.errors import InputError
 from pmcal.fileio import atomic_write
@@ -55,7 +56,21 @@ def register(sub: CommandSet) -> None:
     m.add_argument("--motion-busy", action="store_true", help="the machine never stands still (no swap)")
     m.add_argument("--cycle-ms", type=float, default=1.0, help="PLC task cycle, ms (default 1)")
     m.add_argument("--restart-after", type=float, default=None, metavar="S",
-                   help="power-cycle the mock PLC once after S seconds (persistent table kept, staging lost)")
+                   help="restart the mock PLC cleanly once after S seconds (as with a UPS: persistent data "
+                        "saved, staging lost)")
+    m.add_argument("--power-cut-after", type=float, default=None, metavar="S",
+                   help="cut the power once after S seconds, as on a CX without UPS: connections drop, RAM "
+                        "and PERSISTENT data not saved by WritePersistentData are lost, then the PLC restarts "
+                        "on the same address")
+    m.add_argument("--restart-s", type=float, default=RESTART_S, metavar="S",
+                   help=f"how long a restart or power cut keeps the PLC away, s (default {RESTART_S:g}, as a "
+                        "CX booting; the last second the router answers ADS error 6)")
+    m.add_argument("--route", action="append", default=None, metavar="NETID",
+                   help="ADS: accept only clients with this AMS NetID (repeatable); frames from others are "
+                        "dropped without an answer, as by a TwinCAT router without that route (the client "
+                        "times out: ADS error 1861)")
+    m.add_argument("--staging-lease", type=float, default=None, metavar="S",
+                   help="shorten the PLC's staging lease to S seconds (studies of killed clients)")
     m.set_defaults(func=cmd_mock_plc)
 
     pl = sub.add_parser("plc", help="ask the PLC what it runs: status, or verify a table is active")
@@ -281,8 +296,20 @@ def cmd_mock_plc(args) -> int:
         raise InputError("cycle must be 0.1 .. 1000 ms", field="--cycle-ms")
     if not 0 <= args.port < 65536:
         raise InputError(f"port {args.port} outside 0..65535", field="--port")
-    if args.restart_after is not None and not 0 < args.restart_after < args.seconds:
-        raise InputError(f"restart-after must be in (0, {args.seconds:g}) s", field="--restart-after")
+    for flag, value in (("--restart-after", args.restart_after), ("--power-cut-after", args.power_cut_after)):
+        if value is not None and not 0 < value < args.seconds:
+            raise InputError(f"must be in (0, {args.seconds:g}) s, got {value:g}", field=flag)
+    if not 0 <= args.restart_s <= 600:
+        raise InputError(f"must be in [0, 600] s, got {args.restart_s:g}", field="--restart-s")
+    if args.staging_lease is not None and not 0 < args.staging_lease <= 3600:
+        raise InputError(f"must be in (0, 3600] s, got {args.staging_lease:g}", field="--staging-lease")
+    if args.route and not args.ads:
+        raise InputError("routes are an ADS notion; give --ads", field="--route")
+    for netid in args.route or ():
+        parts = netid.split(".")
+        if len(parts) != 6 or not all(p.isdigit() and int(p) <= 255 for p in parts):
+            raise InputError(f"AMS NetID must be six numbers 0..255 separated by dots, got '{netid}'",
+                             field="--route")
     faults = []
     for text in args.fault:
         try:
@@ -295,8 +322,12 @@ def cmd_mock_plc(args) -> int:
         from pmcal.bridge.ads_mock import AdsMockPlc as Mock
     else:
         from pmcal.bridge.modbus_mock import ModbusMockPlc as Mock
-    mock = Mock(port=args.port, cycle_s=args.cycle_ms / 1000.0, lifetime_s=args.seconds)
+    extra = {"routes": args.route} if args.ads and args.route else {}
+    mock = Mock(port=args.port, cycle_s=args.cycle_ms / 1000.0, lifetime_s=args.seconds,
+                restart_s=args.restart_s, **extra)
     mock.faults.arm(*faults)
+    if args.staging_lease is not None:
+        mock.set_staging_lease(args.staging_lease)
     mock.twin.motion_idle = not args.motion_busy
     if seed is not None:
         mock.twin.seed(seed)
@@ -308,16 +339,19 @@ def cmd_mock_plc(args) -> int:
     print(f"mock PLC ({mock.transport}) at {mock.target} for {args.seconds:g} s; "
           f"try: pmcal push TABLE {flag} {mock.target}", flush=True)
     stop = _stop_on_sigterm()
-    restart_at = None if args.restart_after is None else time.monotonic() + args.restart_after
+    now = time.monotonic()
+    events = sorted((now + after, name) for name, after in (("restart", args.restart_after),
+                                                            ("power cut", args.power_cut_after)) if after is not None)
     try:
         while not mock.expired() and not stop:
             time.sleep(0.05)
-            if restart_at is not None and time.monotonic() >= restart_at:
-                restart_at = None
-                mock.restart()
+            if events and time.monotonic() >= events[0][0]:
+                _, name = events.pop(0)
+                print(f"mock PLC: {name}, back in {mock.restart_s:g} s", flush=True)
+                (mock.power_cut if name == "power cut" else mock.restart)()
                 st = mock.twin.state
-                print(f"mock PLC restarted: active version {st.active_version}, start-up check "
-                      f"{getattr(st.status, 'name', st.status)}", flush=True)
+                print(f"mock PLC running again after the {name}: active version {st.active_version}, "
+                      f"start-up check {getattr(st.status, 'name', st.status)}", flush=True)
     except KeyboardInterrupt:
         pass
     finally:

@@ -1,0 +1,85 @@
+"""The Modbus mock behaves as TF6250 in front of a stopped or restarting PLC, checked with a plain pymodbus
+client: a stopped task keeps its registers readable and writable but nothing moves (the cycle counter in
+``stState`` stands still); while the runtime boots after a restart the server answers exception 4
+(server device failure) and then serves again; during the restart itself nothing listens.
+
+Register offsets are ST_CompTableModbusArea's (plc/DUTs): stState at 68, its nCycle (UDINT, low word
+first) at 72..73, nCommitVersion at 60..61; base 16#3000.
+"""
+
+from __future__ import annotations
+
+import time
+
+from pymodbus.client import ModbusTcpClient
+
+from pmcal.bridge.faults import Fault, Kind, Point
+from pmcal.bridge.modbus_mock import ModbusMockPlc
+from tests.bridge_fixtures import during_restart, running
+
+BASE = 0x3000
+CYCLE = BASE + 72
+COMMIT = BASE + 60
+
+
+def _cycle(client) -> int:
+    rr = client.read_holding_registers(CYCLE, count=2, device_id=1)
+    assert not rr.isError()
+    return rr.registers[0] | rr.registers[1] << 16
+
+
+def test_a_stopped_plc_serves_frozen_registers():
+    with running(ModbusMockPlc(lifetime_s=30.0)) as plc:
+        c = ModbusTcpClient("127.0.0.1", port=plc.port, timeout=1, retries=0)
+        assert c.connect()
+        try:
+            first = _cycle(c)
+            time.sleep(0.05)
+            assert _cycle(c) != first                            # running: the counter moves
+            plc.stop_plc()
+            time.sleep(0.02)
+            frozen = _cycle(c)
+            time.sleep(0.05)
+            assert _cycle(c) == frozen                           # stopped: it stands still
+            assert not c.write_registers(COMMIT, [0, 0], device_id=1).isError()   # memory still writable
+            plc.start_plc()
+            time.sleep(0.05)
+            assert _cycle(c) != frozen
+        finally:
+            c.close()
+
+
+def test_a_booting_runtime_answers_server_device_failure_then_serves():
+    with running(ModbusMockPlc(lifetime_s=60.0, restart_s=1.2, boot_s=0.8)) as plc:
+        def probe():
+            c = ModbusTcpClient("127.0.0.1", port=plc.port, timeout=0.3, retries=0)
+            try:
+                if not c.connect():
+                    return None                               # nothing listens yet
+                rr = c.read_holding_registers(CYCLE, count=2, device_id=1)
+                return getattr(rr, "exception_code", 0) if rr.isError() else 0
+            finally:
+                c.close()
+
+        assert 4 in during_restart(plc, probe)                # TF6250 up, the PLC runtime not yet
+        c = ModbusTcpClient("127.0.0.1", port=plc.port, timeout=1, retries=0)
+        assert c.connect()
+        try:
+            first = _cycle(c)
+            time.sleep(0.05)
+            assert _cycle(c) != first
+        finally:
+            c.close()
+
+
+def test_a_busy_server_answers_exception_6():
+    with running(ModbusMockPlc(lifetime_s=30.0)) as plc:
+        plc.faults.arm(Fault(Kind.BUSY, Point.BEFORE_STAGE, times=1))
+        c = ModbusTcpClient("127.0.0.1", port=plc.port, timeout=1, retries=0)
+        assert c.connect()
+        try:
+            rr = c.read_holding_registers(BASE, count=5, device_id=1)        # the information block
+            assert rr.isError() and rr.exception_code == 6
+            assert not c.read_holding_registers(BASE, count=5, device_id=1).isError()
+        finally:
+            c.close()
