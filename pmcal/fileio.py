@@ -65,7 +65,7 @@ def read_json(path: str | os.PathLike) -> object:
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
-        raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=p) from None
+        raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=str(path)) from None
 
 
 def check_param_values(params: dict, path: str, unit_of, limits: dict[str, float], prefix: str = "params."

@@ -56,7 +56,7 @@ def test_readme_walkthrough_runs_verbatim(tmp_path):
     assert "dry_run" in res.stdout
     assert "Traceback" not in res.stderr
     # piped, every result is on stdout; the README's campaigns draw no warning (the tracker step's 48 poses)
-    assert res.stdout.count("parameter directions determined") == 3           # identify: full, paper, tracker
+    assert res.stdout.count("parameter directions determined") == 4   # identify: full, paper, tracker, history
     assert "no missing effect: the model explains the data to the noise level" in res.stdout
     assert "pmcal: wrote bridge_audit.log" in res.stdout
     assert "pmcal: warning" not in res.stderr, res.stderr
