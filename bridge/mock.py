@@ -10,7 +10,7 @@ import threading
 import time
 
 from pmcal.bridge.faults import FaultPlan
-from pmcal.bridge.plc_twin import PlcTwin
+from pmcal.bridge.plc_runtime import PlcTwin
 
 LOOPBACK = "127.0.0.1"
 

@@ -25,7 +25,7 @@ from pmcal.bridge.faults import Kind, Point
 from pmcal.bridge.mock import MockPlc
 from pmcal.bridge.modbus_map import FC3_MAX, FC16_MAX, MAGIC, PAGE_BAD, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap
 from pmcal.bridge.plc_types import INTERFACE_VERSION, NPHI_MAX, NTHETA_MAX, SHADOW_SIZE
-from pmcal.bridge.plc_twin import PlcTwin
+from pmcal.bridge.plc_runtime import PlcTwin
 
 _FC_READ = (3, 4, 23)
 
