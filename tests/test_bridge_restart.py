@@ -25,6 +25,7 @@ def test_restart_after_a_push_keeps_the_table_and_refuses_a_stale_one(mock, link
         with before:
             want = before.lookup(123.0, 33.0)
         plc.restart()
+        assert plc.twin.wait_started()                   # the manager re-checks the table over some cycles
         st = plc.twin.state
         assert (st.active_version, st.active_crc, st.status) == (7, table.crc16(), Status.OK)
         assert plc.twin.active_table()[1].tobytes() == table.values.tobytes()
@@ -57,6 +58,7 @@ def test_restart_mid_life_loses_staging_only(mock, link):
         with pytest.raises(BridgeError):
             push(link(plc), new, PushOptions(ack_timeout_s=0.2))
         plc.restart()                                    # ... and the PLC restarts meanwhile
+        assert plc.twin.wait_started()
         st = plc.twin.state
         assert (st.active_version, st.staging_owner, plc.twin.commit_version) == (1, 0, 0)
         assert plc.twin.active_table()[1].tobytes() == good.values.tobytes()
@@ -70,6 +72,7 @@ def test_damaged_persistent_table_is_dropped_at_start_up():
         plc.twin.seed(make_table(version=3))
         plc.twin.corrupt_persistent()
         plc.restart()
+        plc.twin.wait_started()
         st = plc.twin.state
         assert (st.active_version, st.status) == (0, Status.CRC_MISMATCH)
         with ads_link(plc, writes=LOOKUP_WRITES) as link:

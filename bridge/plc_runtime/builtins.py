@@ -8,8 +8,9 @@ Each entry of :data:`BUILTINS` names the Beckhoff document it follows:
   TRUNC_INT, the type conversions ``<T1>_TO_<T2>`` and ``TO_<T>``;
 - Tc2_System: MEMCPY, MEMSET, MEMMOVE, MEMCMP;
 - Tc2_Utilities: F_DATA_TO_CRC16_CCITT (CRC-16/CCITT, polynomial 16#1021, the start value given by
-  the caller, no reflection, no final XOR), F_DATA_TO_CRC32_CCITT? no such function exists -- the
-  CRC-32 here is ``F_DATA_TO_CRC32`` hypothetical until the ST chooses one; see :func:`crc32_ieee`;
+  the caller, no reflection, no final XOR). Tc2_Utilities has no CRC-32 (its CRC functions are
+  F_BYTE_TO_CRC16_CCITT and F_DATA_TO_CRC16_CCITT, besides F_CheckSum16): a CRC-32 is written in
+  the project's own ST and runs like any other POU;
 - hooks that stand for the hardware (not TwinCAT symbols; the allow-list must not list them for
   the project's own POUs, only the library written in ``library.st`` calls them): F_SimTime,
   F_SimAxisIdle, F_SimPersistentCycles, F_SimPersistentSave.
@@ -49,6 +50,7 @@ class Builtin:
     doc: str
     nonstandard: bool = False
     simulation: bool = False
+    memory: bool = False                # reads or writes PLC memory through an address
 
 
 def _real_arg(c, node, pre, check=True):
@@ -141,6 +143,28 @@ def _trunc(tname):
     return comp
 
 
+def _shift(kind):
+    """SHL/SHR/ROL/ROR on the bit width of IN's type (Infosys TC3 PLC, Bit-shift operators)."""
+    def comp(c, positional, named, pre):
+        from pmcal.bridge.plc_runtime.compiler import ANYINT, PlcCompileError, E
+        x, n = [c.expr(a, pre) for a in _args(positional, named, ["IN", "N"])]
+        t = x.t if x.t is not ANYINT else elementary("DWORD")
+        if t.kind not in ("int", "enum"):
+            raise PlcCompileError(f"{c.pou.name}: {kind} of {t.name}")
+        bits, mask = t.bits, (1 << t.bits) - 1
+        v = f"(({x.code}) & {mask:#x})"
+        if kind == "SHL":
+            code = f"(({v} << {n.code}) & {mask:#x})"
+        elif kind == "SHR":
+            code = f"({v} >> {n.code})"
+        elif kind == "ROL":
+            code = f"((({v} << ({n.code} % {bits})) | ({v} >> (({bits} - {n.code} % {bits}) % {bits}))) & {mask:#x})"
+        else:
+            code = f"((({v} >> ({n.code} % {bits})) | ({v} << (({bits} - {n.code} % {bits}) % {bits}))) & {mask:#x})"
+        return E(code, t)
+    return comp
+
+
 def _adr(c, positional, named, pre):
     from pmcal.bridge.plc_runtime.compiler import POINTER, E
     (x,) = positional or list(named.values())
@@ -180,7 +204,7 @@ def _call(pyname, names, ret, mathy=False, sim=False):
 
 
 BUILTINS: dict[str, Builtin] = {
-    "ADR": Builtin(_adr, "Infosys TC3 PLC, Operators: ADR"),
+    "ADR": Builtin(_adr, "Infosys TC3 PLC, Operators: ADR", memory=True),
     "SIZEOF": Builtin(_sizeof, "Infosys TC3 PLC, Operators: SIZEOF"),
     "ABS": Builtin(_abs, "Infosys TC3 PLC, Numeric operators: ABS"),
     "SQRT": Builtin(_math1("math.sqrt"), "Infosys TC3 PLC, Numeric operators: SQRT"),
@@ -203,12 +227,16 @@ BUILTINS: dict[str, Builtin] = {
     "MUX": Builtin(_mux, "Infosys TC3 PLC, Selection operators: MUX"),
     "TRUNC": Builtin(_trunc("DINT"), "Infosys TC3 PLC, Type conversion operators: TRUNC (to DINT)"),
     "TRUNC_INT": Builtin(_trunc("INT"), "Infosys TC3 PLC, Type conversion operators: TRUNC_INT"),
-    "MEMCPY": Builtin(_call("_memcpy", ["destAddr", "srcAddr", "n"], "UDINT"), "Tc2_System: MEMCPY"),
-    "MEMMOVE": Builtin(_call("_memcpy", ["destAddr", "srcAddr", "n"], "UDINT"), "Tc2_System: MEMMOVE"),
-    "MEMSET": Builtin(_call("_memset", ["destAddr", "fillByte", "n"], "UDINT"), "Tc2_System: MEMSET"),
-    "MEMCMP": Builtin(_call("_memcmp", ["pBuf1", "pBuf2", "n"], "DINT"), "Tc2_System: MEMCMP"),
+    "SHL": Builtin(_shift("SHL"), "Infosys TC3 PLC, Bit-shift operators: SHL"),
+    "SHR": Builtin(_shift("SHR"), "Infosys TC3 PLC, Bit-shift operators: SHR"),
+    "ROL": Builtin(_shift("ROL"), "Infosys TC3 PLC, Bit-shift operators: ROL"),
+    "ROR": Builtin(_shift("ROR"), "Infosys TC3 PLC, Bit-shift operators: ROR"),
+    "MEMCPY": Builtin(_call("_memcpy", ["destAddr", "srcAddr", "n"], "UDINT"), "Tc2_System: MEMCPY", memory=True),
+    "MEMMOVE": Builtin(_call("_memcpy", ["destAddr", "srcAddr", "n"], "UDINT"), "Tc2_System: MEMMOVE", memory=True),
+    "MEMSET": Builtin(_call("_memset", ["destAddr", "fillByte", "n"], "UDINT"), "Tc2_System: MEMSET", memory=True),
+    "MEMCMP": Builtin(_call("_memcmp", ["pBuf1", "pBuf2", "n"], "DINT"), "Tc2_System: MEMCMP", memory=True),
     "F_DATA_TO_CRC16_CCITT": Builtin(_call("_crc16", ["pData", "cbData", "crc"], "WORD"),
-                                     "Tc2_Utilities: F_DATA_TO_CRC16_CCITT"),
+                                     "Tc2_Utilities: F_DATA_TO_CRC16_CCITT", memory=True),
     "F_SIMTIME": Builtin(_call("_sim_time", [], "TIME"), "simulation hook: the task clock (ms)", simulation=True),
     "F_SIMAXISIDLE": Builtin(_call("_sim_axis_idle", [], "BOOL"), "simulation hook: axes stand still",
                              simulation=True),
@@ -454,6 +482,8 @@ def make_helpers(rt) -> dict:
         s = struct.Struct("<" + fmt)
         helpers[f"_U{fmt}"] = s.unpack_from
         helpers[f"_P{fmt}"] = s.pack_into
+        if s.size > 1:
+            helpers[f"_M{fmt}"] = memoryview(mem).cast(fmt)     # aligned access (len(mem) % 8 == 0)
     helpers.update(math=math, mem=mem, _W=work, _fmod=math.fmod, _idiv=_idiv, _imod=_imod,
                    _sim_time=lambda: rt.clock_ms & 0xFFFFFFFF, _sim_axis_idle=lambda: bool(rt.motion_idle),
                    _sim_persistent_cycles=lambda: rt.persistent_write_cycles,

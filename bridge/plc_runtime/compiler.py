@@ -67,33 +67,65 @@ class LV:
     local: str | None = None
     addr: str | None = None
     ref: bool = False                   # a REFERENCE variable: reading/writing goes to its target
+    align: int = 0                      # guaranteed alignment of the address (0: derive from addr)
+
+    def __post_init__(self) -> None:
+        if self.align == 0:
+            self.align = _addr_align(self.addr)
 
     def read(self) -> str:
         if self.local is not None:
             return self.local
-        return load_code(self.t, self.addr)
+        return load_code(self.t, self.addr, self.align)
 
     def write(self, value: str) -> str:
         if self.local is not None:
             return f"{self.local} = {value}"
-        return store_code(self.t, self.addr, value)
+        return store_code(self.t, self.addr, value, self.align)
 
 
-def load_code(t: DType, addr: str) -> str:
+_SHIFT = {2: 1, 4: 2, 8: 3}
+
+
+def lowbit(n: int) -> int:
+    """Largest power of two (at most 8) dividing ``n``."""
+    return 8 if n % 8 == 0 else n & -n
+
+
+def _addr_align(addr: str | None) -> int:
+    """Alignment of an address expression: a constant, or ``this`` (+ constant); FB and PROGRAM
+    instances start on 8-byte boundaries (their layout is pack mode 8 and sizes are multiples of 8)."""
+    if addr is None:
+        return 1
+    if addr.isdigit():
+        return lowbit(int(addr))
+    if addr == "this":
+        return 8
+    if addr.startswith("this + ") and addr[7:].isdigit():
+        return lowbit(int(addr[7:]))
+    return 1
+
+
+def load_code(t: DType, addr: str, align: int = 1) -> str:
     if t.kind == "bool":
         return f"(mem[{addr}] != 0)"
     if t.fmt == "B":
         return f"mem[{addr}]"
+    if t.fmt != "f" and t.size > 1 and align >= t.size:
+        # an aligned scalar: a typed view of the memory (no struct call)
+        return f"_M{t.fmt}[({addr}) >> {_SHIFT[t.size]}]"
     return f"_U{t.fmt}(mem, {addr})[0]"
 
 
-def store_code(t: DType, addr: str, value: str) -> str:
+def store_code(t: DType, addr: str, value: str, align: int = 1) -> str:
     if t.kind == "bool":
         return f"mem[{addr}] = 1 if {value} else 0"
     if t.fmt == "B":
         return f"mem[{addr}] = {value}"
     if t.fmt == "f":
         return f"_P{t.fmt}(mem, {addr}, _f32({value}))"
+    if t.size > 1 and align >= t.size:
+        return f"_M{t.fmt}[({addr}) >> {_SHIFT[t.size]}] = {value}"
     return f"_P{t.fmt}(mem, {addr}, {value})"
 
 
@@ -165,6 +197,7 @@ class Program:
         self.lines: list[tuple[int, str, int]] = []           # (python line, POU, ST line)
         self.nonstandard: dict[str, set] = {}                # call name -> POUs using it
         self.call_names: list[str] = []                       # POU per call-counter slot
+        self.pure: set[str] = set()                           # FUNCTIONs evaluated once per input
 
     # -- name lookups used by the runtime ---------------------------------------------------
     def global_var(self, gvl: str, name: str) -> GlobalVar:
@@ -196,6 +229,9 @@ class Compiler:
         self.math_calls = 0
         self.pou: Pou | None = None
         self.loop_depth = 0
+        self.pure = False
+        self.hoist: dict | None = None         # pointer loads of the statement being compiled
+        self.impure_call = False                # the statement calls something that may re-point
 
     # ================================================================== types
     def build(self) -> Program:
@@ -435,12 +471,7 @@ class Compiler:
         for u in gvl_units:
             gvl = u.name.lower()
             p.gvls.setdefault(gvl, {})
-            raw = ""
-            try:
-                raw = open(u.file).read() if u.file and "/" in u.file else ""
-            except OSError:
-                raw = ""
-            if "qualified_only" in raw or True:
+            if u.qualified:
                 p.qualified.add(gvl)
             for block in u.item:
                 attrs = str(block.attrs or "").upper()
@@ -584,6 +615,8 @@ class Compiler:
             return
         params = [v for v in pou.order if v.block in ("VAR_INPUT", "VAR_IN_OUT")]
         args = ", ".join(["this"] * (pou.kind == "method") + [f"a_{v.name}" for v in params])
+        def_line = len(self.out)
+        self.pure = pou.kind == "function" and bool(params)
         self._line(f"def {pou.pyname}({args}):", 0)
         self._line(f"_CALLS[{pou.index}] += 1", 1)
         fa = pou.frame_addr
@@ -612,6 +645,34 @@ class Compiler:
         ret = self._return_code(pou)
         self._block(body, 1, ret=f"return {ret}")
         self._line(f"return {ret}", 1)
+        if self.pure:
+            self._memoize(pou, def_line, args)
+        self.pure = False
+
+    def _memoize(self, pou: Pou, def_line: int, args: str) -> None:
+        """A pure FUNCTION (reads only its inputs, locals and constants; calls only pure functions and
+        numeric operators) is evaluated once per distinct input: the cache returns its result and
+        adds the work the evaluation counted, so counters and results are those of a real call.
+        Inputs equal to 0 (+0.0/-0.0 are equal keys) always run."""
+        self.prog.pure.add(pou.name.lower())
+        impl = f"{pou.pyname}__impl"
+        self.out[def_line] = f"def {impl}({args}):"
+        memo = f"_MEMO_{pou.name}"
+        self._line(f"{memo} = {{}}", 0)
+        self._line(f"def {pou.pyname}(*a):", 0)
+        self._line("if 0 in a:", 1)
+        self._line(f"return {impl}(*a)", 2)
+        self._line(f"r = {memo}.get(a)", 1)
+        self._line("if r is None:", 1)
+        self._line("w0, w1 = _W[0], _W[1]", 2)
+        self._line(f"v = {impl}(*a)", 2)
+        self._line(f"if len({memo}) < 200000:", 2)
+        self._line(f"{memo}[a] = (v, _W[0] - w0, _W[1] - w1)", 3)
+        self._line("return v", 2)
+        self._line(f"_CALLS[{pou.index}] += 1", 1)
+        self._line("_W[0] += r[1]", 1)
+        self._line("_W[1] += r[2]", 1)
+        self._line("return r[0]", 1)
 
     def _return_code(self, pou: Pou) -> str:
         outs = [v for v in pou.order if v.block == "VAR_OUTPUT"]
@@ -665,6 +726,23 @@ class Compiler:
     def _stmt(self, s, indent: int, ret: str) -> None:
         kind = type(s).__name__
         self._loc(s, indent)
+        if kind not in ("AssignmentStatement", "ReferenceAssignmentStatement", "SetStatement", "ResetStatement",
+                        "FunctionCallStatement"):
+            self._stmt_inner(s, indent, ret)
+            return
+        mark, tmp, calls = len(self.out), self.tmp, self.math_calls
+        self.hoist, self.impure_call = {}, False
+        try:
+            self._stmt_inner(s, indent, ret)
+            if self.impure_call and self.hoist:          # compile again without hoisting
+                del self.out[mark:]
+                self.tmp, self.math_calls, self.hoist = tmp, calls, None
+                self._stmt_inner(s, indent, ret)
+        finally:
+            self.hoist, self.impure_call = None, False
+
+    def _stmt_inner(self, s, indent: int, ret: str) -> None:
+        kind = type(s).__name__
         pre: list[str] = []
         if kind == "AssignmentStatement":
             e = self.expr(s.expression, pre)
@@ -835,12 +913,10 @@ class Compiler:
                 raise PlcCompileError(f"{self.pou.name}: implicit conversion {e.t.name} -> {t.name}")
             if e.const is not _NOCONST and isinstance(e.const, int):
                 return repr(t.wrap(e.const) if t.kind != "enum" else e.const)
-            if e.t is t or (e.t.name == t.name and not getattr(e, "computed", True)):
-                return e.code
             if t.kind == "enum" and e.t.kind == "enum":
                 return e.code
-            if getattr(e, "plain", False) and e.t.kind in ("int", "enum") and _fits(e.t, t):
-                return e.code
+            if getattr(e, "plain", False) and e.t.kind in ("int", "enum", "pointer", "reference") and _fits(e.t, t):
+                return e.code                       # a variable read that fits: nothing to wrap
             return t.wrap_code(e.code)
         return e.code
 
@@ -918,6 +994,8 @@ class Compiler:
         if what == "const":
             value, t, py = self.prog.constants[found[1]]
             return E(py, t, const=value)
+        if what in ("global", "pou"):
+            self.pure = False
         if what == "ret":
             lv = LV(found[1].ret, local="r_")
         elif what == "var":
@@ -939,6 +1017,7 @@ class Compiler:
                         raise PlcCompileError(f"{self.pou.name}: member of a constant {ckey}")
                     return E(py, t, const=value)
                 gv = self.prog.gvls[found[1]].get(member.lower())
+                self.pure = False
                 if gv is None:
                     raise PlcCompileError(f"unknown {base}.{member}")
                 lv = LV(gv.t, addr=str(gv.addr), ref=gv.t.kind == "reference")
@@ -956,10 +1035,10 @@ class Compiler:
         else:
             raise PlcCompileError(f"{base}: not a variable")
         if deref:
-            lv = self._deref(lv)
+            lv = self._deref(lv, pre)
         for el in elements:
             if lv.ref or (lv.t.kind == "reference" and not raw_ref):
-                lv = self._deref(lv)
+                lv = self._deref(lv, pre)
             ek = type(el).__name__
             if ek == "FieldSelector":
                 fname = str(el.field.name)
@@ -970,14 +1049,22 @@ class Compiler:
                 if m is None:
                     raise PlcCompileError(f"{self.pou.name}: {t.name} has no member {fname}")
                 off, mt = m
-                lv = LV(mt, addr=addr_add(self._addr(lv), off), ref=mt.kind == "reference")
+                lv = LV(mt, addr=addr_add(self._addr(lv), off), ref=mt.kind == "reference",
+                        align=min(lv.align, lowbit(off)))
+            elif ek == "SubscriptList" and lv.t.kind == "pointer":
+                # p[i]: element i of what the pointer points to (TwinCAT pointer indexing)
+                if len(el.subscripts) != 1:
+                    raise PlcCompileError(f"{self.pou.name}: one index for a pointer")
+                target = self._deref(lv, pre)
+                ie = self.expr(el.subscripts[0], pre)
+                lv = LV(lv.t.elem, addr=f"_ptr({target.addr} + ({ie.code}) * {lv.t.elem.size})", align=1)
             elif ek == "SubscriptList":
                 t = lv.t
                 if t.kind != "array":
                     raise PlcCompileError(f"{self.pou.name}: index into {t.name}")
                 if len(el.subscripts) != len(t.dims):
                     raise PlcCompileError(f"{self.pou.name}: {len(el.subscripts)} indices for {t.name}")
-                const_off, parts = 0, []
+                const_off, parts, align = 0, [], lv.align
                 for sub, (lo, hi), stride in zip(el.subscripts, t.dims, strides(t)):
                     ie = self.expr(sub, pre)
                     if ie.const is not _NOCONST:
@@ -986,16 +1073,17 @@ class Compiler:
                         const_off += (ie.const - lo) * stride
                     else:
                         parts.append(f"_ix({ie.code}, {lo}, {hi}) * {stride}")
+                        align = min(align, lowbit(stride))
                 code = addr_add(self._addr(lv), const_off)
                 if parts:
                     code = f"{code} + " + " + ".join(parts)
-                lv = LV(t.elem, addr=code, ref=t.elem.kind == "reference")
+                lv = LV(t.elem, addr=code, ref=t.elem.kind == "reference", align=min(align, lowbit(const_off)))
             else:
                 raise PlcCompileError(f"{self.pou.name}: {ek} is not supported")
             if getattr(el, "dereferenced", False):
-                lv = self._deref(lv)
+                lv = self._deref(lv, pre)
         if lv.ref and not raw_ref:
-            lv = self._deref(lv)
+            lv = self._deref(lv, pre)
         return lv
 
     def _addr(self, lv: LV) -> str:
@@ -1003,11 +1091,20 @@ class Compiler:
             raise PlcCompileError(f"{self.pou.name}: the address of local {lv.local[2:]} is taken (interpreter limit)")
         return lv.addr if lv.addr.isdigit() or lv.addr.startswith("a_") or lv.addr == "this" else f"({lv.addr})"
 
-    def _deref(self, lv: LV) -> LV:
-        """The target of a pointer/reference variable."""
+    def _deref(self, lv: LV, pre: list | None = None) -> LV:
+        """The target of a pointer/reference variable. Within one statement (or one condition) the
+        pointer is loaded once (a statement that calls anything but pure functions loads it at each use)."""
         if lv.t.kind not in ("pointer", "reference"):
             raise PlcCompileError(f"{self.pou.name}: dereference of {lv.t.name}")
-        return LV(lv.t.elem, addr=f"_ptr({lv.read()})", ref=False)
+        self.pure = False
+        code = f"_ptr({lv.read()})"
+        if self.hoist is not None and pre is not None and lv.local is None:
+            if code not in self.hoist:
+                tmp = self._tmp()
+                pre.append(f"{tmp} = {code}")
+                self.hoist[code] = tmp
+            code = self.hoist[code]
+        return LV(lv.t.elem, addr=code, ref=False, align=1)
 
     def address_of(self, node, pre) -> str:
         lv = self.lvalue(node, pre)
@@ -1015,7 +1112,17 @@ class Compiler:
 
     # ---------------------------------------------------------------- expressions
     def cond(self, node, pre) -> str:
-        e = self.expr(node, pre)
+        mark, tmp, calls = len(pre), self.tmp, self.math_calls
+        saved = self.hoist, self.impure_call
+        self.hoist, self.impure_call = {}, False
+        try:
+            e = self.expr(node, pre)
+            if self.impure_call and self.hoist:          # compile again without hoisting
+                del pre[mark:]
+                self.tmp, self.math_calls, self.hoist = tmp, calls, None
+                e = self.expr(node, pre)
+        finally:
+            self.hoist, self.impure_call = saved
         if e.t.kind != "bool":
             raise PlcCompileError(f"{self.pou.name}: condition of type {e.t.name}")
         return e.code
@@ -1035,7 +1142,7 @@ class Compiler:
         if kind == "Real":
             v = float(str(node.value).replace("_", ""))
             t = self.type_named(str(node.type_name)) if node.type_name else LREAL
-            return E(repr(v), t, const=v)
+            return E(_pyrepr(v), t, const=v)
         if kind == "Boolean":
             v = str(node.value).upper() in ("TRUE", "1")
             return E(repr(v), BOOL, const=v)
@@ -1146,7 +1253,7 @@ class Compiler:
             if not real and isinstance(value, int) and t is not ANYINT:
                 value = t.wrap(value)
             if value is not _NOCONST:
-                return E(repr(value), t, const=value)
+                return E(_pyrepr(value), t, const=value, arith=real and value != value)
         return E(code, t, arith=real)
 
     # ---------------------------------------------------------------- calls
@@ -1169,6 +1276,7 @@ class Compiler:
                 return self._call_function(found[1], params, pre)
             if found[0] == "pou" and found[1].kind == "program":
                 pou = found[1]
+                self.impure_call = True
                 self._store_inputs(pou, str(self.prog.instances[pou.name.lower()]), params, pre)
                 pre.append(f"{pou.pyname}({self.prog.instances[pou.name.lower()]})")
                 self._read_outputs(pou, str(self.prog.instances[pou.name.lower()]), params, pre)
@@ -1237,6 +1345,9 @@ class Compiler:
             pre.append(lv.write(f"(not {value})" if inverted else value))
 
     def _call_function(self, pou: Pou, params, pre) -> E:
+        if pou.name.lower() not in self.prog.pure:
+            self.pure = False
+            self.impure_call = True
         inputs, outputs = self._bind(pou, params)
         args = self._args(pou, inputs, pre)
         code = f"{pou.pyname}({', '.join(args)})"
@@ -1253,6 +1364,8 @@ class Compiler:
         return e
 
     def _call_method(self, m: Pou, this: str, params, pre) -> E:
+        self.pure = False
+        self.impure_call = True
         inputs, outputs = self._bind(m, params)
         args = [this] + self._args(m, inputs, pre)
         code = f"{m.pyname}({', '.join(args)})"
@@ -1268,6 +1381,8 @@ class Compiler:
 
     def _call_fb(self, lv: LV, params, pre) -> E:
         t = lv.t
+        self.pure = False
+        self.impure_call = True
         if t.kind not in ("fb", "program"):
             raise PlcCompileError(f"{self.pou.name}: call of {t.name}")
         pou = t.pou
@@ -1321,6 +1436,9 @@ class Compiler:
         if _is_conversion(name) and name not in BUILTINS:
             return conversion(self, name, positional or list(args.values()), pre)
         spec = BUILTINS[name]
+        if spec.memory or spec.simulation:
+            self.pure = False
+            self.impure_call = self.impure_call or spec.memory
         if spec.nonstandard:
             self.prog.nonstandard.setdefault(name, set()).add(self.pou.name if self.pou else "")
         return spec.compile(self, positional, args, pre)
@@ -1338,6 +1456,13 @@ def _split_top(text: str, sep: str) -> list[str]:
             cur += ch
     out.append(cur)
     return out
+
+
+def _pyrepr(value) -> str:
+    """Python source for a constant (also +-inf and NaN, which have no literal)."""
+    if isinstance(value, float) and (value != value or value in (math.inf, -math.inf)):
+        return f"float({str(value)!r})"
+    return repr(value)
 
 
 def _simple(code: str) -> bool:

@@ -10,6 +10,8 @@ Nothing here decides anything about a table: every verdict comes from the ST.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from pmcal.bridge.comptable import NPHI_MAX, NTHETA_MAX, CompTable
@@ -190,10 +192,24 @@ class PlcTwin:
             self._reapply()
 
     def power_cut(self) -> None:
-        """Power lost without UPS: PERSISTENT data as the last WritePersistentData saved them."""
+        """Power lost without UPS: PERSISTENT data as the last FB_WritePersistentData saved them."""
         with self.lock:
             self.runtime.power_cut()
             self._reapply()
+
+    @property
+    def started(self) -> bool:
+        """FB_CompTableManager finished its start-up check of the persistent table (lookups may use it)."""
+        return bool(self.runtime.read_value(f"{GVL}.bActiveChecked"))
+
+    def wait_started(self, timeout_s: float = 10.0) -> bool:
+        """Wait (wall clock, the task thread running) until :attr:`started` or the task stopped."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.started or self.stopped:
+                return self.started
+            time.sleep(0.002)
+        return False
 
     def seed(self, table: CompTable) -> None:
         """Commissioning: make ``table`` the active table in persistent memory (as if it had been
@@ -209,5 +225,5 @@ class PlcTwin:
             rt.restart()
             self._reapply()
             for _ in range(SETTLE_CYCLES):
-                if not rt.cycle() or rt.read_value(f"{GVL}.bActiveChecked"):
+                if not rt.cycle() or self.started:
                     break

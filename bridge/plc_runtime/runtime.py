@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import pickle
 import re
 import struct
@@ -56,7 +57,6 @@ def _digest(files) -> str:
 
 
 def _cache_dir() -> Path:
-    import os
     import tempfile
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     for root in (Path(base) / "pmcal" / "plc_runtime", Path(tempfile.gettempdir()) / "pmcal-plc-runtime"):
@@ -77,7 +77,12 @@ def compile_project(folder: Path | str | None = None, *, cache: bool = True) -> 
     if folder is None:
         import pmcal.plc
         folder = Path(pmcal.plc.__file__).parent
-    files = [LIBRARY] + project_files(Path(folder))
+    return compile_files(project_files(Path(folder)), cache=cache)
+
+
+def compile_files(files, *, cache: bool = True) -> Program:
+    """Compile TwinCAT files and/or plain ``.st`` files (the library is added first)."""
+    files = [LIBRARY] + [Path(f) for f in files]
     key = _digest(files)
     with _CACHE_LOCK:
         if key in _CACHE:
@@ -91,32 +96,20 @@ def compile_project(folder: Path | str | None = None, *, cache: bool = True) -> 
                 prog = None
         if prog is None:
             prog = Compiler(parse_files(files, _cache_dir() if cache else None)).build()
-            prog.code = compile(prog.source, "<plc>", "exec")
             for pou in prog.pous.values():
                 pou.unit = None
                 for m in pou.methods.values():
                     m.unit = None
             if cache:
                 try:
-                    tmp = path.with_suffix(".tmp")
-                    tmp.write_bytes(pickle.dumps(_strip(prog)))
+                    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+                    tmp.write_bytes(pickle.dumps(prog))
                     tmp.replace(path)
-                except Exception:
+                except Exception:   # unwritable cache: same program, compiled again next time
                     pass
-        if not hasattr(prog, "code"):
-            prog.code = compile(prog.source, "<plc>", "exec")
+        prog.code = compile(prog.source, "<plc>", "exec")
         _CACHE[key] = prog
         return prog
-
-
-def _strip(prog: Program) -> Program:
-    """A picklable copy (code objects are compiled again on load)."""
-    code = prog.__dict__.pop("code", None)
-    try:
-        return pickle.loads(pickle.dumps(prog))
-    finally:
-        if code is not None:
-            prog.code = code
 
 
 class PlcRuntime:
@@ -272,6 +265,10 @@ class PlcRuntime:
         deadline = time.monotonic() + lifetime_s
 
         def task() -> None:
+            # a fixed-rate task: the next cycle starts one period after the last one started; a cycle
+            # that overruns delays the following ones (at most 50 ms are caught up, then the
+            # schedule restarts: like a TwinCAT task with exceed counter, simulated time stretches)
+            due = time.monotonic()
             while not self._stop.is_set() and time.monotonic() < deadline:
                 with self.lock:
                     if self.fault is None:
@@ -280,7 +277,14 @@ class PlcRuntime:
                         if self.cycle():
                             for hook in after:
                                 hook()
-                self._stop.wait(period)
+                due += period
+                now = time.monotonic()
+                if due > now:
+                    self._stop.wait(due - now)
+                else:
+                    if now - due > 0.05:
+                        due = now
+                    time.sleep(0)                   # let clients (ADS, Modbus threads) in between cycles
 
         self._thread = threading.Thread(target=task, name="plc-runtime-task", daemon=True)
         self._thread.start()
@@ -293,7 +297,7 @@ class PlcRuntime:
 
     # ---- persistence ----------------------------------------------------------------------
     def mark_persistent_saved(self) -> None:
-        """What Tc2_Utilities WritePersistentData completes: the PERSISTENT variables as they are now
+        """What Tc2_Utilities FB_WritePersistentData completes: the PERSISTENT variables as they are now
         are what the next power-up restores."""
         p0, p1 = self.program.persistent
         self.saved_persistent = bytes(self.mem[p0:p1])
@@ -308,7 +312,7 @@ class PlcRuntime:
 
     def power_cut(self) -> None:
         """Power lost without UPS: RAM is gone, PERSISTENT data come back as the last
-        WritePersistentData (or clean shutdown) saved them."""
+        FB_WritePersistentData (or clean shutdown) saved them."""
         with self.lock:
             self._power_up()
 
@@ -394,6 +398,9 @@ class PlcRuntime:
             raise KeyError(key)
         _, t, py = self.program.constants[k]
         self._ns[py] = float(value) if t.kind == "real" else value
+        for name, memo in self._ns.items():           # pure functions may read constants
+            if name.startswith("_MEMO_"):
+                memo.clear()
 
 
 def _kind(exc: BaseException) -> str:

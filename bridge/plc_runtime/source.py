@@ -35,6 +35,7 @@ class Unit:
     methods: dict = field(default_factory=dict)   # name -> Unit (item: blark Method)
     file: str = ""
     pack: dict = field(default_factory=dict)      # DUT name -> pack mode
+    qualified: bool = False                        # GVL with {attribute 'qualified_only'}
 
 
 def _blark():
@@ -90,7 +91,10 @@ def _collect(results, file: str, raw: str) -> list[Unit]:
                 decl = item.declaration
                 name = str(decl.name)
             elif kind == "GlobalVariableDeclarations":
+                # a TcGVL names its GVL; in a plain .st file an unnamed VAR_GLOBAL block belongs to "GVL"
                 name = str(item.name or ident.split("/")[0])
+                if file.endswith(".st") and name in ("", "None", Path(file).stem):
+                    name = "GVL"
             else:
                 name = str(item.name)
             if kind == "GlobalVariableDeclarations":           # a GVL: one unit, its VAR_GLOBAL blocks
@@ -98,7 +102,8 @@ def _collect(results, file: str, raw: str) -> list[Unit]:
                     by_name[name.lower()].item.append(item)
                     continue
                 item = [item]
-            unit = Unit(name, item, getattr(item, "body", None), file=file, pack=packs)
+            unit = Unit(name, item, getattr(item, "body", None), file=file, pack=packs,
+                        qualified="qualified_only" in raw)
             units.append(unit)
             by_name[name.lower()] = unit
     return units
