@@ -7,7 +7,7 @@ Differences from the stock test server, all as a real PLC behaves:
 - reads and writes of a symbol must have the symbol's exact size, else ADS error 1797; unknown
   symbol names and handles answer 1808; sum commands answer 1793 (not used by the bridge); writes
   to PLC-owned symbols answer 1796;
-- the symbols are GVL_CompTable's, backed by a :class:`pmcal.bridge.plc_twin.PlcTwin` running its task;
+- the symbols are GVL_CompTable's, backed by a :class:`pmcal.bridge.plc_runtime.PlcTwin` (the ST of plc/, interpreted) running its task;
 - fault injection per :mod:`pmcal.bridge.faults`; ``ads_state`` can be set to STOP.
 
 Each mock has its own AMS NetID (two endpoints with one NetID in one process fail with error 1286).

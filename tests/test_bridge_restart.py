@@ -4,6 +4,7 @@ dropped at start-up rather than used. Lookups go through a plain link after the 
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from pmcal.bridge.ads_mock import AdsMockPlc
@@ -40,9 +41,13 @@ def test_restart_after_a_push_keeps_the_table_and_refuses_a_stale_one(mock, link
         stale = make_table(version=6)
         from pmcal.bridge.plc_types import Header, shadow_rows
         with plc.twin.lock:
-            plc.twin.write_symbol("shadow_header", Header.of(stale).pack())
             plc.twin.write_shadow_bytes(0, shadow_rows(stale))
-            plc.twin.write_symbol("commit_version", (6).to_bytes(4, "little"))
+            for key, data in (("shadow_header", Header.of(stale).pack()), ("commit_version", (6).to_bytes(4, "little"))):
+                if hasattr(plc, "area"):        # Modbus: the ST copies these from the %M area every cycle
+                    off = plc.rmap.offset(key)
+                    plc.area.image[off:off + len(data) // 2] = np.frombuffer(data, dtype="<u2")
+                else:
+                    plc.twin.write_symbol(key, data)
         import time
         time.sleep(0.05)
         assert (plc.twin.state.status, plc.twin.state.active_version) == (Status.STALE_VERSION, 7)

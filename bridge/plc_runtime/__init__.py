@@ -5,7 +5,7 @@ POUs written in ST) with blark; :mod:`.compiler` lays out every variable in one 
 layouts of :mod:`.datatypes`) and translates every POU body and method into a Python function;
 :mod:`.runtime` runs the task (``PRG_CompTable``) cycle by cycle; :mod:`.comptable_plc` offers the
 compensation-table view the mock servers and tests use (:class:`PlcTwin`, the interface of the former
-hand transliteration ``bridge/plc_twin.py``: symbol keys of :data:`pmcal.bridge.plc_types.SYMBOLS`).
+hand transliteration it replaced: symbol keys of :data:`pmcal.bridge.plc_types.SYMBOLS`).
 The compiled program is cached per process and on disk (``~/.cache/pmcal/plc_runtime``, keyed by
 the SHA-256 of the sources): only the first run pays blark's ~10 s.
 

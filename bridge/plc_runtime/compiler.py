@@ -37,6 +37,8 @@ DINT = elementary("DINT")
 LINT = elementary("LINT")
 UDINT = elementary("UDINT")
 TIME = elementary("TIME")
+#: bytes of the %M area at least (the TF6250 default map covers registers 16#3000..16#5FFF = 24 KB of %MB)
+M_AREA_MIN = 65536
 #: an integer literal: takes the type of the other operand
 ANYINT = DType("ANY_INT", "int", 8, 8, "q", True)
 POINTER = pointer_type(elementary("BYTE"))
@@ -418,7 +420,8 @@ class Compiler:
                     init = d.init
                 else:
                     names = [str(v.variable.name) if hasattr(v, "variable") else str(v) for v in d.variables]
-                    location = None
+                    located = [v.location for v in d.variables if getattr(v, "location", None) is not None]
+                    location = str(located[0]) if located else None          # name AT %MBn : TYPE
                     init = d.init
                     if dname == "FunctionBlockNameDeclaration":
                         init = d.spec
@@ -499,6 +502,7 @@ class Compiler:
                     off = int("".join(ch for ch in v.location.split("MB")[-1] if ch.isdigit()) or 0)
                     v.offset = off
                     m_size = max(m_size, off + v.t.size)
+        m_size = max(m_size, M_AREA_MIN)
         p.m_area = (place(DType("%M", "struct", m_size, 8)), m_size)
         # frames of functions and methods (their locals that need memory)
         for pou in p.pous.values():
@@ -993,7 +997,7 @@ class Compiler:
         what = found[0]
         if what == "const":
             value, t, py = self.prog.constants[found[1]]
-            return E(py, t, const=value)
+            return E(py, t, const=value if self.pou is None or not t.scalar else _NOCONST)   # overridable
         if what in ("global", "pou"):
             self.pure = False
         if what == "ret":
@@ -1015,7 +1019,7 @@ class Compiler:
                     value, t, py = self.prog.constants[ckey]
                     if elements:
                         raise PlcCompileError(f"{self.pou.name}: member of a constant {ckey}")
-                    return E(py, t, const=value)
+                    return E(py, t, const=value if self.pou is None or not t.scalar else _NOCONST)   # overridable
                 gv = self.prog.gvls[found[1]].get(member.lower())
                 self.pure = False
                 if gv is None:

@@ -101,6 +101,23 @@ class PlcTwin:
         return self.runtime.read_value(f"{GVL}.nCommitVersion")
 
     @property
+    def use_modbus(self) -> bool:
+        """PRG_CompTable.bUseModbus: FB_CompTableModbus maps the %M area (TF6250) onto GVL_CompTable."""
+        return bool(self.runtime.read_value(f"{PRG}.bUseModbus"))
+
+    @use_modbus.setter
+    def use_modbus(self, value: bool) -> None:
+        self._set(f"{PRG}.bUseModbus", bool(value))
+
+    def modbus_memory(self, registers: int) -> np.ndarray:
+        """The first ``registers`` WORDs of the PLC's %M area, as a writable view (TF6250 maps holding
+        register 16#3000 + k onto %MW(2k))."""
+        addr, size = self.runtime.program.m_area
+        if 2 * registers > size:
+            raise ValueError(f"%M holds {size // 2} registers, not {registers}")
+        return np.frombuffer(self.runtime.mem, dtype="<u2", count=registers, offset=addr)
+
+    @property
     def stopped(self) -> bool:
         return self.runtime.stopped
 
