@@ -28,6 +28,17 @@ def run_st(tmp_path, source: str, cycles: int = 1, **kwargs) -> PlcRuntime:
     return rt
 
 
+#: an LREAL seen as its four WORDs (as plc/DUTs/U_CompTableLreal)
+U_BITS = """
+TYPE U_Bits :
+UNION
+    fValue : LREAL;
+    aWord  : ARRAY[0..3] OF WORD;
+END_UNION
+END_TYPE
+"""
+
+
 def test_integers_wrap_to_their_type(tmp_path):
     rt = run_st(tmp_path, """
 PROGRAM MAIN
@@ -83,14 +94,7 @@ END_PROGRAM
     ("u.aWord[3] := 16#7FF0; k := TRUNC(u.fValue);", "conversion"),                   # +inf to DINT
 ])
 def test_fpu_exceptions_stop_the_task(tmp_path, body, kind):
-    rt = run_st(tmp_path, f"""
-TYPE U_Bits :
-UNION
-    fValue : LREAL;
-    aWord  : ARRAY[0..3] OF WORD;
-END_UNION
-END_TYPE
-PROGRAM MAIN
+    rt = run_st(tmp_path, U_BITS + f"""PROGRAM MAIN
 VAR
     x, y : LREAL;  i, j, k : DINT;  u : U_Bits;  b : BOOL;  nAfter : INT;
 END_VAR
@@ -104,14 +108,7 @@ END_PROGRAM
 
 
 def test_copying_a_nan_and_overflow_do_not_stop(tmp_path):
-    rt = run_st(tmp_path, """
-TYPE U_Bits :
-UNION
-    fValue : LREAL;
-    aWord  : ARRAY[0..3] OF WORD;
-END_UNION
-END_TYPE
-PROGRAM MAIN
+    rt = run_st(tmp_path, U_BITS + """PROGRAM MAIN
 VAR
     u : U_Bits;  y, z, big : LREAL;  b : BOOL;
 END_VAR

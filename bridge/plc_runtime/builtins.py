@@ -203,20 +203,15 @@ def _call(pyname, names, ret, mathy=False, sim=False):
     return comp
 
 
+#: the one-argument numeric operators and the Python function each runs
+MATH1 = {"SQRT": "math.sqrt", "SIN": "math.sin", "COS": "math.cos", "TAN": "math.tan", "ASIN": "math.asin",
+         "ACOS": "math.acos", "ATAN": "math.atan", "EXP": "_exp", "LN": "_ln", "LOG": "_log10"}
+
 BUILTINS: dict[str, Builtin] = {
     "ADR": Builtin(_adr, "Infosys TC3 PLC, Operators: ADR", memory=True),
     "SIZEOF": Builtin(_sizeof, "Infosys TC3 PLC, Operators: SIZEOF"),
     "ABS": Builtin(_abs, "Infosys TC3 PLC, Numeric operators: ABS"),
-    "SQRT": Builtin(_math1("math.sqrt"), "Infosys TC3 PLC, Numeric operators: SQRT"),
-    "SIN": Builtin(_math1("math.sin"), "Infosys TC3 PLC, Numeric operators: SIN"),
-    "COS": Builtin(_math1("math.cos"), "Infosys TC3 PLC, Numeric operators: COS"),
-    "TAN": Builtin(_math1("math.tan"), "Infosys TC3 PLC, Numeric operators: TAN"),
-    "ASIN": Builtin(_math1("math.asin"), "Infosys TC3 PLC, Numeric operators: ASIN"),
-    "ACOS": Builtin(_math1("math.acos"), "Infosys TC3 PLC, Numeric operators: ACOS"),
-    "ATAN": Builtin(_math1("math.atan"), "Infosys TC3 PLC, Numeric operators: ATAN"),
-    "EXP": Builtin(_math1("_exp"), "Infosys TC3 PLC, Numeric operators: EXP"),
-    "LN": Builtin(_math1("_ln"), "Infosys TC3 PLC, Numeric operators: LN"),
-    "LOG": Builtin(_math1("_log10"), "Infosys TC3 PLC, Numeric operators: LOG"),
+    **{name: Builtin(_math1(fn), f"Infosys TC3 PLC, Numeric operators: {name}") for name, fn in MATH1.items()},
     "EXPT": Builtin(_math2("_expt"), "Infosys TC3 PLC, Numeric operators: EXPT"),
     "ATAN2": Builtin(_math2("_atan2"), "not a TwinCAT 3 operator (Numeric operators lists ATAN only)",
                      nonstandard=True),

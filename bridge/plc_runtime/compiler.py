@@ -43,11 +43,6 @@ M_AREA_MIN = 65536
 ANYINT = DType("ANY_INT", "int", 8, 8, "q", True)
 POINTER = pointer_type(elementary("BYTE"))
 
-#: TwinCAT 3 operators and library functions the interpreter knows, with the Beckhoff document
-#: they come from; ``nonstandard`` ones run but are reported (Program.nonstandard)
-MATH1 = {"SQRT": "math.sqrt", "SIN": "math.sin", "COS": "math.cos", "TAN": "math.tan", "ASIN": "math.asin",
-         "ACOS": "math.acos", "ATAN": "math.atan", "EXP": "_exp", "LN": "_ln", "LOG": "_log10"}
-NONSTANDARD = {"ATAN2": "math.atan2"}
 
 
 @dataclass

@@ -27,6 +27,16 @@ _REFERENCE_CONSTANTS = ("REF_A_MM", "REF_H_MM", "REF_L_MM", "REF_PSI1_DEG", "REF
 SETTLE_CYCLES = 200_000
 
 
+def _time_setting(path: str, doc: str) -> property:
+    """A TIME variable of the PLC as seconds, kept over restarts (the owner's configuration)."""
+    def get(self) -> float:
+        return self.runtime.read_value(path) / 1000.0
+
+    def put(self, value: float) -> None:
+        self._set(path, round(value * 1000.0))
+    return property(get, put, doc=f"{path} (s): {doc}")
+
+
 class PlcTwin:
     """The PLC side of the table hand-over and the motor-target lookup, executed from ``plc/``.
 
@@ -72,13 +82,8 @@ class PlcTwin:
     def motion_idle(self, value: bool) -> None:
         self.runtime.motion_idle = bool(value)
 
-    @property
-    def commit_timeout_s(self) -> float:
-        return self.runtime.read_value(f"{PRG}.tCommitTimeout") / 1000.0
-
-    @commit_timeout_s.setter
-    def commit_timeout_s(self, value: float) -> None:
-        self._set(f"{PRG}.tCommitTimeout", round(value * 1000.0))
+    commit_timeout_s = _time_setting(f"{PRG}.tCommitTimeout", "a checked table not swapped in by then is dropped")
+    staging_lease_s = _time_setting(f"{PRG}.fbManager.tStagingLease", "a silent staging owner loses the area after")
 
     def _set(self, path: str, value) -> None:
         self._settings[path] = value
@@ -87,14 +92,6 @@ class PlcTwin:
     def _reapply(self) -> None:
         for path, value in self._settings.items():
             self.runtime.write_value(path, value)
-
-    @property
-    def staging_lease_s(self) -> float:
-        return self.runtime.read_value(f"{PRG}.fbManager.tStagingLease") / 1000.0
-
-    @staging_lease_s.setter
-    def staging_lease_s(self, value: float) -> None:
-        self._set(f"{PRG}.fbManager.tStagingLease", round(value * 1000.0))
 
     @property
     def commit_version(self) -> int:
