@@ -56,7 +56,8 @@ and ``=>`` outputs; the operators and library functions listed in
 :data:`pmcal.bridge.plc_runtime.builtins.BUILTINS` (each with its Beckhoff document), R_TRIG,
 F_TRIG, TON, AXIS_REF (Status read from :attr:`PlcRuntime.motion_idle`), FB_WritePersistentData.
 Not supported (a :class:`~pmcal.bridge.plc_runtime.compiler.PlcCompileError` names the POU):
-EXTENDS/IMPLEMENTS, interfaces, properties, actions, CONTINUE, JMP, recursion (frames are static),
+EXTENDS/IMPLEMENTS, interfaces, properties, actions, CONTINUE, JMP, VAR_INST, VAR_STAT, RETAIN or
+PERSISTENT outside a GVL, string functions (LEN, CONCAT...), recursion (frames are static),
 the address of a scalar function local whose address is never taken with ADR (it lives in a Python
 local). Non-TwinCAT names (ATAN2) run but are listed in ``Program.nonstandard``.
 

@@ -407,6 +407,9 @@ class Compiler:
             attrs = str(getattr(block, "attrs", "") or "").upper()
             if "CONSTANT" in attrs:
                 header = "VAR_CONSTANT"
+            if header in ("VAR_INST", "VAR_STAT") or "RETAIN" in attrs or "PERSISTENT" in attrs:
+                # these keep their value between calls / over restarts: not modelled outside a GVL
+                raise PlcCompileError(f"{pou.name}: {header} {attrs.strip()} is not supported (use a GVL)")
             for d in block.items:
                 dname = type(d).__name__
                 if dname == "LocatedVariableDeclaration":
