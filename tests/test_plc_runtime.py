@@ -103,6 +103,7 @@ nAfter := 1;
 END_PROGRAM
 """, cycles=3)
     assert rt.stopped and rt.fault.kind == kind and rt.fault.cycle == 0
+    assert rt.fault.where == "MAIN line 12"                 # the line of ``body`` in the snippet
     assert rt.read_value("MAIN.nAfter") == 0              # nothing after the trap ran
     assert rt.cycles == 1                                   # and the task stays stopped
 

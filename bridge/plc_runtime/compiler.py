@@ -845,6 +845,7 @@ class Compiler:
 
     def _if(self, branches, else_clause, indent: int, ret: str) -> None:
         (expr, body), rest = branches[0], branches[1:]
+        self._loc(expr, indent)                    # a trap in an ELSIF condition names its line
         pre: list[str] = []
         c = self.cond(expr, pre)
         self._emit(pre, indent)
