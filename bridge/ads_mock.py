@@ -31,6 +31,8 @@ Codes", texts as in ``pyads.errorcodes``):
   Otherwise a write to a PLC-owned variable is accepted, as TwinCAT does, and lasts until the PLC
   task next writes it (its next cycle).
 - fault injection per :mod:`pmcal.bridge.faults` (including ``busy``: 0x708 device busy).
+- the task behind it is the ST of plc/ itself, interpreted cycle by cycle
+  (:class:`pmcal.bridge.plc_runtime.PlcTwin`); a trapped FPU exception stops the PLC (ADS state STOP).
 
 Each mock has its own AMS NetID (two endpoints with one NetID in one process fail with error 1286).
 """

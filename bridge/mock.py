@@ -15,7 +15,7 @@ import threading
 import time
 
 from pmcal.bridge.faults import FaultPlan
-from pmcal.bridge.plc_twin import PlcTwin
+from pmcal.bridge.plc_runtime import PlcTwin
 
 LOOPBACK = "127.0.0.1"
 #: seconds a CX without the PLC takes from power-on (or a restart) to a running PLC task
@@ -89,17 +89,15 @@ class MockPlc:
     def power_cut(self, down_s: float | None = None) -> None:
         """Power lost on a CX without UPS: connections drop at once, RAM is lost, and PERSISTENT data
         come back as last saved (by WritePersistentData), not as they were; then a restart as
-        :meth:`restart`. Needs a runtime with ``power_cut()``; the Python twin has none and keeps its
-        persistent data (as a CX with UPS would)."""
+        :meth:`restart`."""
         self._down(down_s, power_cut=True)
 
     def _down(self, down_s: float | None, power_cut: bool) -> None:
         down_s = self.restart_s if down_s is None else down_s
         self.twin.stop()
         self._stop_server()
-        cut = getattr(self.twin, "power_cut", None) if power_cut else None
-        if cut is not None:
-            cut()
+        if power_cut:
+            self.twin.power_cut()
         else:
             self.twin.restart()
         self.power_cuts += int(power_cut)
@@ -133,16 +131,11 @@ class MockPlc:
     def task_stopped(self) -> bool:
         """The PLC task does not run: stopped by :meth:`stop_plc`, or halted by the runtime itself
         (an FPU exception or a division by zero in the ST, where the runtime reports it)."""
-        return self._task_halted or bool(getattr(self.twin, "stopped", False)) \
-            or bool(getattr(self.twin, "fault", None))
+        return self._task_halted or self.twin.stopped or self.twin.fault is not None
 
     def set_staging_lease(self, seconds: float) -> None:
         """Shorten the PLC's staging lease (the kill-matrix study; a GVL constant on a real PLC)."""
-        setter = getattr(self.twin, "set_staging_lease", None)
-        if setter is not None:
-            setter(seconds)
-        else:
-            self.twin.staging_lease_s = float(seconds)
+        self.twin.staging_lease_s = float(seconds)
 
     def _reset_volatile(self) -> None:
         """Transport-side PLC memory that a restart clears (e.g. the Modbus area in %M)."""

@@ -1,9 +1,9 @@
 """A mock TwinCAT PLC over Modbus TCP: a pymodbus server (SimDevice) in front of the PLC twin.
 
-The SimDevice's holding registers stand for the TF6250 mapping of ``stMbArea AT %MB0``; the register
-image lives in :class:`ModbusArea`, which also plays FB_CompTableModbus (plc/): before each PLC cycle
-it copies the bridge's inputs (header, commit, lookup request) into GVL_CompTable and serves a page
-request, after the cycle it copies the PLC's outputs (state, active header, lookup answer) back.
+The SimDevice's holding registers stand for the TF6250 mapping of ``stMbArea AT %MB0``: they are the
+PLC's %M memory itself (:class:`ModbusArea`), and the ST of plc/ (FB_CompTableModbus, called by
+PRG_CompTable with ``bUseModbus``) copies the bridge's inputs into GVL_CompTable, serves a page request
+and copies the PLC's outputs back, every task cycle.
 Every register of the mapped area can be written, as on TF6250 (the PLC overwrites its own outputs in
 its next cycle). While the PLC is stopped the registers stay readable and writable but nothing moves
 (the task does not run); while the runtime boots after a restart, requests answer exception 4
@@ -19,68 +19,30 @@ import asyncio
 import threading
 import time
 
-import numpy as np
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from pmcal.bridge.faults import Kind, Point
 from pmcal.bridge.mock import MockPlc
-from pmcal.bridge.modbus_map import FC3_MAX, FC16_MAX, MAGIC, PAGE_BAD, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap
-from pmcal.bridge.plc_types import INTERFACE_VERSION, NPHI_MAX, NTHETA_MAX, SHADOW_SIZE
-from pmcal.bridge.plc_twin import PlcTwin
+from pmcal.bridge.modbus_map import FC3_MAX, FC16_MAX, ModbusMap
+from pmcal.bridge.plc_runtime import PlcTwin
 
 _FC_READ = (3, 4, 23)
 
 
 class ModbusArea:
-    """ST_CompTableModbusArea (the register image) and FB_CompTableModbus (its mapping to the GVL)."""
+    """ST_CompTableModbusArea as the Modbus server sees it: the registers are the PLC's %M memory
+    (``stMbArea AT %MB0``, TF6250's default map), and the ST maps them onto GVL_CompTable in each task
+    cycle (PRG_CompTable with ``bUseModbus``: FB_CompTableModbus.M_CopyIn / M_CopyOut)."""
 
     def __init__(self, rmap: ModbusMap, twin: PlcTwin) -> None:
         self.rmap, self.twin = rmap, twin
-        self.image = np.zeros(rmap.area_size, dtype="<u2")
-        self.image[rmap.MAGIC:rmap.MAGIC + 5] = [MAGIC, INTERFACE_VERSION, NPHI_MAX, NTHETA_MAX,
-                                                 rmap.window_lreals]
+        twin.use_modbus = True
+        # another page window models a PLC program built with that GVL_CompTableParam.WINDOW_LREALS
+        twin.runtime.set_constant("GVL_CompTableParam.WINDOW_LREALS", rmap.window_lreals)
+        self.image = twin.modbus_memory(rmap.area_size)
         self.window_writes = 0          # window writes since the last header write (fault points)
-        self.dirty = True               # the client wrote since the last task cycle
-
-    def get(self, key: str) -> bytes:
-        off = self.rmap.offset(key)
-        return self.image[off:off + self.rmap.size(key)].tobytes()
-
-    def put(self, key: str, data: bytes) -> None:
-        off = self.rmap.offset(key)
-        self.image[off:off + self.rmap.size(key)] = np.frombuffer(data, dtype="<u2")
-
-    def copy_in(self) -> None:
-        """Task start: bridge inputs -> GVL_CompTable, then one page request (if anything was written)."""
-        if not self.dirty:
-            return
-        self.dirty = False
-        for key in ("shadow_header", "commit_version", "staging_claim", "lookup_in"):
-            self.twin.write_symbol(key, self.get(key))
-        r = self.rmap
-        index, count, cmd, seq = (int(x) for x in self.image[r.PAGE_CONTROL:r.PAGE_CONTROL + 4])
-        if seq == self.image[r.PAGE_ACK]:
-            return
-        offset, size = index * r.window_lreals * 8, count * 8
-        win = r.WINDOW
-        status = PAGE_OK
-        if not (0 < count <= r.window_lreals and offset + size <= SHADOW_SIZE):
-            status = PAGE_BAD
-        elif cmd == PAGE_STORE:
-            self.twin.write_shadow_bytes(offset, self.image[win:win + 4 * count].tobytes())
-        elif cmd == PAGE_LOAD:
-            self.image[win:win + 4 * count] = np.frombuffer(self.twin.read_shadow_bytes(offset, size), dtype="<u2")
-        else:
-            status = PAGE_BAD
-        self.image[r.PAGE_ACK + 1] = status
-        self.image[r.PAGE_ACK] = seq                     # the echo goes last
-
-    def copy_out(self) -> None:
-        """Task end: PLC outputs -> registers."""
-        for key in ("state", "active_header", "lookup_out"):
-            self.put(key, self.twin.read_symbol(key))
 
     def point(self, fc: int, off: int, count: int, values) -> Point | None:
         """Where in the transfer a request belongs (for fault injection)."""
@@ -139,9 +101,6 @@ class ModbusMockPlc(MockPlc):
     def target(self) -> str:
         return f"{self.host}:{self.port}"
 
-    def _task_hooks(self) -> tuple[tuple, tuple]:
-        return (self.area.copy_in,), (self.area.copy_out,)
-
     def _reset_volatile(self) -> None:
         self.area = ModbusArea(self.rmap, self.twin)        # %M is not persistent
 
@@ -150,7 +109,7 @@ class ModbusMockPlc(MockPlc):
 
         TF6250 maps holding registers onto PLC memory without any notion of who owns a variable, so
         a write to a register the PLC writes is accepted; the PLC overwrites it at the end of its next
-        cycle (``copy_out``). The bridge itself only writes its allow-list (:class:`ModbusLink`).
+        cycle (FB_CompTableModbus.M_CopyOut). The bridge itself only writes its allow-list (:class:`ModbusLink`).
         """
         r = self.rmap
         simdata = [SimData(address=r.base, count=r.area_size, values=0, datatype=DataType.REGISTERS,
@@ -194,7 +153,6 @@ class ModbusMockPlc(MockPlc):
                 if corrupt:
                     values[0] ^= 0x0001
                 self.area.image[off:off + count] = values
-                self.area.dirty = True
         return None
 
     def _trace(self, sending: bool, data: bytes) -> bytes:

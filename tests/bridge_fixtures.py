@@ -22,6 +22,11 @@ MOTOR_LIMITS_DEG = (-120.0, 60.0)
 MAX_STEP_DEG = 12.0
 #: short client time-outs so that time-out faults cost little (requests on loopback take < 1 ms)
 TIMEOUT_S = 0.25
+#: client and acknowledgement time-outs (s) for 100 x 100 tables: the interpreted ST (plc/, run by
+#: bridge.plc_runtime) checks ~80 000 nominal-IK commands over ~100 task cycles, ~1 s of CPU here and
+#: more on a loaded machine, and a task cycle holds the PLC memory (as ADS sees it) for up to ~30 ms
+BIG_TABLE_TIMEOUT_S = 2.0
+BIG_TABLE_ACK_S = 30.0
 
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 

@@ -21,7 +21,8 @@ from pmcal.bridge.plc_types import (HEADER_SIZE, LOOKUP_WRITES, PUSH_WRITES, SHA
                               LookupResult, State, Status, Symbol, shadow_rows)
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.errors import InputError
-from tests.bridge_fixtures import TIMEOUT_S, ads_link, ads_plc, make_table, running  # noqa: F401
+from tests.bridge_fixtures import (BIG_TABLE_ACK_S, BIG_TABLE_TIMEOUT_S, TIMEOUT_S, ads_link, ads_plc,  # noqa: F401
+                                   make_table, running)
 
 FAST = PushOptions(attempts=2, ack_timeout_s=1.0, idle_timeout_s=1.0)
 
@@ -29,7 +30,8 @@ FAST = PushOptions(attempts=2, ack_timeout_s=1.0, idle_timeout_s=1.0)
 def test_round_trip_100x100x2_bit_exact(ads_plc, tmp_path):
     table = make_table(version=1, n_phi=100, n_theta=100)
     audit = tmp_path / "audit.log"
-    rep = push(ads_link(ads_plc), table, audit_path=audit)
+    rep = push(ads_link(ads_plc, timeout_s=BIG_TABLE_TIMEOUT_S), table, PushOptions(ack_timeout_s=BIG_TABLE_ACK_S),
+               audit_path=audit)
     assert (rep.result, rep.previous_version, rep.active_version, rep.status, rep.attempts) == ("ok", 0, 1, "OK", 1)
     header, values = ads_plc.twin.active_table()
     assert values.tobytes() == table.values.tobytes() and header == Header.of(table)
@@ -164,7 +166,7 @@ def test_ack_timeout_withdraws_the_commit(ads_plc):
 def test_one_dropped_link_is_reopened_and_the_transfer_restarted(ads_plc):
     ads_plc.faults.arm(Fault(Kind.DROP, Point.MID_STAGE, times=1))
     table = make_table(version=1, n_phi=100, n_theta=100)
-    rep = push(ads_link(ads_plc), table)
+    rep = push(ads_link(ads_plc, timeout_s=BIG_TABLE_TIMEOUT_S), table, PushOptions(ack_timeout_s=BIG_TABLE_ACK_S))
     assert (rep.result, rep.attempts, ads_plc.faults.fired) == ("ok", 2, 1)
     assert ads_plc.twin.active_table()[1].tobytes() == table.values.tobytes()
 
@@ -184,7 +186,7 @@ def test_no_plc_listening_is_a_link_error():
 
 def test_lookup_over_ads_gives_the_interpolated_targets(ads_plc):
     table = make_table(version=4, n_phi=100, n_theta=100)
-    push(ads_link(ads_plc), table)
+    push(ads_link(ads_plc, timeout_s=BIG_TABLE_TIMEOUT_S), table, PushOptions(ack_timeout_s=BIG_TABLE_ACK_S))
     phi, theta = np.array([0.0, 17.3, 359.9, 200.0]), np.array([0.0, 41.7, 60.0, 12.5])
     ref = table.interpolate(phi, theta)
     with ads_link(ads_plc, writes=LOOKUP_WRITES) as link:

@@ -8,6 +8,8 @@ moves, so the commit is still pending when the link fails (the bridge must withd
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 
 from pmcal.bridge.ads_mock import AdsMockPlc
@@ -19,6 +21,9 @@ from pmcal.bridge.transfer import PushOptions, push
 from tests.bridge_fixtures import TIMEOUT_S, ads_link, make_table, modbus_link, running
 
 OPTIONS = PushOptions(attempts=2, ack_timeout_s=0.3, idle_timeout_s=0.5, retry_pause_s=0.01)
+#: for pushes that must reach the PLC's verdict: FB_CompTableCheck spreads its work over ~40 task cycles
+#: (4 table rows per cycle), and the interpreted ST may run slower than real time on a loaded machine
+VERDICT = replace(OPTIONS, ack_timeout_s=5.0)
 POINTS = [Point.BEFORE_STAGE, Point.MID_STAGE, Point.AFTER_STAGE, Point.ACK_WAIT]
 KINDS = [Kind.DELAY, Kind.NO_REPLY, Kind.DROP, Kind.CORRUPT, Kind.ERROR]
 
@@ -61,7 +66,7 @@ def test_fault_keeps_last_good_table_and_rerun_succeeds(transport, point, kind):
 
         plc.faults.clear()
         plc.twin.motion_idle = True
-        rep = push(_link(transport, plc), new, OPTIONS)
+        rep = push(_link(transport, plc), new, VERDICT)
         assert (rep.result, rep.active_version) == ("ok", 2)
         assert plc.twin.active_table()[1].tobytes() == new.values.tobytes()
 
@@ -73,10 +78,10 @@ def test_table_damaged_in_plc_memory_is_rejected_by_the_plc_crc(transport):
         plc.twin.seed(good)
         plc.faults.arm(Fault(Kind.CORRUPT, Point.COMMIT, times=1))
         with pytest.raises(Rejected, match="CRC_MISMATCH") as exc:
-            push(_link(transport, plc), new, OPTIONS)
+            push(_link(transport, plc), new, VERDICT)
         assert exc.value.exit_status == 3 and exc.value.report.attempts == 1      # never retried
         assert (plc.twin.state.status, plc.twin.state.active_version) == (Status.CRC_MISMATCH, 1)
-        assert push(_link(transport, plc), new, OPTIONS).active_version == 2
+        assert push(_link(transport, plc), new, VERDICT).active_version == 2
 
 
 @pytest.mark.parametrize("transport", ["ads", "modbus"])
@@ -90,7 +95,7 @@ def test_lost_commit_is_retried_then_reported(transport):
         assert plc.faults.fired == 2 and plc.twin.state.active_version == 1
         plc.faults.clear()
         plc.faults.arm(Fault(Kind.DROP, Point.COMMIT, times=1))      # one loss: the retry gets it through
-        rep = push(_link(transport, plc), new, OPTIONS)
+        rep = push(_link(transport, plc), new, VERDICT)
         assert (rep.result, rep.attempts, rep.active_version) == ("ok", 2, 2)
 
 
@@ -98,8 +103,8 @@ def test_lost_commit_is_retried_then_reported(transport):
 def test_ack_lost_after_the_swap_is_not_committed_twice(transport):
     new = make_table(version=1)
     with _mock(transport) as plc:
-        # the ack read is lost after the PLC had 200 ms (200 task cycles) to check and swap
-        plc.faults.arm(Fault(Kind.DROP, Point.ACK_WAIT, times=1, delay_s=0.2))
-        rep = push(_link(transport, plc), new, OPTIONS)
+        # the ack read is lost after the PLC had 1 s (the check takes ~40 task cycles) to check and swap
+        plc.faults.arm(Fault(Kind.DROP, Point.ACK_WAIT, times=1, delay_s=1.0))
+        rep = push(_link(transport, plc), new, VERDICT)
         assert (rep.result, rep.attempts, rep.active_version) == ("already_active", 2, 1)
         assert plc.twin.active_table()[1].tobytes() == new.values.tobytes()

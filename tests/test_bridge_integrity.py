@@ -17,11 +17,11 @@ import pytest
 from pmcal.bridge.ads_mock import AdsMockPlc
 from pmcal.bridge.errors import AckTimeout, Rejected
 from pmcal.bridge.modbus_mock import ModbusMockPlc
-from pmcal.bridge.plc_twin import PlcTwin
+from pmcal.bridge.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import COMMIT_TIMEOUT_S, State, Status
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.cli import main
-from tests.bridge_fixtures import ads_link, make_table, modbus_link, running
+from tests.bridge_fixtures import BIG_TABLE_ACK_S, BIG_TABLE_TIMEOUT_S, ads_link, make_table, modbus_link, running
 
 
 def _listener():
@@ -177,7 +177,8 @@ def test_concurrent_pushes_one_wins_the_other_hears_why(transport):
 
         def run(k):
             try:
-                results[k] = push(link(plc, timeout_s=2.0), tables[k], PushOptions(ack_timeout_s=3.0)).result
+                results[k] = push(link(plc, timeout_s=BIG_TABLE_TIMEOUT_S), tables[k],
+                                  PushOptions(ack_timeout_s=BIG_TABLE_ACK_S)).result
             except StagingBusy as exc:
                 results[k] = str(exc)
             except Exception as exc:                     # noqa: BLE001 - reported in the assertion below

@@ -18,7 +18,8 @@ from pmcal.bridge.modbus_mock import ModbusMockPlc
 from pmcal.bridge.plc_types import HEADER_SIZE, LOOKUP_WRITES, ROW_SIZE, Header, LookupResult, shadow_rows
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.errors import InputError
-from tests.bridge_fixtures import TIMEOUT_S, make_table, modbus_link, modbus_plc, running  # noqa: F401
+from tests.bridge_fixtures import (BIG_TABLE_ACK_S, BIG_TABLE_TIMEOUT_S, TIMEOUT_S, make_table, modbus_link,  # noqa: F401
+                                   modbus_plc, running)
 
 #: a small window so that modest tables cross many pages
 SMALL = ModbusMap(window_lreals=250)
@@ -26,7 +27,7 @@ SMALL = ModbusMap(window_lreals=250)
 
 def test_round_trip_100x100x2_bit_exact(modbus_plc):
     table = make_table(version=1, n_phi=100, n_theta=100)
-    rep = push(modbus_link(modbus_plc), table)
+    rep = push(modbus_link(modbus_plc, timeout_s=BIG_TABLE_TIMEOUT_S), table, PushOptions(ack_timeout_s=BIG_TABLE_ACK_S))
     assert (rep.result, rep.active_version, rep.attempts) == ("ok", 1, 1)
     header, values = modbus_plc.twin.active_table()
     assert values.tobytes() == table.values.tobytes() and header == Header.of(table)

@@ -1,7 +1,8 @@
-"""The PLC side: the Python twin of the ST logic, and the ST sources in plc/ agreeing with the bridge.
+"""The PLC side: the ST of plc/ run by the interpreter (bridge.plc_runtime), and the ST sources agreeing
+with the bridge.
 
-The twin (bridge.plc_twin) is exercised directly here, without a network; the transport suites run
-it behind real ADS and Modbus servers.
+The interpreted PLC is exercised directly here, without a network; the transport suites run it
+behind real ADS and Modbus servers.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, crc16_c
 from pmcal.bridge import plc_types
 from pmcal.bridge.modbus_map import MAGIC, PAGE_LOAD, PAGE_STORE, ModbusMap
 from pmcal.bridge.nominal import NominalReference
-from pmcal.bridge.plc_twin import PlcTwin
+from pmcal.bridge.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import (SYMBOLS, Header, LookupIn, LookupOut, LookupResult, State, Status,
                               shadow_rows)
 from tests.bridge_fixtures import make_table
@@ -35,9 +36,17 @@ def stage(twin: PlcTwin, table, header: Header | None = None) -> None:
 
 
 def commit(twin: PlcTwin, version: int, cycles: int = 3):
+    """Write nCommitVersion and run the task: one cycle (the snapshot), the cycles FB_CompTableCheck
+    needs (it spreads its work over nRowsPerCycle rows per cycle), then ``cycles - 2`` more."""
     twin.write_symbol("commit_version", version.to_bytes(4, "little"))
-    for _ in range(cycles):
-        twin.cycle()
+    twin.cycle()
+    if cycles > 1:
+        for _ in range(100_000):
+            if twin.state.state != State.CHECKING:
+                break
+            assert twin.cycle(), twin.fault
+        for _ in range(cycles - 2):
+            twin.cycle()
     return twin.state
 
 
@@ -96,7 +105,12 @@ def _bad(kind: str):
 
 @pytest.mark.parametrize("kind, status", [
     ("format", Status.FORMAT_VERSION), ("stale", Status.STALE_VERSION), ("grid_size", Status.GRID_SIZE),
-    ("grid_limits", Status.GRID_LIMITS), ("limits", Status.LIMITS), ("crc", Status.CRC_MISMATCH),
+    ("grid_limits", Status.GRID_LIMITS),
+    pytest.param("limits", Status.LIMITS, marks=pytest.mark.xfail(strict=True, reason=(
+        "today's FB_CompTableCheck tests the limits with OR, which ST evaluates in full: with fMaxStep = NaN "
+        "the comparison fMaxStep > 0.0 traps (FPU invalid operation) and stops the task although "
+        "F_CompTableIsFinite already said FALSE; plc_twin answered LIMITS"))),
+    ("crc", Status.CRC_MISMATCH),
     ("nan", Status.NOT_FINITE), ("range", Status.OUT_OF_RANGE), ("step", Status.STEP_TOO_LARGE),
 ])
 def test_rejections_leave_the_active_table(kind, status):
@@ -134,7 +148,8 @@ def test_withdrawal_and_swap_timeout_leave_the_active_table():
 
 
 def test_crc_self_test_refuses_every_table_on_a_foreign_crc_variant():
-    twin = PlcTwin(crc=lambda data, crc=0: binascii.crc_hqx(data, crc))     # XMODEM: start value 0
+    # a library whose CRC-16 ignores the start value: XMODEM (start value 0) instead of CCITT-FALSE
+    twin = PlcTwin(crc=lambda data, crc: binascii.crc_hqx(data, 0))
     stage(twin, make_table(version=1))
     assert commit(twin, 1).status == Status.CRC_SELFTEST
 
@@ -153,7 +168,16 @@ def test_lookup_is_bit_identical_to_the_python_interpolation():
         assert (out.result, out.table_version) == (LookupResult.OK, 3)
         assert (out.m1_deg, out.m2_deg) == (ref[k, 0], ref[k, 1])
     assert _lookup(twin, 10.0, 60.5).result == LookupResult.OUT_OF_GRID
+
+
+@pytest.mark.xfail(strict=True, reason="today's FB_CompTableLookup compares the target with the grid limits; "
+                   "a NaN target makes that comparison trap (FPU invalid operation) and stops the task. "
+                   "plc_twin answered OUT_OF_GRID; the ST must test the target with F_CompTableIsFinite first")
+def test_a_nan_target_is_out_of_grid_and_the_task_runs_on():
+    twin = PlcTwin()
+    twin.seed(make_table(version=3))
     assert _lookup(twin, float("nan"), 10.0).result == LookupResult.OUT_OF_GRID
+    assert not twin.stopped
 
 
 def _lookup(twin: PlcTwin, phi: float, theta: float) -> LookupOut:

@@ -4,6 +4,7 @@ dropped at start-up rather than used. Lookups go through a plain link after the 
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from pmcal.bridge.ads_mock import AdsMockPlc
@@ -25,6 +26,7 @@ def test_restart_after_a_push_keeps_the_table_and_refuses_a_stale_one(mock, link
         with before:
             want = before.lookup(123.0, 33.0)
         plc.restart()
+        assert plc.twin.wait_started()                   # the manager re-checks the table over some cycles
         st = plc.twin.state
         assert (st.active_version, st.active_crc, st.status) == (7, table.crc16(), Status.OK)
         assert plc.twin.active_table()[1].tobytes() == table.values.tobytes()
@@ -39,9 +41,13 @@ def test_restart_after_a_push_keeps_the_table_and_refuses_a_stale_one(mock, link
         stale = make_table(version=6)
         from pmcal.bridge.plc_types import Header, shadow_rows
         with plc.twin.lock:
-            plc.twin.write_symbol("shadow_header", Header.of(stale).pack())
             plc.twin.write_shadow_bytes(0, shadow_rows(stale))
-            plc.twin.write_symbol("commit_version", (6).to_bytes(4, "little"))
+            for key, data in (("shadow_header", Header.of(stale).pack()), ("commit_version", (6).to_bytes(4, "little"))):
+                if hasattr(plc, "area"):        # Modbus: the ST copies these from the %M area every cycle
+                    off = plc.rmap.offset(key)
+                    plc.area.image[off:off + len(data) // 2] = np.frombuffer(data, dtype="<u2")
+                else:
+                    plc.twin.write_symbol(key, data)
         import time
         time.sleep(0.05)
         assert (plc.twin.state.status, plc.twin.state.active_version) == (Status.STALE_VERSION, 7)
@@ -57,6 +63,7 @@ def test_restart_mid_life_loses_staging_only(mock, link):
         with pytest.raises(BridgeError):
             push(link(plc), new, PushOptions(ack_timeout_s=0.2))
         plc.restart()                                    # ... and the PLC restarts meanwhile
+        assert plc.twin.wait_started()
         st = plc.twin.state
         assert (st.active_version, st.staging_owner, plc.twin.commit_version) == (1, 0, 0)
         assert plc.twin.active_table()[1].tobytes() == good.values.tobytes()
@@ -70,6 +77,7 @@ def test_damaged_persistent_table_is_dropped_at_start_up():
         plc.twin.seed(make_table(version=3))
         plc.twin.corrupt_persistent()
         plc.restart()
+        plc.twin.wait_started()
         st = plc.twin.state
         assert (st.active_version, st.status) == (0, Status.CRC_MISMATCH)
         with ads_link(plc, writes=LOOKUP_WRITES) as link:

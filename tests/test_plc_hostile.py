@@ -1,0 +1,206 @@
+"""Hostile tables and targets against the shipped ST (plc/, run by bridge.plc_runtime): whatever a
+client stages, whatever sits in persistent memory, whatever target a lookup asks for, the PLC task
+never stops (TwinCAT stops it on a NaN produced or compared and on a division by zero), and a table
+that is not valid never becomes active.
+
+Three paths of the ST: the commit check (FB_CompTableManager + FB_CompTableCheck on a staged table),
+the start-up check (the same on the persistent table after a restart), and the lookup
+(FB_CompTableLookup answering stLookupIn). Cases where today's ST stops the task are marked xfail
+with the ST line that traps; the fixes belong to plc/ (issue 21)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from pmcal.bridge import plc_types
+from pmcal.bridge.plc_runtime import PlcTwin
+from pmcal.bridge.plc_types import Header, LookupIn, LookupOut, LookupResult, State, Status, shadow_rows
+from tests.bridge_fixtures import make_table
+
+#: values no table should hold, and what a PLC must survive reading
+HOSTILE = {"nan": math.nan, "+inf": math.inf, "-inf": -math.inf, "huge": 1e308, "-huge": -1e308,
+           "denormal": 5e-324, "-zero": -0.0}
+#: cycles a commit may take on a small table before the test calls it stuck
+MAX_CYCLES = 20_000
+
+# today's ST: where it stops the task (the fixes are the ST engineer's; remove the marks once merged)
+_OR_TRAPS = ("FB_CompTableCheck evaluates every operand of its OR'ed limit tests (IEC: no short circuit), "
+             "so a NaN limit is compared although F_CompTableIsFinite already said FALSE")
+_UNREACHABLE = ("FB_CompTableCheck.M_Command returns 1.0/0.0*0.0 for a node the nominal IK cannot reach: "
+                "a division by zero")
+_LOOKUP_NAN = "FB_CompTableLookup compares a NaN target with the grid limits before testing it is finite"
+
+
+def _small(version: int = 2, **kw):
+    return make_table(version=version, **kw)          # 37 x 13, valid (steps below 12 deg)
+
+
+def _plc() -> PlcTwin:
+    plc = PlcTwin()
+    plc.seed(_small(version=1))
+    return plc
+
+
+def _commit(plc: PlcTwin, header: Header, values: np.ndarray | None = None, table=None):
+    """Stage ``header`` (and the table's rows, or raw ``values`` of shape (n_phi, n_theta, 2)), commit
+    its version, run until the manager acknowledges it (or the task stops)."""
+    table = table or _small()
+    rows = shadow_rows(table) if values is None else _rows(values)
+    plc.write_symbol("shadow_header", header.pack())
+    plc.write_symbol("shadow", rows + bytes(plc_types.SHADOW_SIZE - len(rows)))
+    plc.write_symbol("commit_version", int(header.table_version).to_bytes(4, "little"))
+    for _ in range(MAX_CYCLES):
+        if not plc.cycle():
+            break
+        st = plc.state
+        if st.ack_version == header.table_version and st.state == State.IDLE:
+            break
+    return plc.state
+
+
+def _rows(values: np.ndarray) -> bytes:
+    n_phi, n_theta = values.shape[:2]
+    buf = np.zeros((n_phi, plc_types.NTHETA_MAX, 2), dtype="<f8")
+    buf[:, :n_theta, :] = values
+    return buf.tobytes()
+
+
+def _assert_survived_and_refused(plc: PlcTwin, st) -> None:
+    assert not plc.stopped, plc.fault
+    assert isinstance(st.status, Status) and st.status.is_rejection, st
+    assert st.active_version == 1
+
+
+def _header_cases():
+    t = _small()
+    h = Header.of(t)
+    cases = []
+    for field in ("phi_min_deg", "phi_max_deg", "theta_min_deg", "theta_max_deg", "m_min_deg", "m_max_deg",
+                  "max_step_deg"):
+        for name, v in HOSTILE.items():
+            if name in ("denormal", "-zero") and field != "max_step_deg":
+                continue
+            marks = []
+            if name == "nan":
+                marks = [pytest.mark.xfail(strict=True, reason=_OR_TRAPS)]
+            elif (field, name) in (("theta_min_deg", "-huge"), ("theta_max_deg", "huge")):
+                marks = [pytest.mark.xfail(strict=True, reason=_UNREACHABLE)]
+            cases.append(pytest.param(replace(h, **{field: v}), id=f"{field}={name}", marks=marks))
+    cases += [
+        pytest.param(replace(h, max_step_deg=0.0), id="max_step=0"),
+        pytest.param(replace(h, max_step_deg=-1.0), id="max_step<0"),
+        pytest.param(replace(h, phi_min_deg=h.phi_max_deg, phi_max_deg=h.phi_min_deg), id="phi reversed"),
+        pytest.param(replace(h, phi_min_deg=-400.0), id="phi span>360"),
+        pytest.param(replace(h, m_min_deg=h.m_max_deg, m_max_deg=h.m_min_deg), id="motor limits reversed"),
+        pytest.param(replace(h, n_phi=0), id="n_phi=0"), pytest.param(replace(h, n_phi=1), id="n_phi=1"),
+        pytest.param(replace(h, n_phi=101), id="n_phi=101"), pytest.param(replace(h, n_theta=65535), id="n_theta=65535"),
+        pytest.param(replace(h, n_theta=4), id="n_theta smaller than the data"),
+        pytest.param(replace(h, reference=7), id="reference=7"),
+        pytest.param(replace(h, reference_crc=h.reference_crc ^ 1), id="reference crc"),
+        pytest.param(replace(h, theta_max_deg=170.0), id="theta beyond reach",
+                     marks=pytest.mark.xfail(strict=True, reason=_UNREACHABLE)),
+    ]
+    return cases
+
+
+#: finite limits that are absurd but not invalid (the table's values are sane): the rules accept them
+ABSURD_BUT_VALID = {"m_min_deg=-huge", "m_max_deg=huge", "max_step_deg=huge", "max_step_deg=+inf"}
+
+
+@pytest.mark.parametrize("header", _header_cases())
+def test_hostile_header_is_refused_and_the_task_runs_on(header, request):
+    plc = _plc()
+    st = _commit(plc, header)
+    if request.node.callspec.id in ABSURD_BUT_VALID and st.status == Status.OK:
+        assert not plc.stopped and st.active_version == 2
+        assert plc.active_table()[1].tobytes() == _small().values.tobytes()
+        return
+    _assert_survived_and_refused(plc, st)
+
+
+def _value_cases():
+    cases = []
+    for reference in ("nominal_ik", None):
+        for name, v in HOSTILE.items():
+            if name in ("denormal", "-zero"):
+                continue                      # valid values: see the acceptance test below
+            cases.append(pytest.param(reference, v, id=f"{reference or 'absolute'}:{name}"))
+    return cases
+
+
+@pytest.mark.parametrize("reference, value", _value_cases())
+def test_hostile_value_is_refused_and_the_task_runs_on(reference, value):
+    table = _small(reference=reference)
+    values = table.values.copy()
+    values[4, 2, 1] = value
+    header = replace(Header.of(table), crc=_crc_of(values))        # a CRC that matches: the values are checked
+    plc = _plc()
+    _assert_survived_and_refused(plc, _commit(plc, header, values=values, table=table))
+
+
+def test_denormal_and_negative_zero_values_are_accepted():
+    """5e-324 and -0.0 are finite, in range and steady: a valid table."""
+    table = _small()
+    values = table.values.copy()
+    values[4, 2, 1] = values[4, 2, 1] + 5e-324
+    values[0, 0, 0] = -0.0 if values[0, 0, 0] == 0.0 else values[0, 0, 0]
+    plc = _plc()
+    st = _commit(plc, replace(Header.of(table), crc=_crc_of(values)), values=values, table=table)
+    assert not plc.stopped and (st.status, st.active_version) == (Status.OK, 2)
+
+
+def _crc_of(values: np.ndarray) -> int:
+    from pmcal.bridge.comptable import crc16_ccitt
+    return crc16_ccitt(np.ascontiguousarray(values, dtype="<f8").tobytes())
+
+
+# ---- the start-up check on a hostile persistent table -------------------------------------------
+
+@pytest.mark.parametrize("value", [pytest.param(v, id=k) for k, v in HOSTILE.items() if k not in ("denormal", "-zero")])
+def test_hostile_persistent_table_is_dropped_at_start_up(value):
+    table = make_table(version=3, reference=None)
+    plc = PlcTwin()
+    plc.seed(table)
+    rt = plc.runtime
+    k = rt.read_value("GVL_CompTable.nActive")
+    addr, _ = rt.locate(f"GVL_CompTable.aBuffer[{k}][4, 2, 1]")
+    rt.mem[addr:addr + 8] = np.float64(value).tobytes()            # persistent memory damaged
+    values = table.values.copy()
+    values[4, 2, 1] = value
+    hdr = replace(Header.of(table), crc=_crc_of(values))            # ... with a matching CRC
+    rt.write_bytes(f"GVL_CompTable.aHeader[{k}]", hdr.pack())
+    rt.restart()
+    for _ in range(MAX_CYCLES):
+        if not plc.cycle() or plc.started:
+            break
+    assert not plc.stopped, plc.fault
+    st = plc.state
+    assert st.active_version == 0 and st.status.is_rejection
+
+
+# ---- the lookup ------------------------------------------------------------------------------------
+
+def _lookup(plc: PlcTwin, phi: float, theta: float) -> LookupOut:
+    seq = LookupOut.unpack(plc.read_symbol("lookup_out")).seq + 1
+    plc.write_symbol("lookup_in", LookupIn(phi, theta, seq).pack())
+    plc.cycle()
+    return LookupOut.unpack(plc.read_symbol("lookup_out"))
+
+
+@pytest.mark.parametrize("phi, theta", [
+    pytest.param(v, 10.0, id=f"phi={k}") for k, v in HOSTILE.items()] + [
+    pytest.param(10.0, v, id=f"theta={k}") for k, v in HOSTILE.items()])
+def test_hostile_target_never_stops_the_task(phi, theta):
+    if math.isnan(phi) or math.isnan(theta):
+        pytest.xfail(_LOOKUP_NAN)
+    plc = _plc()
+    out = _lookup(plc, phi, theta)
+    assert not plc.stopped, plc.fault
+    inside = 0.0 <= phi <= 360.0 and 0.0 <= theta <= 60.0
+    assert out.result == (LookupResult.OK if inside else LookupResult.OUT_OF_GRID)
+    if not inside:
+        assert (out.m1_deg, out.m2_deg) == (0.0, 0.0)
