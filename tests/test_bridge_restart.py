@@ -43,7 +43,7 @@ def test_restart_after_a_push_keeps_the_table_and_refuses_a_stale_one(mock, link
         with plc.twin.lock:
             plc.twin.write_shadow_bytes(0, shadow_rows(stale))
             for key, data in (("shadow_header", Header.of(stale).pack()), ("commit_version", (6).to_bytes(4, "little"))):
-                if hasattr(plc, "area"):        # Modbus: the ST copies these from the %M area every cycle
+                if plc.transport == "modbus":   # the ST copies these from the %M area every cycle
                     off = plc.rmap.offset(key)
                     plc.area.image[off:off + len(data) // 2] = np.frombuffer(data, dtype="<u2")
                 else:
