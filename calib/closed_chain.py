@@ -17,12 +17,15 @@ e.g. ``"rod1a.dz + 1 rod1a_tip.dz"``), and each dependent parameter ``j`` spans 
 
 **Estimation** (:func:`identify_chain`): the base parameters by Levenberg-Marquardt
 (:func:`pmcal.calib.solvers.local.lm`, MINPACK through scipy) on the whitened target residuals with the
-exact Jacobian, plus a Tikhonov term: pseudo-observations ``p_i / s_i`` with ``s_i`` the prior size from
-``[errors]`` of the machine.toml (the maximum a-posteriori estimate under a Gaussian prior; it only
-matters for parameters the data barely see). The dependent parameters stay at 0: the base values absorb
-them, which is exactly what the machine's behaviour determines.
+exact Jacobian, plus a Tikhonov term: the Gaussian prior of the errors (sizes ``s`` from ``[errors]`` of
+the machine.toml) carried onto the base parameters, ``b = p_base + B p_dep`` having prior covariance
+``C_b = S_base^2 + B S_dep^2 B^T`` (pseudo-observations ``L^-1 b`` with ``C_b = L L^T``; the maximum
+a-posteriori estimate; it only matters for parameters the data barely see). A diagonal ``S_base^2`` alone
+would hold a base parameter tighter than the combination it estimates and bias it (hexapod: errors up to
+5 sigma). The dependent parameters stay at 0: the base values absorb them, which is exactly what the
+machine's behaviour determines.
 
-**Uncertainty**: ``covariance`` is the posterior covariance ``(J^T J / sigma^2 + diag(1/s^2))^-1`` of the
+**Uncertainty**: ``covariance`` is the posterior covariance ``(J^T J / sigma^2 + C_b^-1)^-1`` of the
 base parameters at the solution; ``crlb`` the Cramér-Rao bound ``sqrt(diag(sigma^2 (J^T J)^-1))`` without
 the prior (:func:`crlb`); ``weak`` the base parameters whose CRLB exceeds their prior size.
 
@@ -286,7 +289,12 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     basis = base_parameters(J0 / sigma, keys, scale, rank_tol)
     base = basis.base
     units = model.error_units(base)
-    sb = model.prior_std(base)
+    # The prior of a base parameter is that of the combination it estimates: b = p_base + B p_dep, so
+    # cov_b = S_base^2 + B S_dep^2 B^T (correlated where two base parameters regroup the same error).
+    prior_cov = np.diag(model.prior_std(base) ** 2)
+    if basis.dependent:
+        prior_cov += (basis.regroup * model.prior_std(basis.dependent) ** 2) @ basis.regroup.T
+    sb = np.sqrt(np.diag(prior_cov))
     y = targets.reshape(-1)
     if y.size < len(base):
         raise ValueError(f"{len(commands)} poses give {y.size} coordinates for {len(base)} base parameters")
@@ -308,13 +316,13 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
 
     problem = box_problem(fun, base, units, half_width=50.0 * sb, sigma=sigma, jac=jac, scale=sb,
                           info={"residual_unit": "mm"})
-    work = problem.with_prior(sb) if prior else problem
+    work = problem.with_prior(cov=prior_cov) if prior else problem
     sol = lm(work, max_nfev=max_nfev) if method == "lm" else SOLVERS[method](work, seed=seed, **options)
     x = np.array([dict(zip(sol.names, sol.x))[k] for k in base])
     Jb = -jac(x) / sigma
     resid = sol.residuals if len(sol.residuals) == y.size else fun(x[None])[0]
     info_data = Jb.T @ Jb
-    prec = info_data + (np.diag(1.0 / sb**2) if prior else 0.0)
+    prec = info_data + (np.linalg.inv(prior_cov) if prior else 0.0)
     cov = np.linalg.pinv(prec)
     p_eff = float(np.trace(cov @ info_data))
     fisher = np.linalg.pinv(info_data)

@@ -97,14 +97,8 @@ def _truth_of_base(machine, commands, truth, base) -> np.ndarray:
 #: Tikhonov prior of each base parameter is the prior of that error alone, while its value estimates a
 #: combination with a wider prior (hexapod seed 3: max |z| 5.1, Mahalanobis 90 for 42 dof; without the
 #: prior 2.4 and 52; with the combination's prior 2.9 and 60)
-PRIOR_TOO_TIGHT = {"hexapod_6dof"}
-
-
-def test_identified_errors_match_the_truth_within_the_reported_uncertainty(chain, request):
+def test_identified_errors_match_the_truth_within_the_reported_uncertainty(chain):
     machine, d = chain
-    if machine.name in PRIOR_TOO_TIGHT:
-        request.applymarker(pytest.mark.xfail(strict=True, reason="prior of a base parameter narrower than "
-                                                                  "its combination's (generic core)"))
     doc = json.loads((d / "p.json").read_text())
     base = doc["identifiable"]
     meas = read_measurements(d / "m.csv", machine.spec)

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
+import scipy.linalg
 
 ResidualFn = Callable[[np.ndarray], np.ndarray]
 
@@ -156,22 +157,32 @@ class Problem:
         full[keep] = x
         return self.jac(full)[:, keep]
 
-    def with_prior(self, std: np.ndarray | float) -> "Problem":
+    def with_prior(self, std: np.ndarray | float | None = None, *, cov: np.ndarray | None = None) -> "Problem":
         """Add pseudo-observations ``(x - x0) / std`` (scaled to ``sigma``): a Gaussian prior / ridge.
 
         The maximum a-posteriori estimate with prior ``N(x0, std^2)``: regularises the directions the
-        data cannot see and leaves the well-determined ones alone. ``std`` in parameter units.
+        data cannot see and leaves the well-determined ones alone. ``std`` in parameter units. With
+        ``cov`` (n, n) instead, a correlated prior ``N(x0, cov)``: the pseudo-observations are
+        ``L^-1 (x - x0)`` with ``cov = L L^T`` (e.g. base parameters that each regroup several errors).
         """
-        std = np.broadcast_to(np.asarray(std, float), (self.n,)).copy()
+        if (std is None) == (cov is None):
+            raise ValueError("give the prior as std or as cov, not both")
+        if cov is None:
+            std = np.broadcast_to(np.asarray(std, float), (self.n,)).copy()
+            W = np.diag(1.0 / std)
+        else:
+            cov = np.asarray(cov, float)
+            W = scipy.linalg.solve_triangular(np.linalg.cholesky(cov), np.eye(self.n), lower=True)
+            std = np.sqrt(np.diag(cov))
         fun, x0, sigma = self.fun, self.x0, self.sigma
 
         def aug(X: np.ndarray) -> np.ndarray:
-            return np.concatenate([fun(X), sigma * (X - x0) / std], axis=-1)
+            return np.concatenate([fun(X), sigma * (X - x0) @ W.T], axis=-1)
 
         jac = None
         if self.jac is not None:
             base_jac = self.jac
-            jac = lambda x: np.vstack([base_jac(x), np.diag(sigma / std)])  # noqa: E731
+            jac = lambda x: np.vstack([base_jac(x), sigma * W])  # noqa: E731
         info = dict(self.info, prior_std=std, n_prior=self.n)   # the last n residuals are the prior
         return replace(self, fun=aug, jac=jac, info=info)
 
