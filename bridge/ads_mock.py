@@ -181,13 +181,13 @@ class StrictHandler(AdvancedHandler):
         if cmd == constants.ADSCOMMAND_WRITE:
             if key == "shadow":
                 return Point.MID_STAGE
-            if key == "commit_version":
+            if key == "commit":
                 return Point.COMMIT if any(data[12:16]) else Point.BEFORE_STAGE
             return None
         if key in ("shadow", "shadow_header"):
             return Point.AFTER_STAGE
         if key == "state":
-            return Point.ACK_WAIT if self.mock.twin.commit_version else Point.BEFORE_STAGE
+            return Point.ACK_WAIT if self.mock.twin.commit_token else Point.BEFORE_STAGE
         return None if key.startswith("lookup") else Point.BEFORE_STAGE
 
 

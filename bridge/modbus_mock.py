@@ -54,7 +54,7 @@ class ModbusArea:
         if not self.dirty:
             return
         self.dirty = False
-        for key in ("shadow_header", "commit_version", "staging_claim", "lookup_in"):
+        for key in ("shadow_header", "commit", "staging_claim", "lookup_in"):
             self.twin.write_symbol(key, self.get(key))
         r = self.rmap
         index, count, cmd, seq = (int(x) for x in self.image[r.PAGE_CONTROL:r.PAGE_CONTROL + 4])

@@ -97,8 +97,8 @@ class PlcTwin:
         self._set(f"{PRG}.fbManager.tStagingLease", round(value * 1000.0))
 
     @property
-    def commit_version(self) -> int:
-        return self.runtime.read_value(f"{GVL}.nCommitVersion")
+    def commit_token(self) -> int:
+        return self.runtime.read_value(f"{GVL}.nCommitToken")
 
     @property
     def stopped(self) -> bool:
