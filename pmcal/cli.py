@@ -39,7 +39,7 @@ DEFAULT_MACHINE = "ocpm_2dof"
 FILE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "identify": ("output",), "compensate": ("output", "table"), "evaluate": ("json",),
     "diagnose": ("json",), "twin measure": ("output",), "twin plan": ("output",), "twin render": ("output",), "targets": ("output",),
-    "push": ("json", "audit"), "loop": ("json",),
+    "push": ("json", "audit"), "plc unlock": ("audit",), "loop": ("json",),
 }
 FOLDER_OUTPUTS: dict[str, tuple[str, ...]] = {"demo": ("out",), "diagnose": ("report",)}
 #: (command, attribute) of a file output that brings a second file beside it: suffix of that file
@@ -163,8 +163,8 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
 
 
 def _command_name(args) -> str:
-    twin = getattr(args, "twin_command", None)
-    return f"{args.command} {twin}" if twin else str(args.command)
+    sub = getattr(args, "twin_command", None) or getattr(args, "plc_cmd", None)
+    return f"{args.command} {sub}" if sub else str(args.command)
 
 
 def output_paths(args) -> list[tuple[str, str, bool]]:
