@@ -27,6 +27,7 @@ from pmcal.bridge.plc_types import Header, State, shadow_rows  # noqa: E402
 from tests.bridge_fixtures import make_table  # noqa: E402
 
 IK = "F_CompTableNominalIk"
+TOKEN = 0x600D0001          # the staging token of the benchmark's client
 
 
 def commit_cost(n_phi: int, n_theta: int) -> dict:
@@ -35,10 +36,12 @@ def commit_cost(n_phi: int, n_theta: int) -> dict:
     rt = plc.runtime
     table = make_table(version=2, n_phi=n_phi, n_theta=n_theta, offset_deg=0.1)
     rows = shadow_rows(table)
+    plc.write_symbol("staging_claim", TOKEN.to_bytes(4, "little"))
+    plc.cycle()                                            # the claim is granted
     plc.write_symbol("shadow_header", Header.of(table).pack())
     plc.write_symbol("shadow", rows + bytes(plc_types.SHADOW_SIZE - len(rows)))
     rt.reset_work_max()
-    plc.write_symbol("commit_version", (2).to_bytes(4, "little"))
+    plc.write_symbol("commit", TOKEN.to_bytes(4, "little"))
     cycles, busiest, t0 = 0, 0.0, time.process_time()
     while True:
         a = time.process_time()
@@ -46,7 +49,7 @@ def commit_cost(n_phi: int, n_theta: int) -> dict:
         busiest = max(busiest, time.process_time() - a)
         cycles += 1
         st = plc.state
-        if plc.stopped or (st.ack_version == 2 and st.state == State.IDLE):
+        if plc.stopped or (st.ack_token == TOKEN and st.state == State.IDLE):
             break
         if cycles == 1 and st.state != State.CHECKING:
             break

@@ -478,18 +478,18 @@ class StrictHandler(AbstractHandler):
                 continue
             for region, _, pos, n in spans:
                 (keys_w if write else keys_r).add(region.sym.key)
-                if write and region.sym.key == "commit_version":
+                if write and region.sym.key == "commit":
                     commit_value = payload[pos:pos + n]
         if "shadow" in keys_w:
             return Point.MID_STAGE
-        if "commit_version" in keys_w:
+        if "commit" in keys_w:
             return Point.COMMIT if any(commit_value) else Point.BEFORE_STAGE
         if keys_w:
             return None
         if keys_r & {"shadow", "shadow_header"}:
             return Point.AFTER_STAGE
         if "state" in keys_r:
-            pending = any(self.mock.read_memory(*self.mock.location("commit_version")))
+            pending = any(self.mock.read_memory(*self.mock.location("commit")))
             return Point.ACK_WAIT if pending else Point.BEFORE_STAGE
         if keys_r and keys_r <= {"lookup_in", "lookup_out"}:
             return None

@@ -30,6 +30,8 @@ import csv
 import hashlib
 import json
 import math
+import struct
+import zlib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Callable, NamedTuple
@@ -41,18 +43,26 @@ from pmcal.errors import InputError
 from pmcal.fileio import atomic_write
 
 FORMAT = "pmcal-comptable"
-#: 2: corrections relative to the nominal IK (``reference``); 1 (read, converted): absolute commands
-FORMAT_VERSION = 2
-READ_VERSIONS = (1, 2)
+#: 3: CRC-32 over the PLC header image and the data (``crc32``); 2 (read): CRC-16 over the data only;
+#: 1 (read, converted): absolute commands. Values relative to the nominal IK (``reference``) since 2.
+FORMAT_VERSION = 3
+READ_VERSIONS = (1, 2, 3)
 #: fixed PLC array sizes (ARRAY[0..NPHI_MAX-1, 0..NTHETA_MAX-1, 0..1] OF LREAL)
 NPHI_MAX = 100
 NTHETA_MAX = 100
 #: table versions are UDINT on the PLC; 0 means "no table"
 VERSION_MAX = 2**32 - 1
-#: STRING(31) on the PLC
-MACHINE_MAX_LEN = 31
+#: STRING(27) on the PLC
+MACHINE_MAX_LEN = 27
 #: largest azimuth span (deg); the PLC never wraps phi, so a table covers at most one turn
 PHI_SPAN_MAX_DEG = 360.0
+#: largest magnitude of a grid limit, motor limit or max step (deg): GVL_CompTableParam.LIMIT_ABS_MAX, so
+#: every difference the PLC forms between limits or commands stays finite
+LIMIT_ABS_MAX_DEG = 1.0e6
+#: ST_CompTableHeader, 104 bytes (pack_mode 1, naturally aligned): fPhiMin .. fMaxStep (7 LREAL),
+#: nTableVersion UDINT, nFormatVersion, nPhi, nTheta, nReference UINT, nCrc, nReferenceCrc DWORD,
+#: sMachine STRING(27)
+HEADER_STRUCT = struct.Struct("<7dI4H2I28s")
 CSV_COLUMNS = ("phi_deg", "theta_deg", "m1_deg", "m2_deg")
 #: CSV columns of a table with a nominal-IK reference (the values are corrections)
 CSV_COLUMNS_REF = ("phi_deg", "theta_deg", "dm1_deg", "dm2_deg")
@@ -61,14 +71,22 @@ MOTOR_FIELDS = ("m1_deg", "m2_deg")
 Setpoints = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
-def crc16_ccitt(data: bytes, crc: int = 0xFFFF) -> int:
-    """CRC-16/CCITT as Beckhoff's ``F_DATA_TO_CRC16_CCITT(pData, cbData, crc := 16#FFFF)`` computes it.
+def crc32(data: bytes, crc: int = 0) -> int:
+    """CRC-32 (IEEE 802.3, reflected polynomial 0xEDB88320, init and final XOR 0xFFFFFFFF) as the PLC's
+    ``F_CompTableCrc32(pData, cbData, nCrc := 0)`` computes it; ``zlib.crc32``.
 
-    Polynomial 0x1021, MSB first, no reflection, no final XOR, initial value 0xFFFF
-    (CRC-16/CCITT-FALSE, a.k.a. CRC-16/IBM-3740). Check value: ``crc16_ccitt(b"123456789") == 0x29B1``.
-    Chainable like the PLC function: ``crc16_ccitt(b, crc16_ccitt(a)) == crc16_ccitt(a + b)``.
+    Check value: ``crc32(b"123456789") == 0xCBF43926``. Chainable like the PLC function:
+    ``crc32(b, crc32(a)) == crc32(a + b)``.
     """
-    return binascii.crc_hqx(data, crc)
+    return zlib.crc32(data, crc)
+
+
+def pack_header(limits: dict, *, version: int, format_version: int, n_phi: int, n_theta: int, reference: int,
+                crc: int, reference_crc: int, machine: str) -> bytes:
+    """The ST_CompTableHeader image (:data:`HEADER_STRUCT`); ``limits`` in :class:`GridLimits` order."""
+    name = machine.encode("ascii", "replace")[:MACHINE_MAX_LEN]
+    return HEADER_STRUCT.pack(*limits.values(), version, format_version, n_phi, n_theta, reference, crc,
+                              reference_crc, name)
 
 
 class Defect(NamedTuple):
@@ -194,9 +212,17 @@ class CompTable(GridLimits):
         """Absolute motor commands (n_phi, n_theta, 2) deg at the nodes: reference + correction."""
         return self.values if self.reference is None else self.nominal_at_nodes() + self.values
 
-    def crc16(self) -> int:
-        """CRC-16/CCITT (:func:`crc16_ccitt`) over :meth:`data_bytes`; the PLC recomputes it."""
-        return crc16_ccitt(self.data_bytes())
+    def header_bytes(self, crc: int = 0) -> bytes:
+        """The PLC header image of this table (ST_CompTableHeader) with ``nCrc = crc``."""
+        ref = self.reference
+        return pack_header(self.limits(), version=int(self.version), format_version=FORMAT_VERSION,
+                           n_phi=self.n_phi, n_theta=self.n_theta, reference=0 if ref is None else 1, crc=crc,
+                           reference_crc=0 if ref is None else ref.crc32(), machine=self.machine)
+
+    def crc32(self) -> int:
+        """CRC-32 (:func:`crc32`) over :meth:`header_bytes` with ``nCrc = 0``, then :meth:`data_bytes`
+        (the used nodes row by row): what the PLC recomputes over its copy before using the table."""
+        return crc32(self.data_bytes(), crc32(self.header_bytes(0)))
 
     def sha256(self) -> str:
         """SHA-256 (hex) over :meth:`data_bytes` followed by the reference geometry's five LREALs
@@ -216,24 +242,25 @@ class CompTable(GridLimits):
         """Grid size and limits, motor limits and max step, version range and recency, machine name."""
         if not (2 <= self.n_phi <= NPHI_MAX and 2 <= self.n_theta <= NTHETA_MAX):
             return Defect("grid_size", f"grid {self.n_phi}x{self.n_theta} outside 2x2..{NPHI_MAX}x{NTHETA_MAX}")
+        if self.reference is not None and self.reference.defect():
+            return Defect("reference", self.reference.defect())
         grid = (self.phi_min_deg, self.phi_max_deg, self.theta_min_deg, self.theta_max_deg)
-        if not all(math.isfinite(g) for g in grid):
-            return Defect("grid_limits", "grid limits must be finite")
+        if not all(math.isfinite(g) and abs(g) <= LIMIT_ABS_MAX_DEG for g in grid):
+            return Defect("grid_limits", f"grid limits must be finite, at most {LIMIT_ABS_MAX_DEG:g} deg in size")
         if not (self.phi_min_deg < self.phi_max_deg and self.theta_min_deg < self.theta_max_deg):
             return Defect("grid_limits", "grid limits must increase (phi_min < phi_max, theta_min < theta_max)")
         if self.phi_max_deg - self.phi_min_deg > PHI_SPAN_MAX_DEG:
             return Defect("grid_limits", f"phi span exceeds {PHI_SPAN_MAX_DEG:g} deg")
         lims = (self.m_min_deg, self.m_max_deg, self.max_step_deg)
-        if not (all(math.isfinite(x) for x in lims) and self.m_min_deg < self.m_max_deg
-                and self.max_step_deg > 0.0):
-            return Defect("limits", "motor limits must be finite with m_min < m_max and max_step > 0")
+        if not (all(math.isfinite(x) and abs(x) <= LIMIT_ABS_MAX_DEG for x in lims)
+                and self.m_min_deg < self.m_max_deg and self.max_step_deg > 0.0):
+            return Defect("limits", f"motor limits and max_step must be finite, at most {LIMIT_ABS_MAX_DEG:g} deg "
+                                    "in size, with m_min < m_max and max_step > 0")
         if not (isinstance(self.version, (int, np.integer)) and 1 <= int(self.version) <= VERSION_MAX):
             return Defect("version", f"table version {self.version!r} outside 1..{VERSION_MAX}")
         if active_version is not None and int(self.version) <= int(active_version):
             return Defect("stale_version", f"table version {self.version} is not newer than the active "
                                            f"version {active_version} on the PLC")
-        if self.reference is not None and self.reference.defect():
-            return Defect("reference", self.reference.defect())
         if not (self.machine.isascii() and 0 < len(self.machine) <= MACHINE_MAX_LEN):
             return Defect("machine", f"machine name must be 1..{MACHINE_MAX_LEN} ASCII characters")
         return None
@@ -352,7 +379,7 @@ class CompTable(GridLimits):
             "limits": {"m_min_deg": self.m_min_deg, "m_max_deg": self.m_max_deg,
                        "max_step_deg": self.max_step_deg},
             "reference": {"kind": "none"} if self.reference is None else self.reference.as_dict(),
-            "crc16_ccitt": f"0x{self.crc16():04X}", "sha256": self.sha256(),
+            "crc32": f"0x{self.crc32():08X}", "sha256": self.sha256(),
         }
 
     def to_json(self, path: str | Path) -> None:
@@ -382,7 +409,7 @@ class CompTable(GridLimits):
             fh.write("# limits " + " ".join(f"{k}={_num(v)}" for k, v in lim.items()) + "\n")
             fh.write("# reference " + " ".join(f"{k}={v if k == 'kind' else _num(v)}"
                                                for k, v in h["reference"].items()) + "\n")
-            fh.write(f"# crc16_ccitt={h['crc16_ccitt']} sha256={h['sha256']}\n")
+            fh.write(f"# crc32={h['crc32']} sha256={h['sha256']}\n")
             w = csv.writer(fh, lineterminator="\n")
             w.writerow(CSV_COLUMNS if self.reference is None else CSV_COLUMNS_REF)
             phi, theta = self.phi_nodes_deg(), self.theta_nodes_deg()
@@ -438,7 +465,7 @@ class CompTable(GridLimits):
                     m_min_deg=_float(lim, "m_min_deg", src), m_max_deg=_float(lim, "m_max_deg", src),
                     max_step_deg=_float(lim, "max_step_deg", src), values=values, reference=reference,
                     source=src)
-        _check_sums(table, doc.get("crc16_ccitt"), doc.get("sha256"), src, fv)
+        _check_sums(table, doc, src, fv)
         return table
 
     @classmethod
@@ -505,7 +532,7 @@ class CompTable(GridLimits):
                     raise InputError(f"{got:g} is not the grid node {want:.10g} expected at this row "
                                      "(rows go phi-major, theta fastest)", file=src, row=r, field=name)
             table.values[i, j] = nums[2:]
-        _check_sums(table, meta.get("crc16_ccitt"), meta.get("sha256"), src, fv)
+        _check_sums(table, meta, src, fv)
         return table
 
 
@@ -599,26 +626,31 @@ def _parse(meta: dict, key: str, kind: type, src: str):
         raise InputError(f"bad value {meta[key]!r} in the # header lines", file=src, field=key) from None
 
 
-def _check_sums(table: CompTable, crc_text, sha_text, src: str, format_version: int = FORMAT_VERSION) -> None:
+def _check_sums(table: CompTable, doc: dict, src: str, format_version: int = FORMAT_VERSION) -> None:
     """Compare the checksums stored in a file with the data read from it; both must be present.
 
-    A version-1 file's SHA-256 covers the values only (it has no reference).
+    Format 3 carries ``crc32`` (:meth:`CompTable.crc32`: header image and data); formats 1 and 2 carry
+    ``crc16_ccitt`` (CRC-16/CCITT-FALSE over the data only), still read. A version-1 file's SHA-256 covers
+    the values only (it has no reference).
     """
-    for name, text in (("crc16_ccitt", crc_text), ("sha256", sha_text)):
+    name = "crc32" if format_version >= 3 else "crc16_ccitt"
+    crc_text, sha_text = doc.get(name), doc.get("sha256")
+    for key, text in ((name, crc_text), ("sha256", sha_text)):
         if text is None:
-            raise InputError(f"no {name} checksum: a table must carry crc16_ccitt and sha256 "
-                             "(write it with pmcal; edited files are refused)", file=src, field=name)
+            raise InputError(f"no {key} checksum: a table must carry {name} and sha256 "
+                             "(write it with pmcal; edited files are refused)", file=src, field=key)
     if not np.isfinite(table.values).all():
         return   # validate() names the bad node; a checksum message would hide it
-    if crc_text is not None:
-        try:
-            crc = int(str(crc_text), 16)
-        except ValueError:
-            raise InputError(f"bad CRC {crc_text!r}", file=src, field="crc16_ccitt") from None
-        if crc != table.crc16():
-            raise InputError(f"CRC mismatch: file says 0x{crc:04X}, data give 0x{table.crc16():04X} "
-                             "(file edited or damaged)", file=src, field="crc16_ccitt")
+    try:
+        crc = int(str(crc_text), 16)
+    except ValueError:
+        raise InputError(f"bad CRC {crc_text!r}", file=src, field=name) from None
+    want = table.crc32() if format_version >= 3 else binascii.crc_hqx(table.data_bytes(), 0xFFFF)
+    if crc != want:
+        width = 8 if format_version >= 3 else 4
+        raise InputError(f"CRC mismatch: file says 0x{crc:0{width}X}, data give 0x{want:0{width}X} "
+                         "(file edited or damaged)", file=src, field=name)
     sha = table.sha256() if format_version >= 2 else hashlib.sha256(table.data_bytes()).hexdigest()
-    if sha_text is not None and str(sha_text).lower() != sha:
+    if str(sha_text).lower() != sha:
         raise InputError("SHA-256 mismatch between the file's checksum and its data (file edited or damaged)",
                          file=src, field="sha256")

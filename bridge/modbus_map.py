@@ -33,9 +33,9 @@ FC16_MAX = 123
 FC3_MAX = 125
 
 _REGS = {"shadow_header": HEADER_SIZE // 2, "state": STATE_SIZE // 2, "active_header": HEADER_SIZE // 2,
-         "lookup_in": LOOKUP_IN_SIZE // 2, "lookup_out": LOOKUP_OUT_SIZE // 2, "commit_version": 2,
+         "lookup_in": LOOKUP_IN_SIZE // 2, "lookup_out": LOOKUP_OUT_SIZE // 2, "commit": 2,
          "staging_claim": 2}
-_OFFSET = {"shadow_header": "SHADOW_HEADER", "commit_version": "COMMIT_VERSION", "state": "STATE",
+_OFFSET = {"shadow_header": "SHADOW_HEADER", "commit": "COMMIT_VERSION", "state": "STATE",
            "active_header": "ACTIVE_HEADER", "lookup_in": "LOOKUP_IN", "lookup_out": "LOOKUP_OUT",
            "staging_claim": "STAGING_CLAIM"}
 
@@ -59,7 +59,7 @@ class ModbusMap:
     WINDOW_LREALS: int = 4
     # ---- staging and commit (bridge writes) ----
     SHADOW_HEADER: int = 8         # ST_CompTableHeader, 52 registers
-    COMMIT_VERSION: int = 60       # UDINT, low word first
+    COMMIT_VERSION: int = 60       # nCommitToken: UDINT, low word first
     PAGE_CONTROL: int = 62         # nPageIndex, nPageCount (LREAL), nPageCmd, nPageSeq
     # ---- PLC answers ----
     PAGE_ACK: int = 66             # nPageSeqDone, ePageStatus

@@ -15,16 +15,20 @@ Per limb, in this order (the ST function performs the same IEEE-754 double opera
     d  = r + R a_j - b_j                    (base frame, mm)
     px = cos(psi) dx + sin(psi) dy;  pz = dz;  py = -sin(psi) dx + cos(psi) dy
     K  = (px*px + py*py + pz*pz) / (2 l);   rho = SQRT(px*px + pz*pz)
-    beta = ACOS(K / rho) - ATAN2(pz, px)    (rad, wrapped to [-pi, pi)); command = beta * 180/pi deg
+    beta = ACOS(K / rho) - atan2_st(pz, px) (rad, wrapped to [-pi, pi)); command = beta * 180/pi deg
+
+``atan2_st`` is F_CompTableAtan2 (TwinCAT 3 has no ATAN2): ATAN of the quotient of magnitude <= 1 with
+the quadrant cases. A pose is out of reach (NaN here, FALSE on the PLC) if rho < RHO_MIN_MM or K/rho lies
+outside [-1, 1]; angles that are not finite or larger than ANGLE_ABS_MAX_DEG give NaN for both motors.
 
 Units: angles in degrees at the interface, mm for lengths.
 """
 
 from __future__ import annotations
 
-import binascii
 import math
 import struct
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,13 +39,34 @@ REFERENCE_NOMINAL_IK = 1
 _PACK = struct.Struct("<5d")
 DEG = math.pi / 180.0          # the ST constants: PI / 180 and 180 / PI as LREAL
 RAD = 180.0 / math.pi
+HALF_PI = 1.5707963267948966   # the ST constant (math.pi / 2)
+#: GVL_CompTableParam.ANGLE_ABS_MAX (deg) and RHO_MIN_MM (mm)
+ANGLE_ABS_MAX_DEG = 1.0e6
+RHO_MIN_MM = 1.0e-6
+
+
+def atan2_st(y: float, x: float) -> float:
+    """F_CompTableAtan2: the angle of (x, y) in rad from ATAN, the same IEEE operations in the same order.
+
+    Agrees with :func:`math.atan2` to a few ulp (exactly at the axes); (0, 0) gives 0. Finite arguments.
+    """
+    if x == 0.0 and y == 0.0:
+        return 0.0
+    if abs(x) >= abs(y):
+        a = math.atan(y / x)
+        if x < 0.0:
+            a = a + math.pi if y >= 0.0 else a - math.pi
+        return a
+    if y > 0.0:
+        return HALF_PI - math.atan(x / y)
+    return -HALF_PI - math.atan(x / y)
 
 
 @dataclass(frozen=True)
 class NominalReference:
     """Nominal geometry of the two actuated limbs: radius ``a_mm``, height ``h_mm``, link ``l_mm``,
     limb azimuths ``psi1_deg``, ``psi2_deg``. Must equal ``GVL_CompTableParam.REF_*`` on the PLC
-    (the header carries :meth:`crc16` of these five values and the PLC refuses a mismatch)."""
+    (the header carries :meth:`crc32` of these five values and the PLC refuses a mismatch)."""
 
     a_mm: float
     h_mm: float
@@ -64,12 +89,12 @@ class NominalReference:
         return {"kind": "nominal_ik", **{k: float(getattr(self, k)) for k in self.KEYS}}
 
     def pack(self) -> bytes:
-        """The five LREALs as the PLC stores them (little-endian), the input of :meth:`crc16`."""
+        """The five LREALs as the PLC stores them (little-endian), the input of :meth:`crc32`."""
         return _PACK.pack(*(float(getattr(self, k)) for k in self.KEYS))
 
-    def crc16(self) -> int:
-        """CRC-16/CCITT-FALSE of :meth:`pack` (``nReferenceCrc`` of the header)."""
-        return binascii.crc_hqx(self.pack(), 0xFFFF)
+    def crc32(self) -> int:
+        """CRC-32 (zlib) of :meth:`pack`: ``nReferenceCrc`` of the header."""
+        return zlib.crc32(self.pack())
 
     def defect(self) -> str | None:
         vals = [float(getattr(self, k)) for k in self.KEYS]
@@ -93,6 +118,9 @@ class NominalReference:
 
     def point_deg(self, phi_deg: float, theta_deg: float) -> tuple[float, float]:
         """One orientation (deg) -> the two nominal motor commands (deg); the ST arithmetic."""
+        if not (math.isfinite(phi_deg) and math.isfinite(theta_deg)) \
+                or abs(phi_deg) > ANGLE_ABS_MAX_DEG or abs(theta_deg) > ANGLE_ABS_MAX_DEG:
+            return math.nan, math.nan
         ph = phi_deg * DEG
         th = theta_deg * DEG
         cp, sp = math.cos(ph), math.sin(ph)
@@ -115,11 +143,11 @@ class NominalReference:
             pz = dz
             k = (px * px + py * py + pz * pz) / (2.0 * self.l_mm)
             rho = math.sqrt(px * px + pz * pz)
-            q = k / rho
+            q = k / rho if rho >= RHO_MIN_MM else 2.0
             if not -1.0 <= q <= 1.0:
                 res.append(math.nan)
                 continue
-            beta = math.acos(q) - math.atan2(pz, px)
+            beta = math.acos(q) - atan2_st(pz, px)
             if beta >= math.pi:
                 beta = beta - 2.0 * math.pi
             elif beta < -math.pi:

@@ -15,15 +15,15 @@ from enum import IntEnum
 
 import numpy as np
 
-from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, CompTable, GridLimits
-from pmcal.bridge.nominal import REFERENCE_NOMINAL_IK, REFERENCE_NONE
+from pmcal.bridge.comptable import HEADER_STRUCT, NPHI_MAX, NTHETA_MAX, CompTable, GridLimits, pack_header
+from pmcal.bridge.nominal import REFERENCE_NONE
 
 #: FB_CompTableManager.tCommitTimeout default (s): a checked table that motion keeps from being swapped
 #: in is dropped with SWAP_TIMEOUT after this long. The bridge's ack time-out (5 s) is longer, so the
 #: user always sees the PLC's verdict.
 COMMIT_TIMEOUT_S = 4.0
 #: interface version of GVL_CompTable (bumped when any layout below changes)
-INTERFACE_VERSION = 2
+INTERFACE_VERSION = 3
 LREAL_SIZE = 8
 #: ARRAY[0..NPHI_MAX-1, 0..NTHETA_MAX-1, 0..1] OF LREAL
 SHADOW_LREALS = NPHI_MAX * NTHETA_MAX * 2
@@ -35,12 +35,14 @@ class Status(IntEnum):
     """E_CompTableStatus: result of the last commit (PLC writes it before the acknowledgement)."""
 
     NONE = 0
-    OK = 1
+    OK = 1                     # swapped and saved (WritePersistentData done)
     BUSY = 2
-    WITHDRAWN = 10             # the bridge cleared nCommitVersion before the swap
+    PLC_STARTING = 3           # the PLC re-checks its persistent table after a restart: commit again later
+    OK_NOT_PERSISTED = 4       # swapped, but saving failed: a power cut without UPS restores the previous table
+    WITHDRAWN = 10             # the owner cleared nCommitToken, or its lease ended, before the swap
     FORMAT_VERSION = 101
-    VERSION_MISMATCH = 102     # nCommitVersion <> header.nTableVersion
-    STALE_VERSION = 103        # not newer than the active table
+    VERSION_MISMATCH = 102     # header nTableVersion = 0
+    STALE_VERSION = 103        # not newer than every table activated so far
     GRID_SIZE = 104
     GRID_LIMITS = 105
     LIMITS = 106
@@ -48,13 +50,19 @@ class Status(IntEnum):
     NOT_FINITE = 108
     OUT_OF_RANGE = 109
     STEP_TOO_LARGE = 110
-    CRC_SELFTEST = 111         # F_DATA_TO_CRC16_CCITT does not give 16#29B1 for '123456789'
+    CRC_SELFTEST = 111         # F_CompTableCrc32 does not give 16#CBF43926 for '123456789'
     SWAP_TIMEOUT = 112         # motion did not allow the swap within tCommitTimeout
     REFERENCE_MISMATCH = 113   # header's nominal-IK reference is not the PLC's (nReference, nReferenceCrc)
+    MACHINE_MISMATCH = 114     # GVL_CompTableParam.MACHINE is set and the header names another machine
 
     @property
     def is_rejection(self) -> bool:
         return self >= 100
+
+    @property
+    def activated(self) -> bool:
+        """The committed table became active (saved or not)."""
+        return self in (Status.OK, Status.OK_NOT_PERSISTED)
 
 
 class State(IntEnum):
@@ -63,6 +71,8 @@ class State(IntEnum):
     IDLE = 0
     CHECKING = 1
     WAIT_MOTION = 2
+    STARTING = 3               # after a restart, until the persistent table is re-checked
+    PERSISTING = 4             # swapped; WritePersistentData runs, the acknowledgement follows
 
 
 class LookupResult(IntEnum):
@@ -73,13 +83,13 @@ class LookupResult(IntEnum):
     NO_TABLE = 2
 
 
-#: ST_CompTableHeader: 7 LREAL, UDINT, 4 x UINT/WORD, STRING(31), nReference UINT, nReferenceCrc WORD
-#: = 104 bytes
-_HEADER = struct.Struct("<7dI4H32s2H")
-#: ST_CompTableState: nAckVersion, nActiveVersion, nCycle (UDINT); eStatus, nActiveCrc, eState,
-#: nReserved (UINT/WORD/INT); nStagingOwner (UDINT) = 24 bytes
-_STATE = struct.Struct("<3I4HI")
-#: FB_CompTableManager.tStagingLease default (s): an owner that stays silent this long loses the staging
+#: ST_CompTableHeader (bridge.comptable.HEADER_STRUCT: the CRC covers this image): 104 bytes
+_HEADER = HEADER_STRUCT
+#: ST_CompTableState: nAckToken, nActiveVersion, nCycle (UDINT); eStatus, eState (INT); nActiveCrc (DWORD);
+#: nStagingOwner (UDINT) = 24 bytes
+_STATE = struct.Struct("<3I2H2I")
+#: GVL_CompTableParam.STAGING_LEASE (s): an owner silent this long while another client claims loses the
+#: staging area; a client waits this long (plus a margin) for it
 STAGING_LEASE_S = 30.0
 #: ST_CompTableLookupIn: fPhi, fTheta (LREAL), nSeq (UDINT), 4 reserved = 24 bytes
 _LOOKUP_IN = struct.Struct("<2dI4x")
@@ -100,52 +110,49 @@ class Header(GridLimits):
     format_version: int
     n_phi: int
     n_theta: int
-    crc: int
+    crc: int                             # nCrc: CRC-32 over this header with nCrc = 0, then the used nodes
     machine: str
     reference: int = REFERENCE_NONE      # nReference: 0 absolute commands, 1 corrections to the nominal IK
-    reference_crc: int = 0               # nReferenceCrc: NominalReference.crc16() of the reference geometry
+    reference_crc: int = 0               # nReferenceCrc: NominalReference.crc32() of the reference geometry
 
     def pack(self) -> bytes:
-        name = self.machine.encode("ascii")[:31]
-        return _HEADER.pack(*self.limits().values(), self.table_version, self.format_version, self.n_phi,
-                            self.n_theta, self.crc, name, self.reference, self.reference_crc)
+        return pack_header(self.limits(), version=self.table_version, format_version=self.format_version,
+                           n_phi=self.n_phi, n_theta=self.n_theta, reference=self.reference, crc=self.crc,
+                           reference_crc=self.reference_crc, machine=self.machine)
 
     @classmethod
     def unpack(cls, data: bytes) -> "Header":
         f = _HEADER.unpack(data)
         names = [x.name for x in dataclasses.fields(GridLimits)]
-        return cls(**dict(zip(names, f[:7])), table_version=f[7], format_version=f[8],
-                   n_phi=f[9], n_theta=f[10], crc=f[11], machine=f[12].split(b"\0", 1)[0].decode("ascii", "replace"),
-                   reference=f[13], reference_crc=f[14])
+        return cls(**dict(zip(names, f[:7])), table_version=f[7], format_version=f[8], n_phi=f[9], n_theta=f[10],
+                   reference=f[11], crc=f[12], reference_crc=f[13],
+                   machine=f[14].split(b"\0", 1)[0].decode("ascii", "replace"))
 
     @classmethod
     def of(cls, table: CompTable) -> "Header":
-        return cls(**table.limits(), table_version=int(table.version), format_version=FORMAT_VERSION,
-                   n_phi=table.n_phi, n_theta=table.n_theta, crc=table.crc16(), machine=table.machine,
-                   reference=REFERENCE_NONE if table.reference is None else REFERENCE_NOMINAL_IK,
-                   reference_crc=0 if table.reference is None else table.reference.crc16())
+        return cls.unpack(table.header_bytes(table.crc32()))
 
 
 @dataclass(frozen=True)
 class PlcState:
     """ST_CompTableState: the handshake outputs of the PLC."""
 
-    ack_version: int
+    ack_token: int               # token of the commit answered (0 after nCommitToken := 0)
     active_version: int
     cycle: int
     status: Status
-    active_crc: int
     state: State
-    staging_owner: int = 0       # session token of the client that owns the staging area (0: free)
+    active_crc: int              # CRC-32 of the active table (its header's nCrc)
+    staging_owner: int = 0       # token of the client that owns the staging area (0: free)
 
     def pack(self) -> bytes:
-        return _STATE.pack(self.ack_version, self.active_version, self.cycle, int(self.status),
-                           self.active_crc, int(self.state), 0, self.staging_owner)
+        return _STATE.pack(self.ack_token, self.active_version, self.cycle, int(self.status), int(self.state),
+                           self.active_crc, self.staging_owner)
 
     @classmethod
     def unpack(cls, data: bytes) -> "PlcState":
-        ack, active, cycle, status, crc, state, _, owner = _STATE.unpack(data)
-        return cls(ack, active, cycle, _enum(Status, status), crc, _enum(State, state), owner)
+        ack, active, cycle, status, state, crc, owner = _STATE.unpack(data)
+        return cls(ack, active, cycle, _enum(Status, status), _enum(State, state), crc, owner)
 
 
 @dataclass(frozen=True)
@@ -200,7 +207,7 @@ SYMBOLS: tuple[Symbol, ...] = (
     Symbol("shadow_header", "stShadowHeader", "ST_CompTableHeader", HEADER_SIZE, "bridge"),
     Symbol("shadow", "aShadow", f"ARRAY [0..{NPHI_MAX - 1},0..{NTHETA_MAX - 1},0..1] OF LREAL",
            SHADOW_SIZE, "bridge"),
-    Symbol("commit_version", "nCommitVersion", "UDINT", 4, "bridge"),
+    Symbol("commit", "nCommitToken", "UDINT", 4, "bridge"),
     Symbol("staging_claim", "nStagingClaim", "UDINT", 4, "bridge"),
     Symbol("state", "stState", "ST_CompTableState", STATE_SIZE, "plc"),
     Symbol("active_header", "stActiveHeader", "ST_CompTableHeader", HEADER_SIZE, "plc"),
@@ -209,7 +216,7 @@ SYMBOLS: tuple[Symbol, ...] = (
 )
 SYMBOL = {s.key: s for s in SYMBOLS}
 #: the allow-lists: what the bridge may write to push a table, and to ask for motor targets
-PUSH_WRITES = frozenset({"shadow_header", "shadow", "commit_version", "staging_claim"})
+PUSH_WRITES = frozenset({"shadow_header", "shadow", "commit", "staging_claim"})
 LOOKUP_WRITES = frozenset({"lookup_in"})
 
 

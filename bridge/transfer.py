@@ -5,10 +5,15 @@
 1. validate the table locally (before connecting);
 2. open the link, check the PLC interface, read the PLC state;
 3. refuse a version that is not newer than the active one (before anything is written);
-4. withdraw any pending commit (``nCommitVersion := 0``) and wait for the PLC to be idle;
+4. claim the staging area with a random token (``nStagingClaim := token``) and wait until the PLC grants
+   it (``nStagingOwner = token``; at most ``claim_timeout_s``: the lease of a silent owner plus a margin);
+   withdraw any pending commit (``nCommitToken := 0``) and wait for the PLC to be idle;
 5. stage header and table into the shadow buffer, read both back and compare bit for bit;
-6. commit by writing the version; wait for the PLC's acknowledgement (time-out ``ack_timeout_s``);
-   on time-out withdraw the commit and report the version that stays active.
+6. commit by writing the token (``nCommitToken := token``: the fencing token; a client that lost the staging
+   area cannot commit); wait for the PLC's acknowledgement (``nAckToken = token``, time-out
+   ``ack_timeout_s``); on time-out withdraw the commit and report the version that stays active. A PLC
+   still re-checking its persistent table after a restart answers ``PLC_STARTING``: commit again with
+   backoff for up to ``start_wait_s``.
 
 Link errors (and read-back mismatches) close the link and restart from step 2, at most ``attempts``
 times; if a commit was sent before the link broke and the PLC meanwhile activated exactly this table,
@@ -31,7 +36,8 @@ from typing import Callable
 from pmcal.bridge.comptable import NTHETA_MAX, CompTable
 from pmcal.bridge.errors import AckTimeout, BridgeError, LinkError, ReadbackMismatch, Rejected, StagingBusy
 from pmcal.bridge.link import PlcLink
-from pmcal.bridge.plc_types import HEADER_SIZE, LREAL_SIZE, Header, PlcState, State, Status, shadow_rows
+from pmcal.bridge.plc_types import (HEADER_SIZE, LREAL_SIZE, STAGING_LEASE_S, Header, PlcState, State, Status,
+                                   shadow_rows)
 from pmcal.errors import InputError
 
 
@@ -47,6 +53,10 @@ class PushOptions:
     dry_run: bool = False
     #: keep re-committing after SWAP_TIMEOUT (the machine moving) until this long has passed, s
     wait_motion_s: float = 0.0
+    #: wait this long for the staging area held by another client (its lease plus a margin), s
+    claim_timeout_s: float = STAGING_LEASE_S + 5.0
+    #: keep committing again (backoff 0.1 s doubling to 2 s) while the PLC answers PLC_STARTING, s
+    start_wait_s: float = 15.0
 
 
 @dataclass
@@ -57,7 +67,7 @@ class PushReport:
     target: str
     machine: str
     version: int
-    crc16: str
+    crc32: str
     result: str = "failed"           # ok | already_active | dry_run | rejected | refused | failed
     status: str = ""                 # PLC status after the ack
     previous_version: int | None = None
@@ -87,7 +97,7 @@ def push(link: PlcLink, table: CompTable, options: PushOptions = PushOptions(),
     if audit_path is not None and not options.dry_run:
         check_writable(audit_path, "--audit")          # before anything reaches the PLC
     run = _Run(link, table, options, PushReport(link.transport, link.target, table.machine, int(table.version),
-                                                f"0x{table.crc16():04X}", dry_run=options.dry_run))
+                                                f"0x{table.crc32():08X}", dry_run=options.dry_run))
     t0 = time.perf_counter()
     try:
         for attempt in range(1, max(1, options.attempts) + 1):
@@ -143,20 +153,37 @@ class _Run:
         self.token = secrets.randbits(32) | 1          # this push's session token (never 0)
 
     def claim(self) -> None:
-        """Own the PLC's staging area (``nStagingClaim := token``) or raise :class:`StagingBusy`.
+        """Own the PLC's staging area (``nStagingOwner = token``) or raise :class:`StagingBusy`.
 
-        The PLC grants the staging to the first claim and keeps it until its owner writes 0 (or stays
-        silent for the staging lease), so two pushes never interleave their writes.
+        The PLC grants the staging area to one claim and keeps it until its owner writes 0, or until the
+        owner has been silent for the PLC's staging lease while another client claims. So this waits up to
+        ``claim_timeout_s`` (lease + margin), writing the claim again whenever the area is free.
         """
         link, opt = self.link, self.opt
+        deadline = time.monotonic() + opt.claim_timeout_s
         link.write_claim(self.token)
-        st = _wait(link, lambda s: s.staging_owner != 0, opt.idle_timeout_s, opt.poll_s,
-                   "PLC did not grant the staging area (nStagingOwner stays 0)")
-        if st.staging_owner != self.token:
-            raise StagingBusy(f"another client is staging a table on this PLC (session 0x{st.staging_owner:08X}); "
-                              "nothing written, try again when it has finished (the PLC frees the staging "
-                              "area of a silent client after its staging lease)")
-        self.owned = True
+        while True:
+            st = link.read_state()
+            if st.staging_owner == self.token:
+                self.owned = True
+                return
+            if st.staging_owner == 0:
+                link.write_claim(self.token)          # the area is free: claim (again, after a release)
+            if time.monotonic() >= deadline:
+                raise StagingBusy(f"another client is staging a table on this PLC (session 0x{st.staging_owner:08X}) "
+                                  f"and kept it for {opt.claim_timeout_s:g} s; nothing written (if that client is gone "
+                                  "and cannot be waited for: pmcal plc unlock)")
+            time.sleep(max(opt.poll_s, 0.002))
+
+    def lost(self) -> bool:
+        """The PLC names another client (or nobody) as the staging owner: this push lost the area.
+
+        False when the state cannot be read: then this push may still own it and acts as the owner.
+        """
+        try:
+            return self.link.read_state().staging_owner != self.token
+        except BridgeError:
+            return False
 
     def release(self) -> None:
         """``nStagingClaim := 0`` if this push owns the staging area (best effort)."""
@@ -167,6 +194,9 @@ class _Run:
                 if reopen:
                     self.link.close()
                     self.link.open()
+                if self.lost():                       # lease lost: the area is someone else's now
+                    self.owned = False
+                    return
                 self.link.write_claim(0)
                 self.owned = False
                 # wait until the PLC has seen the release, so a push right after this one finds it free
@@ -186,7 +216,14 @@ class _Run:
         try:
             link.close()
             link.open()
-            link.write_commit(0)
+            try:
+                owner = link.read_state().staging_owner
+            except BridgeError:                       # unreadable: act as the owner, on a fresh connection
+                owner = self.token
+                link.close()
+                link.open()
+            if owner in (self.token, 0):              # never withdraw a newer owner's commit
+                link.write_commit(0)
         except BridgeError:
             return f"; could not withdraw the commit of version {version} (link down): the PLC drops it " \
                    "unless it passes its checks and motion allows the swap before its commit time-out"
@@ -195,7 +232,7 @@ class _Run:
         except BridgeError:
             return f"; commit of version {version} withdrawn, PLC state unreadable"
         self.rep.active_version, self.rep.status = st.active_version, _name(st.status)
-        if st.active_version == version and st.active_crc == self.table.crc16() \
+        if st.active_version == version and st.active_crc == self.table.crc32() \
                 and link.read_active_header() == self.header:
             self.rep.result = "already_active"
             self.rep.message = f"version {version} active (the acknowledgement was lost, the table was not)"
@@ -204,7 +241,7 @@ class _Run:
 
     def attempt(self) -> None:
         link, opt, rep = self.link, self.opt, self.rep
-        version, crc = int(self.table.version), self.table.crc16()
+        version, crc = int(self.table.version), self.table.crc32()
         t = time.perf_counter()
         link.open()
         link.check_interface()
@@ -228,8 +265,7 @@ class _Run:
         # own the staging area, withdraw whatever is pending, wait for an idle manager
         self.claim()
         link.write_commit(0)
-        _wait(link, lambda s: s.ack_version == 0 and s.state == State.IDLE, opt.idle_timeout_s, opt.poll_s,
-              "PLC manager did not become idle after clearing nCommitVersion")
+        _wait(link, _idle, opt.idle_timeout_s, opt.poll_s, "PLC manager did not become idle after clearing nCommitToken")
         # stage and read back
         t = time.perf_counter()
         sent_header, sent_rows = link.stage(self.header, self.rows)
@@ -242,24 +278,35 @@ class _Run:
         _compare(sent_header, sent_rows, back_header, back_rows)
         # commit and wait for the acknowledgement
         t = time.perf_counter()
+        if link.read_state().staging_owner != self.token:
+            self.owned = False
+            raise StagingBusy("lost the PLC's staging area before the commit (its lease ended while this push was "
+                              "silent); nothing committed")
         self.commit_sent = True
         motion_deadline = time.monotonic() + opt.wait_motion_s
+        start_deadline, backoff = time.monotonic() + opt.start_wait_s, 0.1
         while True:
-            link.write_commit(version)
+            link.write_commit(self.token)
             st = self._await_ack(version, crc)
-            if st.status != Status.SWAP_TIMEOUT or time.monotonic() >= motion_deadline:
+            if st.status == Status.PLC_STARTING and time.monotonic() < start_deadline:
+                # the PLC re-checks its persistent table after a restart: commit again, with backoff
+                time.sleep(backoff)
+                backoff = min(2.0 * backoff, 2.0)
+            elif st.status != Status.SWAP_TIMEOUT or time.monotonic() >= motion_deadline:
                 break
-            # the machine kept moving for the PLC's whole commit time-out: commit again (--wait-motion)
+            # commit again: after PLC_STARTING, or SWAP_TIMEOUT (the machine kept moving) with --wait-motion
             link.write_commit(0)
-            _wait(link, lambda s: s.ack_version == 0 and s.state == State.IDLE, opt.idle_timeout_s, opt.poll_s,
-                  "PLC manager did not become idle after clearing nCommitVersion")
+            _wait(link, _idle, opt.idle_timeout_s, opt.poll_s, "PLC manager did not become idle after clearing nCommitToken")
         rep.timings_s["commit_ack"] = time.perf_counter() - t
         self.acknowledged = True
         rep.active_version, rep.status = st.active_version, _name(st.status)
         _release(link)
-        if st.status == Status.OK and st.active_version == version and st.active_crc == crc:
+        if st.status.activated and st.active_version == version and st.active_crc == crc:
             rep.result = "ok"
             rep.message = f"version {version} active (was {rep.previous_version})"
+            if st.status == Status.OK_NOT_PERSISTED:
+                rep.message += ("; WARNING: the PLC could not save it (WritePersistentData failed): a power cut "
+                                "without UPS would restore the previous table")
             return
         reason = _REASONS.get(st.status, "see plc/README.md")
         if st.status == Status.SWAP_TIMEOUT:
@@ -272,11 +319,11 @@ class _Run:
         """The PLC's acknowledgement of ``version``; on time-out withdraw and say what the PLC was doing."""
         link, opt, rep = self.link, self.opt, self.rep
         try:
-            return _wait(link, lambda s: s.ack_version == version and s.state == State.IDLE, opt.ack_timeout_s,
+            return _wait(link, lambda s: s.ack_token == self.token and s.state in _RESTING, opt.ack_timeout_s,
                          opt.poll_s, "")
         except AckTimeout:
             before = link.read_state()                  # what the PLC was doing, before the withdrawal
-            st = _withdraw(link, opt)
+            st = _settle(link, opt) if self.lost() else _withdraw(link, opt)
             self.acknowledged = True                    # settled: withdrawn (or swapped just before)
             rep.active_version, rep.status = st.active_version, _name(st.status)
             if st.active_version == version and st.active_crc == crc:
@@ -286,7 +333,18 @@ class _Run:
                              f"commit withdrawn, active version stays {st.active_version}") from None
 
 
+#: manager states in which no commit is in progress
+_RESTING = (State.IDLE, State.STARTING)
+
+
+def _idle(st: PlcState) -> bool:
+    """No commit in progress and no acknowledgement pending."""
+    return st.ack_token == 0 and st.state in _RESTING
+
+
 _DOING = {
+    State.STARTING: "the PLC is re-checking its persistent table after a restart (STARTING)",
+    State.PERSISTING: "the table is active and the PLC is saving it (PERSISTING; raise --ack-timeout)",
     State.WAIT_MOTION: "the table passed the PLC's checks and waits for the machine to stop (WAIT_MOTION; "
                        "stop the machine, or use --wait-motion S)",
     State.CHECKING: "the PLC was still checking the table (CHECKING; raise --ack-timeout)",
@@ -307,6 +365,9 @@ _REASONS = {
     Status.CRC_SELFTEST: "the PLC's CRC function fails its self-test",
     Status.WITHDRAWN: "commit withdrawn by another client",
     Status.SWAP_TIMEOUT: "motion did not allow the buffer swap within the PLC's commit time-out",
+    Status.PLC_STARTING: "the PLC kept re-checking its persistent table after a restart; try again",
+    Status.REFERENCE_MISMATCH: "the table's nominal-IK reference differs from the PLC's GVL_CompTableParam.REF_*",
+    Status.MACHINE_MISMATCH: "the table names another machine than the PLC's GVL_CompTableParam.MACHINE",
 }
 
 
@@ -336,13 +397,13 @@ def _withdraw(link: PlcLink, opt: PushOptions) -> PlcState:
 def _settle(link: PlcLink, opt: PushOptions) -> PlcState:
     """The PLC state once the manager is idle again (or as it is after ``idle_timeout_s``)."""
     try:
-        return _wait(link, lambda s: s.state == State.IDLE, opt.idle_timeout_s, opt.poll_s, "")
+        return _wait(link, lambda s: s.state in _RESTING, opt.idle_timeout_s, opt.poll_s, "")
     except AckTimeout:
         return link.read_state()
 
 
 def _release(link: PlcLink) -> None:
-    """After the acknowledgement: ``nCommitVersion := 0`` returns the manager to idle (best effort)."""
+    """After the acknowledgement: ``nCommitToken := 0`` returns the manager to idle (best effort)."""
     try:
         link.write_commit(0)
     except BridgeError:

@@ -41,8 +41,8 @@ DEFAULT_MACHINE = machines.DEFAULT_MACHINE
 FILE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "identify": ("output",), "compensate": ("output", "table"), "evaluate": ("json",),
     "diagnose": ("json",), "twin measure": ("output",), "twin plan": ("output",), "twin render": ("output",), "targets": ("output",),
-    "push": ("json", "audit"), "loop": ("json",), "import": ("output",), "export-model": ("output",),
-    "history": ("report",),
+    "push": ("json", "audit"), "plc unlock": ("audit",), "loop": ("json",), "import": ("output",),
+    "export-model": ("output",), "history": ("report",),
 }
 FOLDER_OUTPUTS: dict[str, tuple[str, ...]] = {"demo": ("out",), "diagnose": ("report",)}
 #: command -> {attribute: how the user names it} of every file the command reads: no output may be one
@@ -142,8 +142,8 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
 
 
 def _command_name(args) -> str:
-    twin = getattr(args, "twin_command", None)
-    return f"{args.command} {twin}" if twin else str(args.command)
+    sub = getattr(args, "twin_command", None) or getattr(args, "plc_cmd", None)
+    return f"{args.command} {sub}" if sub else str(args.command)
 
 
 def output_paths(args, suffixes: bool = False) -> list:

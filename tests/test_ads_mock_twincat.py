@@ -55,7 +55,7 @@ def _code(fn, *args, **kwargs) -> int:
 
 
 def test_read_and_write_list_by_name_are_sum_commands(ads_plc, conn):
-    names = ["GVL_CompTable.nStagingClaim", "GVL_CompTable.nCommitVersion", "GVL_CompTable.nInterfaceVersion"]
+    names = ["GVL_CompTable.nStagingClaim", "GVL_CompTable.nCommitToken", "GVL_CompTable.nInterfaceVersion"]
     result = conn.write_list_by_name({names[0]: 0x1234_5679, names[1]: 0})
     assert result == {names[0]: "no error", names[1]: "no error"}
     conn.read_list_by_name(names)                            # pyads caches the symbol information
@@ -68,7 +68,7 @@ def test_read_and_write_list_by_name_are_sum_commands(ads_plc, conn):
 
 
 def test_sum_read_reports_one_result_per_item(ads_plc, conn):
-    info = conn.get_symbol("GVL_CompTable.nCommitVersion")
+    info = conn.get_symbol("GVL_CompTable.nCommitToken")
     assert info.index_group == IG_PLC_DATA
     raw = adsSumReadBytes(conn._port, conn._adr, [(IG_PLC_DATA, info.index_offset, 4),
                                                    (IG_PLC_DATA, 10_000_000, 4),        # outside the area
@@ -78,8 +78,8 @@ def test_sum_read_reports_one_result_per_item(ads_plc, conn):
     errors = adsSumWriteBytes(conn._port, conn._adr, 2, bytearray(
         struct.pack("<6I", IG_PLC_DATA, info.index_offset, 4, IG_PLC_DATA, 10_000_000, 4) + struct.pack("<2I", 9, 9)))
     assert errors[0] == "no error" and errors[1] != "no error"
-    assert ads_plc.twin.read_symbol("commit_version") == struct.pack("<I", 9)   # the good item was written
-    conn.write_by_name("GVL_CompTable.nCommitVersion", 0, pyads.PLCTYPE_UDINT)
+    assert ads_plc.twin.read_symbol("commit") == struct.pack("<I", 9)   # the good item was written
+    conn.write_by_name("GVL_CompTable.nCommitToken", 0, pyads.PLCTYPE_UDINT)
 
 
 def test_partial_writes_by_offset_and_array_elements_by_name(ads_plc, conn):
@@ -103,7 +103,7 @@ def test_partial_writes_by_offset_and_array_elements_by_name(ads_plc, conn):
 
 def test_error_codes_and_handle_lifetime(ads_plc, conn):
     assert _code(conn.read_by_name, "GVL_CompTable.nNoSuchThing", pyads.PLCTYPE_UDINT) == 0x710
-    handle = conn.get_handle("GVL_CompTable.nCommitVersion")
+    handle = conn.get_handle("GVL_CompTable.nCommitToken")
     assert conn.read_by_name("", pyads.PLCTYPE_UDINT, handle=handle) == 0
     assert _code(conn.write, constants.ADSIGRP_SYM_VALBYHND, handle, 1, pyads.PLCTYPE_ULINT) == 0x705  # too long
     assert _code(conn.read_write, constants.ADSIGRP_SYM_VALBYHND, handle, pyads.PLCTYPE_UDINT, 1,
@@ -112,7 +112,7 @@ def test_error_codes_and_handle_lifetime(ads_plc, conn):
     assert _code(conn.read_by_name, "", pyads.PLCTYPE_UDINT, handle=handle) == 0x710     # released
     assert _code(conn.read, IG_PLC_DATA, 10_000_000, pyads.PLCTYPE_UDINT) == 0x703
     assert _code(conn.read, 0x1234, 0, pyads.PLCTYPE_UDINT) == 0x702
-    handle = conn.get_handle("GVL_CompTable.nCommitVersion")
+    handle = conn.get_handle("GVL_CompTable.nCommitToken")
     ads_plc.restart(down_s=0.3)                                        # handles end with the runtime
     conn.close()
     conn.open()
@@ -186,11 +186,11 @@ def test_a_stopped_plc_reports_stop_and_keeps_its_memory(ads_plc, conn):
     conn.write_control(constants.ADSSTATE_STOP, 0, 0, pyads.PLCTYPE_INT)       # as XAE's "Stop"
     assert conn.read_state()[0] == constants.ADSSTATE_STOP
     first = conn.read_by_name("GVL_CompTable.stState", ctypes.c_uint8 * 24, return_ctypes=True)
-    conn.write_by_name("GVL_CompTable.nCommitVersion", 5, pyads.PLCTYPE_UDINT)      # accepted, as TwinCAT does
+    conn.write_by_name("GVL_CompTable.nCommitToken", 5, pyads.PLCTYPE_UDINT)      # accepted, as TwinCAT does
     time.sleep(0.05)
     again = conn.read_by_name("GVL_CompTable.stState", ctypes.c_uint8 * 24, return_ctypes=True)
     assert bytes(first) == bytes(again)                            # the task does not run: nothing moves
-    conn.write_by_name("GVL_CompTable.nCommitVersion", 0, pyads.PLCTYPE_UDINT)
+    conn.write_by_name("GVL_CompTable.nCommitToken", 0, pyads.PLCTYPE_UDINT)
     conn.write_control(constants.ADSSTATE_RUN, 0, 0, pyads.PLCTYPE_INT)
     assert conn.read_state()[0] == constants.ADSSTATE_RUN
     time.sleep(0.05)
@@ -234,7 +234,7 @@ def test_the_bridge_stages_in_one_request_and_reads_back_in_one(ads_plc):
 def test_symbol_upload_lists_the_visible_gvl(conn):
     symbols = {s.name: s for s in conn.get_all_symbols()}
     assert set(symbols) == {f"GVL_CompTable.{n}" for n in ("nInterfaceVersion", "stShadowHeader", "aShadow",
-                                                            "nCommitVersion", "nStagingClaim", "stState",
+                                                            "nCommitToken", "nStagingClaim", "stState",
                                                             "stActiveHeader", "stLookupIn", "stLookupOut")}
     assert symbols[SHADOW].symbol_type.replace(" ", "") == "ARRAY[0..99,0..99,0..1]OFLREAL"
     assert all(s.index_group == IG_PLC_DATA for s in symbols.values())
@@ -254,8 +254,8 @@ def test_struct_members_are_symbols_of_their_own(ads_plc, conn):
 
 def test_a_busy_device_answers_0x708(ads_plc, conn):
     ads_plc.faults.arm(Fault(Kind.BUSY, Point.BEFORE_STAGE, times=1))
-    assert _code(conn.read_by_name, "GVL_CompTable.nCommitVersion", pyads.PLCTYPE_UDINT) == 0x708
-    assert conn.read_by_name("GVL_CompTable.nCommitVersion", pyads.PLCTYPE_UDINT) == 0      # once only
+    assert _code(conn.read_by_name, "GVL_CompTable.nCommitToken", pyads.PLCTYPE_UDINT) == 0x708
+    assert conn.read_by_name("GVL_CompTable.nCommitToken", pyads.PLCTYPE_UDINT) == 0      # once only
 
 
 def test_the_bridge_releases_every_handle_it_took(ads_plc):

@@ -45,7 +45,7 @@ def test_round_trip_100x100x2_bit_exact(ads_plc, tmp_path):
     line = json.loads(audit.read_text().splitlines()[-1])
     assert (line["event"], line["result"], line["version"], line["sha256_sent"]) == (
         "push", "ok", 1, rep.sha256_sent)
-    assert line["crc16"] == f"0x{table.crc16():04X}"
+    assert line["crc32"] == f"0x{table.crc32():08X}"
 
 
 def test_each_push_replaces_the_active_table_and_same_content_is_a_no_op(ads_plc):
@@ -56,7 +56,7 @@ def test_each_push_replaces_the_active_table_and_same_content_is_a_no_op(ads_plc
     rep = push(link, make_table(version=3, offset_deg=0.03))
     assert rep.result == "already_active" and ads_plc.writes == writes
     st = ads_plc.twin.state
-    assert (st.active_version, st.ack_version, st.state) == (3, 0, State.IDLE)   # released after the ack
+    assert (st.active_version, st.ack_token, st.state) == (3, 0, State.IDLE)   # released after the ack
 
 
 @pytest.mark.parametrize("what", ["nan", "range", "step", "grid", "stale"])
@@ -93,7 +93,7 @@ def test_writes_outside_the_allow_list_never_leave_the_client(ads_plc):
         with pytest.raises(WriteNotAllowed):
             link.write_symbol("state", bytes(24))
         with pytest.raises(WriteNotAllowed, match="bytes"):
-            link.write_symbol("commit_version", bytes(8))
+            link.write_symbol("commit", bytes(8))
     assert ads_plc.writes == 0
 
 
@@ -112,7 +112,7 @@ def test_writes_by_handle_are_taken_as_twincat_takes_them(ads_plc):
         back = np.frombuffer(bytes(plc.read_by_name("GVL_CompTable.aShadow", t, return_ctypes=True)), "<f8")
         assert np.array_equal(back[:10], np.ones(10)) and not back[10:].any()
         with pytest.raises(pyads.ADSError) as exc:                  # more than the symbol holds
-            plc.write_by_name("GVL_CompTable.nCommitVersion", 1, pyads.PLCTYPE_ULINT)
+            plc.write_by_name("GVL_CompTable.nCommitToken", 1, pyads.PLCTYPE_ULINT)
         assert exc.value.err_code == 1797
         with pytest.raises(pyads.ADSError) as exc:
             plc.read_by_name("GVL_CompTable.nNoSuchThing", pyads.PLCTYPE_UDINT)

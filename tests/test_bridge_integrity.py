@@ -41,12 +41,12 @@ def _accepted(srv) -> bool:
     return True
 
 
-@pytest.mark.parametrize("drop", ["crc16_ccitt", "sha256", "both"])
+@pytest.mark.parametrize("drop", ["crc32", "sha256", "both"])
 @pytest.mark.parametrize("transport", ["ads", "modbus"])
 def test_table_without_checksums_is_refused_before_connecting(tmp_path, capsys, drop, transport):
     jp, _ = make_table(version=5).save(tmp_path / "comp.json")
     doc = json.loads(jp.read_text())
-    for key in (("crc16_ccitt", "sha256") if drop == "both" else (drop,)):
+    for key in (("crc32", "sha256") if drop == "both" else (drop,)):
         del doc[key]
     jp.write_text(json.dumps(doc))
     srv = _listener()
@@ -135,7 +135,7 @@ def test_bridge_ack_timeout_is_longer_than_the_plc_commit_timeout():
     """Aligned defaults: the PLC's verdict (SWAP_TIMEOUT) always arrives before the bridge gives up."""
     assert PushOptions().ack_timeout_s > COMMIT_TIMEOUT_S == PlcTwin().commit_timeout_s
     from tests.test_bridge_plc import DECL
-    assert "tCommitTimeout : TIME := T#4S" in DECL["FB_CompTableManager"]
+    assert "COMMIT_TIMEOUT    : TIME := T#4S" in DECL["GVL_CompTableParam"]
 
 
 # ---- concurrent pushes: the PLC arbitrates the staging area -----------------------------------
@@ -153,7 +153,7 @@ def test_second_client_is_told_another_client_is_staging(link):
             time.sleep(0.02)
             assert plc.twin.state.staging_owner == 0x12345679
             with pytest.raises(StagingBusy, match="another client is staging") as exc:
-                push(link(plc), make_table(version=2), PushOptions(ack_timeout_s=1.0))
+                push(link(plc), make_table(version=2), PushOptions(ack_timeout_s=1.0, claim_timeout_s=0.3))
             assert "nothing committed" in str(exc.value)
             assert plc.twin.state.active_version == 1
             assert plc.twin.state.staging_owner == 0x12345679   # the loser did not take it over

@@ -7,7 +7,6 @@ behind real ADS and Modbus servers.
 
 from __future__ import annotations
 
-import binascii
 import re
 import xml.etree.ElementTree as ET
 from dataclasses import replace
@@ -16,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, crc16_ccitt
+from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, crc32
 from pmcal.bridge import plc_types
 from pmcal.bridge.modbus_map import MAGIC, PAGE_LOAD, PAGE_STORE, ModbusMap
 from pmcal.bridge.nominal import NominalReference
@@ -30,15 +29,23 @@ PLC = Path(__file__).resolve().parent.parent / "plc"
 
 # ---- the twin of FB_CompTableManager / FB_CompTableCheck / FB_CompTableLookup ----------------
 
+#: the staging token of the tests' client
+TOKEN = 0x5EED0001
+
+
 def stage(twin: PlcTwin, table, header: Header | None = None) -> None:
+    """Claim the staging area with TOKEN (granted in one cycle) and stage ``table``."""
+    twin.write_symbol("staging_claim", TOKEN.to_bytes(4, "little"))
+    twin.cycle()
+    assert twin.state.staging_owner == TOKEN
     twin.write_symbol("shadow_header", (header or Header.of(table)).pack())
     twin.write_symbol("shadow", shadow_rows(table) + bytes(plc_types.SHADOW_SIZE - len(shadow_rows(table))))
 
 
-def commit(twin: PlcTwin, version: int, cycles: int = 3):
-    """Write nCommitVersion and run the task: one cycle (the snapshot), the cycles FB_CompTableCheck
-    needs (it spreads its work over nRowsPerCycle rows per cycle), then ``cycles - 2`` more."""
-    twin.write_symbol("commit_version", version.to_bytes(4, "little"))
+def commit(twin: PlcTwin, token: int = TOKEN, cycles: int = 3):
+    """Write nCommitToken and run the task: one cycle, the cycles the snapshot and FB_CompTableCheck
+    need (spread over cycles by their budget), then ``cycles - 2`` more."""
+    twin.write_symbol("commit", token.to_bytes(4, "little"))
     twin.cycle()
     if cycles > 1:
         for _ in range(100_000):
@@ -55,17 +62,20 @@ def test_commit_swaps_only_when_motion_allows_and_acknowledges_last():
     table = make_table(version=1)
     stage(twin, table)
     twin.motion_idle = False
-    st = commit(twin, 1)
-    assert (st.state, st.status, st.ack_version, st.active_version) == (State.WAIT_MOTION, Status.BUSY, 0, 0)
+    st = commit(twin)
+    assert (st.state, st.status, st.ack_token, st.active_version) == (State.WAIT_MOTION, Status.BUSY, 0, 0)
     twin.motion_idle = True
-    twin.cycle()
+    for _ in range(20):                                    # the swap, then WritePersistentData, then the ack
+        twin.cycle()
+        if twin.state.ack_token:
+            break
     st = twin.state
-    assert (st.state, st.status, st.ack_version, st.active_version, st.active_crc) == (
-        State.IDLE, Status.OK, 1, 1, table.crc16())
+    assert (st.state, st.status, st.ack_token, st.active_version, st.active_crc) == (
+        State.IDLE, Status.OK, TOKEN, 1, table.crc32())
     header, values = twin.active_table()
     assert header == Header.of(table) and values.tobytes() == table.values.tobytes()
     st = commit(twin, 0, cycles=1)                         # release: ack cleared, table stays
-    assert (st.ack_version, st.active_version) == (0, 1)
+    assert (st.ack_token, st.active_version) == (0, 1)
 
 
 def test_snapshot_at_commit_ignores_later_writes_to_staging():
@@ -73,10 +83,11 @@ def test_snapshot_at_commit_ignores_later_writes_to_staging():
     table = make_table(version=1)
     stage(twin, table)
     twin.motion_idle = False
-    commit(twin, 1)
+    commit(twin)
     stage(twin, make_table(version=1, offset_deg=1.0))     # staging overwritten while waiting
     twin.motion_idle = True
-    twin.cycle()
+    for _ in range(20):
+        twin.cycle()
     assert twin.active_table()[1].tobytes() == table.values.tobytes()
 
 
@@ -106,10 +117,7 @@ def _bad(kind: str):
 @pytest.mark.parametrize("kind, status", [
     ("format", Status.FORMAT_VERSION), ("stale", Status.STALE_VERSION), ("grid_size", Status.GRID_SIZE),
     ("grid_limits", Status.GRID_LIMITS),
-    pytest.param("limits", Status.LIMITS, marks=pytest.mark.xfail(strict=True, reason=(
-        "today's FB_CompTableCheck tests the limits with OR, which ST evaluates in full: with fMaxStep = NaN "
-        "the comparison fMaxStep > 0.0 traps (FPU invalid operation) and stops the task although "
-        "F_CompTableIsFinite already said FALSE; plc_twin answered LIMITS"))),
+    ("limits", Status.LIMITS),
     ("crc", Status.CRC_MISMATCH),
     ("nan", Status.NOT_FINITE), ("range", Status.OUT_OF_RANGE), ("step", Status.STEP_TOO_LARGE),
 ])
@@ -119,16 +127,26 @@ def test_rejections_leave_the_active_table(kind, status):
     twin.seed(good)
     table, header = _bad(kind)
     stage(twin, table, header)
-    st = commit(twin, header.table_version)
-    assert (st.status, st.ack_version, st.active_version, st.active_crc) == (
-        status, header.table_version, 1, good.crc16())
+    st = commit(twin)
+    assert (st.status, st.ack_token, st.active_version, st.active_crc) == (status, TOKEN, 1, good.crc32())
+    assert not twin.stopped
     assert twin.active_table()[1].tobytes() == good.values.tobytes()
 
 
-def test_commit_version_must_match_the_staged_header():
+def test_version_zero_is_refused():
+    twin = PlcTwin()
+    table = make_table(version=5)
+    stage(twin, table, replace(Header.of(table), table_version=0))
+    assert commit(twin).status == Status.VERSION_MISMATCH
+
+
+def test_a_commit_with_another_token_than_the_owners_is_ignored():
+    """Fencing: a client that lost the staging area (its lease ended) cannot commit over the owner."""
     twin = PlcTwin()
     stage(twin, make_table(version=5))
-    assert commit(twin, 6).status == Status.VERSION_MISMATCH
+    st = commit(twin, TOKEN + 2)                           # a stale client's token
+    assert (st.state, st.ack_token, st.active_version, st.status) == (State.IDLE, 0, 0, Status.NONE)
+    assert commit(twin, TOKEN, cycles=30).active_version == 5
 
 
 def test_withdrawal_and_swap_timeout_leave_the_active_table():
@@ -136,22 +154,15 @@ def test_withdrawal_and_swap_timeout_leave_the_active_table():
     twin.seed(make_table(version=1))
     stage(twin, make_table(version=2))
     twin.motion_idle = False
-    st = commit(twin, 2)
-    assert (st.status, st.ack_version, st.active_version) == (Status.SWAP_TIMEOUT, 2, 1)
+    st = commit(twin)
+    assert (st.status, st.ack_token, st.active_version) == (Status.SWAP_TIMEOUT, TOKEN, 1)
     twin = PlcTwin()
     twin.seed(make_table(version=1))
     stage(twin, make_table(version=2))
     twin.motion_idle = False
-    commit(twin, 2)
+    commit(twin)
     st = commit(twin, 0, cycles=1)
-    assert (st.status, st.ack_version, st.active_version) == (Status.WITHDRAWN, 2, 1)
-
-
-def test_crc_self_test_refuses_every_table_on_a_foreign_crc_variant():
-    # a library whose CRC-16 ignores the start value: XMODEM (start value 0) instead of CCITT-FALSE
-    twin = PlcTwin(crc=lambda data, crc: binascii.crc_hqx(data, 0))
-    stage(twin, make_table(version=1))
-    assert commit(twin, 1).status == Status.CRC_SELFTEST
+    assert (st.status, st.ack_token, st.active_version) == (Status.WITHDRAWN, TOKEN, 1)
 
 
 def test_lookup_is_bit_identical_to_the_python_interpolation():
@@ -170,9 +181,6 @@ def test_lookup_is_bit_identical_to_the_python_interpolation():
     assert _lookup(twin, 10.0, 60.5).result == LookupResult.OUT_OF_GRID
 
 
-@pytest.mark.xfail(strict=True, reason="today's FB_CompTableLookup compares the target with the grid limits; "
-                   "a NaN target makes that comparison trap (FPU invalid operation) and stops the task. "
-                   "plc_twin answered OUT_OF_GRID; the ST must test the target with F_CompTableIsFinite first")
 def test_a_nan_target_is_out_of_grid_and_the_task_runs_on():
     twin = PlcTwin()
     twin.seed(make_table(version=3))
@@ -218,7 +226,8 @@ def _constants() -> dict[str, object]:
     for name, value in re.findall(pattern, DECL["GVL_CompTableParam"], re.M):
         value = value.strip()
         consts[name] = (int(value[3:], 16) if value.startswith("16#") else value.strip("'") if value.startswith("'")
-                        else float(value) if "." in value else int(value))
+                        else value if value.startswith("T#")
+                        else float(value) if "." in value or "E" in value else int(value))
     return consts
 
 
@@ -287,7 +296,7 @@ def test_st_constants_match_the_bridge():
     assert (CONST["INTERFACE_VERSION"], CONST["FORMAT_VERSION"]) == (plc_types.INTERFACE_VERSION, FORMAT_VERSION)
     assert (CONST["WINDOW_LREALS"], CONST["MB_MAGIC"]) == (rmap.window_lreals, MAGIC)
     assert (CONST["PAGE_STORE"], CONST["PAGE_LOAD"]) == (PAGE_STORE, PAGE_LOAD)
-    assert crc16_ccitt(CONST["CRC_TEST_VECTOR"].encode()) == CONST["CRC_TEST_RESULT"] == 0x29B1
+    assert crc32(CONST["CRC_TEST_VECTOR"].encode()) == CONST["CRC_TEST_RESULT"] == 0xCBF43926
     # the nominal-IK reference the PLC computes is the one tables are written against
     ref = NominalReference.default()
     assert tuple(float(CONST[k]) for k in ("REF_A_MM", "REF_H_MM", "REF_L_MM", "REF_PSI1_DEG", "REF_PSI2_DEG")) == (
@@ -300,7 +309,10 @@ def test_st_structs_have_the_bridge_byte_layout():
     assert _size("ST_CompTableLookupIn") == plc_types.LOOKUP_IN_SIZE == 24
     assert _size("ST_CompTableLookupOut") == plc_types.LOOKUP_OUT_SIZE == 32
     h = _offsets("ST_CompTableHeader")
-    assert (h["nTableVersion"], h["nPhi"], h["nCrc"], h["sMachine"]) == (56, 62, 66, 68)
+    assert (h["nTableVersion"], h["nPhi"], h["nReference"], h["nCrc"], h["nReferenceCrc"], h["sMachine"]) == (
+        56, 62, 66, 68, 72, 76)
+    st = _offsets("ST_CompTableState")
+    assert (st["nAckToken"], st["eStatus"], st["eState"], st["nActiveCrc"], st["nStagingOwner"]) == (0, 12, 14, 16, 20)
     packed = Header.of(make_table(version=0x01020304)).pack()
     assert packed[56:60] == bytes([4, 3, 2, 1]) and Header.unpack(packed).table_version == 0x01020304
 
@@ -308,7 +320,7 @@ def test_st_structs_have_the_bridge_byte_layout():
 def test_st_modbus_area_matches_the_register_map():
     rmap = ModbusMap()
     off = {k: v // 2 for k, v in _offsets("ST_CompTableModbusArea").items()}
-    assert (off["nMagic"], off["stShadowHeader"], off["nCommitVersion"], off["nPageIndex"], off["nPageSeqDone"],
+    assert (off["nMagic"], off["stShadowHeader"], off["nCommitToken"], off["nPageIndex"], off["nPageSeqDone"],
             off["stState"], off["stActiveHeader"], off["stLookupIn"], off["stLookupOut"], off["aWindow"]) == (
         rmap.MAGIC, rmap.SHADOW_HEADER, rmap.COMMIT_VERSION, rmap.PAGE_CONTROL, rmap.PAGE_ACK,
         rmap.STATE, rmap.ACTIVE_HEADER, rmap.LOOKUP_IN, rmap.LOOKUP_OUT, rmap.WINDOW)

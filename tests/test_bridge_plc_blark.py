@@ -20,7 +20,7 @@ from pmcal.bridge.nominal import NominalReference  # noqa: E402
 
 PLC = Path(__file__).resolve().parent.parent / "plc"
 FILES = sorted(p for p in PLC.rglob("*") if p.suffix in (".TcPOU", ".TcDUT", ".TcGVL"))
-SIZES = {"LREAL": 8, "UDINT": 4, "DINT": 4, "UINT": 2, "INT": 2, "WORD": 2, "BYTE": 1, "BOOL": 1}
+SIZES = {"LREAL": 8, "UDINT": 4, "DWORD": 4, "DINT": 4, "UINT": 2, "INT": 2, "WORD": 2, "BYTE": 1, "BOOL": 1}
 
 
 @functools.lru_cache(maxsize=None)
@@ -86,16 +86,17 @@ def test_header_and_state_offsets_match_the_packed_formats(summary):
     fmt = plc_types._HEADER.format.lstrip("<")
     header = {n: off for n, off, _ in _layout(summary, "ST_CompTableHeader")}
     assert header["nTableVersion"] == st.calcsize("<7d")
-    assert header["nReference"] == st.calcsize("<7dI4H32s") and header["nReferenceCrc"] == header["nReference"] + 2
+    assert header["nReference"] == st.calcsize("<7dI3H") and header["nCrc"] == st.calcsize("<7dI4H")
+    assert header["nReferenceCrc"] == header["nCrc"] + 4 and header["sMachine"] == st.calcsize("<7dI4H2I")
     assert st.calcsize("<" + fmt) == plc_types.HEADER_SIZE
     state = {n: off for n, off, _ in _layout(summary, "ST_CompTableState")}
-    assert state["nStagingOwner"] == st.calcsize("<3I4H")
+    assert state["nActiveCrc"] == st.calcsize("<3I2H") and state["nStagingOwner"] == st.calcsize("<3I2HI")
 
 
 def test_modbus_area_offsets_match_the_register_map(summary):
     rmap = ModbusMap()
     regs = {n: off // 2 for n, off, _ in _layout(summary, "ST_CompTableModbusArea")}
-    assert (regs["stShadowHeader"], regs["nCommitVersion"], regs["stState"], regs["stActiveHeader"],
+    assert (regs["stShadowHeader"], regs["nCommitToken"], regs["stState"], regs["stActiveHeader"],
             regs["stLookupIn"], regs["stLookupOut"], regs["nStagingClaim"], regs["aWindow"]) == (
         rmap.SHADOW_HEADER, rmap.COMMIT_VERSION, rmap.STATE, rmap.ACTIVE_HEADER, rmap.LOOKUP_IN,
         rmap.LOOKUP_OUT, rmap.STAGING_CLAIM, rmap.WINDOW)

@@ -4,6 +4,8 @@ dropped at start-up rather than used. Lookups go through a plain link after the 
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -28,7 +30,7 @@ def test_restart_after_a_push_keeps_the_table_and_refuses_a_stale_one(mock, link
         plc.restart()
         assert plc.twin.wait_started()                   # the manager re-checks the table over some cycles
         st = plc.twin.state
-        assert (st.active_version, st.active_crc, st.status) == (7, table.crc16(), Status.OK)
+        assert (st.active_version, st.active_crc, st.status) == (7, table.crc32(), Status.OK)
         assert plc.twin.active_table()[1].tobytes() == table.values.tobytes()
         with link(plc, writes=LOOKUP_WRITES) as after:
             got = after.lookup(123.0, 33.0)
@@ -42,13 +44,20 @@ def test_restart_after_a_push_keeps_the_table_and_refuses_a_stale_one(mock, link
         from pmcal.bridge.plc_types import Header, shadow_rows
         with plc.twin.lock:
             plc.twin.write_shadow_bytes(0, shadow_rows(stale))
-            for key, data in (("shadow_header", Header.of(stale).pack()), ("commit_version", (6).to_bytes(4, "little"))):
-                if plc.transport == "modbus":   # the ST copies these from the %M area every cycle
-                    off = plc.rmap.offset(key)
-                    plc.area.image[off:off + len(data) // 2] = np.frombuffer(data, dtype="<u2")
-                else:
-                    plc.twin.write_symbol(key, data)
-        import time
+
+        def put(key: str, data: bytes) -> None:
+            if plc.transport == "modbus":       # the ST copies these from the %M area every cycle
+                off = plc.rmap.offset(key)
+                plc.area.image[off:off + len(data) // 2] = np.frombuffer(data, dtype="<u2")
+            else:
+                plc.twin.write_symbol(key, data)
+
+        with plc.twin.lock:
+            put("shadow_header", Header.of(stale).pack())
+            put("staging_claim", (0x77).to_bytes(4, "little"))
+        time.sleep(0.05)                                  # the claim is granted
+        with plc.twin.lock:
+            put("commit", (0x77).to_bytes(4, "little"))
         time.sleep(0.05)
         assert (plc.twin.state.status, plc.twin.state.active_version) == (Status.STALE_VERSION, 7)
 
@@ -65,7 +74,7 @@ def test_restart_mid_life_loses_staging_only(mock, link):
         plc.restart()                                    # ... and the PLC restarts meanwhile
         assert plc.twin.wait_started()
         st = plc.twin.state
-        assert (st.active_version, st.staging_owner, plc.twin.commit_version) == (1, 0, 0)
+        assert (st.active_version, st.staging_owner, plc.twin.commit_token) == (1, 0, 0)
         assert plc.twin.active_table()[1].tobytes() == good.values.tobytes()
         plc.twin.motion_idle = True
         assert push(link(plc), new).result == "ok"       # a fresh push after the restart works

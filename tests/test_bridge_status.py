@@ -30,9 +30,9 @@ def test_status_and_verify(mock, tmp_path, capsys):
         plc.twin.seed(table)
         assert main(["plc", "status", *_target(plc), "--json"]) == 0
         s = json.loads(capsys.readouterr().out)
-        assert (s["active_version"], s["active_crc16"], s["machine"], s["reference"], s["grid"]) == (
-            9, f"0x{table.crc16():04X}", "ocpm_2dof", "nominal_ik", [37, 13])
-        assert s["interface_version"] == 2 and s["state"] == "IDLE" and s["time"].endswith("Z")
+        assert (s["active_version"], s["active_crc32"], s["machine"], s["reference"], s["grid"]) == (
+            9, f"0x{table.crc32():08X}", "ocpm_2dof", "nominal_ik", [37, 13])
+        assert s["interface_version"] == 3 and s["state"] == "IDLE" and s["time"].endswith("Z")
         assert main(["plc", "verify", str(jp), *_target(plc), "--json"]) == 0
         v = json.loads(capsys.readouterr().out)
         assert v["active"] is True and v["version"] == 9

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.interpolate import RegularGridInterpolator
 
-from pmcal.bridge.comptable import CompTable, bilinear, crc16_ccitt
+from pmcal.bridge.comptable import CompTable, bilinear, crc32
 from pmcal.errors import InputError
 from tests.bridge_fixtures import MAX_STEP_DEG, make_table, nominal_setpoints
 
@@ -17,31 +17,48 @@ LIMITS = dict(phi_min_deg=0, phi_max_deg=360, theta_min_deg=0, theta_max_deg=60,
               max_step_deg=10)
 
 
-def crc16_ccitt_bitwise(data: bytes, crc: int = 0xFFFF) -> int:
-    """Independent CRC: polynomial 0x1021 fed MSB first, as Beckhoff documents F_BYTE_TO_CRC16_CCITT."""
+def crc32_bitwise(data: bytes, crc: int = 0) -> int:
+    """Independent CRC-32 (IEEE 802.3): reflected polynomial 0xEDB88320, bit by bit, init/final XOR."""
+    reg = crc ^ 0xFFFFFFFF
     for byte in data:
-        crc ^= byte << 8
+        reg ^= byte
         for _ in range(8):
-            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else (crc << 1)
-            crc &= 0xFFFF
-    return crc
+            reg = (reg >> 1) ^ 0xEDB88320 if reg & 1 else reg >> 1
+    return reg ^ 0xFFFFFFFF
+
+
+def header_image(table, crc: int) -> bytes:
+    """ST_CompTableHeader as the DUT comments lay it out (offsets 0..103), written out field by field."""
+    import struct
+
+    ref = table.reference
+    out = struct.pack("<7d", *table.limits().values())                          # 0..55
+    out += struct.pack("<I", table.version)                                      # 56 nTableVersion
+    out += struct.pack("<4H", 3, table.n_phi, table.n_theta, 0 if ref is None else 1)   # 60..67
+    out += struct.pack("<I", crc)                                                # 68 nCrc
+    out += struct.pack("<I", 0 if ref is None else crc32_bitwise(ref.pack()))    # 72 nReferenceCrc
+    out += table.machine.encode().ljust(28, b"\0")                               # 76 sMachine STRING(27)
+    return out
 
 
 # ---- CRC ----------------------------------------------------------------------------------
 
-def test_crc_pinned_vector_matches_ccitt_false():
-    # the check value of CRC-16/CCITT-FALSE; FB_CompTableCheck refuses every table if the PLC library differs
-    assert crc16_ccitt(b"123456789") == 0x29B1
-    assert crc16_ccitt_bitwise(b"123456789") == 0x29B1
-    assert crc16_ccitt(b"") == 0xFFFF
+def test_crc_pinned_vector_is_ieee_crc32():
+    # the check value of CRC-32/ISO-HDLC (zlib.crc32); FB_CompTableCheck refuses every table if its
+    # F_CompTableCrc32 gives anything else
+    assert crc32(b"123456789") == crc32_bitwise(b"123456789") == 0xCBF43926
+    assert crc32(b"") == 0
 
 
-def test_crc_chains_like_the_plc_row_by_row_call():
+def test_crc_covers_the_header_with_its_crc_zeroed_then_the_rows():
     table = make_table(n_phi=9, n_theta=5)
-    crc = 0xFFFF
-    for i in range(table.n_phi):          # FB_CompTableCheck: one F_DATA_TO_CRC16_CCITT call per row
-        crc = crc16_ccitt(table.values[i].tobytes(), crc)
-    assert crc == table.crc16() == crc16_ccitt_bitwise(table.data_bytes())
+    assert table.header_bytes(0) == header_image(table, 0) and len(header_image(table, 0)) == 104
+    crc = crc32(header_image(table, 0))
+    for i in range(table.n_phi):          # FB_CompTableCheck: chained over the rows, split over cycles
+        crc = crc32(table.values[i].tobytes(), crc)
+    assert crc == table.crc32() == crc32_bitwise(header_image(table, 0) + table.data_bytes())
+    # the header counts: another version or machine gives another CRC over the same data
+    assert table.with_version(table.version + 1).crc32() != table.crc32()
 
 
 def test_crc_covers_the_little_endian_lreal_layout():
@@ -50,7 +67,7 @@ def test_crc_covers_the_little_endian_lreal_layout():
     table = CompTable(machine="m", version=1, values=values, **LIMITS)
     expected = bytes.fromhex("000000000000f03f") + bytes(7 * 8)      # LREAL 1.0, then seven zeros
     assert table.data_bytes() == expected
-    assert table.crc16() == crc16_ccitt_bitwise(expected)
+    assert table.crc32() == crc32_bitwise(header_image(table, 0) + expected)
 
 
 # ---- validation ---------------------------------------------------------------------------
@@ -122,11 +139,11 @@ def test_json_and_csv_round_trip_bit_exact(tmp_path):
     jp, cp = table.save(tmp_path / "comp.json")
     for back in (CompTable.load(jp), CompTable.load(cp)):
         assert back.values.tobytes() == table.values.tobytes()
-        assert back.crc16() == table.crc16() and back.sha256() == table.sha256()
+        assert back.crc32() == table.crc32() and back.sha256() == table.sha256()
         assert (back.version, back.machine, back.n_phi, back.n_theta) == (5, "ocpm_2dof", 100, 100)
     doc = json.loads(jp.read_text())
-    assert doc["format"] == "pmcal-comptable" and doc["format_version"] == 2
-    assert doc["crc16_ccitt"] == f"0x{table.crc16():04X}" and doc["sha256"] == table.sha256()
+    assert doc["format"] == "pmcal-comptable" and doc["format_version"] == 3
+    assert doc["crc32"] == f"0x{table.crc32():08X}" and doc["sha256"] == table.sha256()
     lines = cp.read_text().splitlines()
     assert lines[0].startswith("# pmcal-comptable") and "phi_deg,theta_deg,dm1_deg,dm2_deg" in lines
 
@@ -138,7 +155,7 @@ def test_edited_file_fails_its_checksum(tmp_path):
     jp.write_text(json.dumps(doc))
     with pytest.raises(InputError, match="CRC mismatch") as exc:
         CompTable.load(jp)
-    assert exc.value.file == str(jp) and exc.value.field == "crc16_ccitt"
+    assert exc.value.file == str(jp) and exc.value.field == "crc32"
 
 
 def test_csv_errors_name_file_row_and_field(tmp_path):
@@ -223,11 +240,14 @@ def test_interpolation_refuses_targets_outside_the_grid():
 
 def _v1_file(tmp_path, table):
     """A format-1 JSON file as the version-1 writer produced it (absolute values, SHA over values)."""
+    import binascii
     import hashlib
 
     doc = table.header_dict()
     doc.pop("reference")
     doc["format_version"] = 1
+    del doc["crc32"]                                   # formats 1 and 2: CRC-16/CCITT-FALSE over the values
+    doc["crc16_ccitt"] = f"0x{binascii.crc_hqx(table.values.tobytes(), 0xFFFF):04X}"
     doc["sha256"] = hashlib.sha256(table.values.tobytes()).hexdigest()
     doc["values"] = table.values.tolist()
     p = tmp_path / "v1.json"
@@ -242,14 +262,14 @@ def test_version_1_file_is_read_as_absolute_commands_with_the_same_lookup(tmp_pa
     back = CompTable.load(_v1_file(tmp_path, absolute))
     assert back.reference is None and back.values.tobytes() == absolute.values.tobytes()
     back.validate()
-    # saving writes format 2 (reference kind none), which reads back to the same table
+    # saving writes format 3 (reference kind none), which reads back to the same table
     jp, cp = back.save(tmp_path / "v2.json")
     assert json.loads(jp.read_text())["reference"] == {"kind": "none"}
     for again in (CompTable.load(jp), CompTable.load(cp)):
         assert again.reference is None and again.values.tobytes() == absolute.values.tobytes()
 
 
-@pytest.mark.parametrize("version", [0, 3, "2"])
+@pytest.mark.parametrize("version", [0, 4, "2"])
 def test_unknown_format_version_is_refused(tmp_path, version):
     jp, _ = make_table().save(tmp_path / "comp.json")
     doc = json.loads(jp.read_text())
@@ -260,7 +280,7 @@ def test_unknown_format_version_is_refused(tmp_path, version):
     assert exc.value.field == "format_version"
 
 
-@pytest.mark.parametrize("drop", ["crc16_ccitt", "sha256"])
+@pytest.mark.parametrize("drop", ["crc32", "sha256"])
 def test_file_without_checksums_is_refused(tmp_path, drop):
     jp, cp = make_table().save(tmp_path / "comp.json")
     doc = json.loads(jp.read_text())
@@ -269,18 +289,18 @@ def test_file_without_checksums_is_refused(tmp_path, drop):
     with pytest.raises(InputError, match=f"no {drop}") as exc:
         CompTable.load(jp)
     assert exc.value.field == drop
-    lines = [ln for ln in cp.read_text().splitlines() if not ln.startswith("# crc16_ccitt")]
+    lines = [ln for ln in cp.read_text().splitlines() if not ln.startswith("# crc32")]
     cp.write_text("\n".join(lines) + "\n")
-    with pytest.raises(InputError, match="no crc16_ccitt"):
+    with pytest.raises(InputError, match="no crc32"):
         CompTable.load(cp)
 
 
-def test_edited_reference_fails_the_sha256(tmp_path):
+def test_edited_reference_fails_the_checksums(tmp_path):
     jp, _ = make_table().save(tmp_path / "comp.json")
     doc = json.loads(jp.read_text())
     doc["reference"]["l_mm"] += 0.001
     jp.write_text(json.dumps(doc))
-    with pytest.raises(InputError, match="SHA-256 mismatch"):
+    with pytest.raises(InputError, match="CRC mismatch|SHA-256 mismatch"):
         CompTable.load(jp)
 
 

@@ -4,7 +4,7 @@ client: a stopped task keeps its registers readable and writable but nothing mov
 (server device failure) and then serves again; during the restart itself nothing listens.
 
 Register offsets are ST_CompTableModbusArea's (plc/DUTs): stState at 68, its nCycle (UDINT, low word
-first) at 72..73, nCommitVersion at 60..61; base 16#3000.
+first) at 72..73, nCommitToken at 60..61; base 16#3000.
 """
 
 from __future__ import annotations

@@ -94,8 +94,8 @@ class PlcTwin:
             self.runtime.write_value(path, value)
 
     @property
-    def commit_version(self) -> int:
-        return self.runtime.read_value(f"{GVL}.nCommitVersion")
+    def commit_token(self) -> int:
+        return self.runtime.read_value(f"{GVL}.nCommitToken")
 
     @property
     def use_modbus(self) -> bool:

@@ -4,6 +4,7 @@
   (JSON or CSV, docs/compensation_table.md) and makes it active; exit 0 on success, 2 for a bad or
   stale table (nothing written), 1 for a transfer failure, 3 when the PLC rejects the table.
 - ``pmcal mock-plc --ads|--modbus`` runs a mock PLC on 127.0.0.1 for manual trials.
+- ``pmcal plc status|verify|unlock`` asks the PLC what it runs, or frees its staging area.
 - ``pmcal loop`` puts the digital twin in the loop (see :mod:`pmcal.apps.plc_loop`).
 """
 
@@ -84,6 +85,13 @@ def register(sub: CommandSet) -> None:
     _target_args(vf)
     vf.add_argument("--json", action="store_true", help="print the verdict as one JSON object")
     vf.set_defaults(func=cmd_plc_verify)
+    ul = psub.add_parser("unlock", help="free the PLC's staging area held by a client that is gone (instead of "
+                                        "waiting for its lease); asks first, logs to the audit file")
+    _target_args(ul)
+    ul.add_argument("--yes", action="store_true", help="do not ask for confirmation")
+    ul.add_argument("--audit", default="bridge_audit.log", metavar="FILE",
+                    help="audit log to append to (default: bridge_audit.log in the current folder)")
+    ul.set_defaults(func=cmd_plc_unlock)
 
     lp = sub.add_parser("loop", help="twin in the loop: pointing error before and after a push")
     lp.add_argument("--table", default=None, metavar="TABLE",
@@ -167,7 +175,7 @@ def cmd_push(args) -> int:
     total_ms = 1000.0 * rep.timings_s.get("total", 0.0)
     sent = f", {rep.bytes_sent} bytes, sha256 {rep.sha256_sent[:16]}" if rep.bytes_sent else ""
     print(f"{rep.result}: {args.table} v{rep.version} -> {link.transport} {link.target}: {rep.message} "
-          f"(crc {rep.crc16}{sent}, {total_ms:.1f} ms)")
+          f"(crc {rep.crc32}{sent}, {total_ms:.1f} ms)")
     return 0
 
 
@@ -199,11 +207,11 @@ def plc_status(link) -> dict:
     name = lambda v: getattr(v, "name", v)  # noqa: E731
     return {"transport": link.transport, "target": link.target, "runtime": "RUN",
             "interface_version": _interface_version(), "active_version": st.active_version,
-            "active_crc16": f"0x{st.active_crc:04X}", "machine": h.machine if st.active_version else None,
+            "active_crc32": f"0x{st.active_crc:08X}", "machine": h.machine if st.active_version else None,
             "format_version": h.format_version if st.active_version else None,
             "reference": {0: "none", 1: "nominal_ik"}.get(h.reference, h.reference) if st.active_version else None,
             "grid": [h.n_phi, h.n_theta] if st.active_version else None,
-            "last_status": name(st.status), "state": name(st.state), "ack_version": st.ack_version,
+            "last_status": name(st.status), "state": name(st.state), "ack_token": st.ack_token,
             "staging_owner": f"0x{st.staging_owner:08X}" if st.staging_owner else None,
             "plc_cycle": st.cycle,
             "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
@@ -235,14 +243,14 @@ def cmd_plc_status(args) -> int:
         print(json.dumps(s))
     else:
         print(f"{s['transport']} {s['target']}: runtime {s['runtime']}, interface v{s['interface_version']}, "
-              f"active table v{s['active_version']} crc {s['active_crc16']} machine {s['machine']} "
+              f"active table v{s['active_version']} crc {s['active_crc32']} machine {s['machine']} "
               f"(reference {s['reference']}, grid {s['grid']}), last status {s['last_status']}, "
               f"manager {s['state']}, at {s['time']}")
     return 0
 
 
 def cmd_plc_verify(args) -> int:
-    """Exit 0 if exactly TABLE (version, CRC-16 and the whole header) is active, 4 if not."""
+    """Exit 0 if exactly TABLE (version, CRC-32 and the whole header) is active, 4 if not."""
     from pmcal.bridge.comptable import CompTable
     from pmcal.bridge.errors import BridgeError
     from pmcal.bridge.plc_types import Header
@@ -259,22 +267,76 @@ def cmd_plc_verify(args) -> int:
         print(f"pmcal: failed: verify against {link.transport} {link.target}: {exc}", file=sys.stderr)
         return exc.exit_status
     want = Header.of(table)
-    same = st.active_version == table.version and st.active_crc == table.crc16() and active == want.pack()
+    same = st.active_version == table.version and st.active_crc == table.crc32() and active == want.pack()
     if same:
         why = "active"
     elif st.active_version != table.version:
         why = f"not active: the PLC runs version {st.active_version}"
-    elif st.active_crc != table.crc16():
-        why = f"not active: version {table.version} is active with another CRC (0x{st.active_crc:04X})"
+    elif st.active_crc != table.crc32():
+        why = f"not active: version {table.version} is active with another CRC (0x{st.active_crc:08X})"
     else:
         why = "not active: the active header differs (limits, grid, reference or machine)"
     if args.json:
-        print(json.dumps({"table": str(args.table), "version": int(table.version), "crc16": f"0x{table.crc16():04X}",
+        print(json.dumps({"table": str(args.table), "version": int(table.version), "crc32": f"0x{table.crc32():08X}",
                           "active": same, "active_version": st.active_version,
-                          "active_crc16": f"0x{st.active_crc:04X}", "message": why}))
+                          "active_crc32": f"0x{st.active_crc:08X}", "message": why}))
     else:
-        print(f"{args.table} v{table.version} crc 0x{table.crc16():04X}: {why} on {link.transport} {link.target}")
+        print(f"{args.table} v{table.version} crc 0x{table.crc32():08X}: {why} on {link.transport} {link.target}")
     return 0 if same else 4
+
+
+def cmd_plc_unlock(args) -> int:
+    """Free the staging area: ``nStagingClaim := 0`` and ``nCommitToken := 0``, as its owner would on release.
+
+    For an operator who cannot wait for the lease of a client that died holding the area. A push still
+    running from that client then finds it lost the area and commits nothing (fencing token).
+    """
+    import datetime as dt
+
+    from pmcal.bridge.errors import BridgeError
+    from pmcal.bridge.transfer import append_audit, check_writable
+
+    check_writable(args.audit, "--audit")
+    link = make_link(args, writes=frozenset({"staging_claim", "commit"}))
+    _quiet_libraries()
+    try:
+        with link:
+            link.check_interface()
+            st = link.read_state()
+            owner = st.staging_owner
+            if owner == 0:
+                print(f"{link.transport} {link.target}: the staging area is free; nothing to unlock")
+                return 0
+            state = getattr(st.state, "name", st.state)
+            if not args.yes:
+                if not sys.stdin.isatty():
+                    raise InputError("confirmation needed: run in a terminal or pass --yes", field="--yes")
+                answer = input(f"{link.transport} {link.target}: the staging area belongs to session 0x{owner:08X} "
+                               f"(manager {state}); a commit of that client in progress is dropped. "
+                               "Free it? [y/N] ")
+                if answer.strip().lower() not in ("y", "yes"):
+                    print("not unlocked")
+                    return 1
+            link.write_claim(0)
+            link.write_commit(0)
+            deadline = time.monotonic() + 2.0
+            while link.read_state().staging_owner == owner and time.monotonic() < deadline:
+                time.sleep(0.005)
+            after = link.read_state().staging_owner
+    except BridgeError as exc:
+        print(f"pmcal: failed: unlock of {link.transport} {link.target}: {exc}", file=sys.stderr)
+        return exc.exit_status
+    freed = after != owner
+    append_audit(args.audit, json.dumps({
+        "time": dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds"), "event": "unlock",
+        "transport": link.transport, "target": link.target, "owner": f"0x{owner:08X}", "manager_state": state,
+        "result": "ok" if freed else "failed"}))
+    if not freed:
+        print(f"pmcal: failed: the PLC still names session 0x{owner:08X} as staging owner", file=sys.stderr)
+        return 1
+    print(f"unlocked: {link.transport} {link.target}: staging area of session 0x{owner:08X} freed "
+          f"(logged in {args.audit})")
+    return 0
 
 
 def _write_json(path, report) -> None:

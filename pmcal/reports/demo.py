@@ -264,7 +264,7 @@ def demo_report(st, pool=None):
     t = st.table
     rep.paragraph(f"comp_table.json / comp_table.csv: {t.n_phi} x {t.n_theta} nodes over phi "
                   f"{t.phi_min_deg:g}..{t.phi_max_deg:g} deg and theta {t.theta_min_deg:g}..{t.theta_max_deg:g} deg, "
-                  f"absolute motor commands in deg, version {t.version}, CRC-16/CCITT 0x{t.crc16():04X}.")
+                  f"absolute motor commands in deg, version {t.version}, CRC-32 0x{t.crc32():08X}.")
     rep.table(["step", "seconds"], [[k, v] for k, v in st.timings.items()])
     resolve()
     return rep

@@ -347,7 +347,7 @@ class DemoStudy:
                                 "residual_rms_sigma": d["chi_rms"]} for m, d in self.methods.items()},
                 "tracker_frame": self.tracker_summary(),
                 "population_method_budgets": self.budgets or "full",
-                "timings_s": self.timings, "table_crc16": f"0x{self.table.crc16():04X}"}
+                "timings_s": self.timings, "table_crc32": f"0x{self.table.crc32():08X}"}
 
 
     def tracker_summary(self) -> dict:
