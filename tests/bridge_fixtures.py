@@ -126,3 +126,17 @@ def ads_state_code(netid: str, ams_port: int, plc, timeout_ms: int = 500) -> int
         return exc.err_code
     finally:
         conn.close()
+
+
+#: bytes every task cycle copies besides the budgeted work: the interface structs (headers, state, lookup)
+#: the manager, the lookup and the Modbus mapping assign each cycle
+INTERFACE_COPIES = 1024
+
+
+def assert_within_cycle_budget(plc) -> None:
+    """The busiest task cycle of the interpreted ST stayed within GVL_CompTableParam's budget: at most
+    BUDGET_IK_PER_CYCLE nominal IKs and BUDGET_BYTES_PER_CYCLE bytes moved (plus the interface copies)."""
+    rt = plc.twin.runtime
+    ik, nbytes = rt.constant("GVL_CompTableParam.BUDGET_IK_PER_CYCLE"), rt.constant("GVL_CompTableParam.BUDGET_BYTES_PER_CYCLE")
+    assert rt.calls_max.get("F_CompTableNominalIk", 0) <= ik, rt.calls_max
+    assert rt.work_max["bytes_copied"] <= nbytes + INTERFACE_COPIES, rt.work_max

@@ -22,7 +22,7 @@ from pmcal.bridge.plc_types import (HEADER_SIZE, LOOKUP_WRITES, PUSH_WRITES, SHA
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.errors import InputError
 from tests.bridge_fixtures import (BIG_TABLE_ACK_S, BIG_TABLE_TIMEOUT_S, TIMEOUT_S, ads_link, ads_plc,  # noqa: F401
-                                   make_table, running)
+                                   assert_within_cycle_budget, make_table, running)
 
 FAST = PushOptions(attempts=2, ack_timeout_s=1.0, idle_timeout_s=1.0)
 
@@ -39,6 +39,7 @@ def test_round_trip_100x100x2_bit_exact(ads_plc, tmp_path):
     sent = Header.of(table).pack() + shadow_rows(table)
     assert rep.bytes_sent == HEADER_SIZE + SHADOW_SIZE == len(sent)
     assert rep.sha256_sent == hashlib.sha256(sent).hexdigest()
+    assert_within_cycle_budget(ads_plc)
     with ads_link(ads_plc) as link:
         back_header, back = link.read_back(SHADOW_SIZE)
     assert back_header + back == sent

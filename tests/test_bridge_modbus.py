@@ -18,8 +18,8 @@ from pmcal.bridge.modbus_mock import ModbusMockPlc
 from pmcal.bridge.plc_types import HEADER_SIZE, LOOKUP_WRITES, ROW_SIZE, Header, LookupResult, shadow_rows
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.errors import InputError
-from tests.bridge_fixtures import (BIG_TABLE_ACK_S, BIG_TABLE_TIMEOUT_S, TIMEOUT_S, make_table, modbus_link,  # noqa: F401
-                                   modbus_plc, running)
+from tests.bridge_fixtures import (BIG_TABLE_ACK_S, BIG_TABLE_TIMEOUT_S, TIMEOUT_S, assert_within_cycle_budget,  # noqa: F401
+                                   make_table, modbus_link, modbus_plc, running)
 
 #: a small window so that modest tables cross many pages
 SMALL = ModbusMap(window_lreals=250)
@@ -34,6 +34,7 @@ def test_round_trip_100x100x2_bit_exact(modbus_plc):
     sent = Header.of(table).pack() + shadow_rows(table)
     assert rep.bytes_sent == HEADER_SIZE + 100 * ROW_SIZE == len(sent)     # 80 052 registers
     assert rep.sha256_sent == hashlib.sha256(sent).hexdigest()
+    assert_within_cycle_budget(modbus_plc)
 
 
 def test_registers_are_the_twincat_memory_image():

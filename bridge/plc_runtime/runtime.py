@@ -391,6 +391,13 @@ class PlcRuntime:
                 value = t.wrap(int(value))
             struct.pack_into("<" + t.fmt, self.mem, addr, value)
 
+    def constant(self, key: str):
+        """The value of a scalar constant (``"GVL.NAME"``) as the running program sees it."""
+        k = key.lower()
+        if k not in self.program.constants:
+            raise KeyError(key)
+        return self._ns[self.program.constants[k][2]]
+
     def set_constant(self, key: str, value) -> None:
         """Give a scalar constant (``"GVL.NAME"``) another value (array bounds stay compiled in)."""
         k = key.lower()
