@@ -166,13 +166,18 @@ def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, tim
             ev.member_params = {g: (float(v[g]), float(sv[g])) for g in v}
             g = max(v, key=lambda k: abs(v[k]))                   # the value: the member's fastest part
             ev.value, ev.interval = v[g], (v[g] - Z95 * sv[g], v[g] + Z95 * sv[g])
+            ev.parts = separable_parts(x, cov)
+            # every rate must be a material's: the member's, and each single part the campaign determines on
+            # its own (a simpler member can hide a part fitted at a rate no material has; the merged sets
+            # are left out: a merge of parts that truly differ biases the others)
             lo, hi = PART_RATE_RANGE
-            bad = [k for k in v if not lo - 3 * sv[k] <= v[k] <= hi + 3 * sv[k]]
+            single = [p for p in separable_parts(x, cov, np.inf) if p["std"] <= SEPARABLE_STD]
+            rates = [(k, v[k], sv[k]) for k in v] + [(p["parts"][0], p["rate"], p["std"]) for p in single]
+            bad = [r for r in rates if not lo - 3 * r[2] <= r[1] <= hi + 3 * r[2]]
             if bad and ev.plausible:
                 ev.plausible = False
-                ev.why = (f"{bad[0]} expands at {v[bad[0]]:.3g} +- {sv[bad[0]]:.2g} 1/K, outside the plausible "
+                ev.why = (f"{bad[0][0]} expands at {bad[0][1]:.3g} +- {bad[0][2]:.2g} 1/K, outside the plausible "
                           f"range of a part {lo:g} .. {hi:g} 1/K")
-            ev.parts = separable_parts(x, cov)
             ev.note = "; ".join(filter(None, [ev.note, parts_note(ev.parts)]))
         else:
             ev.member_params = {k: (float(np.rad2deg(v[k])), float(np.rad2deg(sv[k]))) for k in v}
@@ -267,10 +272,12 @@ SEPARABLE_STD = 2.5e-6
 def separable_parts(x: np.ndarray, cov: np.ndarray, max_std: float = SEPARABLE_STD) -> list[dict]:
     """The parts of a thermal fit (``x`` = alpha and the part deviations, covariance ``cov``) whose rates the
     campaign determines, and the combinations it determines when single parts are not: each part starts
-    on its own (GLS rates, 1/K); while a set's std exceeds ``max_std`` it is merged with the set that gives
-    the merged rate the smallest std (the parts then share one rate: what the campaign sees is their
-    combination). Returns [{"parts": [...], "rate", "std", "separable"}], ``separable`` False for a set
-    still above ``max_std`` when nothing is left to merge it with (the campaign does not determine it)."""
+    on its own (GLS rates, 1/K); while a set's std exceeds ``max_std`` it is merged with another set (the
+    parts then share one rate: what the campaign sees is their combination), the one whose common rate the
+    fit rejects least (smallest GLS misfit: a poorly seen part joins a part it agrees with, so a merge does
+    not bias the others). Returns [{"parts": [...], "rate", "std", "separable"}], ``separable`` False for
+    a set still above ``max_std`` when nothing is left to merge it with (the campaign does not determine
+    it)."""
     n = len(THERMAL_GROUPS)
 
     def rates(sets):
@@ -279,20 +286,19 @@ def separable_parts(x: np.ndarray, cov: np.ndarray, max_std: float = SEPARABLE_S
             G[list(st), c] = 1.0
         A = np.zeros((1 + n, 1 + len(sets)))
         A[0, 0], A[1:, 0], A[1:, 1:] = 1.0, -1.0, G
-        z, cov_z, _ = _gls(x, cov, A)
-        return z[1:], np.sqrt(np.clip(np.diag(cov_z)[1:], 0, None))
+        z, cov_z, misfit = _gls(x, cov, A)
+        return z[1:], np.sqrt(np.clip(np.diag(cov_z)[1:], 0, None)), misfit
 
     sets = [(i,) for i in range(n)]
-    r, s = rates(sets)
+    r, s, _ = rates(sets)
     while len(sets) > 1 and s.max() > max_std:
         worst = int(np.argmax(s))
         trials = []
         for j in range(len(sets)):
             if j != worst:
                 merged = [st for k, st in enumerate(sets) if k not in (worst, j)] + [tuple(sorted(sets[worst] + sets[j]))]
-                rr, ss = rates(merged)
-                trials.append((ss[-1], merged, rr, ss))
-        _, sets, r, s = min(trials, key=lambda t: t[0])
+                trials.append((*rates(merged)[::-1], merged))
+        _, s, r, sets = min(trials, key=lambda t: t[0])
     return [{"parts": [THERMAL_GROUPS[i] for i in st], "rate": float(rv), "std": float(sv),
              "separable": bool(sv <= max_std)} for st, rv, sv in sorted(zip(sets, r, s), key=lambda t: t[0])]
 
