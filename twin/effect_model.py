@@ -9,8 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.effects import (DRIVE_EFFECTS, THERMAL_GROUPS, VOCABULARY, effect_of_key,
-                                          meas_basis, thermal_delta, thermal_group_weights)
+from pmcal.mechanism.ocpm.effects import (DRIVE_EFFECTS, T_REL, THERMAL_GROUPS, VOCABULARY, effect_of_key,
+                                          frame_basis, frame_motion, meas_basis, thermal_delta,
+                                          thermal_group_weights)
 from pmcal.mechanism.rigid import fit_pose
 from pmcal.twin.forward import FullChainModel
 
@@ -27,7 +28,7 @@ class EffectChainModel(FullChainModel):
     (d/dc by a forward difference; for c < 0 the tangent at c = 0 continued linearly);
     ``thermal_expansion`` scales the targets about O by ``1 + alpha dT`` (exact for a uniform expansion
     without gravity: a scaled machine reaches the same joint angles; with gravity the difference is
-    ~1e-4 of the gravity deflection) and expands each length group g (links, base, platform, nests) by a
+    ~1e-4 of the gravity deflection) and expands each part g (cranks, couplers, strut, base, platform) by a
     further ``delta_g dT`` through the targets' sensitivities to the keys the group's lengths change
     (first order: 23e-6/K over 10 K is 0.07 mm on a 317 mm link, the second-order term ~1e-6 mm); the
     nests move by ``delta dT R t_k`` about the platform origin. With ``gravity=False`` and no effect keys it is
@@ -77,7 +78,7 @@ class EffectChainModel(FullChainModel):
         motor = ["L1.dtheta", "L2.dtheta"]
         groups = self._thermal_groups(keys)
         weights = thermal_group_weights(self.geom, self.twin.errors.to_dict()) if groups else {}
-        extra = list(dict.fromkeys(k for g in groups if g != "nests" for k, _ in weights[g]
+        extra = list(dict.fromkeys(k for g in groups for k, _ in weights[g]
                                    if k not in base_keys and k not in motor))
         sens = base_keys + motor + extra
         want = derivatives or bool(groups)
@@ -95,8 +96,13 @@ class EffectChainModel(FullChainModel):
         T = T + sum((self.effect_x.get(f"thermal_expansion.{g}", 0.0) * d for g, d in d_group.items()),
                     np.zeros_like(T))
         scale = 1.0 if dtemp is None else (1.0 + self.effect_x.get("thermal_expansion.alpha", 0.0) * dtemp)[:, None, None]
+        frame = self.uses("frame_drift", keys)
+        x_frame = np.array([self.effect_x.get(k, 0.0) for k in VOCABULARY["frame_drift"].keys])
+        if frame and T_REL not in meas.extra:
+            raise ValueError(f"effect 'frame_drift' needs {VOCABULARY['frame_drift'].needs}")
         if not derivatives:
-            return T * scale, None
+            T = T * scale
+            return (T + frame_motion(T, meas.extra[T_REL], x_frame) if frame else T), None
         d_motor = dT[..., len(base_keys):len(base_keys) + 2]
         dT_all = np.zeros(T.shape + (len(keys),))
         for c, k in enumerate(keys):
@@ -115,6 +121,12 @@ class EffectChainModel(FullChainModel):
             if "thermal_expansion.alpha" in keys:
                 dT_all[..., keys.index("thermal_expansion.alpha")] = dtemp[:, None, None] * T
             T = T * scale
+        if frame:        # a rigid motion of the frame; its first-order effect on the other columns is dropped
+            B = frame_basis(T, meas.extra[T_REL])
+            for p, k in enumerate(VOCABULARY["frame_drift"].keys):
+                if k in keys:
+                    dT_all[..., keys.index(k)] = B[..., p]
+            T = T + frame_motion(T, meas.extra[T_REL], x_frame)
         return T, dT_all
 
     def _thermal_groups(self, keys: list[str]) -> list[str]:
@@ -125,12 +137,14 @@ class EffectChainModel(FullChainModel):
     def _group_signature(self, group: str, T: np.ndarray, dT: np.ndarray, sens: list[str],
                          weights: dict[str, list[tuple[str, float]]]) -> np.ndarray:
         """d targets / d (strain of ``group``), (N, k, 3) mm: the keys' sensitivities weighted by the lengths
-        they change (first order); the nests: each target's position about the platform origin, R t_k."""
-        if group == "nests":
+        they change (first order); the platform's also carries its nests: each target's position about
+        the platform origin, R t_k."""
+        out = sum(w * dT[..., sens.index(k)] for k, w in weights[group])
+        if group == "platform":
             X = self.geom.targets[: T.shape[1]]
             _, R, _ = fit_pose(T, X)
-            return np.einsum("nij,kj->nki", R, X)
-        return sum(w * dT[..., sens.index(k)] for k, w in weights[group])
+            out = out + np.einsum("nij,kj->nki", R, X)
+        return out
 
     # ------------------------------------------------------------------ gravity, payload, springs
     def _physical(self, meas: Measurements, cmd_deg: np.ndarray, keys: list[str], compliant: bool,

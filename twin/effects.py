@@ -10,7 +10,7 @@ and docs/effects.md) is switchable and lives in one of three places:
   over-constraint forces.
 - **geometry per pose** (MuJoCo): ``thermal_expansion`` scales every length of the compiled model (body,
   joint and site positions: links, radii, SS limb, target nests) by ``1 + alpha (temp_c - 20)``, or
-  each length group (links, base, platform, nests) at its own rate, one model per pose; ``overconstraint`` inserts random passive-limb (L3, L4) errors into the model.
+  each part (cranks, couplers, strut, base, platform, nests) at its own rate, one model per pose; ``overconstraint`` inserts random passive-limb (L3, L4) errors into the model.
 - **joint-angle layer** (outside the physics, where MuJoCo's soft limits model badly): ``backlash``,
   ``encoder_eccentricity`` and ``zero_offset_drift`` shift the joint angle the drive delivers:
   joint = command + dtheta + offset(context).
@@ -30,8 +30,8 @@ import numpy as np
 
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, THERMAL_GROUPS, drive_basis, relative_time,
-                                          thermal_delta)
+from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, THERMAL_GROUPS, drive_basis, frame_motion,
+                                          relative_time, thermal_delta)
 from pmcal.mechanism.ocpm.params import ErrorSet, random_errors
 from pmcal.twin.campaign import (CampaignPlan, MeasurementFaults, measure_targets, nominal_commands,
                                   plan_campaign)
@@ -41,6 +41,11 @@ from pmcal.twin.tracker import LaserTracker
 
 #: Effects with one value per motor.
 PER_MOTOR = ("joint_compliance", "backlash", "encoder_eccentricity", "zero_offset_drift")
+#: Parts the twin expands at their own rates: the diagnosis' parts, and the target nests apart from the
+#: platform (the diagnosis holds them together).
+TWIN_GROUPS = THERMAL_GROUPS + ("nests",)
+#: Direction of a ``frame_drift`` given as one rate: a floor slide of (0.15, -0.10, 0.05) mm.
+SLIDE_DIRECTION = np.array([0.15, -0.10, 0.05]) / np.linalg.norm([0.15, -0.10, 0.05])
 #: Gauss-Newton iteration limit of strained machines (springs, gravity, mm-size closure gaps).
 MAX_ITER = 200
 #: Angular size of the random passive-limb errors per mm of ``overconstraint`` (0.5 mm <-> 0.1 deg,
@@ -56,12 +61,15 @@ class Effects:
     backlash : half-width of the lost motion per motor, deg (1-2 arcmin of lost motion: 0.008 .. 0.017).
     encoder_eccentricity : first-harmonic amplitude per motor, deg; phase ``encoder_phase_deg``.
     thermal_expansion : linear expansion coefficient alpha, 1/K (steel 12e-6, aluminium 23e-6) of every
-        length; or a dict of per-group rates {group: 1/K} over :data:`THERMAL_GROUPS` (links, base,
-        platform, nests), a group left out does not expand (e.g. aluminium links on a steel base:
-        ``{"links": 23e-6, "base": 12e-6, "platform": 12e-6, "nests": 12e-6}``).
+        length; or a dict of per-part rates {part: 1/K} over :data:`TWIN_GROUPS` (cranks, couplers,
+        strut, base, platform, nests; ``links`` sets cranks, couplers and strut at once), a part left out
+        does not expand, the nests take the platform's rate unless given (e.g. aluminium links on a steel
+        base: ``{"links": 23e-6, "base": 12e-6, "platform": 12e-6}``).
     zero_offset_drift : zero-offset drift rate per motor at the first pose, deg/h.
     drift_curvature : per motor, deg/h^2: the drift is ``rate t + curvature t^2`` (None: linear).
     overconstraint : size of random passive-limb errors, mm (angles ``OVERCONSTRAINT_DEG_PER_MM`` deg/mm).
+    frame_drift : the base moving against the tracker during the campaign: a translation rate of the base
+        origin, mm/h, along :data:`SLIDE_DIRECTION`, or (vx, vy, vz mm/h, wx, wy, wz deg/h).
     """
 
     joint_compliance: tuple[float, float] | None = None
@@ -72,6 +80,17 @@ class Effects:
     zero_offset_drift: tuple[float, float] | None = None
     drift_curvature: tuple[float, float] | None = None
     overconstraint: float | None = None
+    frame_drift: float | tuple | None = None
+
+    def frame_params(self) -> np.ndarray | None:
+        """``frame_drift`` as (vx, vy, vz mm/h, wx, wy, wz rad/h) (None: off)."""
+        f = self.frame_drift
+        if f is None:
+            return None
+        if np.ndim(f) == 0:
+            return np.concatenate([float(f) * SLIDE_DIRECTION, np.zeros(3)])
+        f = np.asarray(f, float)
+        return np.concatenate([f[:3], np.deg2rad(f[3:6])])
 
     def active(self) -> list[str]:
         return [n for n in EFFECT_NAMES if getattr(self, n) is not None]
@@ -90,16 +109,18 @@ class Effects:
         return out
 
     def group_rates(self) -> dict[str, float] | None:
-        """Expansion rate of every length group, 1/K (None without thermal expansion)."""
+        """Expansion rate of every part of :data:`TWIN_GROUPS`, 1/K (None without thermal expansion)."""
         t = self.thermal_expansion
         if t is None:
             return None
         if isinstance(t, dict):
-            unknown = set(t) - set(THERMAL_GROUPS)
+            unknown = set(t) - set(TWIN_GROUPS) - {"links"}
             if unknown:
-                raise ValueError(f"unknown thermal groups {sorted(unknown)} (known: {', '.join(THERMAL_GROUPS)})")
-            return {g: float(t.get(g, 0.0)) for g in THERMAL_GROUPS}
-        return {g: float(t) for g in THERMAL_GROUPS}
+                raise ValueError(f"unknown thermal parts {sorted(unknown)} (known: {', '.join(TWIN_GROUPS)}, links)")
+            t = {**{p: t["links"] for p in ("cranks", "couplers", "strut") if "links" in t}, **t}
+            out = {g: float(t.get(g, 0.0)) for g in THERMAL_GROUPS}
+            return {**out, "nests": float(t.get("nests", out["platform"]))}
+        return {g: float(t) for g in TWIN_GROUPS}
 
     @classmethod
     def from_named(cls, named: list[dict]) -> "Effects":
@@ -119,6 +140,8 @@ class Effects:
                                        float(np.rad2deg(np.arctan2(p["c2"], p["s2"]))))
             elif name == "thermal_expansion":                      # each group's rate
                 e.thermal_expansion = {g: p["alpha"] + p.get(g, 0.0) for g in THERMAL_GROUPS}
+            elif name == "frame_drift" and item["unit"] == "mm/h":
+                e.frame_drift = tuple(p[k] for k in ("vx", "vy", "vz", "wx", "wy", "wz"))
             elif name == "zero_offset_drift" and item["unit"] == "deg/h":
                 e.zero_offset_drift = (p["r1"], p["r2"])
                 if "q1" in p:
@@ -161,34 +184,36 @@ def add_payload(m: mujoco.MjModel, body: int, mass_kg: float, point_m: np.ndarra
 
 
 def scale_groups(m: mujoco.MjModel, idx, s: np.ndarray) -> None:
-    """Scale the length groups of a compiled model (in place; call ``mj_setConst`` after) by the factors
-    ``s`` (4,) of :data:`THERMAL_GROUPS`: links (link lengths: the closure sites S1, S2, the links' centres
-    of mass and geoms, the SS length), base (base-joint positions B_j about O), platform (platform-joint
-    positions A_j, the ball-joint offset, the platform's centre of mass and geoms, about the platform
-    origin), nests (target sites about the platform origin). Equal factors equal :func:`scale_model`'s
-    positions (inertias are left as they are: a 1e-4 change of a gravity load of 0.01 mm)."""
-    links, base, plat, nests = (float(v) for v in s)
+    """Scale the parts of a compiled model (in place; call ``mj_setConst`` after) by the factors ``s`` (6,)
+    of :data:`TWIN_GROUPS`: cranks (the closure sites S1 at the cranks' ends, the cranks' centres of mass
+    and geoms), couplers (the sites S2, the couplers' centres of mass and geoms), strut (the SS length and
+    link), base (base-joint positions B_j about O), platform (platform-joint positions A_j, the ball-joint
+    offset, the platform's centre of mass and geoms, about the platform origin), nests (target sites about
+    the platform origin). Equal factors equal :func:`scale_model`'s positions (inertias are left as they
+    are: a 1e-4 change of a gravity load of 0.01 mm)."""
+    cranks, couplers, strut, base, plat, nests = (float(v) for v in s)
     ball = m.jnt_pos[idx.jnt_ball].copy()                   # ball-joint offset dc in the platform frame
     ss_tip = m.body_pos[idx.platform] + ball                # (0, 0, h + dh): the SS length
-    m.site_pos[idx.site_s1] *= links
-    m.site_pos[idx.site_s2] *= links
-    for b in (*idx.link1, *idx.link2, idx.ss_link):
-        m.body_ipos[b] *= links
-        m.geom_pos[m.geom_bodyid == b] *= links
+    m.site_pos[idx.site_s1] *= cranks
+    m.site_pos[idx.site_s2] *= couplers
+    for bodies, f in ((idx.link1, cranks), (idx.link2, couplers), ((idx.ss_link,), strut)):
+        for b in bodies:
+            m.body_ipos[b] *= f
+            m.geom_pos[m.geom_bodyid == b] *= f
     m.body_pos[idx.link1] *= base
     m.body_pos[idx.link2] *= plat
     m.jnt_pos[idx.jnt_ball] = ball * plat
     m.body_ipos[idx.platform] *= plat
     m.geom_pos[m.geom_bodyid == idx.platform] *= plat
     m.site_pos[idx.site_ce] *= plat
-    m.body_pos[idx.platform] = ss_tip * links - ball * plat
+    m.body_pos[idx.platform] = ss_tip * strut - ball * plat
     m.site_pos[idx.site_targets] *= nests
 
 
 def pose_models(twin: Twin, n: int, scale: np.ndarray | None = None,
                 payload_kg: np.ndarray | None = None) -> list[mujoco.MjModel] | None:
     """Per-pose copies of ``pmcal.twin.model``: lengths scaled by ``scale`` about O ((N,): every length; (N, 4):
-    each group of :data:`THERMAL_GROUPS`, :func:`scale_groups`) and ``payload_kg`` (N,) added at the
+    each part of :data:`TWIN_GROUPS`, :func:`scale_groups`) and ``payload_kg`` (N,) added at the
     centre of the platform's top surface. None when every pose would get the twin's own model. Equal
     contexts share one copy."""
     scale = np.ones(n) if scale is None else np.asarray(scale, float)
@@ -206,7 +231,7 @@ def pose_models(twin: Twin, n: int, scale: np.ndarray | None = None,
                 scale_model(m, s[0])
             else:
                 scale_groups(m, idx, s)
-            add_payload(m, idx.platform, p, top * s[2 if s.size > 1 else 0])
+            add_payload(m, idx.platform, p, top * s[4 if s.size > 1 else 0])
             mujoco.mj_setConst(m, twin._scratch)
             cache[key] = m
         out.append(cache[key])
@@ -273,7 +298,7 @@ class EffectTwin:
             if dtemp is None:
                 raise ValueError("thermal_expansion needs the temperature of every pose")
             t = self.effects.thermal_expansion
-            rates = (np.array([self.effects.group_rates()[g] for g in THERMAL_GROUPS]) if isinstance(t, dict)
+            rates = (np.array([self.effects.group_rates()[g] for g in TWIN_GROUPS]) if isinstance(t, dict)
                      else np.array([t]))
             scale = 1.0 + dtemp[:, None] * rates[None, :]
         return pose_models(self.twin, n, scale, payload_kg if self.gravity else None)
@@ -307,6 +332,12 @@ class EffectTwin:
         """
         cmd = nominal_commands(plan.phi_deg, plan.theta_deg, self.geom) if m_cmd_deg is None else m_cmd_deg
         state = self.reach(cmd, plan.approach, plan.time_s, plan.temp_c, plan.payload_kg)
+        x_frame = self.effects.frame_params()
+        if x_frame is not None:                      # the base moves against the tracker
+            t, unit = relative_time(plan.time_s, len(plan))
+            if unit != "h":
+                raise ValueError("frame_drift needs the time of every pose")
+            state.targets = state.targets + frame_motion(state.targets, t, x_frame)
         width = len(str(len(plan)))
         y, extra = measure_targets(state.targets, self.geom.targets, faults, tracker)
         meas = Measurements(

@@ -34,6 +34,8 @@ class Candidate:
     threshold: float = float("nan")
     value: EffectValue | None = None
     cv_folds: int = 0
+    held_out_share: float = float("nan")  # share of the held-out structure beyond the noise it removes
+    detectable_90: float = float("nan")   # smallest size detected with probability 0.9 (value's unit)
     verdict: str = "not tested"
     fix: str = ""
 
@@ -96,14 +98,18 @@ class Diagnosis:
             return {"name": e.name, "value": _num(e.value), "interval": [_num(v) for v in e.interval],
                     "unit": e.unit, "layer": VOCABULARY[e.name].layer, "member": e.member or None,
                     "member_params": {k: {"value": _num(v), "std": _num(s)} for k, (v, s) in e.member_params.items()},
-                    "params": {k: {"value": _num(v), "std": _num(s)} for k, (v, s) in e.params.items()}}
+                    "params": {k: {"value": _num(v), "std": _num(s)} for k, (v, s) in e.params.items()},
+                    "motors": list(e.motors), "per_motor": [_jsonable(m) for m in e.per_motor],
+                    "parts": [{"parts": p["parts"], "rate": _num(p["rate"]), "std": _num(p["std"]),
+                               "separable": p["separable"]} for p in e.parts]}
 
         cands = []
         for c in self.candidates.values():
             cands.append({"name": c.name, "verdict": c.verdict, "reason": c.reason, "available": c.available,
                           "survival": _num(c.survival), "power_at_typical_size": _num(c.power_typical),
                           "delta_chi2": _num(c.delta_chi2), "directions": _num(c.nu), "F": _num(c.F),
-                          "share_of_structure": _num(c.share),
+                          "share_of_structure": _num(c.share), "held_out_share": _num(c.held_out_share),
+                          "detectable_at_90": _num(c.detectable_90),
                           "p_value": _num(c.p_value), "threshold": _num(c.threshold),
                           "value": val(c.value) if c.value else None, "cv_folds_selected": c.cv_folds,
                           "folds": int(self.folds.max() + 1) if self.folds.size else 0,
@@ -129,6 +135,12 @@ class Diagnosis:
                       "chi2_per_dof": self.final.info["chi2_per_dof"]},
             "time_unit": self.time_unit, "runtime_s": self.runtime_s,
         }
+
+
+def _jsonable(d: dict) -> dict:
+    """A per-motor value dict with numbers JSON-ready (intervals as lists)."""
+    return {k: ([_num(x) for x in v] if isinstance(v, (tuple, list)) else v if k == "motor" else _num(v))
+            for k, v in d.items()}
 
 
 def _num(v):

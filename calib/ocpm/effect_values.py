@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from pmcal.mechanism.ocpm.effects import THERMAL_GROUP_STD, VOCABULARY, effect_of_key, member_maps, member_values
+from pmcal.mechanism.ocpm.effects import (PART_RATE_RANGE, THERMAL_GROUP_STD, THERMAL_GROUPS, VOCABULARY,
+                                          effect_of_key, member_maps, member_values)
 from pmcal.calib.ocpm.fullchain import Priors
 from pmcal.mechanism.ocpm.params import is_angular
 
@@ -31,6 +32,9 @@ def effect_prior_std(key: str, priors: Priors, time_unit: str = "h") -> float:
         return 3.0 / info.plausible[0]                      # c = 1/K up to 1/(1e3 N m/rad)
     if name == "thermal_expansion":   # the groups' deviations from the common rate: the ridge
         return 3.0 * hi if key.endswith(".alpha") else THERMAL_GROUP_STD
+    if name == "frame_drift":       # mm/h and rad/h; per pose: over ~120 poses an hour
+        per = 120.0 if time_unit == "pose" else 1.0
+        return (3.0 * hi if key.split(".")[1][0] == "v" else np.deg2rad(0.1)) / per
     if name == "zero_offset_drift":
         quad = key[-2] == "q"
         if time_unit == "pose":     # deg per pose; the curvature weakly informative over ~100 poses
@@ -54,26 +58,48 @@ class EffectValue:
     note: str = ""                        # e.g. unexpected sign: check a convention
     member: str = ""                      # the family member that fits best (:func:`select_member`)
     member_params: dict[str, tuple[float, float]] = field(default_factory=dict)   # its values and stds
+    per_motor: list[dict] = field(default_factory=list)   # :func:`per_motor_values`
+    parts: list[dict] = field(default_factory=list)       # thermal: :func:`separable_parts`
+    motors: tuple[int, ...] = ()          # the motors that carry it (per-motor value beyond its 95 % interval)
 
 
 def _interface(key: str, v: float) -> float:
     """An internal parameter value (or std) in its interface unit: angles to degrees."""
     name = effect_of_key(key)
-    if name in ("joint_compliance", "thermal_expansion") or (name == "overconstraint" and not is_angular(key)):
+    if name in ("joint_compliance", "thermal_expansion") or (name == "overconstraint" and not is_angular(key)) \
+            or (name == "frame_drift" and key.split(".")[1][0] == "v"):
         return float(v)
     return float(np.rad2deg(v))
 
 
-def _summary(name: str, keys: list[str], x: np.ndarray) -> float:
-    """The effect's one value (interface unit) from its internal parameters."""
+#: Per-motor effects: name -> the parameter indices of motor 1 and motor 2.
+MOTOR_PARAMS = {"backlash": ((0,), (1,)), "encoder_eccentricity": ((0, 1), (2, 3)),
+                "zero_offset_drift": ((0, 2), (1, 3))}
+
+
+def _motor_value(name: str, x: np.ndarray, m: int) -> float:
+    """One motor's value (interface unit): backlash the full dead band 2 b (deg), eccentricity the
+    amplitude (deg), drift the rate at the first pose (deg per time unit)."""
+    i = MOTOR_PARAMS[name][m]
+    if name == "backlash":
+        return float(np.rad2deg(2.0 * x[i[0]]))
+    if name == "encoder_eccentricity":
+        return float(np.rad2deg(np.hypot(x[i[0]], x[i[1]])))
+    return float(np.rad2deg(x[i[0]]))
+
+
+def _summary(name: str, keys: list[str], x: np.ndarray, motors: tuple[int, ...] = (1, 2)) -> float:
+    """The effect's one value (interface unit) from its internal parameters; a per-motor effect's is the
+    mean over the ``motors`` that carry it (backlash: the full dead band; drift: the RMS rate)."""
     if name == "joint_compliance":
         return float(np.mean(x))                                     # c; inverted by the caller
-    if name in ("backlash",):
-        return float(np.rad2deg(np.mean(x)))
-    if name == "encoder_eccentricity":
-        return float(np.rad2deg(np.mean(np.hypot(x[0::2], x[1::2]))))
-    if name == "zero_offset_drift":                                 # the rates at the first pose
-        return float(np.rad2deg(np.sqrt(np.mean(x[:2] ** 2))))
+    if name in MOTOR_PARAMS:
+        vals = [_motor_value(name, x, m - 1) for m in motors]
+        if name == "zero_offset_drift":                             # the rates at the first pose, RMS
+            return float(np.sqrt(np.mean(np.square(vals))))
+        return float(np.mean(vals))
+    if name == "frame_drift":                                       # the base origin's translation rate
+        return float(np.linalg.norm(x[:3]))
     if name == "thermal_expansion":                                 # the fastest group's rate
         rates = x[0] + x[1:]
         return float(rates[np.argmax(np.abs(rates))])
@@ -90,16 +116,10 @@ def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, tim
     info = VOCABULARY[name]
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     params = {k: (_interface(k, v), _interface(k, s)) for k, v, s in zip(keys, x, std)}
-    f0 = _summary(name, keys, x)
-    g = np.zeros(len(x))
-    for i in range(len(x)):
-        h = 1e-6 * max(std[i], abs(x[i]), 1e-12)
-        xp = x.copy()
-        xp[i] += h
-        g[i] = (_summary(name, keys, xp) - f0) / h
-    s_f = float(np.sqrt(max(g @ cov @ g, 0.0)))
+    per_motor, motors = per_motor_values(name, x, cov) if len(keys) == len(info.keys) else ([], ())
+    f0, s_f = _delta(lambda v: _summary(name, keys, v, motors or (1, 2)), x, cov)
     lo_p, hi_p = info.plausible
-    unit = info.unit if name != "zero_offset_drift" else f"deg/{time_unit}"
+    unit = {"zero_offset_drift": f"deg/{time_unit}", "frame_drift": f"mm/{time_unit}"}.get(name, info.unit)
     why = ""
     if name == "joint_compliance":
         c, sc = f0, s_f
@@ -129,7 +149,8 @@ def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, tim
                 "convention (+1 = last move upwards) and the encoder side")
     if not big:
         note = (note + "; " if note else "") + f"{name}: smaller than {info.minimum:g} {unit} (named all the same)"
-    ev = EffectValue(name, float(value), interval, unit, params, bool(plausible), bool(big), why, note)
+    ev = EffectValue(name, float(value), interval, unit, params, bool(plausible), bool(big), why, note,
+                     per_motor=per_motor, motors=motors)
     maps = member_maps(name)
     if maps and len(keys) == maps[next(iter(maps))].shape[0]:
         member, z, cov_z = select_member(x, cov, maps)
@@ -143,11 +164,66 @@ def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, tim
             cov_r = G @ cov_z[1:, 1:] @ G.T
             sv = dict(zip(v, np.sqrt(np.clip(np.diag(cov_r)[G.any(axis=1)], 0, None))))
             ev.member_params = {g: (float(v[g]), float(sv[g])) for g in v}
-            g = max(v, key=lambda k: abs(v[k]))                   # the value: the member's fastest group
+            g = max(v, key=lambda k: abs(v[k]))                   # the value: the member's fastest part
             ev.value, ev.interval = v[g], (v[g] - Z95 * sv[g], v[g] + Z95 * sv[g])
+            ev.parts = separable_parts(x, cov)
+            # every rate must be a material's: the member's, and each single part the campaign determines on
+            # its own (a simpler member can hide a part fitted at a rate no material has; the merged sets
+            # are left out: a merge of parts that truly differ biases the others)
+            lo, hi = PART_RATE_RANGE
+            single = [p for p in separable_parts(x, cov, np.inf) if p["std"] <= SEPARABLE_STD]
+            rates = [(k, v[k], sv[k]) for k in v] + [(p["parts"][0], p["rate"], p["std"]) for p in single]
+            bad = [r for r in rates if not lo - 3 * r[2] <= r[1] <= hi + 3 * r[2]]
+            if bad and ev.plausible:
+                ev.plausible = False
+                ev.why = (f"{bad[0][0]} expands at {bad[0][1]:.3g} +- {bad[0][2]:.2g} 1/K, outside the plausible "
+                          f"range of a part {lo:g} .. {hi:g} 1/K")
+            ev.note = "; ".join(filter(None, [ev.note, parts_note(ev.parts)]))
         else:
             ev.member_params = {k: (float(np.rad2deg(v[k])), float(np.rad2deg(sv[k]))) for k in v}
     return ev
+
+
+def _delta(f, x: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
+    """``f(x)`` and its standard deviation by the delta method (forward-difference gradient)."""
+    std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    f0 = f(x)
+    g = np.zeros(len(x))
+    for i in range(len(x)):
+        h = 1e-6 * max(std[i], abs(x[i]), 1e-12)
+        xp = x.copy()
+        xp[i] += h
+        g[i] = (f(xp) - f0) / h
+    return float(f0), float(np.sqrt(max(g @ cov @ g, 0.0)))
+
+
+def per_motor_values(name: str, x: np.ndarray, cov: np.ndarray) -> tuple[list[dict], tuple[int, ...]]:
+    """Each motor's value of a per-motor effect (:data:`MOTOR_PARAMS`) with its 95 % interval (delta
+    method), interface units: backlash the full dead band 2 b (deg: the lost motion between the two
+    approach directions), eccentricity the amplitude (deg) and phase (deg, ``a sin(theta + phase)``), drift
+    the rate at the first pose (and the curvature when fitted). Also the motors that carry the effect:
+    those whose own parameters differ from zero at 95 % (Wald test, 1 or 2 degrees of freedom). Empty for
+    other effects."""
+    if name not in MOTOR_PARAMS:
+        return [], ()
+    out, carry = [], []
+    for m, idx in enumerate(MOTOR_PARAMS[name]):
+        idx = list(idx)
+        v, sv = _delta(lambda z: _motor_value(name, z, m), x, cov)
+        item = {"motor": m + 1, "value": v, "std": sv, "interval": (v - Z95 * sv, v + Z95 * sv)}
+        if name == "encoder_eccentricity":
+            ph, sph = _delta(lambda z: float(np.rad2deg(np.arctan2(z[idx[1]], z[idx[0]]))), x, cov)
+            item.update(phase_deg=ph, phase_std=sph, phase_interval=(ph - Z95 * sph, ph + Z95 * sph))
+        if name == "zero_offset_drift" and len(x) == 4:
+            q, sq = float(np.rad2deg(x[idx[1]])), float(np.rad2deg(np.sqrt(max(cov[idx[1], idx[1]], 0.0))))
+            item.update(curvature=q, curvature_std=sq)
+        sub = idx if name != "zero_offset_drift" else idx[:1]
+        xi, ci = x[sub], cov[np.ix_(sub, sub)]
+        wald = float(xi @ np.linalg.pinv(ci) @ xi) if np.any(ci) else float("inf")
+        if wald > stats.chi2.ppf(0.95, len(sub)):
+            carry.append(m + 1)
+        out.append(item)
+    return out, tuple(carry)
 
 
 #: Correlation with the temperature above which a reversing drift's time course follows the temperature.
@@ -178,6 +254,67 @@ def drift_reversal(x: np.ndarray, cov: np.ndarray, t_rel: np.ndarray, unit: str,
     return ""
 
 
+def _gls(x: np.ndarray, cov: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Generalised least squares of ``x = A z`` (``x`` with covariance ``cov``): z, its covariance, and the
+    misfit ``(x - A z)^T cov^-1 (x - A z)``."""
+    W = np.linalg.pinv(cov)
+    cov_z = np.linalg.pinv(A.T @ W @ A)
+    z = cov_z @ A.T @ W @ x
+    d = x - A @ z
+    return z, cov_z, float(d @ W @ d)
+
+
+#: A part's (or combination's) rate counts as determined by the campaign when its std is at most this, 1/K:
+#: aluminium (23e-6) and steel (12e-6) then differ by more than 4 std.
+SEPARABLE_STD = 2.5e-6
+
+
+def separable_parts(x: np.ndarray, cov: np.ndarray, max_std: float = SEPARABLE_STD) -> list[dict]:
+    """The parts of a thermal fit (``x`` = alpha and the part deviations, covariance ``cov``) whose rates the
+    campaign determines, and the combinations it determines when single parts are not: each part starts
+    on its own (GLS rates, 1/K); while a set's std exceeds ``max_std`` it is merged with another set (the
+    parts then share one rate: what the campaign sees is their combination), the one whose common rate the
+    fit rejects least (smallest GLS misfit: a poorly seen part joins a part it agrees with, so a merge does
+    not bias the others). Returns [{"parts": [...], "rate", "std", "separable"}], ``separable`` False for
+    a set still above ``max_std`` when nothing is left to merge it with (the campaign does not determine
+    it)."""
+    n = len(THERMAL_GROUPS)
+
+    def rates(sets):
+        G = np.zeros((n, len(sets)))
+        for c, st in enumerate(sets):
+            G[list(st), c] = 1.0
+        A = np.zeros((1 + n, 1 + len(sets)))
+        A[0, 0], A[1:, 0], A[1:, 1:] = 1.0, -1.0, G
+        z, cov_z, misfit = _gls(x, cov, A)
+        return z[1:], np.sqrt(np.clip(np.diag(cov_z)[1:], 0, None)), misfit
+
+    sets = [(i,) for i in range(n)]
+    r, s, _ = rates(sets)
+    while len(sets) > 1 and s.max() > max_std:
+        worst = int(np.argmax(s))
+        trials = []
+        for j in range(len(sets)):
+            if j != worst:
+                merged = [st for k, st in enumerate(sets) if k not in (worst, j)] + [tuple(sorted(sets[worst] + sets[j]))]
+                trials.append((*rates(merged)[::-1], merged))
+        _, s, r, sets = min(trials, key=lambda t: t[0])
+    return [{"parts": [THERMAL_GROUPS[i] for i in st], "rate": float(rv), "std": float(sv),
+             "separable": bool(sv <= max_std)} for st, rv, sv in sorted(zip(sets, r, s), key=lambda t: t[0])]
+
+
+def parts_note(parts: list[dict]) -> str:
+    """One line: the rates the campaign determines, by part or by combination of parts."""
+    if not parts:
+        return ""
+    text = "; ".join(f"{'+'.join(p['parts'])} {p['rate']:.3g} +- {p['std']:.2g} 1/K"
+                     + ("" if p["separable"] else " (not determined by this campaign)") for p in parts)
+    joined = [p for p in parts if len(p["parts"]) > 1]
+    tail = (" (" + "; ".join(f"{' and '.join(p['parts'])} not separable with this campaign" for p in joined) + ")"
+            if joined else "")
+    return f"thermal_expansion by part: {text}{tail}"
+
+
 #: Level of the test that rejects a simpler member of a family against the whole family.
 MEMBER_ALPHA = 0.01
 
@@ -188,15 +325,10 @@ def select_member(x: np.ndarray, cov: np.ndarray, maps: dict[str, np.ndarray]) -
     :data:`MEMBER_ALPHA` (Wald test, ``min_z (x - A z)^T cov^-1 (x - A z) ~ chi2(rank)`` with the rank
     the family has beyond the member); the whole family when every simpler member is rejected. Returns
     the member's name, its parameters z (generalised least squares) and their covariance."""
-    W = np.linalg.pinv(cov)
     n = len(x)
     best = None
     for name, A in maps.items():
-        M = A.T @ W @ A
-        cov_z = np.linalg.pinv(M)
-        z = cov_z @ A.T @ W @ x
-        d = x - A @ z
-        chi2 = float(d @ W @ d)
+        z, cov_z, chi2 = _gls(x, cov, A)
         k = n - np.linalg.matrix_rank(A)
         ok = k == 0 or stats.chi2.sf(chi2, k) >= MEMBER_ALPHA
         cand = (not ok, A.shape[1], chi2, name, z, cov_z)

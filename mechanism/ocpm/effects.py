@@ -16,11 +16,14 @@ effect                   layer         model (per motor j = 1, 2; joint = comman
                                        to first order offset_j = -c_j tau_j (tau_j the motor torque)
 ``thermal_expansion``    geometry      lengths grow linearly with dT = temp_c - 20, each group g of
                                        :data:`THERMAL_GROUPS` at its own rate alpha + delta_g: the
-                                       common rate alpha scales the whole machine about O, the group
-                                       deviations delta_g (links, base, platform, nests) act to first
-                                       order through the length sensitivities; members
-                                       (:data:`MEMBERS`): uniform, links only, base and platform, ...
+                                       common rate alpha scales the whole machine about O, the part
+                                       deviations delta_g (cranks, couplers, strut, base, platform with
+                                       its nests) act to first order through the length sensitivities;
+                                       members (:func:`member_maps`): uniform, links only, ..., per part
 ``overconstraint``       geometry      passive-limb (L3, L4) geometric errors, absent from the baseline
+``frame_drift``          frame         the base (or the tracker) moves during the campaign: every target
+                                       moves rigidly by t (v + w x p), v (mm/h) the translation rate of
+                                       the base origin O, w (rad/h) the rotation rate, t as for the drift
 =======================  ============  =================================================================
 
 The twin (:mod:`pmcal.twin.effects`) uses the same context functions to make data, with real MuJoCo physics
@@ -42,18 +45,23 @@ from pmcal.mechanism.ocpm.params import LIMB_FIELDS
 REFERENCE_TEMP_C = 20.0
 #: Passive-limb keys: the parameters of ``overconstraint`` (no motor on limbs 3, 4).
 PASSIVE_KEYS: tuple[str, ...] = tuple(f"L{j}.{f}" for j in (3, 4) for f in LIMB_FIELDS if f != "dtheta")
-#: Length keys of the links (RSR links of every limb, SS limb): the ``thermal_expansion.links`` member.
-LINK_LENGTH_KEYS: tuple[str, ...] = tuple(f"L{j}.{f}" for j in (1, 2, 3, 4) for f in ("dl1", "dl2")) + ("SS.dh",)
-#: Groups of lengths that may expand at their own rate (``thermal_expansion.<group>``: the group's deviation
-#: from the common rate ``thermal_expansion.alpha``): the links (l1, l2 of every RSR limb, SS length), the
-#: base (base-joint positions B_j about O), the platform (platform-joint positions A_j and the ball-joint
-#: offset about the platform origin), the target nests (target positions about the platform origin).
-THERMAL_GROUPS: tuple[str, ...] = ("links", "base", "platform", "nests")
-#: Prior std of a group's deviation from the common rate, 1/K: about the spread of the expansion rates of
-#: the metals machines are built from (aluminium 23e-6, steel 12e-6, cast iron 10e-6, invar 1e-6, around a
-#: common rate of ~12e-6). It is the ridge that keeps four group rates identifiable: a group whose
-#: signature the campaign does not determine stays at the common rate.
+#: Parts that may expand at their own rate (``thermal_expansion.<part>``: the part's deviation from the common
+#: rate ``thermal_expansion.alpha``): the RSR cranks (l1 of every RSR limb), the RSR couplers (l2), the SS
+#: strut (its length), the base (base-joint positions B_j about O), the platform with its target nests
+#: (platform-joint positions A_j, the ball-joint offset and the target positions about the platform origin).
+THERMAL_GROUPS: tuple[str, ...] = ("cranks", "couplers", "strut", "base", "platform")
+#: Length keys of each part's lengths (the base and platform: their joint positions, :func:`thermal_group_weights`).
+PART_LENGTH_KEYS: dict[str, tuple[str, ...]] = {
+    "cranks": tuple(f"L{j}.dl1" for j in (1, 2, 3, 4)), "couplers": tuple(f"L{j}.dl2" for j in (1, 2, 3, 4)),
+    "strut": ("SS.dh",)}
+#: Prior std of a part's deviation from the common rate, 1/K: weak, about the spread of the expansion rates of
+#: the metals machines are built from (aluminium 23e-6, steel 12e-6, cast iron 10e-6, invar 1e-6: materials
+#: differ by 2x around a common rate of ~12e-6). It keeps the parts a campaign does not separate near the
+#: common rate instead of letting them trade off without bound.
 THERMAL_GROUP_STD = 1.2e-5
+#: Plausible range of each part's own rate, 1/K: carbon-fibre tubes along the fibre (-1e-6 .. 0), invar
+#: (~1e-6), steel (12e-6), aluminium and magnesium (23e-6 .. 26e-6); checked with a 3-std allowance.
+PART_RATE_RANGE = (-2e-6, 25e-6)
 #: Context column kept in ``Measurements.extra`` (see :func:`with_context`).
 T_REL = "effect_t_rel"
 
@@ -103,9 +111,10 @@ VOCABULARY: dict[str, EffectInfo] = {e.name: e for e in (
     EffectInfo("thermal_expansion", "geometry", "1/K", ("alpha",) + THERMAL_GROUPS, 23e-6, (0.0, 5e-5), 1e-7,
                "poses at different temperatures (temp_c), or a temperature far from 20 degC",
                "record temp_c and measure over a temperature change of several kelvin (warm-up)",
-               "lengths grow linearly with the temperature, each group (links, base, platform, target nests) "
-               "at its own rate around a common one (value: the fastest group's rate in the member that "
-               "fits; members: uniform, links only, base and platform, links and the rest, per group)"),
+               "lengths grow linearly with the temperature, each part (RSR cranks, RSR couplers, SS strut, base, "
+               "platform with its nests) at its own rate around a common one (value: the fastest part's rate "
+               "in the member that fits; members: uniform, links only, base and platform, links and the rest, "
+               "RSR links and the rest, per part)"),
     EffectInfo("zero_offset_drift", "joint angle", "deg/h", ("r1", "r2", "q1", "q2"), 0.0125, (-1.0, 1.0), 0.001,
                "poses measured in an order that does not follow the pose (time_s or row order)",
                "measure the poses in random order (or revisit a reference pose) and record time_s: in "
@@ -118,6 +127,13 @@ VOCABULARY: dict[str, EffectInfo] = {e.name: e for e in (
                "set separates)",
                "geometric errors of the passive limbs 3, 4 that the baseline model leaves out load the "
                "closed chain and move the platform"),
+    EffectInfo("frame_drift", "frame", "mm/h", ("vx", "vy", "vz", "wx", "wy", "wz"), 0.18, (0.0, 5.0), 0.001,
+               "poses measured in an order that does not follow the pose (time_s or row order)",
+               "measure the poses in random order and re-measure the reference nests (or a reference pose) "
+               "during the campaign",
+               "the machine's base or the tracker moves during the campaign (a floor slide, a settling stand): "
+               "every target of a pose moves as one rigid body, growing with time (value: the translation "
+               "rate of the base origin; params: vx, vy, vz mm/h and the rotation rates wx, wy, wz deg/h)"),
 )}
 
 EFFECT_NAMES: tuple[str, ...] = tuple(VOCABULARY)
@@ -187,6 +203,19 @@ def meas_basis(name: str, meas: Measurements) -> np.ndarray | None:
     return drive_basis(name, meas.m_cmd_deg, meas.approach, meas.extra.get(T_REL))
 
 
+def frame_motion(targets: np.ndarray, t_rel: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Displacement (N, k, 3) mm of the targets (N, k, 3) mm by the ``frame_drift`` parameters ``x`` =
+    (vx, vy, vz mm per unit of ``t_rel``, wx, wy, wz rad per unit of ``t_rel``): t (v + w x p), first order
+    in the rotation (w t below 1e-4 rad on real campaigns)."""
+    t = np.asarray(t_rel, float)[:, None, None]
+    return t * (np.asarray(x[:3], float) + np.cross(np.asarray(x[3:6], float), targets))
+
+
+def frame_basis(targets: np.ndarray, t_rel: np.ndarray) -> np.ndarray:
+    """d targets / d ``frame_drift`` parameters, (N, k, 3, 6): :func:`frame_motion` is linear in them."""
+    return np.stack([frame_motion(targets, t_rel, e) for e in np.eye(6)], axis=-1)
+
+
 def thermal_delta(temp_c: np.ndarray | None) -> np.ndarray | None:
     """Temperature above the 20 degC reference, K (None without temperatures)."""
     if temp_c is None or not np.all(np.isfinite(temp_c)):
@@ -208,16 +237,18 @@ def approach_from_order(cmd_deg: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------- families
 def thermal_group_weights(geom, errors: dict[str, float] | None = None) -> dict[str, list[tuple[str, float]]]:
-    """How a unit strain of each length group (other than the nests) moves the geometric keys: group ->
-    [(key, mm per unit strain)]. A group that expands by ``e`` changes every key ``k`` listed by ``e w_k``,
-    ``w_k`` the length's current value, nominal plus ``errors`` (mm, interface keys): links: l1, l2 and
+    """How a unit strain of each part moves the geometric keys: part -> [(key, mm per unit strain)] (the
+    platform's target nests are not geometric keys: :class:`pmcal.twin.effect_model.EffectChainModel`
+    adds them). A part that expands by ``e`` changes every key ``k`` listed by ``e w_k``, ``w_k`` the
+    length's current value, nominal plus ``errors`` (mm, interface keys): cranks l1, couplers l2, strut
     the SS length; base: the components of B_j about O; platform: those of A_j and of the ball-joint
     offset C_E in the platform frame. ``geom`` is the nominal
     :class:`pmcal.mechanism.ocpm.config.Geometry`."""
     e = errors or {}
     B, A = geom.base_points(), geom.platform_points()
-    out = {"links": [(k, (geom.h if k == "SS.dh" else geom.l) + e.get(k, 0.0)) for k in LINK_LENGTH_KEYS],
-           "base": [], "platform": [(f"SS.dc{a}", e.get(f"SS.dc{a}", 0.0)) for a in "xyz"]}
+    out = {p: [(k, (geom.h if k == "SS.dh" else geom.l) + e.get(k, 0.0)) for k in ks]
+           for p, ks in PART_LENGTH_KEYS.items()}
+    out.update({"base": [], "platform": [(f"SS.dc{a}", e.get(f"SS.dc{a}", 0.0)) for a in "xyz"]})
     for j in range(geom.n_limbs):
         for c, axis in enumerate("xyz"):
             kb, ka = f"L{j + 1}.db{axis}", f"L{j + 1}.da{axis}"
@@ -227,7 +258,8 @@ def thermal_group_weights(geom, errors: dict[str, float] | None = None) -> dict[
 
 
 def _thermal_members() -> dict[str, np.ndarray]:
-    """Members of the thermal family as group-rate structures G (4, k): group rates = G y."""
+    """Members of the thermal family as part-rate structures G (5, k): part rates = G y (a part outside
+    the member does not expand)."""
     g = {n: i for i, n in enumerate(THERMAL_GROUPS)}
 
     def cols(*sets):
@@ -236,10 +268,13 @@ def _thermal_members() -> dict[str, np.ndarray]:
             G[[g[n] for n in s], c] = 1.0
         return G
 
-    return {"uniform": cols(THERMAL_GROUPS), "links only": cols(("links",)),
-            "base and platform": cols(("base", "platform")), "links and the rest": cols(("links",), ("base", "platform", "nests")),
-            "links, base and platform": cols(("links", "base", "platform")),
-            "per group": np.eye(len(THERMAL_GROUPS))}
+    links, rsr = ("cranks", "couplers", "strut"), ("cranks", "couplers")
+    return {"uniform": cols(THERMAL_GROUPS), "links only": cols(links),
+            "base and platform": cols(("base", "platform")),
+            "links and the rest": cols(links, ("base", "platform")),
+            "RSR links and the rest": cols(rsr, ("strut", "base", "platform")),
+            "links, base and platform": cols(links + ("base", "platform")),
+            "per part": np.eye(len(THERMAL_GROUPS))}
 
 
 def member_maps(name: str) -> dict[str, np.ndarray]:
@@ -260,8 +295,8 @@ def member_maps(name: str) -> dict[str, np.ndarray]:
 
 
 def member_values(name: str, member: str, z: np.ndarray) -> dict[str, float]:
-    """A member's own parameters ``z`` (internal units) as named values: thermal group rates (1/K, the
-    groups the member moves), drift rates and curvatures (rad/h, rad/h^2)."""
+    """A member's own parameters ``z`` (internal units) as named values: thermal part rates (1/K, the
+    parts the member moves), drift rates and curvatures (rad/h, rad/h^2)."""
     if name == "thermal_expansion":
         G = _thermal_members()[member]
         rates = G @ z[1:]

@@ -50,7 +50,8 @@ def parse_effects(specs: list[str]) -> Effects:
 #: of lost motion, a 10 um off-centre encoder disc on a 57 mm radius, aluminium, 0.01 deg drift over a
 #: campaign, 0.5 mm passive-limb errors.
 REALISTIC: dict[str, float] = {"joint_compliance": 5.0e4, "backlash": 0.0125, "encoder_eccentricity": 0.01,
-                               "thermal_expansion": 23e-6, "zero_offset_drift": 0.01, "overconstraint": 0.5}
+                               "thermal_expansion": 23e-6, "zero_offset_drift": 0.01, "overconstraint": 0.5,
+                               "frame_drift": 0.19}
 
 
 def diagnosis_plan(n: int = 128, seed: int | None = 0, theta_max_deg: float = 80.0) -> CampaignPlan:
@@ -78,7 +79,7 @@ def realistic_effects(names: list[str], plan: CampaignPlan, rng: np.random.Gener
     hours = max(float(plan.time_s[-1] - plan.time_s[0]) / 3600.0, 1e-9)
     for name in names:
         v = REALISTIC[name]
-        if name == "zero_offset_drift":
+        if name in ("zero_offset_drift", "frame_drift"):       # over the campaign
             v = v / hours
         setattr(e, name, (v, v) if name in PER_MOTOR else v)
         if name == "encoder_eccentricity":
@@ -88,8 +89,8 @@ def realistic_effects(names: list[str], plan: CampaignPlan, rng: np.random.Gener
 
 def hidden_effect_campaign(names: list[str], seed: int, n: int = 128, sigma_mm: float = 0.01,
                            heavy_tails: bool = False, plan: CampaignPlan | None = None,
-                           joint_jitter_deg: float = 0.0, theta_max_deg: float = 80.0
-                           ) -> tuple[Measurements, EffectTwin]:
+                           joint_jitter_deg: float = 0.0, theta_max_deg: float = 80.0,
+                           effects: Effects | None = None) -> tuple[Measurements, EffectTwin]:
     """Measurements of a machine with random geometric errors in limbs 1-2 and SS (0.5 mm / 0.1 deg) and the
     effects ``names`` at realistic sizes, hidden from whoever analyses them. ``heavy_tails``: Student-t
     (3 dof) tracker noise; ``joint_jitter_deg``: random joint-angle scatter per pose (stick-slip, an effect
@@ -100,12 +101,14 @@ def hidden_effect_campaign(names: list[str], seed: int, n: int = 128, sigma_mm: 
     logged as a user does: in time order, each motor approaching every pose from the side of its last
     move (skipped poses are left out of the drive, so the order is that of the poses measured), and no
     approach columns in the measurements (the diagnosis infers them from the order). With a ``plan``: its
-    approach signs are driven and logged as given."""
+    approach signs are driven and logged as given. ``effects``: hide these instead (``names`` then only
+    draws the realistic ones, keeping the seed's random stream)."""
     rng = np.random.default_rng([seed, 11])
     errors = random_errors(rng, 0.5, 0.1, limbs=(1, 2))
     logged = plan is None
     plan = plan or diagnosis_plan(n, seed, theta_max_deg)
-    twin = EffectTwin(errors, realistic_effects(names, plan, rng), seed=seed)
+    drawn = realistic_effects(names, plan, rng)
+    twin = EffectTwin(errors, effects if effects is not None else drawn, seed=seed)
     noise_rng = np.random.default_rng([seed, 12])
     tracker = (HeavyTailedTracker(sigma_mm, rng=noise_rng) if heavy_tails else LaserTracker(sigma_mm, noise_rng))
     cmd = nominal_commands(plan.phi_deg, plan.theta_deg, twin.geom)

@@ -25,8 +25,12 @@ METHODS = {"full-chain-map": "least squares with the tolerance priors (maximum a
 
 # ====================================================================== labels from the result
 def effect_label(v) -> str:
-    """``family`` or ``family (member)`` of a named effect (an EffectValue: its ``name`` is the family)."""
-    return f"{v.name} ({v.member})" if v.member else v.name
+    """``family``, ``family (member)``, and for a per-motor effect the motors that carry it, e.g.
+    ``backlash (motor 2)`` (an EffectValue: its ``name`` is the family)."""
+    motors = getattr(v, "motors", ())
+    parts = ([v.member] if v.member else []) + (
+        [f"motor {motors[0]}" if len(motors) == 1 else "both motors"] if getattr(v, "per_motor", None) and motors else [])
+    return f"{v.name} ({', '.join(parts)})" if parts else v.name
 
 
 def named_labels(d) -> str:
@@ -114,8 +118,21 @@ def verdict_cards(rep: Report, d) -> None:
             lines += [f"member {v.member}: " + "; ".join(
                 f"{k} {p[0]:.5g} ± {p[1]:.2g}" for k, p in v.member_params.items())
                 + (" 1/K" if v.name == "thermal_expansion" else "")]
+        lines += [motor_line(v.name, m) for m in v.per_motor]
         lines += [f"whole family, {k}: {p[0]:.5g} ± {p[1]:.2g}" for k, p in list(v.params.items())[:6]]
         rep.card(effect_label(v), lines, "ok")
+
+
+def motor_line(name: str, m: dict) -> str:
+    """One motor's value of a per-motor effect with its 95 % interval (backlash: the full dead band)."""
+    what = {"backlash": "dead band (full)", "encoder_eccentricity": "amplitude",
+            "zero_offset_drift": "rate at the first pose"}.get(name, "value")
+    text = f"motor {m['motor']}: {what} {_f(m['value'], 4)} [{_f(m['interval'][0], 4)}, {_f(m['interval'][1], 4)}]"
+    if "phase_deg" in m:
+        text += f", phase {m['phase_deg']:.1f}° [{m['phase_interval'][0]:.1f}, {m['phase_interval'][1]:.1f}]"
+    if "curvature" in m:
+        text += f", curvature {_f(m['curvature'], 3)} ± {_f(m['curvature_std'], 2)}"
+    return text
 
 
 def scoreboard(rep: Report, d) -> None:

@@ -12,7 +12,20 @@ Effects are this simulator's own versions (not the twin's forms):
   rate·P/(2π)·sin(2π t/P) (a drive cabinet's climate cycle);
 - ``eccentricity``: amplitude (deg) and arbitrary phase (rad) per motor, a·sin(command + phase);
 - ``compliance``: torsional stiffness K (N·m/rad) per motor in the closed-chain solve;
-- passive-limb errors: any `L3.*`/`L4.*` keys in the geometric errors.
+- passive-limb errors: any `L3.*`/`L4.*` keys in the geometric errors;
+- ``thermal_parts``: each part at its own rate (1/K): ``cranks`` (l1 of every RSR limb), ``couplers`` (l2),
+  ``strut`` (the SS length), ``base`` (B_j about O), ``platform`` (A_j, C_E and the target nests about the
+  platform origin: the nests sit on the platform);
+- ``frame_drift``: the tracker's frame moves against the machine's base during the campaign (the machine
+  slides on its floor): the measured point is exp(s [w]x) p + s d, s = the fraction of the campaign's
+  time elapsed, d (mm) and w (deg, rotation vector) the motion over the whole campaign;
+Effects that no family of pmcal's vocabulary holds (to check nothing is falsely named):
+- ``tracker_scale``: a range error growing with the distance from the tracker (at ``TRACKER_MM``): the
+  measured point moves along the beam by eps d^2 / D0 (D0 = 2500 mm);
+- ``stand_creep``: the tracker's stand expands with the temperature and moves the tracker along x by
+  c (temp_c - 18) mm (a translation following the temperature: not a scale about the machine);
+- ``nest_sag``: target nest 1 on a cantilever arm bends under gravity by delta (mm) times the component of
+  gravity across its arm (pose dependent, not time or temperature dependent).
 Rows are written in time order without approach columns, as a user logs them.
 """
 
@@ -39,6 +52,17 @@ class SimEffects:
     eccentricity: tuple = (0.0, 0.0)
     ecc_phase: tuple = (0.0, 0.0)
     compliance: tuple | None = None
+    thermal_parts: dict | None = None
+    frame_drift: tuple | None = None          # (dx, dy, dz mm, wx, wy, wz deg) over the campaign
+    tracker_scale: float = 0.0                # eps, range error eps d^2 / D0
+    nest_sag: float = 0.0                     # delta, mm
+    stand_creep: float = 0.0                  # mm/K along x, about 18 degC
+
+
+#: Parts of the per-part thermal expansion (``SimEffects.thermal_parts``).
+PARTS = ("cranks", "couplers", "strut", "base", "platform")
+#: Position of the tracker in the base frame, mm (``tracker_scale``), and the reference distance D0.
+TRACKER_MM, D0_MM = np.array([2500.0, 800.0, 600.0]), 2500.0
 
 
 @dataclass
@@ -115,10 +139,18 @@ def simulate(c: Campaign, errors: dict, fx: SimEffects, sigma_mm: float = 0.01, 
     drive = drive_angles(c, geom, fx)
     keep, tg = [], []
     for i in range(len(c.phi_deg)):
-        chain = ClosedChain(geom, motor_stiffness=fx.compliance,
-                            link_scale=1 + fx.thermal * (c.temp_c[i] - 20.0), payload_kg=c.payload_kg[i],
-                            gravity=gravity, base_scale=1 + fx.thermal_body * (c.temp_c[i] - 20.0),
-                            platform_scale=1 + fx.thermal_body * (c.temp_c[i] - 20.0))
+        dT = c.temp_c[i] - 20.0
+        if fx.thermal_parts:
+            s = {p: 1 + fx.thermal_parts.get(p, 0.0) * dT for p in PARTS}
+            scales = dict(link_scale=s["cranks"], coupler_scale=s["couplers"], strut_scale=s["strut"],
+                          base_scale=s["base"], platform_scale=s["platform"])
+            nests = s["platform"]
+        else:
+            scales = dict(link_scale=1 + fx.thermal * dT, base_scale=1 + fx.thermal_body * dT,
+                          platform_scale=1 + fx.thermal_body * dT)
+            nests = 1.0
+        chain = ClosedChain(geom, motor_stiffness=fx.compliance, payload_kg=c.payload_kg[i], gravity=gravity,
+                            **scales)
         try:
             r, R, _, energy = chain.solve(drive[i], (c.phi_deg[i], c.theta_deg[i]))
         except np.linalg.LinAlgError:
@@ -126,16 +158,49 @@ def simulate(c: Campaign, errors: dict, fx: SimEffects, sigma_mm: float = 0.01, 
         if not np.isfinite(energy) or energy > max_energy:
             continue
         keep.append(i)
-        tg.append(r + TARGETS_ROT(R))
+        tg.append(r + nests * TARGETS_ROT(R) + sag(R, fx.nest_sag))
     keep = np.array(keep, int)
     if len(keep) < len(c.phi_deg):   # the operator drops those poses from the plan: the move order changes
         sub = Campaign(c.phi_deg[keep], c.theta_deg[keep], c.cmd_deg[keep], c.time_s[keep], c.temp_c[keep],
                        c.payload_kg[keep])
         return simulate(sub, errors, fx, sigma_mm, rng, gravity, max_energy)
-    t = np.array(tg)
+    t = tracker_view(np.array(tg), c.time_s, fx)
+    t[:, :, 0] += fx.stand_creep * (c.temp_c - 18.0)[:, None]
     if rng is not None and sigma_mm > 0:
         t = t + rng.normal(0, sigma_mm, t.shape)
     return Campaign(c.phi_deg, c.theta_deg, c.cmd_deg, c.time_s, c.temp_c, c.payload_kg, t)
+
+
+def sag(R: np.ndarray, delta: float) -> np.ndarray:
+    """Displacement (3, 3) mm of the targets when nest 1, on a cantilever arm along its radial direction,
+    bends by ``delta`` times the component of gravity (unit, -z) across the arm; the other nests are stiff."""
+    out = np.zeros((3, 3))
+    if delta:
+        from .machine import TARGETS
+        arm = R @ np.array([TARGETS[0, 0], TARGETS[0, 1], 0.0])
+        arm /= np.linalg.norm(arm)
+        g = np.array([0.0, 0.0, -1.0])
+        out[0] = delta * (g - (g @ arm) * arm)
+    return out
+
+
+def tracker_view(points: np.ndarray, time_s: np.ndarray, fx: SimEffects) -> np.ndarray:
+    """Targets (n, 3, 3) mm as the tracker sees them: its frame moving against the base (``frame_drift``,
+    linear in the campaign's elapsed time) and its range error (``tracker_scale``)."""
+    from scipy.spatial.transform import Rotation
+
+    out = points.copy()
+    if fx.tracker_scale:
+        v = out - TRACKER_MM
+        d = np.linalg.norm(v, axis=-1, keepdims=True)
+        out = out + v / d * fx.tracker_scale * d**2 / D0_MM
+    if fx.frame_drift is not None:
+        span = max(float(time_s[-1] - time_s[0]), 1.0)
+        s = (np.asarray(time_s, float) - time_s[0]) / span
+        d, w = np.asarray(fx.frame_drift[:3], float), np.deg2rad(np.asarray(fx.frame_drift[3:], float))
+        for i in range(len(out)):
+            out[i] = Rotation.from_rotvec(s[i] * w).apply(out[i]) + s[i] * d
+    return out
 
 
 def TARGETS_ROT(R: np.ndarray) -> np.ndarray:  # noqa: N802 - targets of the platform, (3, 3) mm
@@ -162,13 +227,20 @@ def write_csv(path, c: Campaign, context: bool = True) -> None:
 
 #: realistic sizes of this simulator's effects (per motor where there are two)
 REALISTIC = {"backlash": 0.02, "encoder_eccentricity": 0.01, "thermal_expansion": 23e-6,
-             "zero_offset_drift": 0.0094, "joint_compliance": 5e4, "overconstraint": 0.5}
+             "zero_offset_drift": 0.0094, "joint_compliance": 5e4, "overconstraint": 0.5,
+             "frame_drift": 0.19, "tracker_scale": 6e-5, "nest_sag": 0.1, "stand_creep": 0.004}
+#: effects outside pmcal's vocabulary (``hidden_campaign`` names)
+OUTSIDE = ("tracker_scale", "nest_sag", "stand_creep")
 
 
 #: variants of an effect's form (``hidden_campaign(forms=)``): name -> form -> SimEffects fields set
 FORMS = {"thermal_expansion": {"links": {}, "steel body": {"thermal_body": 12e-6},
-                               "invar links": {"thermal_body": 12e-6, "thermal": 1.2e-6}},
-         "zero_offset_drift": {"creep": {}, "sine": {"drift_period_s": 3 * 3600.0}}}
+                               "invar links": {"thermal_body": 12e-6, "thermal": 1.2e-6},
+                               "per part": {"thermal_parts": {"cranks": 23e-6, "couplers": 23e-6, "strut": 12e-6,
+                                                              "base": 12e-6, "platform": 17e-6}}},
+         "zero_offset_drift": {"creep": {}, "sine": {"drift_period_s": 3 * 3600.0},
+                               "one motor": {"only_motor": None}},
+         "backlash": {"both": {}, "one motor": {"only_motor": None}}}
 
 
 def hidden_campaign(names: list[str], seed: int, n: int = 128, theta_max_deg: float = 80.0,
@@ -197,9 +269,20 @@ def hidden_campaign(names: list[str], seed: int, n: int = 128, theta_max_deg: fl
             fx.compliance = (v, v)
         elif name == "overconstraint":
             err.update(random_errors(rng, v, limbs=(3, 4), ss=False))
+        elif name == "frame_drift":     # the issue's floor slide, signs and the rotation drawn
+            sgn = rng.choice([-1, 1], 6)
+            fx.frame_drift = tuple(np.concatenate([np.array([0.15, 0.10, 0.05]) * v / 0.19,
+                                                   np.array([0.002, 0.002, 0.003])]) * sgn)
+        elif name in OUTSIDE:
+            setattr(fx, name, v)
         form = (forms or {}).get(name)
         for field_, value in (FORMS[name][form] if form else {}).items():
-            setattr(fx, field_, value)
+            if field_ == "only_motor":          # the effect on one motor (drawn), the other free of it
+                attr = "backlash" if name == "backlash" else "drift"
+                keep = int(rng.integers(2))
+                setattr(fx, attr, tuple(x if m == keep else 0.0 for m, x in enumerate(getattr(fx, attr))))
+            else:
+                setattr(fx, field_, value)
     c = plan(n, theta_max_deg, rng, temp_range=temp_range[-2:]) if context else plan(
         n, theta_max_deg, rng, temp_range=(20.0, 20.0), payloads=(0.0,))
     if context and temp_range[0] == "ramp":          # temperature rising (or falling) steadily with time

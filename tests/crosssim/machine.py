@@ -68,9 +68,12 @@ class Geometry:
     def e(self, key: str) -> float:
         return float(self.errors.get(key, 0.0))
 
-    def limb(self, j: int, link_scale: float = 1.0, base_scale: float = 1.0, platform_scale: float = 1.0) -> dict:
+    def limb(self, j: int, link_scale: float = 1.0, base_scale: float = 1.0, platform_scale: float = 1.0,
+             coupler_scale: float | None = None) -> dict:
         """Limb j (1..4): base point B, turned local frame F, platform point Ap and axis up (platform
-        coordinates), link lengths l1, l2, zero offset dtheta (rad)."""
+        coordinates), link lengths l1 (crank, ``link_scale``), l2 (coupler, ``coupler_scale``, default
+        ``link_scale``), zero offset dtheta (rad)."""
+        coupler_scale = link_scale if coupler_scale is None else coupler_scale
         p, k = PSI[j - 1], f"L{j}."
         frame = rot_z(p)  # columns x_j (radial), y_j (base revolute axis), z_j
         base = A_RADIUS * np.array([np.cos(p), np.sin(p), 0.0])
@@ -78,7 +81,7 @@ class Geometry:
         up = frame @ rot_z(np.deg2rad(self.e(k + "dnu"))) @ rot_x(np.deg2rad(self.e(k + "dmu"))) @ [0, 1, 0]
         return dict(B=(base + [self.e(k + "dbx"), self.e(k + "dby"), self.e(k + "dbz")]) * base_scale, F=F,
                     Ap=(base + [self.e(k + "dax"), self.e(k + "day"), self.e(k + "daz")]) * platform_scale, up=up,
-                    l1=(L_LINK + self.e(k + "dl1")) * link_scale, l2=(L_LINK + self.e(k + "dl2")) * link_scale,
+                    l1=(L_LINK + self.e(k + "dl1")) * link_scale, l2=(L_LINK + self.e(k + "dl2")) * coupler_scale,
                     dtheta=np.deg2rad(self.e(k + "dtheta")))
 
     def ss(self, link_scale: float = 1.0, platform_scale: float = 1.0) -> tuple[float, np.ndarray]:
@@ -121,10 +124,13 @@ class ClosedChain:
     """Quasi-static pose of the machine for given motor drive angles (rad, zero offsets added here)."""
 
     def __init__(self, geom: Geometry, motor_stiffness=None, link_scale: float = 1.0, payload_kg: float = 0.0,
-                 gravity: bool = True, base_scale: float = 1.0, platform_scale: float = 1.0):
+                 gravity: bool = True, base_scale: float = 1.0, platform_scale: float = 1.0,
+                 coupler_scale: float | None = None, strut_scale: float | None = None):
+        """``link_scale`` scales the cranks l1 and, unless given their own, the couplers l2
+        (``coupler_scale``) and the SS strut (``strut_scale``)."""
         self.g = geom
-        self.limbs = [geom.limb(j, link_scale, base_scale, platform_scale) for j in range(1, 5)]
-        self.h, self.dc = geom.ss(link_scale, platform_scale)
+        self.limbs = [geom.limb(j, link_scale, base_scale, platform_scale, coupler_scale) for j in range(1, 5)]
+        self.h, self.dc = geom.ss(link_scale if strut_scale is None else strut_scale, platform_scale)
         self.k = np.array([K_PASSIVE * geom.ratio] * 2 + [K_PASSIVE] * 2)
         self.K = None if motor_stiffness is None else np.asarray(motor_stiffness, float) * 1e3  # N·mm/rad
         self.payload, self.gravity = payload_kg, gravity
