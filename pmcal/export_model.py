@@ -49,7 +49,8 @@ SIMULATION_OPTIONS = {"integrator": "Euler", "timestep": "0.0002"}
 #: effects an MJCF model holds, and where (``diagnose`` family names)
 IN_MJCF = {"joint_compliance": "motor position servos: kp = K (N m/rad)"}
 #: effects written as a comment and in the machine.toml only
-AS_COMMENT = {"backlash": "half-width of lost motion per motor (deg): joint = command + dtheta - b * approach sign"}
+AS_COMMENT = {"backlash": "full dead band of lost motion per motor (deg), as diagnose reports it: 2b in "
+                          "joint = command + dtheta - b * approach sign"}
 
 
 def _toml_value(v) -> str:

@@ -215,7 +215,8 @@ def test_twin_tracker_frame_with_effects_then_diagnose_cli(tmp_path, capsys):
     doc = json.loads(out.read_text())
     assert doc["effect"] == "backlash"
     lo, hi = doc["named"][0]["interval"]
-    assert lo <= 0.0125 <= hi or abs(doc["named"][0]["value"] - 0.0125) < 2 * (hi - lo), doc["named"][0]
+    band = 2 * 0.0125                                   # the diagnosis reports the full dead band 2b
+    assert lo <= band <= hi or abs(doc["named"][0]["value"] - band) < 2 * (hi - lo), doc["named"][0]
     frame = doc["measurement_frame"]
     assert [(r["row"], r["target"]) for r in frame["rejected"]] == [(row, target)]
     reg = frame["registration"]
