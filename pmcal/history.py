@@ -106,7 +106,7 @@ def record_document(cal, campaign_path: str | Path, machine: str = "ocpm_2dof", 
     return {
         "pmcal_history": RECORD_VERSION, "machine": machine, "model": cal.model, "method": cal.method,
         "frame": cal.document.get("frame", "base"),
-        "date": date.isoformat(timespec="seconds"),
+        "date": date.isoformat(timespec="microseconds"),   # orders two calibrations filed in one second
         "campaign": {"file": str(campaign_path), "sha256": sha256(campaign_path), "n_poses": fit.get("n_poses")},
         "units": {"length": "mm", "angle": "deg"},
         "params": {n: {"value": float(v), "std": float(s), "interval95": [float(v - Z95 * s), float(v + Z95 * s)]}

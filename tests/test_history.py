@@ -36,7 +36,8 @@ def history_folder(tmp_path_factory):
 
 def test_identify_files_records_never_overwriting(history_folder, capsys):
     tmp = history_folder
-    files = sorted((tmp / "hist").glob("*.json"))
+    # in filing order (the record's date; file names carry whole seconds, both may share one)
+    files = sorted((tmp / "hist").glob("*.json"), key=lambda f: json.loads(f.read_text())["date"])
     assert len(files) == 2
     doc = json.loads(files[0].read_text())
     import hashlib
