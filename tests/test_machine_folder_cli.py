@@ -366,3 +366,30 @@ def test_ctrl_c_stops_a_long_campaign_with_130_and_nothing_written(delta, tmp_pa
     finally:
         proc.kill()
     assert "interrupted" in rest and "Traceback" not in rest and not list(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------- twin render of a folder machine
+def test_render_of_a_folder_machine_draws_the_pose_it_reaches(delta, capsys):
+    """``twin render --pose X,Y,Z`` on the Delta's copy: a PNG of the asked size, different at two poses
+    150 mm apart (the platform moved), and one line + exit 2 for a pose with the wrong count or out of
+    reach (nothing written)."""
+    import matplotlib.image
+
+    folder, d = delta
+    images = []
+    for pose in ("0,0,-800", "150,0,-800"):
+        out = d / f"render_{pose.replace(',', '_')}.png"
+        status, _, err = run(capsys, "--quiet", "--machine", folder, "twin", "render", "--pose", pose,
+                             "--width", "160", "--height", "120", "-o", out)
+        if status == 1 and "offscreen rendering is unavailable" in err:
+            pytest.skip(err)
+        assert status == 0, err
+        assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        images.append(matplotlib.image.imread(out))
+    assert images[0].shape[:2] == (120, 160)
+    assert np.abs(images[0] - images[1]).max() > 0.2
+    for pose, says in (("1,2", "expected 3 comma-separated numbers (x_mm,y_mm,z_mm)"),
+                       ("0,0,-100", "no assembly of the chain reaches this target")):
+        one_line_error(capsys, "--machine", folder, "twin", "render", "--pose", pose, "-o", d / "bad.png",
+                       says=says)
+        assert not (d / "bad.png").exists()

@@ -31,7 +31,7 @@ def _sigma(value: float | None, option: str) -> float | None:
     return value
 
 
-def _error_set(machine, text: str | None):
+def error_set(machine, text: str | None):
     """``--errors``: random (default), none, or a parameters file of this machine."""
     if text is None or text in ERROR_CHOICES:
         return text or "random"
@@ -57,7 +57,7 @@ def twin_measure(args) -> int:
         raise InputError(f"seconds per pose must be >= 0, got {args.seconds_per_pose}", field="--seconds-per-pose")
     sigma = _sigma(args.noise, "--noise")
     task = read_targets(args.targets, machine.spec) if args.targets else None
-    errors = _error_set(machine, args.errors)
+    errors = error_set(machine, args.errors)
     poses = args.poses or command_defaults(machine)["poses"]
     progress.status(f"measuring {len(task) if task is not None else poses} poses on the twin of {machine.name}")
     meas, truth = campaign(machine, poses, seed=args.seed, errors=errors, sigma_mm=sigma, task=task,
