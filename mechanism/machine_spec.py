@@ -50,6 +50,10 @@ MEASURES = ("position", "pose")
 #: ``[machine] kind`` values routed to the seeded machines' dedicated code.
 LEGACY_KINDS = ("ocpm_2dof", "planar_2dof")
 
+#: sections ``pmcal export-model`` writes into a calibrated machine's TOML: a record of the calibration
+#: (source, date, identified values, named effects), not read by the machine's description
+RECORD_SECTIONS = ("calibration", "effects")
+
 
 @dataclass(frozen=True)
 class MotorSpec:
@@ -300,7 +304,7 @@ class _Loader:
                                             f"relative to the folder)")
         self.names = self.model_names(self.model)
         self.known(self.doc, "", ("machine", "motors", "tracker", "task", "workspace", "errors", "table",
-                                  "closures"))
+                                  "closures") + RECORD_SECTIONS)
         self.known(mach, "machine", ("kind", "name", "title", "model", "home"))
         home = self.text(mach, "home", "machine", default="home")
         if home not in self.names.keyframes:

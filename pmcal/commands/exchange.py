@@ -44,10 +44,7 @@ def _export_model(args) -> int:
     from pmcal.machines import resolve
 
     machine = getattr(args, "selected_machine", None) or resolve(args.machine)   # unknown: one line, exit 2
-    if not machine.spec.legacy:
-        raise InputError(f"'export-model' writes the calibrated model of ocpm_2dof and planar_2dof; not yet "
-                         f"available for machine '{machine.name}'", field="--machine")
-    out = export_model(args.params, args.output, machine.name)
+    out = export_model(args.params, args.output, machine)
     for name, where in out["in_mjcf"].items():
         progress.status(f"{name}: in the MJCF ({where})")
     for name in out["comment_only"] + out["not_in_mjcf"]:
