@@ -1,7 +1,7 @@
 """A machine as data: ``machine.toml`` beside an MJCF model, read and validated at the edge.
 
 A closed-chain machine is a folder (Menagerie layout): ``<name>.xml`` (the MJCF: kinematic tree, loops
-closed by site-based ``connect``/``weld`` equality constraints, a ``home`` keyframe), ``scene.xml`` and
+closed by ``connect``/``weld`` equality constraints, a ``home`` keyframe), ``scene.xml`` and
 ``machine.toml`` holding only what the MJCF cannot say: which joints are motors (range, zero
 convention), the tracker targets and what is measured of them, the task coordinates and the workspace to
 sample, which geometric errors to identify, the tracker noise and the compensation-table axes. Every field

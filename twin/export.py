@@ -24,6 +24,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from pmcal.twin.closures import sites_for_body_closures
+
 #: attributes that give an element's orientation besides ``quat`` (removed when ``quat`` is written)
 ORIENTATIONS = ("euler", "axisangle", "xyaxes", "zaxis")
 
@@ -105,6 +107,7 @@ def calibrated_xml(template: str | Path, model: mujoco.MjModel, *, header: list[
             raise ValueError(f"{path}: {name!r} is not in the compiled model")
         return i
 
+    sites_for_body_closures(root, model)          # body-based closures as the twin holds them
     world = root.find("worldbody")
     in_frame = _enclosing_frames(root, world)
     for el in world.iter():

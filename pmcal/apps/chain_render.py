@@ -58,6 +58,9 @@ def twin_render(args) -> int:
     if m.nq != len(qpos):
         raise InputError(f"{scene.name} has {m.nq} joint coordinates, the model {len(qpos)}: the scene must "
                          f"include the model and add no joints", file=str(scene))
+    # the offscreen buffer must hold the image (MJCF <visual><global offwidth/offheight>, default 640 x 480)
+    m.vis.global_.offwidth = max(int(m.vis.global_.offwidth), args.width)
+    m.vis.global_.offheight = max(int(m.vis.global_.offheight), args.height)
     d = mujoco.MjData(m)
     d.qpos[:] = qpos
     mujoco.mj_forward(m, d)
