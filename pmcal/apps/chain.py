@@ -19,8 +19,9 @@ _NOT_HERE = {
                      "--outliers", "--stiffness-ratio"),
     "twin render": ("--preset", "--stiffness-ratio"),
     "twin plan": ("--for-diagnosis", "--frame", "--theta-max", "--from"),
+    "demo": ("--full", "--hidden-effect"),
     "identify": ("--model", "--method", "--seed", "--allow-rank-deficient", "--frame", "--nest-tolerance",
-                 "--robust"),
+                 "--robust", "--history"),
     "targets": ("--theta-max",),
     "diagnose": ("--model", "--frame", "--nest-tolerance"),
 }
@@ -69,13 +70,16 @@ def option_help(machine) -> dict:
         ("evaluate", ""): "position error of a parameter set against a measurement file (RMS, mm)",
     })
     table.update({(cmd, ""): "not available for a machine folder (the seeded machines' command)"
-                  for cmd in ("demo", "diagnose", "loop")})
+                  for cmd in ("diagnose", "loop")})
     table.update({
         ("twin render", "--pose"): {
             "metavar": ",".join(spec.task.coordinates), "default": None,
             "help": f"task pose ({task}; mm, deg) the twin reaches by inverse kinematics (default: the "
                     f"'{spec.home}' keyframe)"},
         ("twin render", "--errors"): "error set of the real machine: a parameters file (default none)",
+        ("demo", ""): f"the whole job on {spec.name}'s twin: planned campaign, identification, compensation, "
+                      "HTML report",
+        ("demo", "--seed"): "random seed of the virtual machine's errors and the campaign (default 1)",
         ("twin plan", ""): "write the poses to measure, chosen D-optimally for identification (plan CSV)",
         ("twin plan", "--poses"): {"default": DEFAULT_POSES,
                                    "help": f"number of poses (default {DEFAULT_POSES})"},
@@ -89,7 +93,8 @@ def option_help(machine) -> dict:
 #: command -> module that implements it (a function of the same name taking the parsed arguments)
 ROUTES = {**{name: "pmcal.apps.chain_commands"
              for name in ("twin_measure", "identify", "targets", "compensate", "evaluate")},
-          "twin_render": "pmcal.apps.chain_render", "twin_plan": "pmcal.apps.chain_plan"}
+          "twin_render": "pmcal.apps.chain_render", "twin_plan": "pmcal.apps.chain_plan",
+          "demo": "pmcal.apps.chain_plan"}
 
 
 def __getattr__(name: str):
