@@ -84,7 +84,7 @@ def test_help_speaks_of_the_machines_own_columns_and_defaults(capsys, tmp_path):
     with pytest.raises(SystemExit):
         main(["--machine", str(folder), "--help"])
     out = " ".join(capsys.readouterr().out.split())
-    assert "diagnose not available for a machine folder" in out and "the whole job on delta_3dof" in out
+    assert "loop not available for a machine folder" in out and "the whole job on delta_3dof" in out
 
 
 def test_options_a_folder_machine_does_not_have_are_refused(capsys, delta):
@@ -302,8 +302,8 @@ def test_identify_leaves_out_poses_with_a_blocked_target_and_says_so(capsys, del
 
 def test_commands_a_folder_machine_does_not_have_say_so(capsys, delta, tmp_path):
     folder, d = delta
-    one_line_error(capsys, "--machine", folder, "diagnose", d / "m.csv", "--json", tmp_path / "d.json",
-                   says=["'diagnose' is not available for machine 'delta_3dof'"])
+    one_line_error(capsys, "--machine", folder, "loop",
+                   says=["the twin loop exists for ocpm_2dof only"])
 
 
 def test_nominal_compensation_reaches_the_targets_on_the_nominal_twin(capsys, delta, tmp_path):

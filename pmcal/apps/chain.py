@@ -23,7 +23,7 @@ _NOT_HERE = {
     "identify": ("--model", "--method", "--seed", "--allow-rank-deficient", "--frame", "--nest-tolerance",
                  "--robust", "--history"),
     "targets": ("--theta-max",),
-    "diagnose": ("--model", "--frame", "--nest-tolerance"),
+    "diagnose": ("--model", "--frame", "--nest-tolerance", "--params", "--report", "--force"),
 }
 #: choices of ``twin measure --errors`` besides a parameters file
 ERROR_CHOICES = ("random", "none")
@@ -70,13 +70,16 @@ def option_help(machine) -> dict:
         ("evaluate", ""): "position error of a parameter set against a measurement file (RMS, mm)",
     })
     table.update({(cmd, ""): "not available for a machine folder (the seeded machines' command)"
-                  for cmd in ("diagnose", "loop")})
+                  for cmd in ("loop",)})
     table.update({
         ("twin render", "--pose"): {
             "metavar": ",".join(spec.task.coordinates), "default": None,
             "help": f"task pose ({task}; mm, deg) the twin reaches by inverse kinematics (default: the "
                     f"'{spec.home}' keyframe)"},
         ("twin render", "--errors"): "error set of the real machine: a parameters file (default none)",
+        ("diagnose", ""): "what the geometric model leaves in a campaign: backlash, zero drift, frame drift, "
+                          "thermal expansion named only when they hold on held-out rows, else unexplained",
+        ("diagnose", "--sigma"): f"tracker noise, mm (default {sigma})",
         ("demo", ""): f"the whole job on {spec.name}'s twin: planned campaign, identification, compensation, "
                       "HTML report",
         ("demo", "--seed"): "random seed of the virtual machine's errors and the campaign (default 1)",
@@ -94,7 +97,7 @@ def option_help(machine) -> dict:
 ROUTES = {**{name: "pmcal.apps.chain_commands"
              for name in ("twin_measure", "identify", "targets", "compensate", "evaluate")},
           "twin_render": "pmcal.apps.chain_render", "twin_plan": "pmcal.apps.chain_plan",
-          "demo": "pmcal.apps.chain_plan"}
+          "demo": "pmcal.apps.chain_plan", "diagnose": "pmcal.apps.chain_diagnose"}
 
 
 def __getattr__(name: str):
