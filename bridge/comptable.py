@@ -377,8 +377,8 @@ class CompTable:
         if bad.any():
             k = int(np.argwhere(bad)[0][-1])
             m = self.motors[k]
-            return self._node_defect("out_of_range", bad, f"outside the limits [{m.min:g}, {m.max:g}] {m.unit} "
-                                                          f"of {m.name}")
+            return self._node_defect("out_of_range", bad, f"outside the motor limits [{m.min:g}, {m.max:g}] "
+                                                          f"{m.unit} of {m.name}")
         step_max = np.array([m.max_step for m in self.motors])
         for axis, a in enumerate(self.axes):
             step = np.abs(np.diff(v, axis=axis))
@@ -394,7 +394,7 @@ class CompTable:
         return None
 
     def _field(self, k: int) -> str:
-        return ("" if self.reference is None else "d") + self.motors[k].column
+        return self.motors[k].column
 
     def validate(self, active_version: int | None = None) -> "CompTable":
         """Raise :class:`InputError` naming file, row (CSV node row) and field on the first defect.

@@ -171,7 +171,7 @@ def test_hostile_persistent_table_is_dropped_at_start_up(value):
 
 def _lookup(plc: PlcTwin, phi: float, theta: float) -> LookupOut:
     seq = LookupOut.unpack(plc.read_symbol("lookup_out")).seq + 1
-    plc.write_symbol("lookup_in", LookupIn(phi, theta, seq).pack())
+    plc.write_symbol("lookup_in", LookupIn((phi, theta), seq).pack())
     plc.cycle()
     return LookupOut.unpack(plc.read_symbol("lookup_out"))
 

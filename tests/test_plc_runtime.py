@@ -261,10 +261,10 @@ def test_header_bytes_round_trip_through_plc_memory():
     header = plc_types.Header.of(make_table(version=7, n_phi=9, n_theta=5))
     rt.write_bytes("GVL_CompTable.stShadowHeader", header.pack())
     g = "GVL_CompTable.stShadowHeader"
-    assert (rt.read_value(f"{g}.nTableVersion"), rt.read_value(f"{g}.nPhi"), rt.read_value(f"{g}.nTheta"),
-            rt.read_value(f"{g}.nCrc"), rt.read_value(f"{g}.fMaxStep")) == (
-        7, 9, 5, header.crc, header.max_step_deg)
-    assert struct.unpack("<d", rt.read_bytes(f"{g}.fThetaMax"))[0] == header.theta_max_deg
+    assert (rt.read_value(f"{g}.nTableVersion"), rt.read_value(f"{g}.aN[0]"), rt.read_value(f"{g}.aN[1]"),
+            rt.read_value(f"{g}.nMotors"), rt.read_value(f"{g}.nCrc"), rt.read_value(f"{g}.aMaxStep[1]")) == (
+        7, 9, 5, 2, header.crc, header.max_step[1])
+    assert struct.unpack("<d", rt.read_bytes(f"{g}.aAxisMax[1]"))[0] == header.axis_max[1]
 
 
 def test_unsupported_st_is_named(tmp_path):
