@@ -152,9 +152,12 @@ class ModbusLink(LinkBase):
         if not any(offset in r and offset + len(regs) - 1 in r for r in self._allowed):
             raise WriteNotAllowed(f"refusing to write registers {self.rmap.base + offset}.."
                                   f"{self.rmap.base + offset + len(regs) - 1}: not in this client's allow-list")
-        addr = self.rmap.base + offset
-        self._call(f"write registers {addr}..{addr + len(regs) - 1}", self._conn().write_registers,
-                   addr, regs, device_id=self.rmap.device_id)
+        # FC16 carries at most 123 registers: a format-4 header (124) goes in two requests
+        for k in range(0, len(regs), self.rmap.chunk):
+            addr = self.rmap.base + offset + k
+            part = regs[k:k + self.rmap.chunk]
+            self._call(f"write registers {addr}..{addr + len(part) - 1}", self._conn().write_registers,
+                       addr, part, device_id=self.rmap.device_id)
 
     def _call(self, what: str, fn, *args, **kwargs):
         """Run a pymodbus request: exceptions -> LinkError, exception responses -> DeviceError."""
