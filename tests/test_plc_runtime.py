@@ -282,3 +282,31 @@ def test_the_shipped_st_uses_no_name_twincat_lacks():
         pytest.xfail(f"today's ST calls {sorted(prog.nonstandard)} "
                      f"in {sorted(set().union(*prog.nonstandard.values()))}; the ST engineer's F_Atan2 replaces it")
     assert prog.nonstandard == {}
+
+
+def test_a_function_with_in_out_arguments_runs_every_call(tmp_path):
+    """Pure FUNCTIONs are evaluated once per input; a VAR_IN_OUT argument is an address whose contents
+    change between calls (and may be written), so such a function runs every time."""
+    src = """
+FUNCTION F_Sum : UDINT
+VAR_IN_OUT
+    a : ARRAY[0..1] OF UDINT;
+    out : UDINT;
+END_VAR
+F_Sum := a[0] + a[1];
+out := F_Sum;
+END_FUNCTION
+
+PROGRAM MAIN
+VAR
+    a : ARRAY[0..1] OF UDINT;  o : UDINT;  r1, r2 : UDINT;
+END_VAR
+a[0] := 2; a[1] := 3;
+r1 := F_Sum(a := a, out := o);
+a[1] := 10;
+o := 0;
+r2 := F_Sum(a := a, out := o);
+END_PROGRAM
+"""
+    rt = run_st(tmp_path, src)
+    assert (rt.read_value("MAIN.r1"), rt.read_value("MAIN.r2"), rt.read_value("MAIN.o")) == (5, 12, 12)

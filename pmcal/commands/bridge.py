@@ -213,6 +213,7 @@ def plc_status(link) -> dict:
             "format_version": h.format_version if st.active_version else None,
             "reference": {0: "none", 1: "nominal_ik"}.get(h.reference, h.reference) if st.active_version else None,
             "grid": list(h.n) if st.active_version else None,
+            "motors": h.n_motors if st.active_version else None,
             "last_status": name(st.status), "state": name(st.state), "ack_token": st.ack_token,
             "staging_owner": f"0x{st.staging_owner:08X}" if st.staging_owner else None,
             "plc_cycle": st.cycle,
