@@ -83,7 +83,7 @@ class LookupResult(IntEnum):
     NO_TABLE = 2
 
 
-#: ST_CompTableHeader (bridge.comptable.HEADER_STRUCT: the CRC covers this image): 104 bytes
+#: ST_CompTableHeader (bridge.comptable.HEADER_STRUCT: the CRC covers this image): 248 bytes
 _HEADER = HEADER_STRUCT
 #: ST_CompTableState: nAckToken, nActiveVersion, nCycle (UDINT); eStatus, eState (INT); nActiveCrc (DWORD);
 #: nStagingOwner (UDINT) = 24 bytes
