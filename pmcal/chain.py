@@ -22,6 +22,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from pmcal import progress
+from pmcal.bridge.comptable import NMOTOR_MAX, Axis, CompTable, Motor
 from pmcal.calib.closed_chain import compensate_targets, identify_chain
 from pmcal.errors import InputError, RunError
 from pmcal.io_chain import UNIT_SLIPS, ChainMeasurements
@@ -212,8 +213,6 @@ TABLE_AXES_MAX = 3
 
 def table_refusal(machine) -> str | None:
     """Why ``machine`` gets no compensation table (one line, with what it gets instead), or None."""
-    from pmcal.bridge.comptable import NMOTOR_MAX
-
     axes, coords = machine.spec.table_axes, machine.spec.task.coordinates
     if len(coords) > TABLE_AXES_MAX:
         why = (f"its {len(coords)} task coordinates ({', '.join(coords)}) are more than a compensation table "
@@ -237,8 +236,6 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
     identified machine cannot reach, or reaches only outside a motor's range, is an :class:`InputError`
     naming the node (its CSV row), as the seeded machines' tables do: shrink the box in ``[table]``.
     Motor limits are the ``[[motors]] range``; ``max_step`` from ``[table]``. Validated."""
-    from pmcal.bridge.comptable import Axis, CompTable, Motor
-
     why = table_refusal(machine)
     if why:
         raise InputError(why, field="--table")
