@@ -224,11 +224,23 @@ class ChainIdentResult:
                 "success": self.success, "message": self.message}
 
 
+def base_prior_cov(model: ChainModel, basis: BaseSet) -> np.ndarray:
+    """Prior covariance (len(base), len(base)) of the base parameters, their units squared. A base parameter
+    estimates the combination ``b = p_base + B p_dep``, so ``cov_b = S_base^2 + B S_dep^2 B^T`` with ``S`` the
+    errors' prior sizes (``model.prior_std``): correlated where two base parameters regroup the same error."""
+    cov = np.diag(model.prior_std(basis.base) ** 2)
+    if basis.dependent:
+        cov += (basis.regroup * model.prior_std(basis.dependent) ** 2) @ basis.regroup.T
+    return cov
+
+
 def _valid(commands: np.ndarray, targets: np.ndarray) -> np.ndarray:
     return np.isfinite(commands).all(axis=1) & np.isfinite(targets).all(axis=(1, 2))
 
 
-def _flat_jacobian(model: ChainModel, commands, params, keys) -> np.ndarray:
+def flat_jacobian(model: ChainModel, commands, params, keys) -> np.ndarray:
+    """Jacobian (N*K*3, len(keys)) of the nests' coordinates (mm, poses then nests then x, y, z) with
+    respect to ``keys`` (per key unit) at commands (N, M) on the machine with errors ``params``."""
     J = model.jacobian(commands, params, keys)
     return J.reshape(-1, len(keys))
 
@@ -281,7 +293,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     commands, targets = commands[ok], targets[ok]
     keys = list(keys or model.error_keys)
     scale = model.prior_std(keys)
-    J0 = _flat_jacobian(model, commands, None, keys)
+    J0 = flat_jacobian(model, commands, None, keys)
     if not np.isfinite(J0).all():
         bad = np.flatnonzero(~np.isfinite(J0.reshape(len(commands), -1)).all(axis=1))
         raise ValueError(f"the nominal machine cannot assemble {len(bad)} measured pose(s) (rows "
@@ -289,11 +301,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     basis = base_parameters(J0 / sigma, keys, scale, rank_tol)
     base = basis.base
     units = model.error_units(base)
-    # The prior of a base parameter is that of the combination it estimates: b = p_base + B p_dep, so
-    # cov_b = S_base^2 + B S_dep^2 B^T (correlated where two base parameters regroup the same error).
-    prior_cov = np.diag(model.prior_std(base) ** 2)
-    if basis.dependent:
-        prior_cov += (basis.regroup * model.prior_std(basis.dependent) ** 2) @ basis.regroup.T
+    prior_cov = base_prior_cov(model, basis)
     sb = np.sqrt(np.diag(prior_cov))
     y = targets.reshape(-1)
     if y.size < len(base):
@@ -311,7 +319,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         key = np.asarray(x, float).tobytes()
         if key not in memo:
             memo.clear()
-            memo[key] = -_flat_jacobian(model, commands, params_of(x), base)
+            memo[key] = -flat_jacobian(model, commands, params_of(x), base)
         return memo[key]
 
     problem = box_problem(fun, base, units, half_width=50.0 * sb, sigma=sigma, jac=jac, scale=sb,
@@ -349,7 +357,7 @@ def crlb(model: ChainModel, commands, params: Mapping[str, float] | None, keys: 
     (N, M) on the machine with errors ``params``, tracker noise ``sigma`` mm (default the model's):
     ``sqrt(diag(sigma^2 (J^T J)^-1))``; inf for keys the campaign does not determine (pass a base set)."""
     sigma = float(model.sigma_mm if sigma is None else sigma)
-    J = _flat_jacobian(model, np.atleast_2d(commands), params, list(keys))
+    J = flat_jacobian(model, np.atleast_2d(commands), params, list(keys))
     J = J[np.isfinite(J).all(axis=1)] / sigma
     F = J.T @ J
     try:
