@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from pmcal.bridge.comptable import NTHETA_MAX, CompTable
+from pmcal.bridge.comptable import CompTable
 from pmcal.bridge.errors import AckTimeout, BridgeError, LinkError, ReadbackMismatch, Rejected, StagingBusy
 from pmcal.bridge.link import PlcLink
 from pmcal.bridge.plc_types import (HEADER_SIZE, LREAL_SIZE, STAGING_LEASE_S, Header, PlcState, State, Status,
@@ -275,7 +275,7 @@ class _Run:
         t = time.perf_counter()
         back_header, back_rows = link.read_back(len(sent_rows))
         rep.timings_s["readback"] = time.perf_counter() - t
-        _compare(sent_header, sent_rows, back_header, back_rows)
+        _compare(sent_header, sent_rows, back_header, back_rows, self.table.n_motors)
         # commit and wait for the acknowledgement
         t = time.perf_counter()
         if link.read_state().staging_owner != self.token:
@@ -410,7 +410,7 @@ def _release(link: PlcLink) -> None:
         pass
 
 
-def _compare(sent_header: bytes, sent_rows: bytes, back_header: bytes, back_rows: bytes) -> None:
+def _compare(sent_header: bytes, sent_rows: bytes, back_header: bytes, back_rows: bytes, n_motors: int) -> None:
     """Raise :class:`ReadbackMismatch` naming the first differing header byte or table node."""
     if back_header != sent_header:
         pos = next(i for i in range(HEADER_SIZE) if i >= len(back_header) or back_header[i] != sent_header[i])
@@ -419,10 +419,9 @@ def _compare(sent_header: bytes, sent_rows: bytes, back_header: bytes, back_rows
         n = min(len(back_rows), len(sent_rows))
         pos = next((i for i in range(0, n, LREAL_SIZE)
                     if back_rows[i:i + LREAL_SIZE] != sent_rows[i:i + LREAL_SIZE]), n)
-        k = pos // LREAL_SIZE
-        i, rest = divmod(k, NTHETA_MAX * 2)
-        j, m = divmod(rest, 2)
-        raise ReadbackMismatch(f"read-back of the staged table differs at node ({i}, {j}) m{m + 1}_deg")
+        node, m = divmod(pos // LREAL_SIZE, n_motors)
+        raise ReadbackMismatch(f"read-back of the staged table differs at value {pos // LREAL_SIZE} (node {node} "
+                               f"in memory order, motor m{m + 1})")
 
 
 def check_writable(path: str | os.PathLike, what: str, replace: bool = False) -> None:

@@ -123,6 +123,21 @@ class ClosureSpec:
     joint_springs: bool = False
 
 
+#: nodes per axis of a machine folder's compensation table, and the max step (deg or mm), unless [table] says
+TABLE_NODES_DEFAULT = 9
+TABLE_MAX_STEP_DEFAULT = 10.0
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """``[table]`` grid of a compensation table: nodes per axis, the box it spans (per axis [lo, hi] in the
+    axis' unit), the largest command change between neighbouring nodes allowed (deg or mm, every motor)."""
+
+    nodes: tuple[int, ...]
+    box: Mapping[str, tuple[float, float]]
+    max_step: float
+
+
 @dataclass(frozen=True)
 class MachineSpec:
     """A validated machine folder (see module docstring and ``docs/machine_toml.md``).
@@ -160,6 +175,7 @@ class MachineSpec:
     errors: ErrorSpec = field(default_factory=ErrorSpec)
     sigma_mm: float = 0.01
     table_axes: tuple[str, ...] = ()
+    table: "TableSpec | None" = None
     home: str = "home"
     closures: ClosureSpec | None = None
     legacy: bool = False
@@ -326,9 +342,10 @@ class _Loader:
         task = self.task()
         workspace = self.workspace(task)
         table_axes = self.table_axes(task)
+        table = self.table_grid(table_axes, workspace)
         return MachineSpec(name=name, folder=self.folder, model_path=self.model, title=title, motors=motors,
                            targets=targets, measure=measure, task=task, workspace=workspace,
-                           errors=self.errors(motors), sigma_mm=sigma, table_axes=table_axes, home=home,
+                           errors=self.errors(motors), sigma_mm=sigma, table_axes=table_axes, table=table, home=home,
                            closures=self.closures(), legacy=False, kind="chain")
 
     def closures(self) -> ClosureSpec | None:
@@ -411,9 +428,23 @@ class _Loader:
                                                             f"{', '.join(task.coordinates)})")
         return MappingProxyType(out)
 
+    def table_grid(self, axes: tuple[str, ...], workspace) -> "TableSpec | None":
+        """``[table] nodes`` (per axis, default 9), one ``[lo, hi]`` per axis (default: the workspace box),
+        ``max_step`` (deg or mm, default 10)."""
+        if not axes:
+            return None
+        tab = self.table("table", required=False)
+        nodes = tab.get("nodes", [TABLE_NODES_DEFAULT] * len(axes))
+        if (not isinstance(nodes, list) or len(nodes) != len(axes)
+                or any(isinstance(n, bool) or not isinstance(n, int) or n < 2 for n in nodes)):
+            raise self.err("table.nodes", f"must be one integer >= 2 per table axis ({len(axes)}), got {nodes!r}")
+        box = {a: self.interval(tab[a], f"table.{a}") if a in tab else workspace[a] for a in axes}
+        step = self.number(tab, "max_step", "table", default=TABLE_MAX_STEP_DEFAULT, positive=True)
+        return TableSpec(tuple(nodes), MappingProxyType(box), step)
+
     def table_axes(self, task: TaskSpec) -> tuple[str, ...]:
         tab = self.table("table", required=False)
-        self.known(tab, "table", ("axes",))
+        self.known(tab, "table", ("axes", "nodes", "max_step") + tuple(task.coordinates))
         axes = self.strings(tab.get("axes", []), "table.axes")
         if len(axes) > 3:
             raise self.err("table.axes", f"a compensation table has at most 3 axes, got {len(axes)}; leave it "

@@ -22,6 +22,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from pmcal import progress
+from pmcal.bridge.comptable import NMOTOR_MAX, Axis, CompTable, Motor
 from pmcal.calib.chain_design import POOL_FACTOR, POOL_MIN, CampaignDesign, design_campaign
 from pmcal.calib.closed_chain import compensate_targets, identify_chain
 from pmcal.errors import InputError, RunError
@@ -219,3 +220,63 @@ def compensate(machine, params: Mapping[str, float], task: np.ndarray, path: str
         raise InputError(f"not reachable by the identified machine: {why[0]}", file=path, row=int(i) + 1,
                          field=machine.spec.task.coordinates[0])
     return commands
+
+
+#: most axes and motors a compensation table holds (the PLC's arrays, docs/compensation_table.md)
+TABLE_AXES_MAX = 3
+
+
+def table_refusal(machine) -> str | None:
+    """Why ``machine`` gets no compensation table (one line, with what it gets instead), or None."""
+    axes, coords = machine.spec.table_axes, machine.spec.task.coordinates
+    if len(coords) > TABLE_AXES_MAX:
+        why = (f"its {len(coords)} task coordinates ({', '.join(coords)}) are more than a compensation table "
+               f"holds ({TABLE_AXES_MAX} axes at most)")
+    elif len(machine.spec.motors) > NMOTOR_MAX:
+        why = f"its {len(machine.spec.motors)} motors are more than a table holds ({NMOTOR_MAX} at most)"
+    elif not axes:
+        why = "machine.toml names no [table] axes"
+    elif len(axes) < len(coords):
+        why = f"the [table] axes ({', '.join(axes)}) cover {len(axes)} of its {len(coords)} task coordinates"
+    else:
+        return None
+    return (f"no compensation table for machine {machine.name}: {why}; this machine gets offline compensation "
+            f"of target lists: compensate PARAMS.json --targets TARGETS.csv -o SETPOINTS.csv")
+
+
+def compensation_table(machine, params: Mapping[str, float], version: int, nodes=None):
+    """The compensation table (format 4, absolute commands, no reference) of a machine folder: a grid over
+    its ``[table]`` axes (``[table] nodes`` per axis, or ``nodes``; the box of ``[table]`` or the
+    workspace), at each node the identified machine's inverse kinematics (:func:`compensate`). A node the
+    identified machine cannot reach, or reaches only outside a motor's range, is an :class:`InputError`
+    naming the node (its CSV row), as the seeded machines' tables do: shrink the box in ``[table]``.
+    Motor limits are the ``[[motors]] range``; ``max_step`` from ``[table]``. Validated."""
+    why = table_refusal(machine)
+    if why:
+        raise InputError(why, field="--table")
+    spec = machine.spec
+    grid = spec.table
+    nodes = tuple(int(n) for n in (nodes or grid.nodes))
+    if len(nodes) != len(spec.table_axes) or min(nodes) < 2:
+        raise InputError(f"expected {len(spec.table_axes)} node counts >= 2 (one per table axis "
+                         f"{', '.join(spec.table_axes)}), got {','.join(map(str, nodes))}", field="--grid")
+    axes = [Axis.of_column(a, *grid.box[a], n) for a, n in zip(spec.table_axes, nodes)]
+    motors = [Motor(m.name, m.unit, m.range[0], m.range[1], grid.max_step) for m in spec.motors]
+    order = [spec.table_axes.index(c) for c in spec.task.coordinates]
+    coords = spec.task.coordinates
+
+    def fill(points: np.ndarray) -> np.ndarray:
+        task = points[:, order]
+        progress.status(f"compensation table: inverse kinematics at {len(task)} nodes")
+        commands = compensate_targets(machine.twin, dict(params), task)
+        lo = np.array([m.min for m in motors])
+        hi = np.array([m.max for m in motors])
+        ok = np.isfinite(commands).all(axis=1) & np.all((commands >= lo) & (commands <= hi), axis=1)
+        for i in np.flatnonzero(~ok)[:1]:
+            where = ", ".join(f"{c}={v:g}" for c, v in zip(coords, task[i]))
+            raise InputError(f"table node {where} is not reachable by the identified machine within its motor "
+                             "ranges; shrink the table box ([table] in machine.toml)", row=int(i) + 1, field="grid")
+        return commands
+
+    table = CompTable.from_grid(fill, machine=spec.name, version=int(version), axes=axes, motors=motors)
+    return table.validate()

@@ -264,10 +264,28 @@ def test_a_bad_parameters_file_is_one_line(capsys, delta, tmp_path, case):
 
 
 def test_a_table_is_refused_with_what_the_machine_gets_instead(capsys, delta, tmp_path):
+    """The hexapod's six task coordinates are more than a table holds: one line, and what it gets instead."""
+    _, d = delta
+    hexapod = copy_machine("hexapod_6dof", tmp_path)
+    line = one_line_error(capsys, "--machine", hexapod, "compensate", d / "nominal.json", "--table",
+                          tmp_path / "t.json", says=["--table", "6 task coordinates", "offline compensation of target lists"])
+    assert "--targets" in line and not (tmp_path / "t.json").exists()
+
+
+def test_a_delta_table_over_its_table_axes(capsys, delta, tmp_path):
+    """The Delta's [table] grid: a format-4 table of 3 axes and 3 motors, the nominal machine's commands."""
+    from pmcal.bridge.comptable import CompTable
+
     folder, d = delta
-    line = one_line_error(capsys, "--machine", folder, "compensate", d / "nominal.json", "--table",
-                          tmp_path / "t.json", says=["--table", "offline compensation of target lists"])
-    assert "--targets" in line and not list(tmp_path.iterdir())
+    status, out, err = run(capsys, "--machine", folder, "compensate", d / "nominal.json", "--table",
+                           tmp_path / "t.json", "--grid", "7,7,4", "--table-version", "5")
+    assert status == 0, err
+    assert "7x7x4 nodes over x_mm, y_mm, z_mm, 3 motors" in out and f"wrote {tmp_path / 't.csv'}" in out
+    t = CompTable.load(tmp_path / "t.csv")
+    assert (t.shape, t.n_motors, t.version, [m.column for m in t.motors]) == ((7, 7, 4), 3, 5,
+                                                                              ["m1_deg", "m2_deg", "m3_deg"])
+    one_line_error(capsys, "--machine", folder, "compensate", d / "nominal.json", "--table", tmp_path / "u.json",
+                   "--grid", "3,3", says="--grid")
 
 
 def test_twin_options_of_a_folder_machine(capsys, delta, tmp_path):

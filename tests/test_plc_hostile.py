@@ -61,10 +61,7 @@ def _commit(plc: PlcTwin, header: Header, values: np.ndarray | None = None, tabl
 
 
 def _rows(values: np.ndarray) -> bytes:
-    n_phi, n_theta = values.shape[:2]
-    buf = np.zeros((n_phi, plc_types.NTHETA_MAX, 2), dtype="<f8")
-    buf[:, :n_theta, :] = values
-    return buf.tobytes()
+    return np.ascontiguousarray(values, dtype="<f8").tobytes()      # flat, C order (ST_CompTableHeader)
 
 
 def _assert_survived_and_refused(plc: PlcTwin, st) -> None:
@@ -73,28 +70,45 @@ def _assert_survived_and_refused(plc: PlcTwin, st) -> None:
     assert st.active_version == 1
 
 
+def _set(t: tuple, k: int, v) -> tuple:
+    return t[:k] + (v,) + t[k + 1:]
+
+
 def _header_cases():
     t = _small()
     h = Header.of(t)
     cases = []
-    for field in ("phi_min_deg", "phi_max_deg", "theta_min_deg", "theta_max_deg", "m_min_deg", "m_max_deg",
-                  "max_step_deg"):
-        for name, v in HOSTILE.items():
-            if name in ("denormal", "-zero") and field != "max_step_deg":
-                continue
-            cases.append(pytest.param(replace(h, **{field: v}), id=f"{field}={name}"))
+    for field in ("axis_min", "axis_max", "motor_min", "motor_max", "max_step"):
+        for k in (0, 1):
+            for name, v in HOSTILE.items():
+                if name in ("denormal", "-zero") and field != "max_step":
+                    continue
+                cases.append(pytest.param(replace(h, **{field: _set(getattr(h, field), k, v)}),
+                                          id=f"{field}[{k}]={name}"))
     cases += [
-        pytest.param(replace(h, max_step_deg=0.0), id="max_step=0"),
-        pytest.param(replace(h, max_step_deg=-1.0), id="max_step<0"),
-        pytest.param(replace(h, phi_min_deg=h.phi_max_deg, phi_max_deg=h.phi_min_deg), id="phi reversed"),
-        pytest.param(replace(h, phi_min_deg=-400.0), id="phi span>360"),
-        pytest.param(replace(h, m_min_deg=h.m_max_deg, m_max_deg=h.m_min_deg), id="motor limits reversed"),
-        pytest.param(replace(h, n_phi=0), id="n_phi=0"), pytest.param(replace(h, n_phi=1), id="n_phi=1"),
-        pytest.param(replace(h, n_phi=101), id="n_phi=101"), pytest.param(replace(h, n_theta=65535), id="n_theta=65535"),
-        pytest.param(replace(h, n_theta=4), id="n_theta smaller than the data"),
+        pytest.param(replace(h, max_step=(h.max_step[0], 0.0)), id="max_step=0"),
+        pytest.param(replace(h, max_step=(-1.0, h.max_step[1])), id="max_step<0"),
+        pytest.param(replace(h, axis_min=(h.axis_max[0], 0.0), axis_max=(h.axis_min[0], 60.0)), id="phi reversed"),
+        pytest.param(replace(h, axis_min=(-400.0, 0.0)), id="phi span>360"),
+        pytest.param(replace(h, motor_min=h.motor_max, motor_max=h.motor_min), id="motor limits reversed"),
+        pytest.param(replace(h, n=(0, 13)), id="n_phi=0"), pytest.param(replace(h, n=(1, 13)), id="n_phi=1"),
+        pytest.param(replace(h, n=(37, 1)), id="n_theta=1"),
+        pytest.param(replace(h, n=(10001, 2)), id="values beyond NVALUES_MAX"),
+        pytest.param(replace(h, n=(65535, 65535)), id="n=65535x65535 (product overflows UDINT)"),
+        pytest.param(replace(h, n=(37, 13, 65535), axis_min=(0.0, 0.0, 0.0), axis_max=(360.0, 60.0, 1.0),
+                             n_axes=3), id="third axis overflowing"),
+        pytest.param(replace(h, n=(37, 4)), id="n_theta smaller than the data"),
+        pytest.param(replace(h, n_axes=0), id="nAxes=0"), pytest.param(replace(h, n_axes=4), id="nAxes=4"),
+        pytest.param(replace(h, n_axes=65535), id="nAxes=65535"),
+        pytest.param(replace(h, n_axes=1), id="nAxes=1 with the reference"),
+        pytest.param(replace(h, n_motors=0), id="nMotors=0"), pytest.param(replace(h, n_motors=7), id="nMotors=7"),
+        pytest.param(replace(h, n_motors=65535), id="nMotors=65535"),
+        pytest.param(replace(h, n_motors=3, motor_min=h.motor_min + (-1.0,), motor_max=h.motor_max + (1.0,),
+                             max_step=h.max_step + (1.0,)), id="nMotors=3 with the reference"),
+        pytest.param(replace(h, prismatic=1), id="prismatic motor with the reference"),
         pytest.param(replace(h, reference=7), id="reference=7"),
         pytest.param(replace(h, reference_crc=h.reference_crc ^ 1), id="reference crc"),
-        pytest.param(replace(h, theta_max_deg=170.0), id="theta beyond reach"),
+        pytest.param(replace(h, axis_max=(360.0, 170.0)), id="theta beyond reach"),
         pytest.param(replace(h, machine="another_machine"), id="machine renamed (CRC covers the header)"),
     ]
     return cases
@@ -152,7 +166,7 @@ def test_hostile_persistent_table_is_dropped_at_start_up(value):
     plc.seed(table)
     rt = plc.runtime
     k = rt.read_value("GVL_CompTable.nActive")
-    addr, _ = rt.locate(f"GVL_CompTable.aBuffer[{k}][4, 2, 1]")
+    addr, _ = rt.locate(f"GVL_CompTable.aBuffer[{k}][{(4 * 13 + 2) * 2 + 1}]")
     rt.mem[addr:addr + 8] = np.float64(value).tobytes()            # persistent memory damaged
     values = table.values.copy()
     values[4, 2, 1] = value
@@ -171,7 +185,7 @@ def test_hostile_persistent_table_is_dropped_at_start_up(value):
 
 def _lookup(plc: PlcTwin, phi: float, theta: float) -> LookupOut:
     seq = LookupOut.unpack(plc.read_symbol("lookup_out")).seq + 1
-    plc.write_symbol("lookup_in", LookupIn(phi, theta, seq).pack())
+    plc.write_symbol("lookup_in", LookupIn((phi, theta), seq).pack())
     plc.cycle()
     return LookupOut.unpack(plc.read_symbol("lookup_out"))
 

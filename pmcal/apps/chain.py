@@ -63,10 +63,11 @@ def option_help(machine) -> dict:
         ("compensate", ""): f"corrected motor commands for targets ({task})",
         ("compensate", "--targets"): f"targets CSV: {task} ('pmcal --machine {spec.name} targets' writes one)",
         ("compensate", "-o"): f"setpoints CSV to write: the targets with {motors} appended",
-        ("compensate", "--table"): "compensation table: not available for a machine folder yet (offline "
-                                   "compensation of target lists: --targets, -o)",
-        ("compensate", "--grid"): "table grid (not available for a machine folder yet)",
-        ("compensate", "--table-version"): "table version (not available for a machine folder yet)",
+        ("compensate", "--table"): "write the compensation table for the PLC (format 4: JSON, CSV beside) over "
+                                   f"the [table] axes ({', '.join(spec.table_axes) or 'none: offline only'})",
+        ("compensate", "--grid"): {"metavar": "N1,N2,..", "help": "table nodes per [table] axis (default: "
+                                   "machine.toml [table] nodes)"},
+        ("compensate", "--table-version"): "table version (1..2**32-1, must increase on the PLC); default: Unix time",
         ("evaluate", ""): "position error of a parameter set against a measurement file (RMS, mm)",
     })
     table.update({(cmd, ""): "not available for a machine folder (the seeded machines' command)"
