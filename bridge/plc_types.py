@@ -17,7 +17,7 @@ import numpy as np
 
 from pmcal.bridge.comptable import (HEADER_STRUCT, NAXES_MAX, NMOTOR_MAX, NVALUES_MAX, Axis, CompTable, Motor,
                                     pack_header)
-from pmcal.bridge.nominal import REFERENCE_NONE
+from pmcal.bridge.nominal import REFERENCE_CONTROLLER, REFERENCE_NONE  # noqa: F401  (REFERENCE_CONTROLLER: re-exported)
 
 #: FB_CompTableManager.tCommitTimeout default (s): a checked table that motion keeps from being swapped
 #: in is dropped with SWAP_TIMEOUT after this long. The bridge's ack time-out (5 s) is longer, so the

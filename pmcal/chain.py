@@ -255,9 +255,10 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
     ``min``/``max`` are then ``-+[table] max_correction`` and ``max_step`` is ``[table]
     max_correction_step``. With ``absolute`` (or ``[table] reference = "none"``) it holds the absolute
     commands (``nReference = 0``). Either way the absolute commands are checked first: a node the
-    identified machine cannot reach, or reaches only outside a motor's range (``[[motors]] range``), or a
-    step above ``[table] max_step`` between neighbours, is an :class:`InputError` naming the node (its CSV
-    row); for corrections, so is a node the nominal machine cannot reach, and a correction or correction
+    identified machine cannot reach, or reaches only outside a motor's range (``[[motors]] range``), is an
+    :class:`InputError` naming the node (its CSV row); so is, for absolute commands, a step above ``[table]
+    max_step`` between neighbours (corrections do not interpolate the commands: their steps do not
+    matter), and for corrections a node the nominal machine cannot reach, and a correction or correction
     step above its bound. Validated."""
     why = table_refusal(machine)
     if why:
@@ -287,8 +288,11 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
         return commands
 
     table = CompTable.from_grid(fill, machine=spec.name, version=int(version), axes=axes, motors=motors)
-    table.validate()
-    if absolute or (absolute is None and grid.reference == "none"):
+    absolute = bool(absolute) or (absolute is None and grid.reference == "none")
+    defect = table.defect()
+    if defect is not None and (absolute or defect.kind != "step"):
+        table.validate()                      # names the node; a correction table's commands need no max_step
+    if absolute:
         return table
     if grid.max_correction > CORRECTION_ABS_MAX:
         raise InputError(f"{grid.max_correction:g} is more than the PLC accepts (GVL_CompTableParam."
