@@ -177,8 +177,11 @@ def test_hostile_value_in_a_3_axis_table_never_stops_the_task(value):
     assert st.status.is_rejection and st.active_version == 1
 
 
-def test_hostile_3_axis_targets_never_stop_the_task():
-    table = make(3, 3)
+@pytest.mark.parametrize("reference", [None, "controller"])
+def test_hostile_3_axis_targets_never_stop_the_task(reference):
+    """Inside the grid the interpolation (for a correction table the correction, flagged bCorrection); a
+    NaN, infinite or outside coordinate gives OUT_OF_GRID, every aM 0 and no flag."""
+    table = make(3, 3, reference=reference)
     plc = PlcTwin()
     plc.seed(table)
     seq = 0
@@ -194,8 +197,11 @@ def test_hostile_3_axis_targets_never_stop_the_task():
             a = table.axes[k]
             want = LookupResult.OK if a.min <= v <= a.max else LookupResult.OUT_OF_GRID
             assert (out.seq, out.result) == (seq, want), (k, name)
+            assert out.correction == (want == LookupResult.OK and reference is not None)
             if want == LookupResult.OK:
                 np.testing.assert_allclose(out.m, reference_lookup(table, np.array([x]))[0], rtol=0, atol=1e-9)
+            else:
+                assert out.n_motors == 0 and plc.read_symbol("lookup_out")[:48] == bytes(48)   # aM all 0
 
 
 def test_a_correction_table_is_its_own_kind_in_python():

@@ -323,18 +323,22 @@ def test_a_delta_table_holds_corrections_to_the_controllers_ik(capsys, delta, tm
 
     toml = folder / "machine.toml"
     text = toml.read_text()
+
+    def table_key(key, value):                  # machine.toml with [table] key = value (the Delta sets all)
+        assert re.search(rf"^{key} = ", text, flags=re.M)
+        toml.write_text(re.sub(rf"^{key} = [^#\n]*", f"{key} = {value} ", text, flags=re.M))
     try:
-        toml.write_text(text.replace("max_step = 15.0", "max_step = 15.0\nmax_correction = 0.1"))
+        table_key("max_correction", "0.1")
         line = one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table",
                               tmp_path / "x.json", *grid, says=["row 1", "dm1_deg", "max_correction 0.1"])
         assert "correction bounds" in line and not (tmp_path / "x.json").exists()
-        toml.write_text(text.replace("max_step = 15.0", "max_step = 15.0\nmax_correction = 6"))
+        table_key("max_correction", "6")
         one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "x.json",
                        *grid, says=["table.max_correction", "CORRECTION_ABS_MAX 5"])
-        toml.write_text(text.replace("max_step = 15.0", "max_step = 15.0\nreference = \"nominal_ik\""))
+        table_key("reference", '"nominal_ik"')
         one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "x.json",
                        *grid, says=["table.reference", "controller, none"])
-        toml.write_text(text.replace("max_step = 15.0", "max_step = 15.0\nreference = \"none\""))
+        table_key("reference", '"none"')
         assert run(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "n.json",
                    *grid)[0] == 0
         assert CompTable.load(tmp_path / "n.json").values.tobytes() == a.values.tobytes()
