@@ -479,8 +479,10 @@ class CompTable:
         """Raise :class:`InputError` naming file, row (CSV node row) and field on the first defect.
 
         Checks, in the PLC's order: grid size (1..3 axes of >= 2 nodes, 1..6 motors, at most 20 000
-        values), reference, grid and motor limits, version range (and newer than ``active_version`` when
-        given), machine name, finiteness, motor ranges, steps between neighbours. Returns ``self``.
+        values), reference, grid and motor limits (controller reference: correction bounds within
+        :data:`CORRECTION_ABS_MAX`), version range (and newer than ``active_version`` when given), machine
+        name, finiteness, motor ranges, steps between neighbours (controller reference: of the corrections;
+        the commands are the controller's and not checked here). Returns ``self``.
         """
         d = self.defect(active_version)
         if d is None:
