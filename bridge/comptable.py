@@ -5,10 +5,18 @@ unit (``deg`` for angles and revolute motors, ``mm`` for positions and prismatic
 never converts.
 
 Axis ``a`` spans ``axes[a].min`` to ``axes[a].max`` in ``axes[a].n`` nodes, both ends included.
-``values[i0, ..., k]`` (shape ``(n_0, ..., n_{A-1}, N)``) is, for motor ``k`` (m1..mN), the correction to
-add to the reference (``reference``: the ocpm nominal closed-form IK of :mod:`pmcal.bridge.nominal`, only
-for 2 axes phi/theta and 2 motors) so that the calibrated machine reaches the node; with
-``reference=None`` it is the absolute command. The PLC stores the used values as one flat
+``values[i0, ..., k]`` (shape ``(n_0, ..., n_{A-1}, N)``) is, for motor ``k`` (m1..mN), what the table
+holds at the node, by its ``reference`` (header ``nReference``):
+
+- ``None`` (0): the absolute command that makes the calibrated machine reach the node;
+- a :class:`~pmcal.bridge.nominal.NominalReference` (1): the correction added to the ocpm nominal
+  closed-form IK that the PLC computes in ST (only 2 axes phi/theta and 2 revolute motors);
+- :data:`CONTROLLER` (2, ``"controller"`` in the files): the correction the integrator adds to the motion
+  controller's *own* nominal inverse kinematics, ``m_calibrated(node) - m_nominal(node)`` (as machine-tool
+  volumetric compensation). The PLC's table code never sees that IK, so for such a table each motor's
+  ``min``/``max`` bound the *correction* (and ``max_step`` its change between neighbours), not the
+  command; the commands' own limits stay with the controller (its axis limits).
+ The PLC stores the used values as one flat
 ``ARRAY[0..NVALUES_MAX-1] OF LREAL`` in C order of this array (last axis, then motor, fastest),
 little-endian IEEE-754 double. Files (JSON, CSV; formats 1 to 3 still read): :mod:`pmcal.bridge.comptable_files`.
 
@@ -34,7 +42,7 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from pmcal.bridge.nominal import NominalReference
+from pmcal.bridge.nominal import REFERENCE_CONTROLLER, REFERENCE_NOMINAL_IK, REFERENCE_NONE, NominalReference
 from pmcal.errors import InputError
 
 FORMAT = "pmcal-comptable"
@@ -56,6 +64,9 @@ PHI_SPAN_MAX_DEG = 360.0
 #: so every difference the PLC forms between limits or commands stays finite
 LIMIT_ABS_MAX = 1.0e6
 LIMIT_ABS_MAX_DEG = LIMIT_ABS_MAX
+#: GVL_CompTableParam.CORRECTION_ABS_MAX: largest correction bound (deg or mm, per motor) a table with the
+#: controller reference may declare; the PLC refuses wider bounds (LIMITS) whatever the table says
+CORRECTION_ABS_MAX = 5.0
 #: ST_CompTableHeader, 248 bytes (pack_mode 1, naturally aligned): aAxisMin[3], aAxisMax[3], aMotorMin[6],
 #: aMotorMax[6], aMaxStep[6] (LREAL), nTableVersion UDINT, nFormatVersion, nAxes, aN[3], nMotors,
 #: nReference UINT, nPrismatic WORD, nCrc, nReferenceCrc DWORD, sMachine STRING(27)
@@ -66,6 +77,34 @@ MOTOR_UNITS = ("deg", "mm")
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9]*")
 
 Fill = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class ControllerReference:
+    """Reference kind 2 (``nReference = 2``): the values are corrections to add to the motion controller's
+    own nominal inverse kinematics. Nothing to carry (``nReferenceCrc = 0``): the PLC's table code never
+    computes that IK; the integrator adds the looked-up correction to it (docs/commissioning.md)."""
+
+    KIND = "controller"
+
+    def as_dict(self) -> dict:
+        return {"kind": self.KIND}
+
+    def pack(self) -> bytes:
+        """No geometry: nothing is appended to the data for the SHA-256."""
+        return b""
+
+    def crc32(self) -> int:
+        """``nReferenceCrc``: 0."""
+        return 0
+
+    def defect(self) -> str | None:
+        return None
+
+
+#: the controller reference (kind 2); ``reference="controller"`` in :class:`CompTable` means this
+CONTROLLER = ControllerReference()
+Reference = NominalReference | ControllerReference
 
 
 def crc32(data: bytes, crc: int = 0) -> int:
@@ -182,8 +221,10 @@ class CompTable:
     """A compensation table: ``values`` of shape (n_0, .., n_{A-1}, N) over ``axes`` for ``motors``.
 
     Keyword-only. ``version`` is the table version (UDINT, 1..2**32-1) that the PLC requires to increase
-    strictly. ``reference``: the nominal IK the values are corrections to (None: absolute commands; only
-    for axes phi, theta in deg and motors m1, m2 in deg). ``source`` (not part of the data) names the file
+    strictly. ``reference``: what the values are corrections to: None (absolute commands), a
+    :class:`NominalReference` (the PLC's ocpm nominal IK; only for axes phi, theta in deg and motors m1, m2
+    in deg), or :data:`CONTROLLER` / ``"controller"`` (the motion controller's own nominal IK; any axes
+    and motors; ``min``/``max``/``max_step`` of the motors then bound the correction). ``source`` (not part of the data) names the file
     the table was read from, for error messages. Without ``axes``/``motors`` the keywords of format 3
     (``phi_min_deg`` .. ``theta_max_deg``, ``m_min_deg``, ``m_max_deg``, ``max_step_deg``) build a
     2-axis table of 2 motors in deg.
@@ -194,12 +235,17 @@ class CompTable:
     values: np.ndarray
     axes: tuple[Axis, ...]
     motors: tuple[Motor, ...]
-    reference: NominalReference | None = None
+    reference: Reference | None = None
     source: str | None = field(default=None, repr=False)
 
     def __init__(self, *, machine: str, version: int, values, axes: Sequence[Axis] | None = None,
-                 motors: Sequence[Motor] | None = None, reference: NominalReference | None = None,
+                 motors: Sequence[Motor] | None = None, reference: Reference | str | None = None,
                  source: str | None = None, **legacy) -> None:
+        if reference == ControllerReference.KIND:
+            reference = CONTROLLER
+        elif isinstance(reference, str):
+            raise ValueError(f"reference must be 'controller', a NominalReference, CONTROLLER or None, "
+                             f"got {reference!r}")
         self.machine, self.version, self.reference, self.source = machine, version, reference, source
         self.values = np.ascontiguousarray(values, dtype="<f8")
         if axes is None or motors is None:
@@ -232,6 +278,18 @@ class CompTable:
         """Node coordinates (n_0, .., n_{A-1}, A) in the axes' units, C order as ``values``."""
         grids = np.meshgrid(*(a.nodes() for a in self.axes), indexing="ij")
         return np.stack(grids, axis=-1)
+
+    @property
+    def reference_code(self) -> int:
+        """``nReference`` of the header: 0 absolute, 1 ocpm nominal IK (PLC), 2 controller's own IK."""
+        if self.reference is None:
+            return REFERENCE_NONE
+        return REFERENCE_CONTROLLER if isinstance(self.reference, ControllerReference) else REFERENCE_NOMINAL_IK
+
+    @property
+    def controller_reference(self) -> bool:
+        """The values are corrections to the controller's own IK (kind 2): limits bound the corrections."""
+        return isinstance(self.reference, ControllerReference)
 
     def columns(self) -> tuple[str, ...]:
         """CSV columns: the axes, then the motors (``dm1_deg`` .. for a table with a reference)."""
@@ -266,21 +324,33 @@ class CompTable:
         return self.values.tobytes(order="C")
 
     def nominal_at_nodes(self) -> np.ndarray:
-        """The reference commands at the nodes (same shape as ``values``); zeros without reference."""
+        """The reference commands at the nodes (same shape as ``values``); zeros without reference.
+
+        Not available for the controller reference (the controller's IK is not part of the table):
+        ValueError."""
         if self.reference is None:
             return np.zeros_like(self.values)
+        if self.controller_reference:
+            raise ValueError("a table of corrections to the controller's IK does not hold that IK: add the "
+                             "controller's nominal commands to the values")
         x = self.nodes()
         return self.reference.commands_deg(x[..., 0], x[..., 1])
 
     def commands_at_nodes(self) -> np.ndarray:
-        """Absolute motor commands at the nodes: reference + correction."""
+        """Absolute motor commands at the nodes: reference + correction (ValueError for the controller
+        reference, see :meth:`nominal_at_nodes`)."""
         return self.values if self.reference is None else self.nominal_at_nodes() + self.values
+
+    def limited_at_nodes(self) -> np.ndarray:
+        """What the motors' ``min``/``max``/``max_step`` apply to, at the nodes: the absolute commands,
+        or for the controller reference the corrections themselves (the PLC's phases 4 to 6)."""
+        return self.values if self.controller_reference else self.commands_at_nodes()
 
     def header_bytes(self, crc: int = 0) -> bytes:
         """The PLC header image of this table (ST_CompTableHeader) with ``nCrc = crc``."""
         ref = self.reference
         return pack_header(self.axes, self.motors, version=int(self.version), format_version=FORMAT_VERSION,
-                           reference=0 if ref is None else 1, crc=crc,
+                           reference=self.reference_code, crc=crc,
                            reference_crc=0 if ref is None else ref.crc32(), machine=self.machine)
 
     def crc32(self) -> int:
@@ -290,7 +360,8 @@ class CompTable:
 
     def sha256(self) -> str:
         """SHA-256 (hex) over :meth:`data_bytes` followed by the reference geometry's five LREALs
-        (:meth:`NominalReference.pack`, nothing without a reference), for the files and the audit trail."""
+        (:meth:`NominalReference.pack`; nothing without a reference or with the controller reference, whose
+        kind the CRC-32 seals through ``nReference``), for the files and the audit trail."""
         ref = b"" if self.reference is None else self.reference.pack()
         return hashlib.sha256(self.data_bytes() + ref).hexdigest()
 
@@ -307,7 +378,7 @@ class CompTable:
         size = self.size_defect()
         if size:
             return Defect("grid_size", size)
-        if self.reference is not None:
+        if self.reference is not None and not self.controller_reference:
             if not self.reference_fits():
                 return Defect("reference", "the nominal-IK reference needs axes phi, theta (deg) and motors "
                                            "m1, m2 (deg)")
@@ -319,13 +390,16 @@ class CompTable:
                                              f"{a.unit} in size", field=a.column)
             if not a.min < a.max:
                 return Defect("grid_limits", f"axis {a.name}: min must be below max", field=a.column)
-        if self.reference is not None and self.axes[0].max - self.axes[0].min > PHI_SPAN_MAX_DEG:
+        if self.reference_code == REFERENCE_NOMINAL_IK and self.axes[0].max - self.axes[0].min > PHI_SPAN_MAX_DEG:
             return Defect("grid_limits", f"phi span exceeds {PHI_SPAN_MAX_DEG:g} deg", field="phi_deg")
         for m in self.motors:
             if not (all(_bounded(x) for x in (m.min, m.max, m.max_step)) and m.min < m.max and m.max_step > 0.0):
                 return Defect("limits", f"motor {m.name}: limits and max_step must be finite, at most "
                                         f"{LIMIT_ABS_MAX:g} {m.unit} in size, with min < max and max_step > 0",
                               field=m.column)
+            if self.controller_reference and max(abs(m.min), abs(m.max)) > CORRECTION_ABS_MAX:
+                return Defect("limits", f"motor {m.name}: correction bounds [{m.min:g}, {m.max:g}] {m.unit} exceed "
+                                        f"the PLC's CORRECTION_ABS_MAX {CORRECTION_ABS_MAX:g}", field=m.column)
         if not (isinstance(self.version, (int, np.integer)) and 1 <= int(self.version) <= VERSION_MAX):
             return Defect("version", f"table version {self.version!r} outside 1..{VERSION_MAX}")
         if active_version is not None and int(self.version) <= int(active_version):
@@ -361,13 +435,15 @@ class CompTable:
     def data_defect(self) -> Defect | None:
         """All values finite, then all within their motor's limits, then every step within its max_step.
 
-        Limits and steps apply to the absolute commands (reference + correction) at the nodes.
-        Each check covers the whole table before the next starts (as FB_CompTableCheck's phases).
+        Limits and steps apply to the absolute commands (reference + correction) at the nodes; with the
+        controller reference to the corrections (:meth:`limited_at_nodes`: the commands need the
+        controller's IK, which the table does not hold; ``pmcal compensate`` checks them when it writes
+        the table). Each check covers the whole table before the next starts (as FB_CompTableCheck's phases).
         """
         bad = ~np.isfinite(self.values)
         if bad.any():
             return self._node_defect("not_finite", bad, "is not a finite number")
-        v = self.commands_at_nodes()
+        v = self.limited_at_nodes()
         bad = ~np.isfinite(v)
         if bad.any():
             return self._node_defect("not_finite", bad, "gives a nominal command out of reach")
@@ -377,7 +453,8 @@ class CompTable:
         if bad.any():
             k = int(np.argwhere(bad)[0][-1])
             m = self.motors[k]
-            return self._node_defect("out_of_range", bad, f"outside the motor limits [{m.min:g}, {m.max:g}] "
+            what = "correction bounds" if self.controller_reference else "motor limits"
+            return self._node_defect("out_of_range", bad, f"outside the {what} [{m.min:g}, {m.max:g}] "
                                                           f"{m.unit} of {m.name}")
         step_max = np.array([m.max_step for m in self.motors])
         for axis, a in enumerate(self.axes):
@@ -388,20 +465,24 @@ class CompTable:
                 nxt = list(node)
                 nxt[axis] += 1
                 m = self.motors[k]
-                return Defect("step", f"step of {step[tuple(node) + (k,)]:.6g} {m.unit} to the next node along "
+                what = "correction step" if self.controller_reference else "step"
+                return Defect("step", f"{what} of {step[tuple(node) + (k,)]:.6g} {m.unit} to the next node along "
                                       f"{a.name} {tuple(nxt)} exceeds max_step {m.max_step:g} {m.unit} of {m.name}",
                               tuple(node), self._field(k))
         return None
 
     def _field(self, k: int) -> str:
-        return self.motors[k].column
+        """The CSV column of motor k's values (``dm1_deg`` for the controller reference)."""
+        return ("d" if self.controller_reference else "") + self.motors[k].column
 
     def validate(self, active_version: int | None = None) -> "CompTable":
         """Raise :class:`InputError` naming file, row (CSV node row) and field on the first defect.
 
         Checks, in the PLC's order: grid size (1..3 axes of >= 2 nodes, 1..6 motors, at most 20 000
-        values), reference, grid and motor limits, version range (and newer than ``active_version`` when
-        given), machine name, finiteness, motor ranges, steps between neighbours. Returns ``self``.
+        values), reference, grid and motor limits (controller reference: correction bounds within
+        :data:`CORRECTION_ABS_MAX`), version range (and newer than ``active_version`` when given), machine
+        name, finiteness, motor ranges, steps between neighbours (controller reference: of the corrections;
+        the commands are the controller's and not checked here). Returns ``self``.
         """
         d = self.defect(active_version)
         if d is None:
@@ -417,7 +498,7 @@ class CompTable:
         *node, k = (int(x) for x in np.argwhere(bad)[0])
         at = tuple(node) + (k,)
         col = self._field(k)
-        if self.reference is None or kind == "not_finite":
+        if self.reference is None or self.controller_reference or kind == "not_finite":
             text = f"{col} = {float(self.values[at])!r} {what}"
         else:
             text = (f"command {self.motors[k].column} = nominal + correction {float(self.values[at])!r} = "
@@ -429,7 +510,8 @@ class CompTable:
         """Motor commands (..., N) at task points (..., A), as FB_CompTableLookup on the PLC.
 
         ``reference + multilinear(values)`` (multilinear alone without reference), in that order of IEEE
-        operations. Raises :class:`InputError` if a point lies outside the grid (the PLC refuses it too).
+        operations. With the controller reference: the interpolated corrections, which the caller adds to
+        the controller's nominal IK at the same points. Raises :class:`InputError` if a point lies outside the grid (the PLC refuses it too).
         """
         m, inside = lookup(self.values, self.reference, [a.min for a in self.axes], [a.max for a in self.axes],
                            points)
@@ -445,9 +527,11 @@ class CompTable:
 
     @classmethod
     def from_grid(cls, fill: Fill, *, machine: str, version: int, axes: Sequence[Axis], motors: Sequence[Motor],
-                  reference: NominalReference | None = None) -> "CompTable":
+                  reference: Reference | str | None = None, nominal: Fill | None = None) -> "CompTable":
         """Fill a table from ``fill(points[P, A]) -> commands[P, N]`` (absolute commands at the nodes, in
-        C order: last axis fastest). Stored relative to ``reference`` (None: absolute). Not validated."""
+        C order: last axis fastest). Stored relative to ``reference`` (None: absolute). With the controller
+        reference, ``nominal(points[P, A]) -> commands[P, N]`` is the controller's nominal IK and the table
+        holds ``fill - nominal`` (``motors`` then bound those corrections). Not validated."""
         proto = cls(machine=machine, version=int(version), axes=axes, motors=motors,
                     values=np.zeros(tuple(a.n for a in axes) + (len(motors),)))
         x = proto.nodes()
@@ -456,7 +540,11 @@ class CompTable:
         if m.shape != (pts.shape[0], len(motors)):
             raise ValueError(f"fill returned shape {m.shape}, expected ({pts.shape[0]}, {len(motors)})")
         m = m.reshape(proto.values.shape)
-        if reference is not None:
+        if reference == ControllerReference.KIND or isinstance(reference, ControllerReference):
+            if nominal is None:
+                raise ValueError("the controller reference needs nominal= (the controller's nominal IK)")
+            m = m - np.asarray(nominal(pts), dtype=np.float64).reshape(m.shape)
+        elif reference is not None:
             m = m - reference.commands_deg(x[..., 0], x[..., 1])
         return cls(machine=machine, version=int(version), axes=proto.axes, motors=proto.motors, values=m,
                    reference=reference)
@@ -534,14 +622,15 @@ def pack_header(axes: Sequence[Axis], motors: Sequence[Motor], *, version: int, 
                               prismatic, crc, reference_crc, name)
 
 
-def lookup(values: np.ndarray, reference: NominalReference | None, lows: Sequence[float],
+def lookup(values: np.ndarray, reference: Reference | None, lows: Sequence[float],
            highs: Sequence[float], points) -> tuple[np.ndarray, np.ndarray]:
-    """FB_CompTableLookup: ``reference(x0, x1) + multilinear(values)``, and the inside mask.
+    """FB_CompTableLookup: ``reference(x0, x1) + multilinear(values)``, and the inside mask (the controller
+    reference: ``multilinear(values)``, the correction, as without reference).
 
     Shared by :meth:`CompTable.lookup` and the tests' PLC twin, so both give the same bits.
     """
     m, inside = multilinear(values, lows, highs, points)
-    if reference is not None:
+    if isinstance(reference, NominalReference):
         x = np.asarray(points, float)
         m = reference.commands_deg(x[..., 0], x[..., 1]) + m
         m[~inside] = np.nan

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pmcal.bridge.comptable import (FORMAT, FORMAT_VERSION, NMOTOR_MAX, PHI, READ_VERSIONS, THETA, Axis, CompTable,
-                                    Motor, crc32)
+from pmcal.bridge.comptable import (CONTROLLER, FORMAT, FORMAT_VERSION, NMOTOR_MAX, PHI, READ_VERSIONS, THETA, Axis,
+                                    CompTable, ControllerReference, Motor, crc32)
 from pmcal.bridge.nominal import NominalReference
 from pmcal.errors import InputError
 from pmcal.fileio import atomic_write
@@ -47,8 +47,9 @@ def write_json(table: CompTable, path: str | Path) -> None:
     """Write the JSON file atomically (header, nested ``values[i0][i1]..[k]``, checksums)."""
     doc = header_dict(table)
     idx = "".join(f"[i_{a.name}]" for a in table.axes)
-    what = ("absolute commands" if table.reference is None else "corrections added to the nominal IK of "
-            "'reference'")
+    what = ("absolute commands" if table.reference is None else
+            "corrections added to the motion controller's own nominal IK (motor min/max/max_step bound the "
+            "corrections)" if table.controller_reference else "corrections added to the nominal IK of 'reference'")
     doc["layout"] = (f"values{idx} = [{', '.join(c for c in table.columns()[table.n_axes:])}]: {what}; "
                      "node = min + index*(max-min)/(n-1)")
     doc["values"] = table.values.tolist()
@@ -248,12 +249,15 @@ def _check_format_version(v, src: str) -> int:
     return int(v)
 
 
-def _reference(doc: dict, src: str) -> NominalReference | None:
+def _reference(doc: dict, src: str) -> NominalReference | ControllerReference | None:
     kind = doc.get("kind")
     if kind == "none":
         return None
+    if kind == ControllerReference.KIND:
+        return CONTROLLER
     if kind != "nominal_ik":
-        raise InputError(f"reference kind must be 'nominal_ik' or 'none', got {kind!r}", file=src, field="reference")
+        raise InputError(f"reference kind must be 'nominal_ik', 'controller' or 'none', got {kind!r}", file=src,
+                         field="reference")
     ref = NominalReference(**{k: _float(doc, k, src) for k in NominalReference.KEYS})
     if ref.defect():
         raise InputError(ref.defect(), file=src, field="reference")

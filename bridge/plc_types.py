@@ -17,7 +17,7 @@ import numpy as np
 
 from pmcal.bridge.comptable import (HEADER_STRUCT, NAXES_MAX, NMOTOR_MAX, NVALUES_MAX, Axis, CompTable, Motor,
                                     pack_header)
-from pmcal.bridge.nominal import REFERENCE_NONE
+from pmcal.bridge.nominal import REFERENCE_CONTROLLER, REFERENCE_NONE  # noqa: F401  (REFERENCE_CONTROLLER: re-exported)
 
 #: FB_CompTableManager.tCommitTimeout default (s): a checked table that motion keeps from being swapped
 #: in is dropped with SWAP_TIMEOUT after this long. The bridge's ack time-out (5 s) is longer, so the
@@ -93,8 +93,9 @@ _STATE = struct.Struct("<3I2H2I")
 STAGING_LEASE_S = 30.0
 #: ST_CompTableLookupIn: aX[3] (LREAL), nSeq (UDINT), 4 reserved = 32 bytes
 _LOOKUP_IN = struct.Struct(f"<{NAXES_MAX}dI4x")
-#: ST_CompTableLookupOut: aM[6] (LREAL), nSeq, nTableVersion (UDINT), eResult (INT), nMotors (UINT), 4 reserved
-_LOOKUP_OUT = struct.Struct(f"<{NMOTOR_MAX}d2IhH4x")
+#: ST_CompTableLookupOut: aM[6] (LREAL), nSeq, nTableVersion (UDINT), eResult (INT), nMotors (UINT),
+#: bCorrection (BOOL), 3 reserved = 64 bytes
+_LOOKUP_OUT = struct.Struct(f"<{NMOTOR_MAX}d2IhH?3x")
 
 HEADER_SIZE = _HEADER.size
 STATE_SIZE = _STATE.size
@@ -119,7 +120,8 @@ class Header:
     format_version: int
     crc: int                             # nCrc: CRC-32 over this header with nCrc = 0, then the used values
     machine: str
-    reference: int = REFERENCE_NONE      # nReference: 0 absolute commands, 1 corrections to the nominal IK
+    reference: int = REFERENCE_NONE      # nReference: 0 absolute commands, 1 corrections to the nominal IK,
+    #                                      2 corrections to the controller's own IK
     reference_crc: int = 0               # nReferenceCrc: NominalReference.crc32() of the reference geometry
     prismatic: int = 0                   # nPrismatic: bit k set = motor k in mm
     n_axes: int | None = None
@@ -215,24 +217,27 @@ class LookupIn:
 @dataclass(frozen=True)
 class LookupOut:
     """ST_CompTableLookupOut: motor targets (deg or mm; ``m`` holds ``n_motors`` values) for request ``seq``
-    from table ``table_version``."""
+    from table ``table_version``. ``correction`` (bCorrection): ``m`` are corrections to add to the
+    controller's own nominal IK (a table with nReference = 2), not commands."""
 
     m: tuple[float, ...]
     seq: int
     table_version: int
     result: LookupResult
     n_motors: int = 0
+    correction: bool = False
 
     def pack(self) -> bytes:
         m = tuple(self.m) + (0.0,) * (NMOTOR_MAX - len(self.m))
-        return _LOOKUP_OUT.pack(*m, self.seq, self.table_version, int(self.result), self.n_motors)
+        return _LOOKUP_OUT.pack(*m, self.seq, self.table_version, int(self.result), self.n_motors,
+                                bool(self.correction))
 
     @classmethod
     def unpack(cls, data: bytes) -> "LookupOut":
         f = _LOOKUP_OUT.unpack(data)
         nm = f[NMOTOR_MAX + 3]
         return cls(tuple(f[:min(nm, NMOTOR_MAX)]), f[NMOTOR_MAX], f[NMOTOR_MAX + 1],
-                   _enum(LookupResult, f[NMOTOR_MAX + 2]), nm)
+                   _enum(LookupResult, f[NMOTOR_MAX + 2]), nm, bool(f[NMOTOR_MAX + 4]))
 
     @property
     def m1_deg(self) -> float:

@@ -357,16 +357,18 @@ _REASONS = {
     Status.STALE_VERSION: "not newer than the active table",
     Status.GRID_SIZE: "grid size outside the PLC arrays",
     Status.GRID_LIMITS: "grid limits not finite or not increasing",
-    Status.LIMITS: "motor limits or max step invalid",
+    Status.LIMITS: "motor limits or max step invalid (a correction table: bounds beyond the PLC's "
+                   "CORRECTION_ABS_MAX)",
     Status.CRC_MISMATCH: "CRC of the staged data differs from the header: data damaged after staging",
     Status.NOT_FINITE: "NaN or infinite value",
-    Status.OUT_OF_RANGE: "value outside the motor limits",
+    Status.OUT_OF_RANGE: "value outside the motor limits (a correction table: outside its correction bounds)",
     Status.STEP_TOO_LARGE: "step between neighbouring nodes too large",
     Status.CRC_SELFTEST: "the PLC's CRC function fails its self-test",
     Status.WITHDRAWN: "commit withdrawn by another client",
     Status.SWAP_TIMEOUT: "motion did not allow the buffer swap within the PLC's commit time-out",
     Status.PLC_STARTING: "the PLC kept re-checking its persistent table after a restart; try again",
-    Status.REFERENCE_MISMATCH: "the table's nominal-IK reference differs from the PLC's GVL_CompTableParam.REF_*",
+    Status.REFERENCE_MISMATCH: "the table's nominal-IK reference differs from the PLC's GVL_CompTableParam.REF_*, "
+                               "or the PLC program does not know the table's reference kind",
     Status.MACHINE_MISMATCH: "the table names another machine than the PLC's GVL_CompTableParam.MACHINE",
 }
 

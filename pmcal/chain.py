@@ -22,7 +22,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from pmcal import progress
-from pmcal.bridge.comptable import NMOTOR_MAX, Axis, CompTable, Motor
+from pmcal.bridge.comptable import CONTROLLER, CORRECTION_ABS_MAX, NMOTOR_MAX, Axis, CompTable, Motor
 from pmcal.calib.chain_design import POOL_FACTOR, POOL_MIN, CampaignDesign, design_campaign
 from pmcal.calib.closed_chain import compensate_targets, identify_chain
 from pmcal.errors import InputError, RunError
@@ -244,13 +244,22 @@ def table_refusal(machine) -> str | None:
             f"of target lists: compensate PARAMS.json --targets TARGETS.csv -o SETPOINTS.csv")
 
 
-def compensation_table(machine, params: Mapping[str, float], version: int, nodes=None):
-    """The compensation table (format 4, absolute commands, no reference) of a machine folder: a grid over
-    its ``[table]`` axes (``[table] nodes`` per axis, or ``nodes``; the box of ``[table]`` or the
-    workspace), at each node the identified machine's inverse kinematics (:func:`compensate`). A node the
-    identified machine cannot reach, or reaches only outside a motor's range, is an :class:`InputError`
-    naming the node (its CSV row), as the seeded machines' tables do: shrink the box in ``[table]``.
-    Motor limits are the ``[[motors]] range``; ``max_step`` from ``[table]``. Validated."""
+def compensation_table(machine, params: Mapping[str, float], version: int, nodes=None, absolute: bool | None = None):
+    """The compensation table (format 4) of a machine folder: a grid over its ``[table]`` axes (``[table]
+    nodes`` per axis, or ``nodes``; the box of ``[table]`` or the workspace).
+
+    By default (``[table] reference = "controller"``) the table holds, at each node, the correction to add
+    to the motion controller's own nominal inverse kinematics: ``m_calibrated - m_nominal`` (deg or mm),
+    with ``m_calibrated`` the identified machine's IK (:func:`compensate_targets`) and ``m_nominal`` the
+    nominal MJCF twin's (``machine.twin.inverse(task, None)``), header ``nReference = 2``; the motors'
+    ``min``/``max`` are then ``-+[table] max_correction`` and ``max_step`` is ``[table]
+    max_correction_step``. With ``absolute`` (or ``[table] reference = "none"``) it holds the absolute
+    commands (``nReference = 0``). Either way the absolute commands are checked first: a node the
+    identified machine cannot reach, or reaches only outside a motor's range (``[[motors]] range``), is an
+    :class:`InputError` naming the node (its CSV row); so is, for absolute commands, a step above ``[table]
+    max_step`` between neighbours (corrections do not interpolate the commands: their steps do not
+    matter), and for corrections a node the nominal machine cannot reach, and a correction or correction
+    step above its bound. Validated."""
     why = table_refusal(machine)
     if why:
         raise InputError(why, field="--table")
@@ -279,4 +288,35 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
         return commands
 
     table = CompTable.from_grid(fill, machine=spec.name, version=int(version), axes=axes, motors=motors)
-    return table.validate()
+    absolute = bool(absolute) or (absolute is None and grid.reference == "none")
+    defect = table.defect()
+    if defect is not None and (absolute or defect.kind != "step"):
+        table.validate()                      # names the node; a correction table's commands need no max_step
+    if absolute:
+        return table
+    if grid.max_correction > CORRECTION_ABS_MAX:
+        raise InputError(f"{grid.max_correction:g} is more than the PLC accepts (GVL_CompTableParam."
+                         f"CORRECTION_ABS_MAX {CORRECTION_ABS_MAX:g})", file=str(spec.folder / "machine.toml"),
+                         field="table.max_correction")
+
+    def nominal(points: np.ndarray) -> np.ndarray:
+        task = points[:, order]
+        commands = machine.twin.inverse(task, None)
+        for i in np.flatnonzero(~np.isfinite(commands).all(axis=1))[:1]:
+            where = ", ".join(f"{c}={v:g}" for c, v in zip(coords, task[i]))
+            raise InputError(f"table node {where} is not reachable by the nominal machine (the controller's "
+                             "inverse kinematics): no correction to it; shrink the table box ([table] in "
+                             "machine.toml)", row=int(i) + 1, field="grid")
+        return commands
+
+    c, step = grid.max_correction, grid.max_correction_step
+    bounds = [Motor(m.name, m.unit, -c, c, step) for m in motors]
+    corrections = CompTable(machine=spec.name, version=int(version), axes=table.axes, motors=bounds,
+                            values=table.values - nominal(table.nodes().reshape(-1, len(axes))).reshape(
+                                table.values.shape), reference=CONTROLLER)
+    try:
+        return corrections.validate()
+    except InputError as exc:
+        raise InputError(f"{exc.message}; the calibration moves this node further than [table] max_correction "
+                         f"{c:g} / max_correction_step {step:g} allow: check the calibration, or raise them in "
+                         "machine.toml", row=exc.row, field=exc.field) from None

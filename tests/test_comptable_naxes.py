@@ -1,7 +1,9 @@
 """Format-4 tables over 1, 2 and 3 task axes with 1 and 3 motors: file -> push -> PLC (real pyads against the
 ADS mock, real pymodbus against the Modbus mock), and the PLC's own lookup (the ST of FB_CompTableLookup,
 interpreted) at off-node points against scipy's RegularGridInterpolator, a multilinear interpolant written
-independently of pmcal. Hostile 3-axis tables and targets never stop the task."""
+independently of pmcal. Tables of absolute commands and of corrections to the controller's own IK
+(nReference = 2: the PLC answers the interpolated correction, flagged bCorrection). Hostile 3-axis tables
+and targets never stop the task."""
 
 from __future__ import annotations
 
@@ -39,9 +41,22 @@ def smooth(points: np.ndarray, n_motors: int) -> np.ndarray:
     return out
 
 
-def make(n_axes: int, n_motors: int, version: int = 2) -> CompTable:
-    return CompTable.from_grid(lambda p: smooth(p, n_motors), machine="test_naxes", version=version,
-                               axes=GRIDS[n_axes], motors=MOTORS[n_motors]).validate()
+#: correction bounds (deg, deg, mm) of the tables with the controller reference
+CORRECTION_MOTORS = {1: [Motor("m1", "deg", -1.0, 1.0, 0.5)],
+                     3: [Motor("m1", "deg", -1.0, 1.0, 0.5), Motor("m2", "deg", -1.0, 1.0, 0.5),
+                         Motor("m3", "mm", -2.0, 2.0, 1.0)]}
+
+
+def make(n_axes: int, n_motors: int, version: int = 2, reference: str | None = None) -> CompTable:
+    """Absolute commands (``smooth``), or with ``reference="controller"`` the corrections from a nominal IK
+    ``smooth`` to a calibrated one ``smooth + 0.3 * smooth(0.8 x) / 30`` (at most ~0.5 deg, ~1 mm)."""
+    if reference is None:
+        return CompTable.from_grid(lambda p: smooth(p, n_motors), machine="test_naxes", version=version,
+                                   axes=GRIDS[n_axes], motors=MOTORS[n_motors]).validate()
+    return CompTable.from_grid(lambda p: smooth(p, n_motors) + 0.01 * smooth(0.8 * p, n_motors) / (
+        1.0 + 9.0 * (np.arange(n_motors) == 2)), machine="test_naxes", version=version, axes=GRIDS[n_axes],
+                               motors=CORRECTION_MOTORS[n_motors], reference=reference,
+                               nominal=lambda p: smooth(p, n_motors)).validate()
 
 
 def reference_lookup(table: CompTable, points: np.ndarray) -> np.ndarray:
@@ -59,23 +74,28 @@ def off_node_points(table: CompTable, count: int = 25, seed: int = 5) -> np.ndar
     return pts
 
 
-CASES = [pytest.param(a, n, id=f"{a}axes-{n}motors") for a in (1, 2, 3) for n in (1, 3)]
+CASES = [pytest.param(a, n, None, id=f"{a}axes-{n}motors") for a in (1, 2, 3) for n in (1, 3)] + [
+    pytest.param(a, n, "controller", id=f"{a}axes-{n}motors-corrections") for a, n in ((1, 1), (3, 3))]
 
 
-@pytest.mark.parametrize("n_axes, n_motors", CASES)
+@pytest.mark.parametrize("n_axes, n_motors, reference", CASES)
 @pytest.mark.parametrize("transport", ["ads", "modbus"])
-def test_file_push_lookup_matches_scipy(n_axes, n_motors, transport, tmp_path, request):
-    table = make(n_axes, n_motors)
+def test_file_push_lookup_matches_scipy(n_axes, n_motors, reference, transport, tmp_path, request):
+    table = make(n_axes, n_motors, reference=reference)
     jp, cp = table.save(tmp_path / "t.json")
     back = CompTable.load(jp if transport == "ads" else cp)
     assert back.values.tobytes() == table.values.tobytes() and back.crc32() == table.crc32()
     assert back.columns()[:n_axes] == tuple(a.column for a in table.axes)
+    assert back.reference == table.reference and back.reference_code == (2 if reference else 0)
+    if reference:
+        assert back.columns()[n_axes:] == tuple("d" + m.column for m in table.motors)
+        assert np.abs(table.values).max() > 0.05        # a correction field, not zeros
     plc = request.getfixturevalue(f"{transport}_plc")
     rep = push((ads_link if transport == "ads" else modbus_link)(plc), back, PushOptions(attempts=1, ack_timeout_s=10.0))
     assert (rep.result, rep.active_version) == ("ok", 2)
     header, values = plc.twin.active_table()
-    assert (header.n_axes, header.n_motors, header.n, values.tobytes()) == (
-        n_axes, n_motors, table.shape, table.values.tobytes())
+    assert (header.n_axes, header.n_motors, header.n, header.reference, header.reference_crc, values.tobytes()) == (
+        n_axes, n_motors, table.shape, 2 if reference else 0, 0, table.values.tobytes())
     assert header.prismatic == (4 if n_motors == 3 else 0)
     pts = off_node_points(table)
     want = reference_lookup(table, pts)
@@ -84,7 +104,8 @@ def test_file_push_lookup_matches_scipy(n_axes, n_motors, transport, tmp_path, r
     with make_link(plc, writes=LOOKUP_WRITES) as link:
         for p, w in zip(pts, want):
             out = link.lookup(*p)
-            assert (out.result, out.n_motors, out.table_version) == (LookupResult.OK, n_motors, 2)
+            assert (out.result, out.n_motors, out.table_version, out.correction) == (
+                LookupResult.OK, n_motors, 2, reference is not None)
             np.testing.assert_allclose(out.m, w, rtol=0, atol=1e-9)
             got.append(out.m)
         outside = pts[1].copy()
@@ -156,8 +177,11 @@ def test_hostile_value_in_a_3_axis_table_never_stops_the_task(value):
     assert st.status.is_rejection and st.active_version == 1
 
 
-def test_hostile_3_axis_targets_never_stop_the_task():
-    table = make(3, 3)
+@pytest.mark.parametrize("reference", [None, "controller"])
+def test_hostile_3_axis_targets_never_stop_the_task(reference):
+    """Inside the grid the interpolation (for a correction table the correction, flagged bCorrection); a
+    NaN, infinite or outside coordinate gives OUT_OF_GRID, every aM 0 and no flag."""
+    table = make(3, 3, reference=reference)
     plc = PlcTwin()
     plc.seed(table)
     seq = 0
@@ -173,5 +197,30 @@ def test_hostile_3_axis_targets_never_stop_the_task():
             a = table.axes[k]
             want = LookupResult.OK if a.min <= v <= a.max else LookupResult.OUT_OF_GRID
             assert (out.seq, out.result) == (seq, want), (k, name)
+            assert out.correction == (want == LookupResult.OK and reference is not None)
             if want == LookupResult.OK:
                 np.testing.assert_allclose(out.m, reference_lookup(table, np.array([x]))[0], rtol=0, atol=1e-9)
+            else:
+                assert out.n_motors == 0 and plc.read_symbol("lookup_out")[:48] == bytes(48)   # aM all 0
+
+
+def test_a_correction_table_is_its_own_kind_in_python():
+    """nReference 2 in the header (nReferenceCrc 0), sealed by the CRC (the same values as absolute
+    commands give another CRC); the lookup is the plain interpolation; the commands are not the table's to
+    know; a defect names the correction column."""
+    corr = make(3, 3, reference="controller")
+    same = CompTable(machine=corr.machine, version=corr.version, axes=corr.axes, motors=corr.motors,
+                     values=corr.values)
+    assert Header.of(corr).reference == 2 and Header.of(corr).reference_crc == 0 and Header.of(same).reference == 0
+    assert corr.crc32() != same.crc32()
+    pts = off_node_points(corr, 50)
+    assert corr.lookup(pts).tobytes() == same.lookup(pts).tobytes()
+    with pytest.raises(ValueError, match="controller"):
+        corr.commands_at_nodes()
+    with pytest.raises(ValueError, match="nominal="):
+        CompTable.from_grid(lambda p: smooth(p, 3), machine="m", version=1, axes=GRIDS[3], motors=MOTORS[3],
+                            reference="controller")
+    values = corr.values.copy()
+    values[1, 2, 0, 2] = 2.5                                   # beyond m3's correction bound of 2 mm
+    d = replace(corr, values=values).defect()
+    assert (d.kind, d.field, d.node) == ("out_of_range", "dm3_mm", (1, 2, 0)) and "correction bounds" in d.message

@@ -1,18 +1,22 @@
-"""The Delta robot's whole chain to a pushed 3-axis table, as a user runs it: ``pmcal --machine <copy of
-mjcf/delta_3dof> twin measure``, ``identify``, ``compensate --table``, ``pmcal push`` to ``pmcal mock-plc``
-(ADS, a subprocess), then the PLC's lookup (FB_CompTableLookup, interpreted ST) at held-out targets drives
-the *true* (error-perturbed) twin.
+"""The Delta robot's whole chain to a pushed 3-axis correction table, as a user runs it: ``pmcal --machine
+<copy of mjcf/delta_3dof> twin measure``, ``identify``, ``compensate --table`` (default: corrections to the
+controller's own nominal IK, nReference = 2), ``pmcal push`` to ``pmcal mock-plc`` (ADS, a subprocess), then
+at held-out targets the integrator's command: the controller's nominal IK (here the Delta's textbook closed
+form, tests/chain_references.py ``delta_ik``, written independently of pmcal) plus the PLC's looked-up
+correction (FB_CompTableLookup, interpreted ST), driving the *true* (error-perturbed) twin.
 
 Tolerance, per target t (mm):
-  e(t) <= e_direct(t) + |J| * e_interp + 1e-6
+  e(t) <= e_direct(t) + |J| * e_interp(t) + 1e-6
 - e_direct: the exact identified inverse kinematics' own error on the true machine (what the identification
   leaves: tracker noise 0.01 mm over 48 poses gives a few micrometres; asserted < 0.05 mm, 5 sigma);
-- e_interp: the trilinear interpolation bound per motor, sum over axes of h_a^2 / 8 * |d2m/dx_a^2| (h_a the
-  node spacing, the second derivative by central differences of the identified IK over +-h_a/2 at t, times 2
-  for its variation over the cell), as a vector norm over the motors (deg);
+- e_interp: the trilinear interpolation bound of the *correction field* c = IK_identified - IK_nominal per
+  motor, sum over axes of h_a^2 / 8 * |d2c/dx_a^2| (h_a the node spacing, the second derivative by central
+  differences over +-h_a/2 at t, times 2 for its variation over the cell), as a vector norm over the
+  motors (deg);
 - |J|: the 2-norm of d task / d commands of the true machine at t (mm/deg, central differences).
 The test can fail: the nominal IK (no calibration) misses the targets by far more (asserted > 10x e_direct),
-and the table's error must stay below a quarter of the nominal IK's (13 x 13 x 9 grid, 25 mm spacing).
+and the same grid of absolute commands (``compensate --table --absolute``, 0.21 mm) misses them by more
+than 10x the correction table's largest error.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from pmcal.cli import main as cli
 from pmcal.io_chain import read_params
 from pmcal.machines import Machine
 from tests.bridge_fixtures import ROOT_DIR
+from tests.chain_references import DELTA, delta_ik
 from tests.test_mock_plc_cli import _expect, _lines
 
 
@@ -51,8 +56,9 @@ def test_delta_measure_identify_table_push_lookup_reaches_held_out_targets(tmp_p
     assert cli([*m, "twin", "measure", "--poses", "48", "--seed", "3", "-o", "m.csv"]) == 0
     assert cli([*m, "identify", "m.csv", "-o", "p.json"]) == 0
     assert cli([*m, "compensate", "p.json", "--table", "t.json", "--table-version", "11"]) == 0
-    table = CompTable.load("t.json")
-    assert (table.n_axes, table.n_motors, table.reference) == (3, 3, None)
+    assert cli([*m, "compensate", "p.json", "--table", "abs.json", "--table-version", "11", "--absolute"]) == 0
+    table, absolute = CompTable.load("t.json"), CompTable.load("abs.json")
+    assert (table.n_axes, table.n_motors, table.reference_code, absolute.reference) == (3, 3, 2, None)
 
     proc = subprocess.Popen([sys.executable, "-m", "pmcal.cli", "mock-plc", "--ads", "--seconds", "120"],
                             cwd=ROOT_DIR, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -73,24 +79,33 @@ def test_delta_measure_identify_table_push_lookup_reaches_held_out_targets(tmp_p
             plc = []
             for x in held:
                 out = link.lookup(*x)
-                assert (out.result, out.n_motors, out.table_version) == (LookupResult.OK, 3, 11)
+                assert (out.result, out.n_motors, out.table_version, out.correction) == (LookupResult.OK, 3, 11, True)
                 plc.append(out.m)
     finally:
         proc.terminate()
         proc.communicate(timeout=10)
-    plc = np.array(plc)
+    tcp = np.array([0.0, 0.0, DELTA["tcp"]])
+    controller = delta_ik(held - tcp)                       # the integrator's own nominal IK (deg)
+    np.testing.assert_allclose(controller, twin.inverse(held, None), rtol=0, atol=1e-7)   # the same machine
+    plc = controller + np.array(plc)                        # nominal IK + the PLC's correction
     reached = twin.forward(plc, truth)
     err = np.linalg.norm(reached - held, axis=1)
+    err_absolute = np.linalg.norm(twin.forward(absolute.lookup(held), truth) - held, axis=1)
 
     direct = twin.inverse(held, params)                     # exact identified IK, no table
     e_direct = np.linalg.norm(twin.forward(direct, truth) - held, axis=1)
     e_nominal = np.linalg.norm(twin.forward(twin.inverse(held, None), truth) - held, axis=1)
     h = (hi - lo) / (np.array(table.shape) - 1)
+
+    def correction(x):
+        return twin.inverse(x, params) - twin.inverse(x, None)
+
+    c0 = correction(held)
     curv = np.zeros((len(held), 3))
     for a in range(3):
         d = np.zeros(3)
         d[a] = h[a] / 2
-        second = (twin.inverse(held + d, params) - 2 * direct + twin.inverse(held - d, params)) / (h[a] / 2) ** 2
+        second = (correction(held + d) - 2 * c0 + correction(held - d)) / (h[a] / 2) ** 2
         curv += 2.0 * h[a] ** 2 / 8.0 * np.abs(second)
     e_interp = np.linalg.norm(curv, axis=1)                 # deg
     jac = np.zeros((len(held), 3, 3))
@@ -100,9 +115,10 @@ def test_delta_measure_identify_table_push_lookup_reaches_held_out_targets(tmp_p
         jac[:, :, k] = (twin.forward(plc + dm, truth) - twin.forward(plc - dm, truth)) / 2e-3
     gain = np.linalg.norm(jac, ord=2, axis=(1, 2))          # mm / deg
     tol = e_direct + gain * e_interp + 1e-6
-    print(f"\ntable error max {err.max():.4g} mm, direct {e_direct.max():.4g} mm, interpolation bound "
-          f"{(gain * e_interp).max():.4g} mm, nominal IK {e_nominal.min():.4g}..{e_nominal.max():.4g} mm")
+    print(f"\ncorrection table error max {err.max():.4g} mm, direct {e_direct.max():.4g} mm, interpolation "
+          f"bound {(gain * e_interp).max():.4g} mm; absolute table {err_absolute.max():.4g} mm; nominal IK "
+          f"{e_nominal.min():.4g}..{e_nominal.max():.4g} mm")
     assert e_direct.max() < 0.05, e_direct
     assert np.all(err <= tol), (err, tol)
     assert e_nominal.min() > 10 * e_direct.max()             # the calibration matters: the test can fail
-    assert err.max() < e_nominal.min() / 4                    # and the table carries it to the machine
+    assert err.max() < err_absolute.max() / 10               # and the correction table carries it, not the IK

@@ -288,6 +288,66 @@ def test_a_delta_table_over_its_table_axes(capsys, delta, tmp_path):
                    "--grid", "3,3", says="--grid")
 
 
+def test_a_delta_table_holds_corrections_to_the_controllers_ik(capsys, delta, tmp_path):
+    """By default the table holds m_identified - m_nominal (nReference 2): a zero offset of 0.2 deg on motor 1
+    is a correction of exactly -0.2 deg of m1 at every node (the twin's convention: command = joint angle -
+    dzero) and 0 on the others; --absolute writes the commands, nominal + correction; [table] bounds them;
+    the commands' max_step applies to absolute tables only."""
+    from pmcal.bridge.comptable import CompTable
+    from pmcal.machines import Machine
+
+    folder, d = delta
+    (tmp_path / "p.json").write_text(json.dumps({"mechanism": "delta_3dof", "params": {"m1.dzero": 0.2}}))
+    grid = ["--grid", "5,5,4", "--table-version", "6"]
+    status, out, err = run(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table",
+                           tmp_path / "c.json", *grid)
+    assert status == 0 and "corrections to add to the controller's nominal IK (nReference 2)" in out, err
+    status, out, err = run(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table",
+                           tmp_path / "a.json", *grid, "--absolute")
+    assert status == 0 and "absolute motor commands" in out, err
+    c, a = CompTable.load(tmp_path / "c.csv"), CompTable.load(tmp_path / "a.json")
+    assert (c.reference_code, a.reference_code) == (2, 0)
+    assert c.columns()[3:] == ("dm1_deg", "dm2_deg", "dm3_deg")
+    assert [(m.min, m.max, m.max_step) for m in c.motors] == [(-1.0, 1.0, 0.25)] * 3      # [table] defaults
+    np.testing.assert_allclose(c.values[..., 0], -0.2, atol=1e-7)
+    np.testing.assert_allclose(c.values[..., 1:], 0.0, atol=1e-7)
+    twin = Machine.from_folder(folder).twin
+    nominal = twin.inverse(c.nodes().reshape(-1, 3), None).reshape(c.values.shape)
+    np.testing.assert_allclose(a.values, nominal + c.values, rtol=0, atol=1e-9)
+    # a coarse grid: the commands step more than [table] max_step between nodes, the corrections do not
+    coarse = ["--grid", "3,3,2", "--table-version", "6"]
+    assert run(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "k.json",
+               *coarse)[0] == 0
+    one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "k2.json",
+                   *coarse, "--absolute", says=["exceeds max_step 15 deg"])
+
+    toml = folder / "machine.toml"
+    text = toml.read_text()
+
+    def table_key(key, value):                  # machine.toml with [table] key = value (the Delta sets all)
+        assert re.search(rf"^{key} = ", text, flags=re.M)
+        toml.write_text(re.sub(rf"^{key} = [^#\n]*", f"{key} = {value} ", text, flags=re.M))
+    try:
+        table_key("max_correction", "0.1")
+        line = one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table",
+                              tmp_path / "x.json", *grid, says=["row 1", "dm1_deg", "max_correction 0.1"])
+        assert "correction bounds" in line and not (tmp_path / "x.json").exists()
+        table_key("max_correction", "6")
+        one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "x.json",
+                       *grid, says=["table.max_correction", "CORRECTION_ABS_MAX 5"])
+        table_key("reference", '"nominal_ik"')
+        one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "x.json",
+                       *grid, says=["table.reference", "controller, none"])
+        table_key("reference", '"none"')
+        assert run(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "n.json",
+                   *grid)[0] == 0
+        assert CompTable.load(tmp_path / "n.json").values.tobytes() == a.values.tobytes()
+    finally:
+        toml.write_text(text)
+    one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--targets", d / "tg.csv",
+                   "-o", tmp_path / "s.csv", "--absolute", says="--absolute")
+
+
 def test_twin_options_of_a_folder_machine(capsys, delta, tmp_path):
     """--errors none --noise 0 at explicit targets: the nominal machine's exact targets (evaluate: 0);
     --errors P.json: that machine; a value that is neither is one line."""

@@ -68,6 +68,9 @@ def option_help(machine) -> dict:
         ("compensate", "--grid"): {"metavar": "N1,N2,..", "help": "table nodes per [table] axis (default: "
                                    "machine.toml [table] nodes)"},
         ("compensate", "--table-version"): "table version (1..2**32-1, must increase on the PLC); default: Unix time",
+        ("compensate", "--absolute"): "the table holds absolute motor commands (nReference 0) instead of the "
+                                      "corrections to add to the controller's own nominal IK (nReference 2, "
+                                      f"default unless [table] reference = \"none\"); docs/compensation_table.md",
         ("evaluate", ""): "position error of a parameter set against a measurement file (RMS, mm)",
     })
     table.update({(cmd, ""): "not available for a machine folder (the seeded machines' command)"

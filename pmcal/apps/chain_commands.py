@@ -140,8 +140,8 @@ def compensate(args) -> int:
     machine = _machine(args)
     if getattr(args, "table", None):
         return _table(args, machine)
-    if getattr(args, "grid", None) or getattr(args, "table_version", None):
-        raise InputError("--grid and --table-version go with --table TABLE.json", field="--grid")
+    if getattr(args, "grid", None) or getattr(args, "table_version", None) or getattr(args, "absolute", False):
+        raise InputError("--grid, --table-version and --absolute go with --table TABLE.json", field="--grid")
     if not args.targets or not args.output:
         raise InputError(f"machine {machine.name} needs --targets TARGETS.csv and -o SETPOINTS.csv",
                          field="--targets" if not args.targets else "-o")
@@ -174,8 +174,9 @@ def evaluate(args) -> int:
 
 
 def _table(args, machine) -> int:
-    """``compensate PARAMS.json --table TABLE.json [--grid N1,N2,N3] [--table-version V]``: the format-4
-    compensation table over the machine's [table] axes (docs/compensation_table.md), JSON and CSV beside."""
+    """``compensate PARAMS.json --table TABLE.json [--grid N1,N2,N3] [--table-version V] [--absolute]``: the
+    format-4 compensation table over the machine's [table] axes (docs/compensation_table.md), JSON and CSV
+    beside: corrections to the controller's own nominal IK, or with ``--absolute`` motor commands."""
     why = table_refusal(machine)
     if why:
         raise InputError(why, field="--table")
@@ -192,9 +193,11 @@ def _table(args, machine) -> int:
         except ValueError:
             raise InputError(f"expected node counts N1,N2,.. (integers), got '{args.grid}'", field="--grid") from None
     params, _ = read_params(args.params, machine.spec, _units(machine))
-    table = compensation_table(machine, params, version, nodes)
+    table = compensation_table(machine, params, version, nodes, absolute=True if args.absolute else None)
     table.save(args.table)
     shape = "x".join(map(str, table.shape))
+    kind = ("corrections to add to the controller's nominal IK (nReference 2)" if table.controller_reference
+            else "absolute motor commands")
     print(f"compensation table version {version}: {shape} nodes over {', '.join(a.column for a in table.axes)}, "
-          f"{table.n_motors} motors, CRC-32 0x{table.crc32():08X}")
+          f"{table.n_motors} motors, {kind}, CRC-32 0x{table.crc32():08X}")
     return 0

@@ -211,7 +211,7 @@ def plc_status(link) -> dict:
             "interface_version": _interface_version(), "active_version": st.active_version,
             "active_crc32": f"0x{st.active_crc:08X}", "machine": h.machine if st.active_version else None,
             "format_version": h.format_version if st.active_version else None,
-            "reference": {0: "none", 1: "nominal_ik"}.get(h.reference, h.reference) if st.active_version else None,
+            "reference": {0: "none", 1: "nominal_ik", 2: "controller"}.get(h.reference, h.reference) if st.active_version else None,
             "grid": list(h.n) if st.active_version else None,
             "motors": h.n_motors if st.active_version else None,
             "last_status": name(st.status), "state": name(st.state), "ack_token": st.ack_token,
