@@ -528,7 +528,7 @@ def test_demo_of_a_folder_machine(delta, capsys):
     status, stdout, err = run(capsys, "--machine", folder, "demo", "--out", out, "--seed", "4")
     assert status == 0, err
     assert {p.name for p in out.iterdir()} >= {"report.html", "summary.json", "plan.csv", "measurements.csv",
-                                              "params.json", "targets.csv", "setpoints.csv"}
+                                              "params.json", "targets.csv", "setpoints.csv", "table.json"}
     s = json.loads((out / "summary.json").read_text())
     assert s["position_rms_before_mm"] > 1.0                     # errors of 0.5 mm / 0.1 deg over a 1 m machine
     assert 0.3 < s["position_rms_after_mm"] / s["position_rms_predicted_mm"] < 2.0
@@ -536,3 +536,9 @@ def test_demo_of_a_folder_machine(delta, capsys):
     html = (out / "report.html").read_text()
     assert "held-out targets" in html and "data:image/png;base64," in html
     assert f"{s['position_rms_after_mm']:.4f} mm RMS" in stdout
+    # the table holds corrections to the controller's IK: its interpolation adds a few micrometres (the
+    # 13 x 13 x 9 grid's bound is 0.007 mm, tests/test_delta_table_chain.py) to the exact IK's error
+    t = s["table"]
+    assert t["reference"] == "controller" and t["targets_inside"] >= 5
+    assert t["position_rms_mm"] < s["position_rms_after_mm"] + 0.01
+    assert (out / "table.json").is_file()

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from pmcal import progress
-from pmcal.chain import campaign, compensate, identify, params_document, plan, random_errors, sample_targets
+from pmcal.chain import (campaign, compensate, compensation_table, identify, params_document, plan, random_errors,
+                         sample_targets, table_refusal)
 from pmcal.fileio import atomic_directory, write_json
 from pmcal.io_chain import write_measurements, write_plan, write_setpoints, write_targets
 from pmcal.mechanism.task_space import POSITION, task_difference
@@ -33,7 +34,11 @@ class ChainDemo:
     identification (:class:`pmcal.calib.closed_chain.ChainIdentResult`). task : (n, C) held-out targets.
     error_nominal, error_compensated : (n, C) task-coordinate errors of the true machine driven by the
     nominal inverse kinematics and by the compensated commands. predicted : (n, C) standard deviation of
-    the compensated error the identification's covariance predicts. timings : s per step.
+    the compensated error the identification's covariance predicts. table : the compensation table for the
+    PLC (:class:`pmcal.bridge.comptable.CompTable`; None when the machine gets none, ``table_note`` says
+    why). inside : the held-out targets inside its grid. error_table : (inside, C) the true machine's error
+    driven by the controller's nominal inverse kinematics plus the table's correction (the PLC's lookup).
+    timings : s per step.
     """
 
     machine: object
@@ -48,6 +53,10 @@ class ChainDemo:
     error_nominal: np.ndarray
     error_compensated: np.ndarray
     predicted: np.ndarray
+    table: object = None
+    table_note: str = ""
+    inside: np.ndarray | None = None
+    error_table: np.ndarray | None = None
     timings: dict = field(default_factory=dict)
 
     @property
@@ -75,6 +84,13 @@ class ChainDemo:
                 "position_rms_predicted_mm": float(predicted),
                 "per_coordinate_rms_after": {c: float(np.sqrt(np.mean(self.error_compensated[:, i] ** 2)))
                                              for i, c in enumerate(self.coordinates)},
+                "table": None if self.table is None else {
+                    "axes": [f"{a.column} {a.min:g}..{a.max:g} ({a.n} nodes)" for a in self.table.axes],
+                    "reference": "controller" if self.table.reference is not None else "none",
+                    "targets_inside": int(self.inside.sum()),
+                    "position_rms_mm": float(np.sqrt(np.mean(self.position_error(self.error_table) ** 2))),
+                    "position_max_mm": float(self.position_error(self.error_table).max())},
+                "table_note": self.table_note,
                 "timings_s": self.timings}
 
 
@@ -84,7 +100,7 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
     twin = machine.twin
     rng = np.random.default_rng(seed)
     timings: dict[str, float] = {}
-    steps = ("plan", "measure", "identify", "compensate", "evaluate")
+    steps = ("plan", "measure", "identify", "compensate", "table", "evaluate")
     with progress.progress(total=len(steps), desc="pmcal demo", unit="step") as bar:
         def step(name):
             bar.set_description(f"pmcal demo: {name}")
@@ -109,8 +125,21 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
         nominal = twin.inverse(task, None)
         compensated = compensate(machine, res.params, task)
         done("compensate")
-        step("evaluate")
+        step("table")
         coords = machine.spec.task.coordinates
+        table, inside, err_table = None, None, None
+        note = table_refusal(machine) or ""
+        if not note:
+            table = compensation_table(machine, res.params, version=1)
+            order = [coords.index(a.column) for a in table.axes]
+            lo, hi = np.array([a.min for a in table.axes]), np.array([a.max for a in table.axes])
+            inside = np.all((task[:, order] >= lo) & (task[:, order] <= hi), axis=1)
+            table_cmd = table.lookup(task[inside][:, order])
+            if table.reference is not None:           # corrections to the controller's nominal IK
+                table_cmd = nominal[inside] + table_cmd
+            err_table = task_difference(twin.forward(table_cmd, truth), task[inside], coords)
+        done("table")
+        step("evaluate")
         err_nominal = task_difference(twin.forward(nominal, truth), task, coords)
         err_comp = task_difference(twin.forward(compensated, truth), task, coords)
         J = twin.task_jacobian(compensated, res.params, res.base)
@@ -118,7 +147,8 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
         done("evaluate")
     demo = ChainDemo(machine=machine, seed=seed, truth=truth, design=design, meas=meas, result=res, task=task,
                      commands_nominal=nominal, commands_compensated=compensated, error_nominal=err_nominal,
-                     error_compensated=err_comp, predicted=predicted, timings=timings)
+                     error_compensated=err_comp, predicted=predicted, table=table, table_note=note, inside=inside,
+                     error_table=err_table, timings=timings)
     if out is not None:
         spec = machine.spec
         write_plan(out / "plan.csv", spec, design.commands, [f"pmcal demo: D-optimal plan, seed {seed}"])
@@ -129,6 +159,8 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
         write_targets(out / "targets.csv", spec, task, [f"pmcal demo: held-out targets, seed {seed + 1000}"])
         write_setpoints(out / "setpoints.csv", spec, task, compensated,
                         ["pmcal demo: compensated commands (identified model's inverse kinematics)"])
+        if table is not None:
+            table.save(out / "table.json")
     return demo
 
 
@@ -146,6 +178,7 @@ def run_chain_demo(machine, out: Path, seed: int) -> int:
         write_json(tmp / "summary.json", summary)
     print(f"pmcal demo: {out}/report.html in {time.perf_counter() - t0:.0f} s; {machine.name}: position error on "
           f"{summary['held_out_targets']} held-out targets {summary['position_rms_before_mm']:.4f} -> "
-          f"{summary['position_rms_after_mm']:.4f} mm RMS (predicted {summary['position_rms_predicted_mm']:.4f})",
-          flush=True)
+          f"{summary['position_rms_after_mm']:.4f} mm RMS (predicted {summary['position_rms_predicted_mm']:.4f})"
+          + (f"; through the PLC table {summary['table']['position_rms_mm']:.4f} mm RMS on the "
+             f"{summary['table']['targets_inside']} inside its grid" if summary["table"] else ""), flush=True)
     return 0
