@@ -9,6 +9,7 @@ by an exception, the parent kills them at once and cancels what is queued.
 from __future__ import annotations
 
 import contextlib
+import multiprocessing
 import signal
 from concurrent.futures import ProcessPoolExecutor
 from typing import Iterator
@@ -20,8 +21,14 @@ def _ignore_sigint() -> None:
 
 @contextlib.contextmanager
 def worker_pool(max_workers: int) -> Iterator[ProcessPoolExecutor]:
-    """A process pool whose workers ignore Ctrl-C and are killed if the block raises (e.g. on Ctrl-C)."""
-    pool = ProcessPoolExecutor(max_workers=max_workers, initializer=_ignore_sigint)
+    """A process pool whose workers ignore Ctrl-C and are killed if the block raises (e.g. on Ctrl-C).
+
+    Workers come from a fork server (a fresh interpreter started once), not from forking the caller: a
+    caller that has rendered with MuJoCo holds OpenGL (Mesa) threads and their locks, and a forked child
+    can deadlock on a lock held by a thread that does not exist in it (seen: the test suite hung in the
+    demo after an in-process ``twin render``)."""
+    ctx = multiprocessing.get_context("forkserver")
+    pool = ProcessPoolExecutor(max_workers=max_workers, initializer=_ignore_sigint, mp_context=ctx)
     try:
         yield pool
     except BaseException:
