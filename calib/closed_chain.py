@@ -233,19 +233,83 @@ def _flat_jacobian(model: ChainModel, commands, params, keys) -> np.ndarray:
     return J.reshape(-1, len(keys))
 
 
+def reading_operator(n_poses: int, reference: str = "previous", segments=None) -> np.ndarray:
+    """(rows, n_poses) matrix turning per-pose distances into the readings of a scale relative to a
+    reference pose: ``"previous"`` gives ``d_{k+1} - d_k``, ``"first"`` gives ``d_k - d_first`` (k after the
+    first), within each chain of poses (``segments``: one label per pose, a new chain where it changes;
+    None: one chain). Rows follow the poses' order.
+
+    >>> reading_operator(3)
+    array([[-1.,  1.,  0.],
+           [ 0., -1.,  1.]])
+    """
+    seg = np.zeros(n_poses, int) if segments is None else np.asarray(segments)
+    if len(seg) != n_poses:
+        raise ValueError(f"{len(seg)} chain labels for {n_poses} poses")
+    start = np.r_[True, seg[1:] != seg[:-1]] if n_poses else np.zeros(0, bool)
+    first = np.maximum.accumulate(np.where(start, np.arange(n_poses), 0)) if n_poses else np.zeros(0, int)
+    rows = np.flatnonzero(~start)
+    D = np.zeros((rows.size, n_poses))
+    D[np.arange(rows.size), rows] = 1.0
+    D[np.arange(rows.size), rows - 1 if reference == "previous" else first[rows]] = -1.0
+    if reference not in ("previous", "first"):
+        raise ValueError(f"unknown reading reference {reference!r} (previous or first)")
+    return D
+
+
+class _Observations:
+    """What identification fits: the measured values ``y`` (flat, mm) and the model's prediction and exact
+    Jacobian of them at the campaign's commands. Tracker nests (``model.targets``, N x K x 3) or, for a
+    model whose ``reading_reference`` is set (``measure = "distance"``), scale readings: ``D`` times the
+    distances of :meth:`observe` (:func:`reading_operator`)."""
+
+    def __init__(self, model: ChainModel, commands: np.ndarray, measured, segments=None):
+        self.model = model
+        self.reference = getattr(model, "reading_reference", None)
+        measured = np.asarray(measured, float)
+        if self.reference is None:
+            if measured.ndim != 3 or measured.shape[0] != commands.shape[0] or measured.shape[2] != 3:
+                raise ValueError(f"targets must be (N, K, 3) with N = {commands.shape[0]} poses, got "
+                                 f"{measured.shape}")
+            ok = _valid(commands, measured)
+            self.commands, self.y = commands[ok], measured[ok].reshape(-1)
+            self.D = None
+        else:
+            D = reading_operator(len(commands), self.reference, segments)
+            if measured.shape != (D.shape[0],):
+                raise ValueError(f"{measured.size} readings for {D.shape[0]} pose pairs of {len(commands)} poses")
+            if not np.isfinite(commands).all():
+                raise ValueError("a reading campaign needs every pose's commands")
+            ok = np.isfinite(measured)
+            self.commands, self.y, self.D = commands, measured[ok], D[ok]
+        self.n_poses = len(self.commands)
+
+    def predict(self, params) -> np.ndarray:
+        if self.D is None:
+            return self.model.targets(self.commands, params).reshape(-1)
+        return self.D @ self.model.observe(self.commands, params)[:, 0]
+
+    def jacobian(self, params, keys) -> np.ndarray:
+        if self.D is None:
+            return _flat_jacobian(self.model, self.commands, params, keys)
+        return self.D @ self.model.observation_jacobian(self.commands, params, keys)[:, 0, :]
+
+
 @blas_policy()
 def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None = None,
                    keys: list[str] | None = None, *, prior: bool = True, rank_tol: float = RANK_TOL,
                    max_nfev: int | None = 100, method: str = "lm", seed: int | None = None,
-                   **options) -> ChainIdentResult:
+                   segments=None, **options) -> ChainIdentResult:
     """Identify the geometric errors of a closed-chain machine from tracker measurements.
 
     Parameters
     ----------
     model : the machine (:class:`~pmcal.calib.chain_model.ChainModel`).
     commands : (N, M) motor commands of the campaign, deg / mm.
-    targets : (N, K, 3) measured nest positions, mm, base frame.
-    sigma_mm : tracker noise (1 sigma per coordinate), mm; default the model's ``sigma_mm``.
+    targets : (N, K, 3) measured nest positions, mm, base frame; for a model measuring a distance (its
+        ``reading_reference`` set: ``measure = "distance"``) the scale readings (rows,) mm, one per row of
+        :func:`reading_operator` (NaN: a reading missing).
+    sigma_mm : tracker noise (1 sigma per coordinate or reading), mm; default the model's ``sigma_mm``.
     keys : the errors to consider (default every ``model.error_keys``); reduced to the base set.
     prior : add the Tikhonov prior (module docstring); False: plain LM on the base set.
     rank_tol : relative QR threshold of the base-set reduction (:func:`base_parameters`).
@@ -254,6 +318,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         paper's hybrid GA; ``"tikhonov"`` with the L-curve; ``"tsvd"``; ...) run on the same base-set
         problem (with the prior unless ``prior=False``); ``seed`` and ``options`` go to it. The global
         methods evaluate a population of machines per generation: slow on a whole chain.
+    segments : for readings: a chain label per pose (a new chain of readings where it changes); None: one.
 
     Runs under pmcal's BLAS thread policy (:func:`pmcal.threads.blas_policy`: one thread unless
     ``PMCAL_BLAS_THREADS`` says otherwise; threads spinning on these small matrices cost 10-100x).
@@ -271,19 +336,17 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         raise ValueError(f"unknown identification method {method!r} (known: {', '.join(METHODS)})")
     t0 = time.perf_counter()
     commands = np.atleast_2d(np.asarray(commands, float))
-    targets = np.asarray(targets, float)
-    if targets.ndim != 3 or targets.shape[0] != commands.shape[0] or targets.shape[2] != 3:
-        raise ValueError(f"targets must be (N, K, 3) with N = {commands.shape[0]} poses, got {targets.shape}")
     sigma = float(model.sigma_mm if sigma_mm is None else sigma_mm)
     if not (np.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma_mm must be positive, got {sigma_mm}")
-    ok = _valid(commands, targets)
-    commands, targets = commands[ok], targets[ok]
+    obs = _Observations(model, commands, targets, segments)
+    commands = obs.commands
     keys = list(keys or model.error_keys)
     scale = model.prior_std(keys)
-    J0 = _flat_jacobian(model, commands, None, keys)
+    J0 = obs.jacobian(None, keys)
     if not np.isfinite(J0).all():
-        bad = np.flatnonzero(~np.isfinite(J0.reshape(len(commands), -1)).all(axis=1))
+        bad = np.flatnonzero(~np.isfinite(model.observe(commands) if obs.D is not None else
+                                          J0.reshape(len(commands), -1)).all(axis=1))
         raise ValueError(f"the nominal machine cannot assemble {len(bad)} measured pose(s) (rows "
                          f"{', '.join(str(i + 1) for i in bad[:5])}): are they inside the workspace?")
     basis = base_parameters(J0 / sigma, keys, scale, rank_tol)
@@ -295,7 +358,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     if basis.dependent:
         prior_cov += (basis.regroup * model.prior_std(basis.dependent) ** 2) @ basis.regroup.T
     sb = np.sqrt(np.diag(prior_cov))
-    y = targets.reshape(-1)
+    y = obs.y
     if y.size < len(base):
         raise ValueError(f"{len(commands)} poses give {y.size} coordinates for {len(base)} base parameters")
 
@@ -305,13 +368,13 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     memo: dict[bytes, np.ndarray] = {}                 # the Jacobian at the last points asked (LM, result)
 
     def fun(X: np.ndarray) -> np.ndarray:
-        return np.stack([y - model.targets(commands, params_of(x)).reshape(-1) for x in X])
+        return np.stack([y - obs.predict(params_of(x)) for x in X])
 
     def jac(x: np.ndarray) -> np.ndarray:
         key = np.asarray(x, float).tobytes()
         if key not in memo:
             memo.clear()
-            memo[key] = -_flat_jacobian(model, commands, params_of(x), base)
+            memo[key] = -obs.jacobian(params_of(x), base)
         return memo[key]
 
     problem = box_problem(fun, base, units, half_width=50.0 * sb, sigma=sigma, jac=jac, scale=sb,
@@ -344,12 +407,19 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
 
 
 def crlb(model: ChainModel, commands, params: Mapping[str, float] | None, keys: list[str],
-         sigma: float | None = None) -> np.ndarray:
+         sigma: float | None = None, segments=None) -> np.ndarray:
     """Cramér-Rao standard deviations (len(keys),) of ``keys`` (their units) from a campaign at ``commands``
     (N, M) on the machine with errors ``params``, tracker noise ``sigma`` mm (default the model's):
-    ``sqrt(diag(sigma^2 (J^T J)^-1))``; inf for keys the campaign does not determine (pass a base set)."""
+    ``sqrt(diag(sigma^2 (J^T J)^-1))``; inf for keys the campaign does not determine (pass a base set).
+    A model measuring a distance is read as scale readings (:func:`reading_operator`, ``segments``)."""
     sigma = float(model.sigma_mm if sigma is None else sigma)
-    J = _flat_jacobian(model, np.atleast_2d(commands), params, list(keys))
+    commands = np.atleast_2d(commands)
+    reference = getattr(model, "reading_reference", None)
+    if reference is None:
+        J = _flat_jacobian(model, commands, params, list(keys))
+    else:
+        J = reading_operator(len(commands), reference, segments) @ \
+            model.observation_jacobian(commands, params, list(keys))[:, 0, :]
     J = J[np.isfinite(J).all(axis=1)] / sigma
     F = J.T @ J
     try:

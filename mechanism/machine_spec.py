@@ -46,7 +46,9 @@ TASK_COORDINATES = ("x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg", "phi_d
 #: The six components of a frame error: translation (mm) and rotation (deg) about the parent frame's axes.
 ERROR_COMPONENTS = ("dx", "dy", "dz", "drx", "dry", "drz")
 MOTOR_KINDS = {"revolute": ("hinge", "deg"), "prismatic": ("slide", "mm")}
-MEASURES = ("position", "pose")
+MEASURES = ("position", "pose", "distance")
+#: ``[tracker] reference`` of a ``"distance"`` measurement: what a reading is relative to
+DISTANCE_REFERENCES = ("previous", "first")
 #: ``[machine] kind`` values routed to the seeded machines' dedicated code.
 LEGACY_KINDS = ("ocpm_2dof", "planar_2dof")
 
@@ -73,11 +75,13 @@ class MotorSpec:
 
 @dataclass(frozen=True)
 class TaskSpec:
-    """Task coordinates: the pose of MJCF site ``site`` in the world frame, as the columns ``coordinates``
-    (a subset of :data:`TASK_COORDINATES`, in the given order)."""
+    """Task coordinates: the pose of MJCF site ``site`` in the world frame (or in the frame of the site
+    ``frame`` on the fixed base, the frame of the machine's drawing), as the columns ``coordinates`` (a
+    subset of :data:`TASK_COORDINATES`, in the given order)."""
 
     site: str
     coordinates: tuple[str, ...]
+    frame: str | None = None
 
 
 @dataclass(frozen=True)
@@ -127,8 +131,14 @@ class MachineSpec:
     folder, model_path : the folder and its MJCF file (absolute paths).
     motors : one :class:`MotorSpec` per actuated joint, M of them.
     targets : MJCF site names of the tracker nests, K of them (CSV columns ``t1_x`` ... ``tK_z``, mm).
-    measure : ``"position"`` (each nest's position) or ``"pose"`` (the platform pose from a rigid fit of
-        the >= 3 nests).
+    measure : ``"position"`` (each nest's position), ``"pose"`` (the platform pose from a rigid fit of
+        the >= 3 nests) or ``"distance"`` (the distance between the two ``targets`` sites, read by a linear
+        scale relative to a reference pose: ``reference``).
+    reference : for ``measure = "distance"``: ``"previous"`` (each reading is the change of the distance
+        since the previous pose of the campaign: a scale whose head is reset after each reading) or
+        ``"first"`` (the change since the campaign's first pose: an incremental scale zeroed there).
+    names : the machine's own names of errors (a paper's, an interface's) -> the frame-error keys each moves
+        together with the same value (``[names]``; e.g. ``{"dtheta1": ("m1.dzero",)}``).
     task : :class:`TaskSpec`.
     workspace : task coordinate -> (lo, hi): the box campaigns and target lists sample (then filtered by
         reachability and motor ranges), in the coordinate's unit.
@@ -151,6 +161,8 @@ class MachineSpec:
     motors: tuple[MotorSpec, ...] = ()
     targets: tuple[str, ...] = ()
     measure: str = "position"
+    reference: str = "previous"
+    names: Mapping[str, tuple[str, ...]] = field(default_factory=lambda: MappingProxyType({}))
     task: TaskSpec | None = None
     workspace: Mapping[str, tuple[float, float]] = field(default_factory=lambda: MappingProxyType({}))
     errors: ErrorSpec = field(default_factory=ErrorSpec)
@@ -300,7 +312,7 @@ class _Loader:
                                             f"relative to the folder)")
         self.names = self.model_names(self.model)
         self.known(self.doc, "", ("machine", "motors", "tracker", "task", "workspace", "errors", "table",
-                                  "closures"))
+                                  "closures", "names"))
         self.known(mach, "machine", ("kind", "name", "title", "model", "home"))
         home = self.text(mach, "home", "machine", default="home")
         if home not in self.names.keyframes:
@@ -317,15 +329,42 @@ class _Loader:
         measure = self.text(tracker, "measure", "tracker", default="position", choices=MEASURES)
         if measure == "pose" and len(targets) < 3:
             raise self.err("tracker.measure", f"'pose' needs at least 3 targets, got {len(targets)}")
+        if measure == "distance" and len(targets) != 2:
+            raise self.err("tracker.targets", f"'distance' measures between exactly 2 sites (the scale's two "
+                                              f"ends), got {len(targets)}")
+        if "reference" in tracker and measure != "distance":
+            raise self.err("tracker.reference", "only a 'distance' measurement has a reference pose")
+        reference = self.text(tracker, "reference", "tracker", default="previous", choices=DISTANCE_REFERENCES)
         sigma = self.number(tracker, "sigma_mm", "tracker", positive=True)
-        self.known(tracker, "tracker", ("targets", "measure", "sigma_mm"))
+        self.known(tracker, "tracker", ("targets", "measure", "sigma_mm", "reference"))
         task = self.task()
         workspace = self.workspace(task)
         table_axes = self.table_axes(task)
         return MachineSpec(name=name, folder=self.folder, model_path=self.model, title=title, motors=motors,
-                           targets=targets, measure=measure, task=task, workspace=workspace,
+                           targets=targets, measure=measure, reference=reference, names=self.names_map(motors),
+                           task=task, workspace=workspace,
                            errors=self.errors(motors), sigma_mm=sigma, table_axes=table_axes, home=home,
                            closures=self.closures(), legacy=False, kind="chain")
+
+    def names_map(self, motors: tuple[MotorSpec, ...]) -> Mapping[str, tuple[str, ...]]:
+        """``[names]``: name -> frame-error key or list of keys (each a ``<frame>.<component>`` of a body or
+        site of the model, or ``mK.dzero``); the keys' existence under ``[errors]`` is the twin's check."""
+        tab = self.table("names", required=False)
+        out = {}
+        for name, v in tab.items():
+            keys = self.strings([v] if isinstance(v, str) else v, f"names.{name}")
+            if not keys:
+                raise self.err(f"names.{name}", "needs at least one frame-error key")
+            for k in keys:
+                frame, _, comp = k.rpartition(".")
+                motor = {f"m{i}" for i in range(1, len(motors) + 1)}
+                if frame in motor and comp == "dzero":
+                    continue
+                if comp not in ERROR_COMPONENTS or frame not in set(self.names.bodies) | set(self.names.sites):
+                    raise self.err(f"names.{name}", f"{k!r} is not a frame error (<body or site>.<dx|dy|dz|drx|"
+                                                    f"dry|drz> or mK.dzero; docs/machine_toml.md)")
+            out[name] = keys
+        return MappingProxyType(out)
 
     def closures(self) -> ClosureSpec | None:
         tab = self.table("closures", required=False)
@@ -379,8 +418,9 @@ class _Loader:
 
     def task(self) -> TaskSpec:
         tab = self.table("task")
-        self.known(tab, "task", ("site", "coordinates"))
+        self.known(tab, "task", ("site", "coordinates", "frame"))
         site = self.site(self.text(tab, "site", "task"), "task.site")
+        frame = self.site(self.text(tab, "frame", "task"), "task.frame") if "frame" in tab else None
         coords = self.strings(tab.get("coordinates"), "task.coordinates")
         for c in coords:
             if c not in TASK_COORDINATES:
@@ -391,7 +431,7 @@ class _Loader:
             raise self.err("task.coordinates", "phi_deg and theta_deg go together, without rx/ry/rz_deg")
         if not coords:
             raise self.err("task.coordinates", "needs at least one coordinate")
-        return TaskSpec(site=site, coordinates=coords)
+        return TaskSpec(site=site, coordinates=coords, frame=frame)
 
     def workspace(self, task: TaskSpec) -> Mapping[str, tuple[float, float]]:
         tab = self.table("workspace")

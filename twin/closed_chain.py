@@ -158,6 +158,21 @@ class ClosedChainTwin:
         self._warm_cmd = np.zeros((0, self.n_motors))
         self._warm_qpos = np.zeros((0, m.nq))
         self.home_commands = self._commands_of(self.home_qpos[None])[0]
+        self._read_task_frame()
+
+    def _read_task_frame(self) -> None:
+        """World pose (m, rotation matrix) of the frame task coordinates are written in: ``[task] frame``, a
+        site on the fixed base, taken on the nominal model at home; the world frame without it."""
+        self._frame_p, self._frame_R = np.zeros(3), np.eye(3)
+        if self.spec.task.frame:
+            sid = mujoco.mj_name2id(self.model, _OBJ.mjOBJ_SITE, self.spec.task.frame)
+            self._kin(self.home_qpos, jac=False)
+            self._frame_p = self.data.site_xpos[sid].copy()
+            self._frame_R = self.data.site_xmat[sid].reshape(3, 3).copy()
+
+    def _in_task_frame(self, p_m: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (..., 3) m and orientations (..., 3, 3) in world -> in the task frame."""
+        return (p_m - self._frame_p) @ self._frame_R, self._frame_R.T @ R
 
     @classmethod
     def from_folder(cls, folder) -> "ClosedChainTwin":
@@ -560,6 +575,43 @@ class ClosedChainTwin:
         kin, dpos, _ = self._point_jacobians(commands, params, keys)
         return dpos[:, self._tp] / MM
 
+    # ------------------------------------------------------------------ observations (what is read of a pose)
+    @property
+    def reading_reference(self) -> str | None:
+        """``[tracker] reference`` of a ``"distance"`` measurement (``"previous"`` / ``"first"``), else None:
+        identification then fits scale readings (:func:`pmcal.calib.closed_chain.reading_operator`)."""
+        return self.spec.reference if self.spec.measure == "distance" else None
+
+    @property
+    def n_observed(self) -> int:
+        """Values read of each pose: 3 K nest coordinates, or 1 distance (``measure = "distance"``)."""
+        return 1 if self.spec.measure == "distance" else 3 * self.n_targets
+
+    def observe(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
+        """What the tracker reads of each pose, before a reference is taken off: (N, R) mm. ``"position"``
+        and ``"pose"``: the nest coordinates ``t1_x .. tK_z`` (R = 3 K, world frame); ``"distance"``: the
+        distance between the two target sites (R = 1; the scale reads its change relative to a reference
+        pose, :func:`pmcal.calib.closed_chain.reading_operator`). NaN rows where the chain cannot assemble."""
+        y = self.targets(commands, params)
+        return self._observed(y)
+
+    def _observed(self, y: np.ndarray) -> np.ndarray:
+        if self.spec.measure == "distance":
+            return np.linalg.norm(y[:, 1] - y[:, 0], axis=1)[:, None]
+        return y.reshape(len(y), -1)
+
+    def observation_jacobian(self, commands, params: Mapping[str, float] | None = None,
+                             keys: list[str] | None = None) -> np.ndarray:
+        """Exact d :meth:`observe` / d errors (N, R, P), mm per key unit (IFT, module docstring): for a
+        distance ``|b - a|`` the unit vector from a to b times the difference of the two sites' derivatives."""
+        kin, dpos, _ = self._point_jacobians(commands, params, keys)
+        J = dpos[:, self._tp] / MM                                        # (N, K, 3, P)
+        if self.spec.measure != "distance":
+            return J.reshape(len(J), -1, J.shape[-1])
+        v = kin.site_xpos[:, self._tp[1]] - kin.site_xpos[:, self._tp[0]]
+        u = v / np.linalg.norm(v, axis=1, keepdims=True)
+        return np.einsum("nc,ncp->np", u, J[:, 1] - J[:, 0])[:, None, :]
+
     def task_jacobian(self, commands, params: Mapping[str, float] | None = None,
                       keys: list[str] | None = None) -> np.ndarray:
         """Exact d task coordinates / d errors (N, C, P) at fixed commands (N, M): how far each error moves
@@ -569,15 +621,17 @@ class ClosedChainTwin:
         coords = self.spec.task.coordinates
         out = np.full((len(kin.qpos), len(coords), dpos.shape[-1]), np.nan)
         tp = self._task_p
+        Rf = self._frame_R.T
         for i, c in enumerate(coords):
             if c in POSITION:
-                out[:, i] = dpos[:, tp, POSITION.index(c)] / MM
+                out[:, i] = (Rf @ dpos[:, tp])[:, POSITION.index(c)] / MM
         ang = [i for i, c in enumerate(coords) if c not in POSITION]
         if ang:
             for n in range(len(kin.qpos)):
                 if np.isfinite(kin.qpos[n]).all():
-                    D = self._angle_rates(kin.site_xpos[n, tp] / MM, kin.site_xmat[n, tp])
-                    out[n, ang] = D @ drot[n, tp]
+                    p, R = self._in_task_frame(kin.site_xpos[n, tp], kin.site_xmat[n, tp])
+                    D = self._angle_rates(p / MM, R)
+                    out[n, ang] = D @ Rf @ drot[n, tp]
         return out
 
     def _point_jacobians(self, commands, params, keys):
@@ -627,9 +681,9 @@ class ClosedChainTwin:
         for i, q in enumerate(qpos):
             if np.isfinite(q).all():
                 self._kin(q, jac=False)
-                p = self.data.site_xpos[self.task_site] / MM
-                R = self.data.site_xmat[self.task_site].reshape(3, 3)
-                out[i] = task_coordinates(p[None], R[None], coords)[0]
+                p, R = self._in_task_frame(self.data.site_xpos[self.task_site],
+                                           self.data.site_xmat[self.task_site].reshape(3, 3))
+                out[i] = task_coordinates(p[None] / MM, R[None], coords)[0]
         return out
 
     def forward(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
@@ -655,6 +709,8 @@ class ClosedChainTwin:
         ``jr`` (A, 3, nv), towards ``goals`` (A, C) (task units)."""
         coords = self.spec.task.coordinates
         is_pos = np.array([c in POSITION for c in coords])
+        p_m, R = self._in_task_frame(p_m, R)
+        jp, jr = self._frame_R.T @ jp, self._frame_R.T @ jr
         now = task_coordinates(p_m / MM, R, coords)
         diff = task_difference(now, goals, coords)
         r = np.where(is_pos, diff * MM, diff * DEG)
