@@ -363,14 +363,33 @@ class ClosedChainTwin:
         active = np.arange(len(Q))
         cols = self.passive if goals is None else np.arange(nv)
         tp = self._task_p
+        need_jr = weld or (goals is not None and not all(c in POSITION for c in self.spec.task.coordinates))
+        two_pass = rigid and goals is None
         for _ in range(self.MAX_ITER):
             if not active.size:
                 break
+            if two_pass:
+                # residuals first (kinematics only): the poses that already meet the tolerance need no
+                # Jacobians (the last iteration of every pose)
+                sp = np.empty((len(active), self.points.size, 3))
+                sm = np.empty((len(active), self.points.size, 3, 3)) if weld else None
+                for a, i in enumerate(active):
+                    d.qpos[:] = Q[i]
+                    mujoco.mj_kinematics(m, d)
+                    sp[a] = d.site_xpos[self.points]
+                    if weld:
+                        sm[a] = d.site_xmat[self.points].reshape(-1, 3, 3)
+                r, _ = self._closure_rows(sp, sm, None, None, Q[active], with_jac=False)
+                met = np.max(np.abs(r), axis=1) < tol[active]
+                done[active[met]] = True
+                active = active[~met]
+                if not active.size:
+                    break
             A = len(active)
             sp = np.empty((A, self.points.size, 3))
             sm = np.empty((A, self.points.size, 3, 3)) if weld else None
             jp = np.zeros((A, self.points.size, 3, nv))
-            jr = np.zeros((A, self.points.size, 3, nv))
+            jr = np.zeros((A, self.points.size, 3, nv)) if need_jr else None
             Rt = np.empty((A, 3, 3))
             for a, i in enumerate(active):
                 d.qpos[:] = Q[i]
@@ -381,13 +400,20 @@ class ClosedChainTwin:
                     sm[a] = d.site_xmat[self.points].reshape(-1, 3, 3)
                 if goals is not None:
                     Rt[a] = d.site_xmat[self.task_site].reshape(3, 3)
-                for k in range(P):
-                    mujoco.mj_jacSite(m, d, jp[a, k], jr[a, k], pts[k])
+                ja = jp[a]
+                if need_jr:
+                    jra = jr[a]
+                    for k in range(P):
+                        mujoco.mj_jacSite(m, d, ja[k], jra[k], pts[k])
+                else:
+                    for k in range(P):
+                        mujoco.mj_jacSite(m, d, ja[k], None, pts[k])
             r, J = self._closure_rows(sp, sm, jp, jr, Q[active])
             if goals is not None:
-                rt, Jt = self._task_rows_batch(sp[:, tp], Rt, jp[:, tp], jr[:, tp], goals[active])
+                rt, Jt = self._task_rows_batch(sp[:, tp], Rt, jp[:, tp], None if jr is None else jr[:, tp],
+                                               goals[active])
                 r, J = np.concatenate([r, rt], axis=1), np.concatenate([J, Jt], axis=1)
-            if rigid:
+            if rigid and not two_pass:
                 met = np.max(np.abs(r), axis=1) < tol[active]
                 done[active[met]] = True
                 active, r, J = active[~met], r[~met], J[~met]
@@ -710,7 +736,8 @@ class ClosedChainTwin:
         coords = self.spec.task.coordinates
         is_pos = np.array([c in POSITION for c in coords])
         p_m, R = self._in_task_frame(p_m, R)
-        jp, jr = self._frame_R.T @ jp, self._frame_R.T @ jr
+        jp = self._frame_R.T @ jp
+        jr = None if jr is None else self._frame_R.T @ jr
         now = task_coordinates(p_m / MM, R, coords)
         diff = task_difference(now, goals, coords)
         r = np.where(is_pos, diff * MM, diff * DEG)
