@@ -63,6 +63,8 @@ class MotorSpec:
     unit : ``"deg"`` (revolute) or ``"mm"`` (prismatic): the unit of commands, ``range`` and ``zero``.
     range : (lo, hi) allowed commands, in ``unit``.
     zero : the command that puts the joint at qpos 0: joint position = command - zero (in ``unit``).
+    sigma : the motor's motion error, 1 sigma in ``unit`` (the servo's positioning repeatability): the twin's
+        campaigns hold each pose at the command plus such an error; 0: exact.
     """
 
     name: str
@@ -71,6 +73,7 @@ class MotorSpec:
     unit: str
     range: tuple[float, float]
     zero: float = 0.0
+    sigma: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -412,8 +415,12 @@ class _Loader:
                 raise self.err(f"{where}.unit", f"a {kind} motor's commands are in {unit!r}, got {given!r}")
             rng = self.interval(row.get("range"), f"{where}.range")
             zero = self.number(row, "zero", where, default=0.0)
-            self.known(row, where, ("joint", "kind", "unit", "range", "zero"))
-            out.append(MotorSpec(name=f"m{i}", joint=joint, kind=kind, unit=unit, range=rng, zero=zero))
+            sigma = self.number(row, "sigma", where, default=0.0)
+            if sigma < 0:
+                raise self.err(f"{where}.sigma", f"must be >= 0 (a standard deviation in {unit}), got {sigma!r}")
+            self.known(row, where, ("joint", "kind", "unit", "range", "zero", "sigma"))
+            out.append(MotorSpec(name=f"m{i}", joint=joint, kind=kind, unit=unit, range=rng, zero=zero,
+                                 sigma=sigma))
         return tuple(out)
 
     def task(self) -> TaskSpec:
