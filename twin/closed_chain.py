@@ -65,6 +65,7 @@ from typing import Mapping
 
 import mujoco
 import numpy as np
+from scipy.spatial import cKDTree
 
 from pmcal.errors import InputError
 from pmcal.mechanism.machine_spec import MachineSpec
@@ -515,10 +516,12 @@ class ClosedChainTwin:
         known_cmd = np.concatenate([self.home_commands[None], self._warm_cmd])
         known_q = np.concatenate([self.home_qpos[None], self._warm_qpos])
         # All poses together: each from its nearest assembled configuration, by continuation in lockstep.
-        dist = np.max(np.abs(known_cmd[None, :, :] - cmd[:, None, :]) / span, axis=2) if len(cmd) else \
-            np.zeros((0, 1))
-        start = np.argmin(dist, axis=1)
-        n_sub = np.maximum(1, np.ceil(dist[np.arange(len(cmd)), start] / self.PATH_STEP)).astype(int)
+        # nearest known configuration in the largest motor move (a fraction of each range): k-d tree
+        finite = np.isfinite(cmd).all(axis=1)
+        near, start = cKDTree(known_cmd / span).query(np.where(finite[:, None], cmd, 0.0) / span, p=np.inf) \
+            if len(cmd) else (np.zeros(0), np.zeros(0, int))
+        start = np.asarray(start, int)
+        n_sub = np.maximum(1, np.ceil(np.asarray(near) / self.PATH_STEP)).astype(int)
         Q = known_q[start].copy()
         j0 = Q[:, self.motor_qadr].copy()
         alive = np.isfinite(joints).all(axis=1)
