@@ -516,12 +516,19 @@ class ClosedChainTwin:
         known_cmd = np.concatenate([self.home_commands[None], self._warm_cmd])
         known_q = np.concatenate([self.home_qpos[None], self._warm_qpos])
         # All poses together: each from its nearest assembled configuration, by continuation in lockstep.
-        # nearest known configuration in the largest motor move (a fraction of each range): k-d tree
+        # nearest known configuration in the largest motor move (a fraction of each range), by a k-d tree;
+        # of equally near ones the oldest (home first): the same start for every solve of a pose, so
+        # solves that differ only in the errors differ only by them (finite differences stay clean)
+        start = np.zeros(len(cmd), int)
+        near = np.zeros(len(cmd))
         finite = np.isfinite(cmd).all(axis=1)
-        near, start = cKDTree(known_cmd / span).query(np.where(finite[:, None], cmd, 0.0) / span, p=np.inf) \
-            if len(cmd) else (np.zeros(0), np.zeros(0, int))
-        start = np.asarray(start, int)
-        n_sub = np.maximum(1, np.ceil(np.asarray(near) / self.PATH_STEP)).astype(int)
+        if finite.any():
+            tree = cKDTree(known_cmd / span)
+            x = cmd[finite] / span
+            near[finite] = tree.query(x, p=np.inf)[0]
+            start[finite] = [min(ball) for ball in tree.query_ball_point(x, near[finite] * (1 + 1e-12) + 1e-15,
+                                                                        p=np.inf)]
+        n_sub = np.maximum(1, np.ceil(near / self.PATH_STEP)).astype(int)
         Q = known_q[start].copy()
         j0 = Q[:, self.motor_qadr].copy()
         alive = np.isfinite(joints).all(axis=1)
