@@ -263,7 +263,8 @@ class _Observations:
     model whose ``reading_reference`` is set (``measure = "distance"``), scale readings: ``D`` times the
     distances of :meth:`observe` (:func:`reading_operator`)."""
 
-    def __init__(self, model: ChainModel, commands: np.ndarray, measured, segments=None):
+    def __init__(self, model: ChainModel, commands: np.ndarray, measured, segments=None, covariance=None,
+                 sigma: float = 1.0):
         self.model = model
         self.reference = getattr(model, "reading_reference", None)
         measured = np.asarray(measured, float)
@@ -283,23 +284,38 @@ class _Observations:
             ok = np.isfinite(measured)
             self.commands, self.y, self.D = commands, measured[ok], D[ok]
         self.n_poses = len(self.commands)
+        # correlated noise (covariance C of the measured values): W = sigma L^-1 (C = L L^T) turns residuals
+        # into independent ones of size sigma, so the rest of the fit reads as with white noise
+        self.W = None
+        if covariance is not None:
+            C = np.asarray(covariance, float)
+            if C.shape != (len(measured.reshape(-1)),) * 2:
+                raise ValueError(f"covariance must be ({measured.size}, {measured.size}), got {C.shape}")
+            keep = np.isfinite(measured.reshape(-1)) if self.D is not None else \
+                np.repeat(ok, measured.shape[1] * 3)
+            C = C[np.ix_(keep, keep)]
+            self.W = sigma * scipy.linalg.solve_triangular(np.linalg.cholesky(C), np.eye(len(C)), lower=True)
+            self.y = self.W @ self.y
+
+    def _white(self, v: np.ndarray) -> np.ndarray:
+        return v if self.W is None else self.W @ v
 
     def predict(self, params) -> np.ndarray:
         if self.D is None:
-            return self.model.targets(self.commands, params).reshape(-1)
-        return self.D @ self.model.observe(self.commands, params)[:, 0]
+            return self._white(self.model.targets(self.commands, params).reshape(-1))
+        return self._white(self.D @ self.model.observe(self.commands, params)[:, 0])
 
     def jacobian(self, params, keys) -> np.ndarray:
         if self.D is None:
-            return _flat_jacobian(self.model, self.commands, params, keys)
-        return self.D @ self.model.observation_jacobian(self.commands, params, keys)[:, 0, :]
+            return self._white(_flat_jacobian(self.model, self.commands, params, keys))
+        return self._white(self.D @ self.model.observation_jacobian(self.commands, params, keys)[:, 0, :])
 
 
 @blas_policy()
 def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None = None,
                    keys: list[str] | None = None, *, prior: bool = True, rank_tol: float = RANK_TOL,
                    max_nfev: int | None = 100, method: str = "lm", seed: int | None = None,
-                   segments=None, **options) -> ChainIdentResult:
+                   segments=None, covariance=None, **options) -> ChainIdentResult:
     """Identify the geometric errors of a closed-chain machine from tracker measurements.
 
     Parameters
@@ -319,6 +335,9 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         problem (with the prior unless ``prior=False``); ``seed`` and ``options`` go to it. The global
         methods evaluate a population of machines per generation: slow on a whole chain.
     segments : for readings: a chain label per pose (a new chain of readings where it changes); None: one.
+    covariance : (n, n) covariance (mm^2) of the measured values (the flattened targets or the readings),
+        for correlated noise, e.g. :func:`reading_covariance` (motor motion errors enter adjacent readings);
+        the fit is then generalised least squares. None: independent noise of ``sigma_mm``.
 
     Runs under pmcal's BLAS thread policy (:func:`pmcal.threads.blas_policy`: one thread unless
     ``PMCAL_BLAS_THREADS`` says otherwise; threads spinning on these small matrices cost 10-100x).
@@ -339,7 +358,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     sigma = float(model.sigma_mm if sigma_mm is None else sigma_mm)
     if not (np.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma_mm must be positive, got {sigma_mm}")
-    obs = _Observations(model, commands, targets, segments)
+    obs = _Observations(model, commands, targets, segments, covariance, sigma)
     commands = obs.commands
     keys = list(keys or model.error_keys)
     scale = model.prior_std(keys)
@@ -404,6 +423,24 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         success=bool(sol.success), message=str(sol.message), nfev=int(sol.n_eval),
         wall_time=time.perf_counter() - t0, basis=basis, solver=sol,
         info={"effective_parameters": p_eff, "prior_std": dict(zip(base, map(float, sb)))})
+
+
+def reading_covariance(model: ChainModel, commands, motor_sigma, sigma: float | None = None,
+                       segments=None, params: Mapping[str, float] | None = None) -> np.ndarray:
+    """Covariance (rows, rows) mm^2 of the scale readings of a distance-measuring ``model`` when each pose is
+    held at its commands plus independent motor motion errors of ``motor_sigma`` (M,) (deg / mm, 1 sigma):
+    ``sigma^2 I + D diag_k(g_k S g_k^T) D^T`` with ``g_k`` the exact derivative of pose k's distance with
+    respect to the motor commands (the model's ``mK.dzero`` columns: a zero offset is a command shift),
+    ``S = diag(motor_sigma^2)`` and ``D`` :func:`reading_operator`. A motion error enters the readings before
+    and after its pose: adjacent readings correlate (the paper 003 noise model, eq. 34-35, for any machine).
+    """
+    sigma = float(model.sigma_mm if sigma is None else sigma)
+    commands = np.atleast_2d(commands)
+    D = reading_operator(len(commands), model.reading_reference, segments)
+    keys = [f"m{j + 1}.dzero" for j in range(commands.shape[1])]
+    g = model.observation_jacobian(commands, params, keys)[:, 0, :]            # (N, M)
+    motion = np.sum((g * np.asarray(motor_sigma, float)) ** 2, axis=1)
+    return sigma**2 * np.eye(D.shape[0]) + (D * motion) @ D.T
 
 
 def crlb(model: ChainModel, commands, params: Mapping[str, float] | None, keys: list[str],

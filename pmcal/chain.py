@@ -22,7 +22,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from pmcal import progress
-from pmcal.calib.closed_chain import compensate_targets, identify_chain, reading_operator
+from pmcal.calib.closed_chain import compensate_targets, identify_chain, reading_covariance, reading_operator
 from pmcal.errors import InputError, RunError
 from pmcal.io_chain import UNIT_SLIPS, ChainMeasurements
 
@@ -201,13 +201,18 @@ def check_readings(machine, meas: ChainMeasurements, limit_mm: float = PLAUSIBLE
 
 def identify(machine, meas: ChainMeasurements, sigma_mm: float | None = None):
     """Identify the machine's geometric errors from a measurement campaign: the base set the campaign
-    determines, by Levenberg-Marquardt with the Tikhonov prior of machine.toml
+    determines, by Levenberg-Marquardt with the Tikhonov prior of machine.toml (a distance machine whose
+    motors have a motion error ``sigma``: generalised least squares with :func:`reading_covariance`)
     (:func:`pmcal.calib.closed_chain.identify_chain`). Checks first that the file is plausible for the
     machine (:func:`check_assembles`). Returns the :class:`~pmcal.calib.closed_chain.ChainIdentResult`."""
     check_assembles(machine, meas)
     try:
         if machine.spec.measure == "distance":
-            return identify_chain(machine.twin, meas.commands, meas.reading_rows(), sigma_mm, segments=meas.chain)
+            motor_sigma = [m.sigma for m in machine.spec.motors]
+            cov = reading_covariance(machine.twin, meas.commands, motor_sigma, sigma_mm, meas.chain) \
+                if any(motor_sigma) and machine.spec.errors.motor_zero else None
+            return identify_chain(machine.twin, meas.commands, meas.reading_rows(), sigma_mm, segments=meas.chain,
+                                  covariance=cov)
         return identify_chain(machine.twin, meas.commands, meas.targets, sigma_mm)
     except ValueError as exc:            # too few poses for the base set, poses the machine cannot assemble
         raise InputError(str(exc), file=meas.path) from None
