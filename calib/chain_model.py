@@ -23,6 +23,8 @@ from typing import Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
+from pmcal.mechanism.machine_spec import expand_names
+
 Params = Mapping[str, float] | None
 
 
@@ -97,14 +99,9 @@ class NamedModel:
         return getattr(self.model, attr)
 
     def frame_params(self, params: Params) -> dict[str, float] | None:
-        """The frame errors ``{frame key: value}`` of errors given by name (None stays None)."""
-        if params is None:
-            return None
-        unknown = set(params) - set(self.names)
-        if unknown:
-            raise KeyError(f"unknown error name(s): {', '.join(sorted(unknown))} (known: {', '.join(self.names)})")
-        x = self._M @ np.array([float(params.get(n, 0.0)) for n in self.error_keys])
-        return dict(zip(self._frame_keys, map(float, x)))
+        """The frame errors ``{frame key: value}`` of errors given by name (None stays None;
+        :func:`pmcal.mechanism.machine_spec.expand_names`)."""
+        return None if params is None else expand_names(self.names, params)
 
     def _columns(self, keys: list[str] | None) -> list[int]:
         return [self.error_keys.index(k) for k in (keys or self.error_keys)]

@@ -203,6 +203,25 @@ class MachineSpec:
         return _Loader(Path(folder)).spec()
 
 
+def expand_names(names: Mapping[str, tuple[str, ...]], values: Mapping[str, float]) -> dict[str, float]:
+    """Frame errors ``{frame key: value}`` of errors given by a machine's own names (``[names]``: name -> the
+    frame-error keys it moves together by its value; keys moved by several names get the sum).
+
+    >>> expand_names({"de1x": ("a.dx", "b.dx"), "dtheta1": ("m1.dzero",)}, {"de1x": 0.1})
+    {'a.dx': 0.1, 'b.dx': 0.1, 'm1.dzero': 0.0}
+
+    Raises KeyError for a name not in ``names``.
+    """
+    unknown = set(values) - set(names)
+    if unknown:
+        raise KeyError(f"unknown error name(s): {', '.join(sorted(unknown))} (known: {', '.join(names)})")
+    out: dict[str, float] = {}
+    for name, keys in names.items():
+        for k in keys:
+            out[k] = out.get(k, 0.0) + float(values.get(name, 0.0))
+    return out
+
+
 class _Loader:
     """Reads one machine.toml; every error names the file and the key."""
 

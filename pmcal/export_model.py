@@ -5,10 +5,9 @@ Where each identified quantity goes (docs/formats.md, "Calibrated model"):
 - geometry (every ``L<j>.*`` and ``SS.*`` key; planar: ``de*``, ``dL*``, ``dl*``, ``drM*``): body, site and
   joint frames of the machine's MJCF, as the twin inserts them (:func:`pmcal.twin.export.calibrated_xml`);
 - nest offsets of a tracker-frame calibration: the target sites ``T1``..;
-- ``ocpm_2dof`` motor zero offsets ``L1.dtheta``, ``L2.dtheta``: the motor joints' ``ref = -dtheta``, so
-  the joint coordinate (and the position servo's control) is the commanded angle while the link sits
-  ``dtheta`` further on; ``planar_2dof`` zero offsets: the active links' body frames turned by ``dtheta``
-  (the planar twin's convention), the motor joint again reads the command;
+- motor zero offsets (``ocpm_2dof`` ``L1.dtheta``, ``L2.dtheta``; ``planar_2dof`` ``dtheta1``, ``dtheta2``):
+  the motor joints' ``ref = -dtheta``, so the joint coordinate (and the position servo's control) is the
+  commanded angle while the link sits ``dtheta`` further on;
 - closure stiffness ratio (``ocpm_2dof``): ``custom`` numerics ``pmcal_stiffness_ratio`` and
   ``pmcal_passive_closure_stiffness`` (N/m) and the machine.toml; MuJoCo's soft constraints have no
   stiffness in N/m, so the exported model simulates like the dynamic twin (:data:`SIMULATION_OPTIONS`,
@@ -39,7 +38,6 @@ from pmcal.twin.export import calibrated_xml
 from pmcal.twin.machine import Twin
 from pmcal.twin.model import MM, MODEL_XML, build_model, load_model
 from pmcal.twin.planar.config import MODEL_XML as PLANAR_XML, default_machine
-from pmcal.twin.planar.model import build_spec
 from pmcal.twin.planar.twin import PlanarTwin
 
 #: Simulation settings of the exported ocpm_2dof model, those of the dynamic twin (:mod:`pmcal.twin.dynamics`):
@@ -130,16 +128,19 @@ def _ocpm(params_path: str):
 def _planar(params_path: str):
     errors, doc = read_planar_params(params_path)
     machine = default_machine()
-    m = build_spec(machine, errors).compile()
+    twin = PlanarTwin(errors, machine)                         # the generic core, the paper's names mapped
     home = np.asarray(machine.geometry.home, float)          # motor commands of home P0, rad
-    poses = PlanarTwin(errors, machine).assemble(home[None])
-    if not poses.converged.all():
-        raise RunError("the calibrated machine does not assemble at home")
-    edits = dict(keyframe=("home", poses.qpos[0], home))
+    try:
+        qpos = twin.assemble(home[None]).qpos[0].copy()
+    except RunError:
+        raise RunError("the calibrated machine does not assemble at home") from None
+    qpos[twin.chain.motor_qadr] = home                        # joint coordinate = command (ref = -dtheta)
+    edits = dict(joint_ref_rad={"right_motor": -errors.dtheta[0], "left_motor": -errors.dtheta[1]},
+                 keyframe=("home", qpos, home))
     facts = {"machine": "planar_2dof", "model": doc.get("model", ""),
              "zero_offsets_deg": list(np.rad2deg(errors.dtheta)),
-             "zero_offsets_as": "active links' body frames turned by dtheta: the motor joint reads the command"}
-    return PLANAR_XML, PLANAR_XML.parent / "machine.toml", m, edits, doc.get("params", {}), doc, facts
+             "zero_offsets_as": "motor joints' ref = -dtheta: joint coordinate = commanded angle"}
+    return PLANAR_XML, PLANAR_XML.parent / "machine.toml", twin.model, edits, doc.get("params", {}), doc, facts
 
 
 def export_model(params_path: str | Path, output: str | Path, machine: str = "ocpm_2dof") -> dict:

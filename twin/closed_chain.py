@@ -587,6 +587,10 @@ class ClosedChainTwin:
         qpos = self.solve(commands, params)
         return self._sites_mm(qpos, self.target_sites)
 
+    def observe_at(self, qpos: np.ndarray) -> np.ndarray:
+        """:meth:`observe` at assembled configurations ``qpos`` (N, nq) (a :meth:`solve`'s): (N, R) mm."""
+        return self._observed(self._sites_mm(qpos, self.target_sites))
+
     def _sites_mm(self, qpos: np.ndarray, sites: np.ndarray) -> np.ndarray:
         out = np.full((len(qpos), len(sites), 3), np.nan)
         for i, q in enumerate(qpos):

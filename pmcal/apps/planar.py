@@ -238,8 +238,7 @@ def twin_measure(args) -> int:
     from pmcal.mechanism.planar.noise import Noise
     from pmcal import progress
     from pmcal.io_planar import MAX_POSITIONS, read_targets, write_measurements
-    from pmcal.twin.planar.campaign import commands_for, measure
-    from pmcal.twin.planar.twin import PlanarTwin
+    from pmcal.twin.planar.twin import PlanarTwin, commands_for, measure
 
     machine = _machine()
     errors, source = _errors_from_args(args, machine)
@@ -280,8 +279,7 @@ def twin_render(args) -> int:
     """PNG of the twin; ``--pose X,Y`` is the position of P in mm (the default ``0,0`` means home P0)."""
     from pmcal.mechanism.planar.kinematics import inverse
     from pmcal.fileio import atomic_write
-    from pmcal.twin.planar.render import render_png
-    from pmcal.twin.planar.twin import PlanarTwin
+    from pmcal.twin.planar.twin import PlanarTwin, render_png
     from pmcal.twin.render import RenderUnavailable
 
     machine = _machine()
