@@ -180,7 +180,7 @@ class ChainIdentResult:
     rank, condition_number : of the base Jacobian (whitened, prior-scaled, column-normalised).
     chi2, dof, chi2_per_dof : whitened residual sum of squares at the solution, its degrees of freedom
         (target coordinates minus effective parameters), their ratio (about 1 when the model fits to noise).
-    residual_rms_mm : RMS target residual, mm.
+    residual_rms_mm : RMS target (or reading) residual, mm (not whitened).
     sigma_mm : the tracker noise used, mm.
     n_poses : poses used (finite commands and targets).
     success, message, nfev, wall_time : from the solver.
@@ -295,7 +295,16 @@ class _Observations:
                 np.repeat(ok, measured.shape[1] * 3)
             C = C[np.ix_(keep, keep)]
             self.W = sigma * scipy.linalg.solve_triangular(np.linalg.cholesky(C), np.eye(len(C)), lower=True)
+            self.y_mm = self.y
             self.y = self.W @ self.y
+
+    def residual_mm(self, params, whitened: np.ndarray) -> np.ndarray:
+        """The residuals in mm (not whitened) at ``params``, given the whitened ones of the fit."""
+        if self.W is None:
+            return whitened
+        raw = self.model.targets(self.commands, params).reshape(-1) if self.D is None else \
+            self.D @ self.model.observe(self.commands, params)[:, 0]
+        return self.y_mm - raw
 
     def _white(self, v: np.ndarray) -> np.ndarray:
         return v if self.W is None else self.W @ v
@@ -419,7 +428,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         crlb=dict(zip(base, map(float, crlb_std))), combinations=basis.combinations,
         unidentifiable=basis.unidentifiable, weak=[k for k, c, s in zip(base, crlb_std, sb) if c > s],
         rank=basis.rank, condition_number=basis.condition_number, chi2=chi2, dof=dof, chi2_per_dof=chi2 / dof,
-        residual_rms_mm=float(np.sqrt(np.mean(resid**2))), sigma_mm=sigma, n_poses=int(len(commands)),
+        residual_rms_mm=float(np.sqrt(np.mean(obs.residual_mm(params_of(x), resid) ** 2))), sigma_mm=sigma, n_poses=int(len(commands)),
         success=bool(sol.success), message=str(sol.message), nfev=int(sol.n_eval),
         wall_time=time.perf_counter() - t0, basis=basis, solver=sol,
         info={"effective_parameters": p_eff, "prior_std": dict(zip(base, map(float, sb)))})
