@@ -224,11 +224,23 @@ class ChainIdentResult:
                 "success": self.success, "message": self.message}
 
 
+def base_prior_cov(model: ChainModel, basis: BaseSet) -> np.ndarray:
+    """Prior covariance (len(base), len(base)) of the base parameters, their units squared. A base parameter
+    estimates the combination ``b = p_base + B p_dep``, so ``cov_b = S_base^2 + B S_dep^2 B^T`` with ``S`` the
+    errors' prior sizes (``model.prior_std``): correlated where two base parameters regroup the same error."""
+    cov = np.diag(model.prior_std(basis.base) ** 2)
+    if basis.dependent:
+        cov += (basis.regroup * model.prior_std(basis.dependent) ** 2) @ basis.regroup.T
+    return cov
+
+
 def _valid(commands: np.ndarray, targets: np.ndarray) -> np.ndarray:
     return np.isfinite(commands).all(axis=1) & np.isfinite(targets).all(axis=(1, 2))
 
 
-def _flat_jacobian(model: ChainModel, commands, params, keys) -> np.ndarray:
+def flat_jacobian(model: ChainModel, commands, params, keys) -> np.ndarray:
+    """Jacobian (N*K*3, len(keys)) of the nests' coordinates (mm, poses then nests then x, y, z) with
+    respect to ``keys`` (per key unit) at commands (N, M) on the machine with errors ``params``."""
     J = model.jacobian(commands, params, keys)
     return J.reshape(-1, len(keys))
 
@@ -316,7 +328,7 @@ class _Observations:
 
     def jacobian(self, params, keys) -> np.ndarray:
         if self.D is None:
-            return self._white(_flat_jacobian(self.model, self.commands, params, keys))
+            return self._white(flat_jacobian(self.model, self.commands, params, keys))
         return self._white(self.D @ self.model.observation_jacobian(self.commands, params, keys)[:, 0, :])
 
 
@@ -380,11 +392,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     basis = base_parameters(J0 / sigma, keys, scale, rank_tol)
     base = basis.base
     units = model.error_units(base)
-    # The prior of a base parameter is that of the combination it estimates: b = p_base + B p_dep, so
-    # cov_b = S_base^2 + B S_dep^2 B^T (correlated where two base parameters regroup the same error).
-    prior_cov = np.diag(model.prior_std(base) ** 2)
-    if basis.dependent:
-        prior_cov += (basis.regroup * model.prior_std(basis.dependent) ** 2) @ basis.regroup.T
+    prior_cov = base_prior_cov(model, basis)
     sb = np.sqrt(np.diag(prior_cov))
     y = obs.y
     if y.size < len(base):
@@ -462,7 +470,7 @@ def crlb(model: ChainModel, commands, params: Mapping[str, float] | None, keys: 
     commands = np.atleast_2d(commands)
     reference = getattr(model, "reading_reference", None)
     if reference is None:
-        J = _flat_jacobian(model, commands, params, list(keys))
+        J = flat_jacobian(model, commands, params, list(keys))
     else:
         J = reading_operator(len(commands), reference, segments) @ \
             model.observation_jacobian(commands, params, list(keys))[:, 0, :]

@@ -1,7 +1,7 @@
 """A machine as data: ``machine.toml`` beside an MJCF model, read and validated at the edge.
 
 A closed-chain machine is a folder (Menagerie layout): ``<name>.xml`` (the MJCF: kinematic tree, loops
-closed by site-based ``connect``/``weld`` equality constraints, a ``home`` keyframe), ``scene.xml`` and
+closed by ``connect``/``weld`` equality constraints, a ``home`` keyframe), ``scene.xml`` and
 ``machine.toml`` holding only what the MJCF cannot say: which joints are motors (range, zero
 convention), the tracker targets and what is measured of them, the task coordinates and the workspace to
 sample, which geometric errors to identify, the tracker noise and the compensation-table axes. Every field
@@ -51,6 +51,10 @@ MEASURES = ("position", "pose", "distance")
 DISTANCE_REFERENCES = ("previous", "first")
 #: ``[machine] kind`` values routed to the seeded machines' dedicated code.
 LEGACY_KINDS = ("ocpm_2dof", "planar_2dof")
+
+#: sections ``pmcal export-model`` writes into a calibrated machine's TOML: a record of the calibration
+#: (source, date, identified values, named effects), not read by the machine's description
+RECORD_SECTIONS = ("calibration", "effects")
 
 
 @dataclass(frozen=True)
@@ -334,7 +338,7 @@ class _Loader:
                                             f"relative to the folder)")
         self.names = self.model_names(self.model)
         self.known(self.doc, "", ("machine", "motors", "tracker", "task", "workspace", "errors", "table",
-                                  "closures", "names"))
+                                  "closures", "names") + RECORD_SECTIONS)
         self.known(mach, "machine", ("kind", "name", "title", "model", "home"))
         home = self.text(mach, "home", "machine", default="home")
         if home not in self.names.keyframes:

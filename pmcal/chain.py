@@ -22,6 +22,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from pmcal import progress
+from pmcal.calib.chain_design import POOL_FACTOR, POOL_MIN, CampaignDesign, design_campaign
 from pmcal.calib.closed_chain import compensate_targets, identify_chain, reading_covariance, reading_operator
 from pmcal.errors import InputError, RunError
 from pmcal.io_chain import UNIT_SLIPS, ChainMeasurements
@@ -38,8 +39,9 @@ def random_errors(machine, rng: np.random.Generator) -> dict[str, float]:
 
 
 def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, float] = "random",
-             sigma_mm: float | None = None, task: np.ndarray | None = None,
-             seconds_per_pose: float = 30.0, source: str | None = None) -> tuple[ChainMeasurements, dict[str, float]]:
+             sigma_mm: float | None = None, task: np.ndarray | None = None, commands: np.ndarray | None = None,
+             pose_id: list[str] | None = None, seconds_per_pose: float = 30.0,
+             source: str | None = None) -> tuple[ChainMeasurements, dict[str, float]]:
     """A virtual measurement campaign on the machine's twin.
 
     Parameters
@@ -51,6 +53,8 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     errors : ``"random"`` (:func:`random_errors`), ``"none"``, or an error set ``{key: value}``.
     sigma_mm : tracker noise, 1 sigma per coordinate, mm (default machine.toml's).
     task : (n, C) explicit targets in the machine's task coordinates instead of drawn poses.
+    commands, pose_id : (n, M) explicit commands (a plan, :func:`plan`) and their ids, instead of drawn
+        poses; every one must assemble on the erroneous machine.
     seconds_per_pose : time between poses, s (the ``time_s`` column).
     source : the file ``task`` came from (for messages).
 
@@ -71,13 +75,14 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     else:
         truth = dict(errors)
     sigma = twin.sigma_mm if sigma_mm is None else float(sigma_mm)
+    explicit = task is not None or commands is not None
     if task is not None:
         commands = twin.inverse(task, None)
         bad = np.flatnonzero(~np.isfinite(commands).all(axis=1))
         if bad.size:
             raise InputError("target out of reach of the nominal machine", file=source, row=int(bad[0]) + 1,
                              field=machine.spec.task.coordinates[0])
-    else:
+    elif commands is None:
         commands = twin.sample_commands(poses, rng)
 
     motor_sigma = np.array([m.sigma for m in machine.spec.motors])
@@ -102,9 +107,9 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
             bar.update(min(_CHUNK, wanted - start))
     commands, y = (np.concatenate(v) for v in zip(*got))
     short = wanted - len(commands)
-    if short and task is not None:
-        raise RunError(f"{short} of the targets cannot be assembled on the erroneous machine (on the nominal "
-                       "machine's branch)")
+    if short and explicit:
+        raise RunError(f"{short} of the {'targets' if task is not None else 'planned poses'} cannot be assembled "
+                       "on the erroneous machine (on the nominal machine's branch)")
     for _ in range(20):
         if short <= 0:
             break
@@ -120,9 +125,20 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
         readings = np.full(n, np.nan)
         readings[1:] = D @ y[:, 0] + rng.normal(0.0, sigma, n - 1)
         y = np.zeros((n, 0, 3))
-    meas = ChainMeasurements(pose_id=[f"P{i + 1}" for i in range(n)], commands=commands, targets=y,
+    ids = list(pose_id) if pose_id is not None else [f"P{i + 1}" for i in range(n)]
+    meas = ChainMeasurements(pose_id=ids, commands=commands, targets=y,
                              time_s=np.arange(n) * float(seconds_per_pose), readings=readings)
     return meas, truth
+
+
+def plan(machine, poses: int, seed: int = 1, sigma_mm: float | None = None) -> CampaignDesign:
+    """A D-optimal identification campaign of ``poses`` poses (:func:`pmcal.calib.chain_design.design_campaign`)
+    chosen from a pool drawn over the workspace of machine.toml (seed ``seed``), in driving order from the
+    ``home`` keyframe."""
+    twin = machine.twin
+    rng = np.random.default_rng(seed)
+    pool = twin.sample_commands(max(POOL_FACTOR * poses, POOL_MIN), rng)
+    return design_campaign(twin, pool, poses, start=twin.home_commands, sigma_mm=sigma_mm)
 
 
 #: largest plausible distance (mm) between a measured target and where the nominal machine puts it:

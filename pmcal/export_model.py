@@ -23,9 +23,11 @@ Where each identified quantity goes (docs/formats.md, "Calibrated model"):
 from __future__ import annotations
 
 import math
+import re
 from datetime import datetime, timezone
 from pathlib import Path
 
+import mujoco
 import numpy as np
 
 from pmcal.calibration import Calibration
@@ -113,7 +115,7 @@ def _ocpm(params_path: str):
     qpos[idx.qadr_base[:2]] = np.deg2rad(home_cmd)         # joint coordinate = command (ref = -dtheta)
     k_p = geom.passive_closure_stiffness / MM               # N/m
     dtheta = errors.dtheta[:2]
-    edits = dict(joint_ref_rad={"limb1_B": -dtheta[0], "limb2_B": -dtheta[1]},
+    edits = dict(joint_ref={"limb1_B": -dtheta[0], "limb2_B": -dtheta[1]},
                  joint_stiffness={"ss_slide": 0.0}, equality_active={"ss_axial_lock": True},
                  option=SIMULATION_OPTIONS,
                  keyframe=("home", qpos, np.deg2rad(home_cmd)),
@@ -126,24 +128,68 @@ def _ocpm(params_path: str):
 
 
 def _planar(params_path: str):
+    """The planar robot's calibration: its paper-named errors (``io_planar``) mapped onto the frame errors of
+    ``mjcf/planar_2dof/chain`` (``[names]``), exported as a machine folder's (:func:`_frames`)."""
     errors, doc = read_planar_params(params_path)
-    machine = default_machine()
-    twin = PlanarTwin(errors, machine)                         # the generic core, the paper's names mapped
-    home = np.asarray(machine.geometry.home, float)          # motor commands of home P0, rad
-    try:
-        qpos = twin.assemble(home[None]).qpos[0].copy()
-    except RunError:
-        raise RunError("the calibrated machine does not assemble at home") from None
-    qpos[twin.chain.motor_qadr] = home                        # joint coordinate = command (ref = -dtheta)
-    edits = dict(joint_ref_rad={"right_motor": -errors.dtheta[0], "left_motor": -errors.dtheta[1]},
-                 keyframe=("home", qpos, home))
+    planar = PlanarTwin(errors, default_machine())
+    m, edits = _frames(planar.chain, planar.chain.spec, planar.params)
     facts = {"machine": "planar_2dof", "model": doc.get("model", ""),
              "zero_offsets_deg": list(np.rad2deg(errors.dtheta)),
              "zero_offsets_as": "motor joints' ref = -dtheta: joint coordinate = commanded angle"}
-    return PLANAR_XML, PLANAR_XML.parent / "machine.toml", twin.model, edits, doc.get("params", {}), doc, facts
+    return PLANAR_XML, PLANAR_XML.parent / "machine.toml", m, edits, doc.get("params", {}), doc, facts
 
 
-def export_model(params_path: str | Path, output: str | Path, machine: str = "ocpm_2dof") -> dict:
+def _frames(twin, spec, params: dict):
+    """The compiled model with the frame errors ``params`` and the MJCF edits that carry the rest: motor zero
+    offsets as the motor joints' ``ref`` (joint coordinate = command - zero, as in the nominal model, while
+    the link sits ``dzero`` further on), the home keyframe re-assembled."""
+    twin.set_params(params)
+    qpos = twin.solve(twin.home_commands[None], params)[0]
+    if not np.isfinite(qpos).all():
+        raise RunError("the calibrated machine does not assemble at the home keyframe's commands")
+    m = twin.model
+    shift = twin.errors.zero_offset * twin.motor_unit                  # SI, per motor
+    qpos[twin.motor_qadr] -= shift
+    key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, spec.home)
+    refs = {mot.joint: float(m.qpos0[a] - d) for mot, a, d in zip(spec.motors, twin.motor_qadr, shift) if d}
+    return m, dict(joint_ref=refs, keyframe=(spec.home, qpos, m.key_ctrl[key].copy()))
+
+
+def _chain(params_path: str, machine):
+    """A machine folder's calibration (``pmcal --machine DIR identify``): the twin's frames with the
+    identified errors (:func:`_frames`)."""
+    from pmcal.io_chain import read_params as read_chain_params
+
+    twin, spec = machine.twin, machine.spec
+    params, doc = read_chain_params(params_path, spec, dict(zip(twin.error_keys, twin.error_units())))
+    m, edits = _frames(twin, spec, params)
+    zero = [f"{v:.6g} {mot.unit}" for mot, v in zip(spec.motors, twin.errors.zero_offset)]
+    facts = {"machine": spec.name, "model": "chain", "zero_offsets": zero,
+             "zero_offsets_as": "motor joints' ref lowered by dzero: joint coordinate = command - zero"}
+    return spec.model_path, spec.folder / "machine.toml", m, edits, params, doc, facts
+
+
+def _zero_text(facts: dict) -> str:
+    if "zero_offsets_deg" in facts:
+        return ", ".join(f"{v:.6g}" for v in facts["zero_offsets_deg"]) + " deg"
+    return ", ".join(facts["zero_offsets"])
+
+
+def _retarget_model(toml: str, model_name: str) -> str:
+    """The machine.toml text with ``[machine] model`` naming ``model_name`` (the key added if absent)."""
+    lines = toml.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.strip() == "[machine]")
+    end = next((i for i in range(start + 1, len(lines)) if lines[i].lstrip().startswith("[")), len(lines))
+    for i in range(start + 1, end):
+        if re.match(r"\s*model\s*=", lines[i]):
+            lines[i] = f'model = "{model_name}"'
+            break
+    else:
+        lines.insert(start + 1, f'model = "{model_name}"')
+    return "\n".join(lines) + "\n"
+
+
+def export_model(params_path: str | Path, output: str | Path, machine="ocpm_2dof") -> dict:
     """Write the calibrated MJCF (``output``) and its machine.toml (``output`` with suffix ``.toml``).
 
     Parameters
@@ -153,7 +199,9 @@ def export_model(params_path: str | Path, output: str | Path, machine: str = "oc
         named effects), of ``machine``.
     output : path
         MJCF file to write (self-contained: the machines' models include no other file).
-    machine : {"ocpm_2dof", "planar_2dof"}
+    machine : {"ocpm_2dof", "planar_2dof"} or :class:`pmcal.machines.Machine`
+        The seeded machines by name; any machine folder as its ``Machine`` (its MJCF must include no
+        other file).
 
     Returns
     -------
@@ -166,7 +214,13 @@ def export_model(params_path: str | Path, output: str | Path, machine: str = "oc
     >>> import mujoco; mujoco.MjModel.from_xml_path("calibrated.xml")           # doctest: +SKIP
     """
     params_path = str(params_path)
-    template, toml_path, model, edits, params, doc, facts = (_ocpm if machine == "ocpm_2dof" else _planar)(params_path)
+    if not isinstance(machine, str) and machine.legacy:
+        machine = machine.name
+    if not isinstance(machine, str):
+        template, toml_path, model, edits, params, doc, facts = _chain(params_path, machine)
+        machine = "chain"
+    else:
+        template, toml_path, model, edits, params, doc, facts = (_ocpm if machine == "ocpm_2dof" else _planar)(params_path)
     effects = read_effects(doc, params_path)
     in_mjcf = {n: IN_MJCF[n] for n in effects if n in IN_MJCF and machine == "ocpm_2dof"}
     comment_only = [n for n in effects if n in AS_COMMENT]
@@ -179,7 +233,7 @@ def export_model(params_path: str | Path, output: str | Path, machine: str = "oc
     header = [f" Calibrated {facts['machine']}: written by pmcal export-model from {params_path} ({stamp}).",
               f" The machine's MJCF ({template.name}) with the identified geometry in the body, joint and site "
               "frames (SI units).",
-              f" Zero offsets {', '.join(f'{v:.6g}' for v in facts['zero_offsets_deg'])} deg: {facts['zero_offsets_as']}."]
+              f" Zero offsets {_zero_text(facts)}: {facts['zero_offsets_as']}."]
     if "stiffness_ratio" in facts:
         header.append(f" Closure stiffness ratio {facts['stiffness_ratio']:.6g} (quasi-static assembly): custom numerics "
                       "pmcal_stiffness_ratio, pmcal_passive_closure_stiffness (N/m). For simulation the closures are "
@@ -193,8 +247,7 @@ def export_model(params_path: str | Path, output: str | Path, machine: str = "oc
         text = calibrated_xml(template, model, header=header, **edits)
     except ValueError as exc:
         raise RunError(str(exc)) from None
-    nominal = toml_path.read_text(encoding="utf-8").replace(f'model = "{template.name}"',
-                                                             f'model = "{Path(output).name}"')
+    nominal = _retarget_model(toml_path.read_text(encoding="utf-8"), Path(output).name)
     extra = {"calibration": {"source": params_path, "written": stamp, "mjcf": Path(output).name,
                              **{k: v for k, v in facts.items() if k != "machine"}},
              "calibration.params": {k: float(v) for k, v in params.items()}}

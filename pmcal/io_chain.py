@@ -7,6 +7,7 @@ targets, the task coordinates its ``machine.toml`` names.
   ``reading_mm`` instead of the targets (the scale's reading relative to its reference pose, mm; empty on
   the first pose of a chain) and optionally ``chain`` (a label per pose: a new chain of readings, the
   scale re-zeroed, where it changes);
+- plan CSV: ``pose_id`` and the motor columns (the commands to drive, in order);
 - targets CSV: the task coordinates (``x_mm, y_mm, z_mm`` ...); setpoints CSV: the same with ``m1_deg`` ...
   ``mN_deg`` (or ``_mm``) appended;
 - parameters JSON: ``{"mechanism": NAME, "params": {key: value}, "units": {key: "mm"|"deg"}, ...}``.
@@ -192,6 +193,25 @@ def write_measurements(path: str | Path, spec: MachineSpec, meas: ChainMeasureme
         if values is not None:
             cols.append((name, np.asarray(values, float), fmt))
     write_columns(path, "pose_id", meas.pose_id, cols, comments)
+
+
+def write_plan(path: str | Path, spec: MachineSpec, commands: np.ndarray, comments=()) -> None:
+    """A campaign plan CSV: ``pose_id`` (``P1`` ...) and the motor columns of the measurement file, in the
+    order to drive (``pmcal --machine DIR twin plan``)."""
+    cols = [(c, np.asarray(commands, float)[:, j], "{:.6f}") for j, c in enumerate(spec.motor_columns)]
+    write_columns(path, "pose_id", [f"P{i + 1}" for i in range(len(commands))], cols, comments)
+
+
+def read_plan(path: str | Path, spec: MachineSpec) -> tuple[list[str], np.ndarray]:
+    """A campaign plan CSV (:func:`write_plan`): its pose ids and commands (n, M), each within its motor's
+    range."""
+    t = read_csv(path, max_rows=MAX_POSES)
+    motors = spec.motor_columns
+    _check_header(t, spec, ("pose_id",) + motors, "plan")
+    ids = t.unique_ids("pose_id")
+    commands = np.stack([t.numbers(c) for c in motors], axis=1)
+    check_commands(commands, spec, t.path, motors)
+    return ids, commands
 
 
 def read_targets(path: str | Path, spec: MachineSpec) -> np.ndarray:

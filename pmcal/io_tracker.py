@@ -5,7 +5,8 @@ ASCII point export, or any CSV of named points with a column map) and the contro
 commands per pose. :func:`join` matches each point to a pose of the log (by the pose number in its name,
 or by the nearest time stamp) and to a nest on the platform (by its target name) and returns the
 :class:`pmcal.mechanism.ocpm.data.Measurements` of the documented measurement file, with a report of every
-point it could not place.
+point it could not place; :func:`join_machine` the same for a machine folder (its N motor columns and K
+nests, :class:`pmcal.io_chain.ChainMeasurements`), both on :func:`place_points`.
 
 Units out: mm. Spatial Analyzer's export is in the working frame of the SA job; :func:`in_base_frame`
 tells whether that frame is the machine's base frame (otherwise identify needs ``--frame tracker``).
@@ -23,6 +24,7 @@ import numpy as np
 
 from pmcal.csvio import MAX_CSV_BYTES, read_csv
 from pmcal.errors import InputError
+from pmcal.io_chain import ChainMeasurements
 from pmcal.io_ocpm import MAX_POSES, check_context
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
@@ -263,23 +265,28 @@ def read_point_csv(path: str | Path, columns: dict[str, str], units: str | None 
 class ControllerLog:
     """The controller's log: one row per commanded pose, in the order driven.
 
-    pose_id : labels as written; m_cmd_deg : (N, 2) commanded motor angles, deg; time_s, temp_c : (N,)
-    or None."""
+    pose_id : labels as written; commands : (N, M) commanded motor positions in the columns' units (deg,
+    or mm for a prismatic motor); time_s, temp_c : (N,) or None."""
 
     path: str
     pose_id: list[str]
-    m_cmd_deg: np.ndarray
+    commands: np.ndarray
     time_s: np.ndarray | None
     temp_c: np.ndarray | None
 
 
-def read_controller_log(path: str | Path) -> ControllerLog:
-    """Read the controller log CSV: ``pose_id``, ``m1_cmd_deg``, ``m2_cmd_deg`` (deg), optional ``time_s``
-    (s; or ``time``, a date and time) and ``temp_c`` (degC). Ids unique; InputError naming row and field."""
+#: motor columns of the seeded ocpm_2dof's log
+OCPM_MOTOR_COLUMNS = ("m1_cmd_deg", "m2_cmd_deg")
+
+
+def read_controller_log(path: str | Path, motor_columns: tuple[str, ...] = OCPM_MOTOR_COLUMNS) -> ControllerLog:
+    """Read the controller log CSV: ``pose_id``, the motor columns (``m1_cmd_deg``, ``m2_cmd_deg`` for
+    ocpm_2dof; a machine folder's ``m1_cmd_deg`` .. ``mN_cmd_mm``), optional ``time_s`` (s; or ``time``, a
+    date and time) and ``temp_c`` (degC). Ids unique; InputError naming row and field."""
     t = read_csv(path, max_rows=MAX_POSES)
-    t.require(["pose_id", "m1_cmd_deg", "m2_cmd_deg"])
+    t.require(["pose_id", *motor_columns])
     ids = t.unique_ids("pose_id")
-    m = np.stack([t.numbers("m1_cmd_deg"), t.numbers("m2_cmd_deg")], axis=1)
+    m = np.stack([t.numbers(c) for c in motor_columns], axis=1)
     time_s = None
     if t.has("time_s"):
         time_s = t.numbers("time_s")
@@ -287,7 +294,7 @@ def read_controller_log(path: str | Path) -> ControllerLog:
         time_s = np.array([parse_time(v, f"{t.path} row {i + 1}", "time") for i, v in enumerate(t.text("time"))])
     temp = t.numbers("temp_c") if t.has("temp_c") else None
     check_context(t.path, temp_c=temp)
-    return ControllerLog(path=t.path, pose_id=ids, m_cmd_deg=m, time_s=time_s, temp_c=temp)
+    return ControllerLog(path=t.path, pose_id=ids, commands=m, time_s=time_s, temp_c=temp)
 
 
 @dataclass
@@ -299,7 +306,7 @@ class ImportResult:
     the base frame); ``warnings`` one line each
     (unmatched, re-shot, ambiguous points by name and line); ``comments`` the header lines of the file."""
 
-    meas: Measurements
+    meas: Measurements | ChainMeasurements
     frame: str
     frame_reason: str
     join: str
@@ -330,7 +337,7 @@ def compile_names(pattern: str | None) -> re.Pattern:
 
 def join(export: TrackerExport, log: ControllerLog, names: str | None = None,
          time_tolerance_s: float | None = None, geom: Geometry | None = None) -> ImportResult:
-    """Join tracker points and the controller log into measurements (mm, deg).
+    """Join tracker points and the controller log into ocpm_2dof measurements (mm, deg).
 
     Each point's name (:func:`compile_names`) gives its nest (``target`` group: ``T1``, ``T2``, ... ->
     the machine's nests 1, 2, ...) and, when the pattern has a ``pose`` group that matches, its pose:
@@ -354,8 +361,81 @@ def join(export: TrackerExport, log: ControllerLog, names: str | None = None,
     (24, 3, 3)
     """
     geom = geom or default_geometry()
+    placed = place_points(export, log, [f"T{k + 1}" for k in range(len(geom.targets))], names, time_tolerance_s,
+                          min_points=2)
+    idx = placed.keep
+    meas = Measurements(pose_id=[log.pose_id[i] for i in idx], m_cmd_deg=log.commands[idx],
+                        targets=placed.coords[idx], temp_c=None if log.temp_c is None else log.temp_c[idx],
+                        time_s=None if log.time_s is None else log.time_s[idx])
+    base, reason = in_base_frame(meas, geom, export.frame)
+    return placed.result(export, log, meas, base, reason, "identify with --frame tracker")
+
+
+def join_machine(export: TrackerExport, log: ControllerLog, spec, distance_from_nominal,
+                 names: str | None = None, time_tolerance_s: float | None = None) -> ImportResult:
+    """:func:`join` for a machine folder (``spec``: its :class:`~pmcal.mechanism.machine_spec.MachineSpec`):
+    ``log`` read with the machine's motor columns, a point's target named ``T<k>``, ``<k>`` or the nest's
+    site name in machine.toml (``[tracker] targets``), poses kept with at least the targets the machine
+    needs (3 when the platform pose is measured, else 1). The frame check: the export's working frame
+    name, and the measured nests within :data:`BASE_FRAME_LIMITS` (median) of where the nominal machine
+    puts them at the logged commands (``distance_from_nominal(commands, targets) -> (n, K) mm``)."""
+    placed = place_points(export, log, list(spec.targets), names, time_tolerance_s,
+                          min_points=3 if spec.measure == "pose" else 1)
+    idx = placed.keep
+    meas = ChainMeasurements(pose_id=[log.pose_id[i] for i in idx], commands=log.commands[idx],
+                             targets=placed.coords[idx], temp_c=None if log.temp_c is None else log.temp_c[idx],
+                             time_s=None if log.time_s is None else log.time_s[idx], path=log.path)
+    base, reason = _named_base_frame(export.frame)
+    if base and len(meas):
+        d = distance_from_nominal(meas.commands, meas.targets)
+        med = float(np.nanmedian(np.where(np.isfinite(d), d, np.nan))) if np.isfinite(d).any() else math.inf
+        if not med <= BASE_FRAME_LIMITS[0]:
+            base, reason = False, (f"the nests are {med:.3g} mm (median) from where the commands put them in the "
+                                   "base frame")
+    return placed.result(export, log, meas, base, reason,
+                         "transform the points into the machine's base frame before identifying")
+
+
+@dataclass
+class PlacedPoints:
+    """Tracker points placed on the log's poses and the machine's nests (:func:`place_points`).
+
+    coords : (N, K, 3) mm, one row per log row, NaN where no point; keep : log rows with enough points;
+    slots : (row, nest) -> the point kept; warnings, left_out, blocked : lines for the user; how : the
+    join's wording."""
+
+    coords: np.ndarray
+    keep: np.ndarray
+    slots: dict
+    warnings: list[str]
+    left_out: list[str]
+    blocked: list[str]
+    how: str
+
+    def result(self, export: TrackerExport, log: ControllerLog, meas, base: bool, reason: str,
+               advice: str) -> ImportResult:
+        """The :class:`ImportResult` with the header comments of the measurement file."""
+        frame = "base" if base else "tracker"
+        comments = [f"pmcal import: tracker {export.path} ({export.kind}"
+                    + (f", {export.version}" if export.version else "")
+                    + (f", working frame '{export.frame}'" if export.frame else "") + f"), log {log.path}",
+                    f"units: mm (export in {export.units}" + (", converted x 25.4)" if export.units == "in" else ")"),
+                    f"frame: {frame}" + ("" if base else f" ({reason}): {advice}"),
+                    f"joined {self.how}: {len(self.slots)} points, {len(self.keep)} poses, {len(self.blocked)} "
+                    "blocked targets" + (f" ({', '.join(self.blocked)})" if self.blocked else "")]
+        return ImportResult(meas=meas, frame=frame, frame_reason=reason, join=self.how,
+                            warnings=export.warnings + self.warnings, left_out=self.left_out, blocked=self.blocked,
+                            comments=comments)
+
+
+def place_points(export: TrackerExport, log: ControllerLog, nests: list[str], names: str | None,
+                 time_tolerance_s: float | None, min_points: int) -> PlacedPoints:
+    """Place each exported point on a pose of the log and a nest (``nests``: the nests' names in order;
+    a target label ``T<k>``, ``<k>`` or a nest's name, case-insensitive), as :func:`join` describes; poses
+    with fewer than ``min_points`` points are left out."""
     rx = compile_names(names)
-    n_nests = len(geom.targets)
+    n_nests = len(nests)
+    by_name = {n.lower(): k for k, n in enumerate(nests)}
     by_number: dict[int, int] = {}
     for i, pid in enumerate(log.pose_id):
         k = pose_number(pid)
@@ -374,10 +454,12 @@ def join(export: TrackerExport, log: ControllerLog, names: str | None = None,
                 warnings.append(f"{pt.where}: point '{pt.name}' does not fit the name pattern: left out")
                 continue
             target_label, pose_label = mt.group("target"), mt.groupdict().get("pose")
-        nest = re.fullmatch(r"[Tt]?(\d+)", target_label)
-        if nest is None or not 1 <= int(nest.group(1)) <= n_nests:
+        number = re.fullmatch(r"[Tt]?(\d+)", target_label)
+        nest = by_name.get(target_label.lower(), int(number.group(1)) - 1 if number else -1)
+        if not 0 <= nest < n_nests:
             warnings.append(f"{pt.where}: point '{pt.name}': '{target_label}' is not a nest of the machine "
-                            f"(T1..T{n_nests}): left out")
+                            f"(T1..T{n_nests}" + (f" or {', '.join(nests)}" if nests[0] != "T1" else "")
+                            + "): left out")
             continue
         row = None
         if pose_label is not None and pose_number(pose_label) is not None:
@@ -398,7 +480,7 @@ def join(export: TrackerExport, log: ControllerLog, names: str | None = None,
             need = "--time-tolerance S and time stamps on both sides" if pose_label is None else "a pose number"
             warnings.append(f"{pt.where}: point '{pt.name}' has no pose in its name ({need} to join it): left out")
             continue
-        key = (row, int(nest.group(1)) - 1)
+        key = (row, nest)
         if key in slots:
             warnings.append(f"{pt.where}: point '{pt.name}' measured again (first at {slots[key].where}): "
                             "the last one is kept")
@@ -406,35 +488,31 @@ def join(export: TrackerExport, log: ControllerLog, names: str | None = None,
     if not slots:
         raise InputError("no point of the export matches a pose of the log (names, --names pattern, pose "
                          "numbers, time stamps?)" + (f"; first: {warnings[0]}" if warnings else ""), file=export.path)
-    k = max(3, max(n for _, n in slots) + 1)
     N = len(log.pose_id)
-    coords = np.full((N, k, 3), np.nan)
+    coords = np.full((N, n_nests, 3), np.nan)
     for (row, n), pt in slots.items():
         coords[row, n] = pt.xyz
     n_vis = np.isfinite(coords).all(axis=2).sum(axis=1)
-    keep = n_vis >= 2
+    keep = n_vis >= min_points
     left_out = [f"{log.pose_id[i]} (log row {i + 1}): {n_vis[i]} point(s)" for i in np.flatnonzero(~keep)]
-    warnings += [f"pose {s}, fewer than two: left out" for s in left_out]
-    blocked = [f"pose {log.pose_id[i]} T{n + 1}" for i in np.flatnonzero(keep) for n in range(k)
+    few = "fewer than two" if min_points == 2 else f"fewer than {min_points}"
+    warnings += [f"pose {s}, {few}: left out" for s in left_out]
+    blocked = [f"pose {log.pose_id[i]} T{n + 1}" for i in np.flatnonzero(keep) for n in range(n_nests)
                if not np.isfinite(coords[i, n]).all()]
-    idx = np.flatnonzero(keep)
-    meas = Measurements(pose_id=[log.pose_id[i] for i in idx], m_cmd_deg=log.m_cmd_deg[idx], targets=coords[idx],
-                        temp_c=None if log.temp_c is None else log.temp_c[idx],
-                        time_s=None if log.time_s is None else log.time_s[idx])
     by_time = any(pt.pose is None and rx.fullmatch(pt.name) is not None and
                   rx.fullmatch(pt.name).groupdict().get("pose") is None for pt in slots.values())
     how = f"by nearest time within {time_tolerance_s:g} s" if by_time else "by pose number"
-    base, reason = in_base_frame(meas, geom, export.frame)
-    frame = "base" if base else "tracker"
-    comments = [f"pmcal import: tracker {export.path} ({export.kind}"
-                + (f", {export.version}" if export.version else "")
-                + (f", working frame '{export.frame}'" if export.frame else "") + f"), log {log.path}",
-                f"units: mm (export in {export.units}" + (", converted x 25.4)" if export.units == "in" else ")"),
-                f"frame: {frame}" + ("" if base else f" ({reason}): identify with --frame tracker"),
-                f"joined {how}: {len(slots)} points, {len(idx)} poses, {len(blocked)} blocked targets"
-                + (f" ({', '.join(blocked)})" if blocked else "")]
-    return ImportResult(meas=meas, frame=frame, frame_reason=reason, join=how, warnings=export.warnings + warnings, left_out=left_out,
-                        blocked=blocked, comments=comments)
+    return PlacedPoints(coords=coords, keep=np.flatnonzero(keep), slots=slots, warnings=warnings,
+                        left_out=left_out, blocked=blocked, how=how)
+
+
+def _named_base_frame(frame_name: str | None) -> tuple[bool, str]:
+    """Whether the export's working-frame name (if any) is the machine's base frame, and why not."""
+    if frame_name:
+        short = frame_name.split("::")[-1].strip().lower()
+        if short not in BASE_FRAME_NAMES:
+            return False, f"working frame '{frame_name}' is not the machine's base frame"
+    return True, ""
 
 
 def in_base_frame(meas: Measurements, geom: Geometry, frame_name: str | None = None) -> tuple[bool, str]:
@@ -443,10 +521,9 @@ def in_base_frame(meas: Measurements, geom: Geometry, frame_name: str | None = N
     Not in the base frame: the export names a working frame other than :data:`BASE_FRAME_NAMES` (after
     SA's ``COLLECTION::``), or the rigid check fails: the platform fitted to the points lies more than
     :data:`BASE_FRAME_LIMITS` (mm, deg) from where the commands put the nominal machine's platform."""
-    if frame_name:
-        short = frame_name.split("::")[-1].strip().lower()
-        if short not in BASE_FRAME_NAMES:
-            return False, f"working frame '{frame_name}' is not the machine's base frame"
+    base, reason = _named_base_frame(frame_name)
+    if not base:
+        return base, reason
     r, R, _ = meas.poses(geom)
     phi, theta = nominal_fk(np.deg2rad(meas.m_cmd_deg), geom)
     ok = np.isfinite(theta) & np.isfinite(R).all(axis=(1, 2))

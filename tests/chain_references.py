@@ -131,3 +131,23 @@ def central_differences(fn, params: dict, keys: list[str], h: float = 1e-4) -> n
         dn[k] = dn.get(k, 0.0) - h
         cols.append((fn(up) - fn(dn)) / (2 * h))
     return np.stack(cols, axis=-1)
+
+
+#: the five-bar of tests/data/fivebar (mm): crank hinges at x = -+100, cranks 200 along +y at motor 0,
+#: links from the crank tips to the tool, 223.6 mm (100, 200 at home)
+FIVEBAR = {"base": 100.0, "crank": 200.0, "link": float(np.hypot(100.0, 200.0))}
+
+
+def fivebar_fk(theta_deg: np.ndarray, d: dict = FIVEBAR) -> tuple[np.ndarray, np.ndarray]:
+    """Tool point and the left link's midpoint (N, 2) mm of the five-bar at motor angles (N, 2) deg
+    (left, right; positive turns the crank counter-clockwise about +z): the crank tips, then the upper
+    intersection of the two circles of link length around them."""
+    t = np.deg2rad(np.atleast_2d(theta_deg))
+    a = np.stack([-d["base"] - d["crank"] * np.sin(t[:, 0]), d["crank"] * np.cos(t[:, 0])], axis=1)
+    b = np.stack([d["base"] - d["crank"] * np.sin(t[:, 1]), d["crank"] * np.cos(t[:, 1])], axis=1)
+    mid, half = (a + b) / 2.0, np.linalg.norm(b - a, axis=1) / 2.0
+    h = np.sqrt(d["link"] ** 2 - half ** 2)
+    u = (b - a) / (2.0 * half[:, None])
+    normal = np.stack([-u[:, 1], u[:, 0]], axis=1)          # left of a -> b: +y at home
+    tool = mid + h[:, None] * normal
+    return tool, (a + tool) / 2.0

@@ -96,20 +96,29 @@ def test_unknown_error_key_is_named(twin):
         twin.targets(np.zeros((1, 3)), {"arm9.dx": 0.1})
 
 
-def test_body_based_closure_is_refused(tmp_path):
-    """A body-based connect would re-derive its anchor from the compiled geometry and absorb errors."""
+def test_body_based_closure_is_the_same_machine(tmp_path):
+    """One rod closed body-based (MuJoCo derives the platform's anchor from qpos0): converted on load to two
+    sites at the compiled anchors, the Delta is the same machine, nominal and with errors on the closure
+    points (named after the equality), to the file's rounding of the platform height."""
     import shutil
-
-    from pmcal.errors import InputError
 
     folder = tmp_path / "d"
     shutil.copytree(machine_dir("delta_3dof"), folder)
     xml = folder / "delta_3dof.xml"
-    xml.write_text(xml.read_text().replace('<connect name="closure_3b" site1="rod3b_tip" site2="platform_3b"/>',
-                                           '<connect name="closure_3b" body1="rod3b" body2="platform" '
-                                           'anchor="0 0 -0.8"/>'))
-    with pytest.raises(InputError, match="closure_3b.*must be site-based"):
-        ClosedChainTwin.from_folder(folder)
+    site = '<connect name="closure_3b" site1="rod3b_tip" site2="platform_3b"/>'
+    assert site in xml.read_text()
+    xml.write_text(xml.read_text().replace(site, '<connect name="closure_3b" body1="rod3b" body2="platform" '
+                                                 'anchor="0 0 -0.8"/>'))
+    body = ClosedChainTwin.from_folder(folder)
+    site_twin = ClosedChainTwin.from_folder(machine_dir("delta_3dof"))
+    assert {"closure_3b_site1.dx", "closure_3b_site2.dz"} <= set(body.error_keys)
+    cmd = site_twin.sample_commands(10, np.random.default_rng(2))
+    # MuJoCo derives the platform's anchor from qpos0, where the file gives the platform's height to 0.1 um
+    # (-0.6323765 m): the two forms differ by that rounding, nothing more
+    assert np.abs(body.targets(cmd) - site_twin.targets(cmd)).max() < 1e-4
+    errors = {"rod3b_tip.dx": 0.2, "platform_3b.dz": -0.3, "arm1.dy": 0.1}
+    renamed = {"closure_3b_site1.dx": 0.2, "closure_3b_site2.dz": -0.3, "arm1.dy": 0.1}
+    assert np.abs(body.targets(cmd, renamed) - site_twin.targets(cmd, errors)).max() < 1e-4
 
 
 def test_seeded_machines_are_not_chain_twins():

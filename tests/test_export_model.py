@@ -149,3 +149,49 @@ def test_export_refuses_the_paper_model(tmp_path, capsys):
     (tmp_path / "p.json").write_text('{"mechanism": "ocpm_2dof", "model": "paper", "params": {"L1.dbx": 0.1}}')
     assert main(["export-model", str(tmp_path / "p.json"), "-o", str(tmp_path / "c.xml")]) == 2
     assert "field 'model'" in capsys.readouterr().err and not (tmp_path / "c.xml").exists()
+
+
+# ---------------------------------------------------------------- a machine folder's calibrated model
+@pytest.mark.parametrize("name", ["delta_3dof", "hexapod_6dof"])
+def test_folder_machine_export_is_the_identified_machine(name, tmp_path, capsys):
+    """``pmcal --machine DIR export-model`` on a copy of a folder machine (its MJCF places bodies and sites
+    in ``<frame>`` elements; the hexapod's motors are prismatic): with random errors on every frame and
+    motor zero, the exported MJCF, read by plain MuJoCo at the twin's assembled configuration (motor joints
+    at command - zero), closes every loop (equality residuals ~0) and puts the tracker nests where the twin
+    with those errors puts them; and as a folder of its own (the exported TOML as machine.toml) its error-free
+    twin is the identified machine at fresh poses."""
+    import shutil
+
+    from pmcal.chain import random_errors
+    from pmcal.machines import Machine
+    from pmcal.mjcf import machine_dir
+
+    folder = tmp_path / f"my_{name}"
+    shutil.copytree(machine_dir(name), folder)
+    mach = Machine.from_folder(folder)
+    rng = np.random.default_rng(11)
+    truth = random_errors(mach, rng)
+    assert any(k.endswith(".dzero") and v != 0 for k, v in truth.items())
+    (tmp_path / "p.json").write_text(json.dumps({"mechanism": mach.name, "params": truth}))
+    out = tmp_path / "cal" / "calibrated.xml"
+    out.parent.mkdir()
+    assert main(["--quiet", "--machine", str(folder), "export-model", str(tmp_path / "p.json"), "-o", str(out)]) == 0
+    twin = mach.twin
+    cmd = twin.sample_commands(12, rng)
+    q = twin.solve(cmd, truth)
+    nests = twin.targets(cmd, truth) * MM
+    m = mujoco.MjModel.from_xml_path(str(out))
+    d = mujoco.MjData(m)
+    sites = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, s) for s in mach.spec.targets]
+    shift = twin.errors.zero_offset * twin.motor_unit
+    for qi, ni in zip(q, nests):
+        d.qpos[:] = qi
+        d.qpos[twin.motor_qadr] -= shift
+        mujoco.mj_forward(m, d)
+        eq = d.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY
+        assert np.abs(d.efc_pos[eq]).max() < 1e-9                       # m: every loop closed
+        assert np.abs(d.site_xpos[sites] - ni).max() < 1e-9             # m: the nests where the twin has them
+    (out.parent / "calibrated.toml").rename(out.parent / "machine.toml")
+    again = Machine.from_folder(out.parent)
+    fresh = twin.sample_commands(12, rng)
+    assert np.abs(again.twin.targets(fresh, None) - twin.targets(fresh, truth)).max() < 1e-6    # mm

@@ -4,6 +4,10 @@ References independent of the reader: the numbers typed into the hand-written fi
 the twin's own campaign (its Measurements) written out in SA's layout by tests/tracker_files.py.
 """
 
+import json
+import re
+import shutil
+
 import numpy as np
 import pytest
 
@@ -153,3 +157,70 @@ def test_group_target_names_space_separated(tmp_path):
     assert res.warnings == [] and res.blocked == ["pose 3 T1"] and res.frame == "base"
     assert np.allclose(res.meas.targets[np.isfinite(res.meas.targets)], meas.targets[np.isfinite(res.meas.targets)],
                        atol=5e-7)
+
+
+def test_machine_folder_campaign_imports_and_identifies_as_native(tmp_path, capsys):
+    """``pmcal --machine DIR import`` on a copy of the Delta: its twin campaign written as SA ASCII in inches
+    (nests named by their machine.toml site names, one point blocked, one re-shot) and a controller log with
+    the machine's three motor columns joins back to the campaign within the export's rounding (6 decimals
+    of an inch: 1.3e-5 mm), and identifies as the native file (with the same point blanked) does."""
+    from pmcal.io_chain import read_measurements as read_chain, write_measurements as write_chain
+    from pmcal.machines import Machine
+    from pmcal.mjcf import machine_dir
+
+    folder = tmp_path / "my_delta"
+    shutil.copytree(machine_dir("delta_3dof"), folder)
+    spec = Machine.from_folder(folder).spec
+    native = tmp_path / "native.csv"
+    argv = ["--quiet", "--machine", str(folder)]
+    assert run(*argv, "twin", "measure", "--poses", "24", "--seed", "4", "-o", str(native)) == 0
+    meas = read_chain(native, spec)
+    write_sa_export(tmp_path / "t.txt", meas, units="in", frame="DELTA::Base", blocked=[(3, 1)], reshoot=[(5, 2)],
+                    collection="DELTA", targets=list(spec.targets))
+    write_log(tmp_path / "log.csv", meas, motor_columns=spec.motor_columns)
+    out = tmp_path / "m.csv"
+    capsys.readouterr()
+    assert run("--machine", str(folder), "import", str(tmp_path / "t.txt"), "--log", str(tmp_path / "log.csv"),
+               "-o", str(out)) == 0
+    err = capsys.readouterr().err
+    assert "measured again" in err and "not in the machine's base frame" not in err
+    got = read_chain(out, spec)
+    assert len(got) == 24 and np.isnan(got.targets[3, 1]).all()
+    ok = np.isfinite(got.targets)
+    assert np.abs(got.targets[ok] - meas.targets[ok]).max() < 1.3e-5
+    assert np.abs(got.commands - meas.commands).max() < 1e-6
+    meas.targets[3, 1] = np.nan                 # the native file with the point the export blocked
+    write_chain(native, spec, meas)
+    for name, path in (("native", native), ("imported", out)):
+        assert run(*argv, "identify", str(path), "-o", str(tmp_path / f"{name}.json")) == 0
+    # the two fits are compared by what they predict (the nests at fresh poses): a base set is chosen per
+    # campaign by pivoted QR and may name other representatives of the same combinations
+    mach = Machine.from_folder(folder)
+    a, b = (json.loads((tmp_path / f"{n}.json").read_text())["params"] for n in ("native", "imported"))
+    cmd = mach.twin.sample_commands(30, np.random.default_rng(2))
+    d = np.linalg.norm(mach.twin.targets(cmd, a) - mach.twin.targets(cmd, b), axis=2)
+    assert d.max() < 2e-4           # mm: the export's rounding (1.3e-5 mm per coordinate) through the fit
+
+
+def test_machine_folder_points_off_the_base_frame_are_said(tmp_path, capsys):
+    """Points 120 mm away from where the Delta's commands put its nests (a tracker frame): imported, with
+    one warning saying so and what to do."""
+    from pmcal.io_chain import read_measurements as read_chain
+    from pmcal.machines import Machine
+    from pmcal.mjcf import machine_dir
+
+    folder = tmp_path / "my_delta"
+    shutil.copytree(machine_dir("delta_3dof"), folder)
+    spec = Machine.from_folder(folder).spec
+    assert run("--quiet", "--machine", str(folder), "twin", "measure", "--poses", "6", "-o", str(tmp_path / "n.csv")) == 0
+    meas = read_chain(tmp_path / "n.csv", spec)
+    meas.targets += [120.0, 0.0, 0.0]
+    write_sa_export(tmp_path / "t.txt", meas, units="mm", frame="Base", targets=list(spec.targets))
+    write_log(tmp_path / "log.csv", meas, motor_columns=spec.motor_columns)
+    capsys.readouterr()
+    assert run("--machine", str(folder), "import", str(tmp_path / "t.txt"), "--log", str(tmp_path / "log.csv"),
+               "-o", str(tmp_path / "m.csv")) == 0
+    err = capsys.readouterr().err
+    found = re.search(r"not in the machine's base frame \(the nests are (\d+) mm \(median\)", " ".join(err.split()))
+    assert found and 110 <= int(found[1]) <= 130, err        # 120 mm shift, the machine's errors a few mm
+    assert "transform them into the base frame" in err

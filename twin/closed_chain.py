@@ -1,8 +1,8 @@
 """Any closed-chain machine from its MJCF and machine.toml: assembly, exact derivatives, forward and inverse.
 
 :class:`ClosedChainTwin` reads the kinematic tree and the loop closures from the compiled MuJoCo model
-(active equality constraints: **site-based** ``connect``, 3 equations each, and site-based ``weld``, 6
-each) and the motors, targets and task from a :class:`pmcal.mechanism.machine_spec.MachineSpec`. Nothing
+(active equality constraints: site-based ``connect``, 3 equations each, and ``weld``, 6 each; body-based
+ones are turned site-based on load, :mod:`pmcal.twin.closures`) and the motors, targets and task from a :class:`pmcal.mechanism.machine_spec.MachineSpec`. Nothing
 in it is specific to a machine.
 
 **Geometric errors** (``docs/machine_toml.md``, section ``[errors]``; :mod:`pmcal.twin.frame_errors`) are
@@ -72,6 +72,7 @@ from pmcal.mechanism.machine_spec import MachineSpec
 from pmcal.mechanism.rotations import rotvec_matrix
 from pmcal.mechanism.task_space import POSITION, task_coordinates, task_difference
 from pmcal.twin.assembly import solve_stacked
+from pmcal.twin.closures import compile_with_site_closures
 from pmcal.twin.frame_errors import DEG, MM, FrameErrors
 
 _OBJ = mujoco.mjtObj
@@ -139,7 +140,7 @@ class ClosedChainTwin:
             raise ValueError(f"{spec.name} is a seeded machine with its own code (kind {spec.kind!r})")
         self.spec = spec
         self.sigma_mm = float(spec.sigma_mm)
-        self.model = model if model is not None else mujoco.MjModel.from_xml_path(str(spec.model_path))
+        self.model = model if model is not None else compile_with_site_closures(spec.model_path)
         m = self.model
         self.data = mujoco.MjData(m)
         self._file = str(spec.model_path)
@@ -212,13 +213,11 @@ class ClosedChainTwin:
             if kind not in (_EQ.mjEQ_CONNECT, _EQ.mjEQ_WELD):
                 raise InputError("only connect and weld equalities can close loops (make other equalities "
                                  "inactive, active=\"false\")", file=self._file, field=name)
-            if int(m.eq_objtype[e]) != _OBJ.mjOBJ_SITE:
-                raise InputError("a loop closure must be site-based (site1=, site2=): body-based anchors are "
-                                 "re-derived from the compiled geometry and would absorb geometric errors",
-                                 file=self._file, field=name)
+            if int(m.eq_objtype[e]) != _OBJ.mjOBJ_SITE:      # body-based ones are converted on load
+                raise InputError("a loop closure must join two sites or two bodies", file=self._file, field=name)
             out.append(Closure(name, int(m.eq_obj1id[e]), int(m.eq_obj2id[e]), kind == _EQ.mjEQ_WELD))
         if not out:
-            raise InputError("the model has no active site-based connect/weld: no loop to close",
+            raise InputError("the model has no active connect/weld equality: no loop to close",
                              file=self._file)
         self.closures = tuple(out)
         self.n_equations = sum(6 if c.weld else 3 for c in out)

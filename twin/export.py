@@ -24,6 +24,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from pmcal.twin.closures import sites_for_body_closures
+
 #: attributes that give an element's orientation besides ``quat`` (removed when ``quat`` is written)
 ORIENTATIONS = ("euler", "axisangle", "xyaxes", "zaxis")
 
@@ -54,7 +56,7 @@ def _angle_scale(root: ET.Element) -> float:
 
 
 def calibrated_xml(template: str | Path, model: mujoco.MjModel, *, header: list[str] = (),
-                   joint_ref_rad: dict[str, float] | None = None, actuator_kp: dict[str, float] | None = None,
+                   joint_ref: dict[str, float] | None = None, actuator_kp: dict[str, float] | None = None,
                    joint_stiffness: dict[str, float] | None = None, keyframe: tuple[str, np.ndarray, np.ndarray] | None = None,
                    custom: dict[str, list[float]] | None = None, option: dict[str, str] | None = None,
                    equality_active: dict[str, bool] | None = None) -> str:
@@ -68,8 +70,8 @@ def calibrated_xml(template: str | Path, model: mujoco.MjModel, *, header: list[
         The compiled real machine (SI); elements are matched by name.
     header : list of str
         Lines of the comment written before ``<mujoco>``.
-    joint_ref_rad : dict, optional
-        Joint name -> ``ref`` (rad; written in the template's angle unit).
+    joint_ref : dict, optional
+        Joint name -> ``ref`` in SI: rad for a hinge (written in the template's angle unit), m for a slide.
     actuator_kp : dict, optional
         Position actuator name -> ``kp`` (N m/rad for a hinge).
     joint_stiffness : dict, optional
@@ -105,36 +107,45 @@ def calibrated_xml(template: str | Path, model: mujoco.MjModel, *, header: list[
             raise ValueError(f"{path}: {name!r} is not in the compiled model")
         return i
 
+    sites_for_body_closures(root, model)          # body-based closures as the twin holds them
     world = root.find("worldbody")
+    in_frame = _enclosing_frames(root, world)
     for el in world.iter():
         name = el.get("name")
         if not name or el.tag not in ("body", "site", "joint"):
             continue
+        # compiled values are in the parent body's frame; inside <frame> elements they are written in the
+        # innermost frame's (MuJoCo folds frames into their children at compile time)
+        to_local = in_frame.get(id(el), _IDENTITY)
         if el.tag == "body":
             i = ident(obj.mjOBJ_BODY, name)
-            el.set("pos", numbers(model.body_pos[i]))
+            pos, quat = to_local(model.body_pos[i], model.body_quat[i])
+            el.set("pos", numbers(pos))
             for a in ORIENTATIONS:
                 el.attrib.pop(a, None)
-            el.set("quat", numbers(model.body_quat[i]))
+            el.set("quat", numbers(quat))
         elif el.tag == "site":
             if "fromto" in el.attrib:
                 raise ValueError(f"{path}: site {name!r} uses fromto; not supported by the exporter")
             i = ident(obj.mjOBJ_SITE, name)
-            el.set("pos", numbers(model.site_pos[i]))
-            if any(a in el.attrib for a in ORIENTATIONS + ("quat",)) or not np.allclose(model.site_quat[i], [1, 0, 0, 0]):
+            pos, quat = to_local(model.site_pos[i], model.site_quat[i])
+            el.set("pos", numbers(pos))
+            if any(a in el.attrib for a in ORIENTATIONS + ("quat",)) or not np.allclose(quat, [1, 0, 0, 0]):
                 for a in ORIENTATIONS:
                     el.attrib.pop(a, None)
-                el.set("quat", numbers(model.site_quat[i]))
+                el.set("quat", numbers(quat))
         else:
             i = ident(obj.mjOBJ_JOINT, name)
             if model.jnt_type[i] != mujoco.mjtJoint.mjJNT_FREE:
-                el.set("pos", numbers(model.jnt_pos[i]))
+                pos, _ = to_local(model.jnt_pos[i], None)
+                el.set("pos", numbers(pos))
                 if model.jnt_type[i] in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
-                    el.set("axis", numbers(model.jnt_axis[i]))
+                    el.set("axis", numbers(to_local.rotate(model.jnt_axis[i])))
     scale = _angle_scale(root)
     joints = {el.get("name"): el for el in world.iter("joint") if el.get("name")}
-    for name, ref in (joint_ref_rad or {}).items():
-        joints[name].set("ref", repr(float(ref) * scale))
+    for name, ref in (joint_ref or {}).items():
+        hinge = model.jnt_type[ident(obj.mjOBJ_JOINT, name)] == mujoco.mjtJoint.mjJNT_HINGE
+        joints[name].set("ref", repr(float(ref) * (scale if hinge else 1.0)))
     for name, k in (joint_stiffness or {}).items():
         joints[name].set("stiffness", repr(float(k)))
     acts = {el.get("name"): el for el in root.iter() if el.get("name") and el.tag in ("position", "general")}
@@ -177,6 +188,60 @@ def calibrated_xml(template: str | Path, model: mujoco.MjModel, *, header: list[
     leading = raw[:raw.find("<mujoco")].strip()           # the template's own opening comment, kept
     return (f"<!--\n{text}\n-->\n" if header else "") + (leading + "\n" if leading.startswith("<!--") else "") \
         + body + "\n"
+
+
+class _FrameTransform:
+    """Pose ``(p, q)`` of a ``<frame>`` in its parent body (SI, quaternion w-first): maps a compiled
+    (parent-body) position and orientation into the frame's own coordinates."""
+
+    def __init__(self, p: np.ndarray, q: np.ndarray):
+        self.p, self.q = np.asarray(p, float), np.asarray(q, float)
+        self.R = np.zeros(9)
+        mujoco.mju_quat2Mat(self.R, self.q)
+        self.R = self.R.reshape(3, 3)
+
+    def rotate(self, v: np.ndarray) -> np.ndarray:
+        return self.R.T @ np.asarray(v, float)
+
+    def __call__(self, pos, quat):
+        local = self.R.T @ (np.asarray(pos, float) - self.p)
+        if quat is None:
+            return local, None
+        qi, out = np.zeros(4), np.zeros(4)
+        mujoco.mju_negQuat(qi, self.q)
+        mujoco.mju_mulQuat(out, qi, np.asarray(quat, float))
+        return local, out
+
+
+_IDENTITY = _FrameTransform(np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+_PROBE = "__pmcal_frame_probe_"
+
+
+def _enclosing_frames(root: ET.Element, world: ET.Element) -> dict[int, _FrameTransform]:
+    """``id(element) -> transform`` of the innermost ``<frame>`` enclosing each body, site and joint that
+    sits in one (below its parent body). The frames' poses are MuJoCo's own: a copy of the document with a
+    bare site as the first child of every frame is compiled, and each site's compiled pose is its frame's
+    (nested frames composed, every orientation form and ``compiler`` setting honoured)."""
+    frames = list(world.iter("frame"))
+    if not frames:
+        return {}
+    parent = {child: el for el in world.iter() for child in el}
+    probe = ET.fromstring(ET.tostring(root))
+    for k, fr in enumerate(probe.find("worldbody").iter("frame")):
+        fr.insert(0, ET.Element("site", name=f"{_PROBE}{k}", pos="0 0 0", quat="1 0 0 0"))
+    m = mujoco.MjModel.from_xml_string(ET.tostring(probe, encoding="unicode"))
+    pose = {}
+    for k, fr in enumerate(frames):
+        i = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{_PROBE}{k}")
+        pose[id(fr)] = _FrameTransform(m.site_pos[i].copy(), m.site_quat[i].copy())
+    out = {}
+    for el in world.iter():
+        if el.tag not in ("body", "site", "joint"):
+            continue
+        up = parent.get(el)                     # a frame parent is the innermost one
+        if up is not None and up.tag == "frame":
+            out[id(el)] = pose[id(up)]
+    return out
 
 
 def _index_before(root: ET.Element, tags: tuple[str, ...]) -> int:

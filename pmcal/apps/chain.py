@@ -1,7 +1,7 @@
 """Application of a machine described by a folder (``--machine DIR``, or a built-in name of a
 ``kind = "chain"`` folder): its command-line wording and defaults from its machine.toml, and the routing of
 its commands (``twin measure``, ``identify``, ``targets``, ``compensate``, ``evaluate``) to
-:mod:`pmcal.apps.chain_commands`, imported on first use like :mod:`pmcal.apps.ocpm`'s: building the parser
+:mod:`pmcal.apps.chain_commands` ``twin render`` to :mod:`pmcal.apps.chain_render` and ``twin plan`` to :mod:`pmcal.apps.chain_plan`, imported on first use like :mod:`pmcal.apps.ocpm`'s: building the parser
 (``--help``) needs only this module, a command imports the twin and SciPy.
 """
 
@@ -18,6 +18,7 @@ _NOT_HERE = {
                      "--payload", "--temperature", "--shuffle", "--tracker-pose", "--nest-error", "--blocked",
                      "--outliers", "--stiffness-ratio"),
     "twin render": ("--preset", "--stiffness-ratio"),
+    "twin plan": ("--for-diagnosis", "--frame", "--theta-max", "--from"),
     "identify": ("--model", "--method", "--seed", "--allow-rank-deficient", "--frame", "--nest-tolerance",
                  "--robust"),
     "targets": ("--theta-max",),
@@ -68,15 +69,30 @@ def option_help(machine) -> dict:
         ("evaluate", ""): "position error of a parameter set against a measurement file (RMS, mm)",
     })
     table.update({(cmd, ""): "not available for a machine folder (the seeded machines' command)"
-                  for cmd in ("demo", "diagnose", "loop", "twin plan", "twin render")})
+                  for cmd in ("demo", "diagnose", "loop")})
+    table.update({
+        ("twin render", "--pose"): {
+            "metavar": ",".join(spec.task.coordinates), "default": None,
+            "help": f"task pose ({task}; mm, deg) the twin reaches by inverse kinematics (default: the "
+                    f"'{spec.home}' keyframe)"},
+        ("twin render", "--errors"): "error set of the real machine: a parameters file (default none)",
+        ("twin plan", ""): "write the poses to measure, chosen D-optimally for identification (plan CSV)",
+        ("twin plan", "--poses"): {"default": DEFAULT_POSES,
+                                   "help": f"number of poses (default {DEFAULT_POSES})"},
+        ("twin plan", "--seed"): "random seed of the candidate poses (default 1)",
+        ("twin plan", "-o"): f"plan CSV to write: pose_id, {', '.join(spec.motor_columns)} in driving order",
+        ("twin measure", "--plan"): "the commands of a plan ('twin plan') instead of drawn poses",
+    })
     return table
 
 
-#: the commands, implemented in :mod:`pmcal.apps.chain_commands` (a function of the same name each)
-COMMANDS = ("twin_measure", "identify", "targets", "compensate", "evaluate")
+#: command -> module that implements it (a function of the same name taking the parsed arguments)
+ROUTES = {**{name: "pmcal.apps.chain_commands"
+             for name in ("twin_measure", "identify", "targets", "compensate", "evaluate")},
+          "twin_render": "pmcal.apps.chain_render", "twin_plan": "pmcal.apps.chain_plan"}
 
 
 def __getattr__(name: str):
-    if name not in COMMANDS:
+    if name not in ROUTES:
         raise AttributeError(name)
-    return getattr(importlib.import_module("pmcal.apps.chain_commands"), name)
+    return getattr(importlib.import_module(ROUTES[name]), name)

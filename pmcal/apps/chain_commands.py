@@ -17,8 +17,8 @@ from pmcal.chain import (campaign, check_assembles, compensate as commands_for, 
 from pmcal.csvio import LONG_POSES
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
-from pmcal.io_chain import (read_measurements, read_params, read_targets, write_measurements, write_setpoints,
-                            write_targets)
+from pmcal.io_chain import (read_measurements, read_params, read_plan, read_targets, write_measurements,
+                            write_setpoints, write_targets)
 
 
 def _machine(args):
@@ -31,7 +31,7 @@ def _sigma(value: float | None, option: str) -> float | None:
     return value
 
 
-def _error_set(machine, text: str | None):
+def error_set(machine, text: str | None):
     """``--errors``: random (default), none, or a parameters file of this machine."""
     if text is None or text in ERROR_CHOICES:
         return text or "random"
@@ -56,12 +56,17 @@ def twin_measure(args) -> int:
     if not (np.isfinite(args.seconds_per_pose) and args.seconds_per_pose >= 0):
         raise InputError(f"seconds per pose must be >= 0, got {args.seconds_per_pose}", field="--seconds-per-pose")
     sigma = _sigma(args.noise, "--noise")
+    if args.targets and args.plan:
+        raise InputError("give --targets or --plan, not both", field="--plan")
     task = read_targets(args.targets, machine.spec) if args.targets else None
-    errors = _error_set(machine, args.errors)
+    ids, commands = read_plan(args.plan, machine.spec) if args.plan else (None, None)
+    errors = error_set(machine, args.errors)
     poses = args.poses or command_defaults(machine)["poses"]
-    progress.status(f"measuring {len(task) if task is not None else poses} poses on the twin of {machine.name}")
+    count = len(task) if task is not None else len(commands) if commands is not None else poses
+    progress.status(f"measuring {count} poses on the twin of {machine.name}")
     meas, truth = campaign(machine, poses, seed=args.seed, errors=errors, sigma_mm=sigma, task=task,
-                           seconds_per_pose=args.seconds_per_pose, source=args.targets)
+                           commands=commands, pose_id=ids, seconds_per_pose=args.seconds_per_pose,
+                           source=args.targets or args.plan)
     what = args.errors if isinstance(errors, dict) else errors
     comments = [f"pmcal twin measure: machine {machine.name}, errors: {what}, poses {len(meas)}, tracker sigma "
                 f"{machine.twin.sigma_mm if sigma is None else sigma:g} mm, seed {args.seed}"]

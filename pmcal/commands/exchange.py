@@ -13,12 +13,14 @@ from pmcal.errors import InputError
 
 def _import(args) -> int:
     from pmcal import progress
-    from pmcal.io_ocpm import write_measurements
-    from pmcal.io_tracker import join, parse_columns, read_controller_log, read_point_csv, read_sa_ascii
+    from pmcal.io_tracker import (join, join_machine, parse_columns, read_controller_log, read_point_csv,
+                                  read_sa_ascii)
+    from pmcal.machines import resolve
 
-    if args.machine != "ocpm_2dof":
-        raise InputError(f"'import' writes the ocpm_2dof measurement file; not available for machine "
-                         f"'{args.machine}'", field="--machine")
+    machine = getattr(args, "selected_machine", None) or resolve(args.machine)
+    if machine.legacy and machine.name != "ocpm_2dof":
+        raise InputError(f"'import' reads tracker points of nests; machine '{machine.name}' is measured by its "
+                         "linear scale, not a tracker", field="--machine")
     if args.time_tolerance is not None and not args.time_tolerance > 0:
         raise InputError(f"time tolerance must be a positive number of seconds, got {args.time_tolerance}",
                          field="--time-tolerance")
@@ -26,14 +28,28 @@ def _import(args) -> int:
         export = read_point_csv(args.tracker, parse_columns(args.columns), args.units)
     else:
         export = read_sa_ascii(args.tracker, args.units)
-    log = read_controller_log(args.log)
-    res = join(export, log, names=args.names, time_tolerance_s=args.time_tolerance)
+    if machine.legacy:
+        from pmcal.io_ocpm import write_measurements
+
+        res = join(export, read_controller_log(args.log), names=args.names, time_tolerance_s=args.time_tolerance)
+        advice = f"identify with 'pmcal identify {args.output} --frame tracker' (recorded in its header)"
+        write = lambda: write_measurements(args.output, res.meas, comments=res.comments)  # noqa: E731
+    else:
+        from pmcal.chain import distance_from_nominal
+        from pmcal.io_chain import write_measurements as write_chain
+
+        spec = machine.spec
+        res = join_machine(export, read_controller_log(args.log, spec.motor_columns), spec,
+                           lambda c, t: distance_from_nominal(machine, c, t), names=args.names,
+                           time_tolerance_s=args.time_tolerance)
+        advice = "transform them into the base frame (the frame of the MJCF's world) before identifying"
+        write = lambda: write_chain(args.output, spec, res.meas, comments=res.comments)  # noqa: E731
     for w in res.warnings:
         progress.warning(w)
     if res.frame != "base":
         progress.warning(f"{args.tracker}: the points are not in the machine's base frame ({res.frame_reason}): "
-                         f"identify with 'pmcal identify {args.output} --frame tracker' (recorded in its header)")
-    write_measurements(args.output, res.meas, comments=res.comments)
+                         f"{advice}")
+    write()
     progress.status(f"imported {len(res.meas)} poses ({res.join}, {res.frame} frame)")
     return 0
 
@@ -44,10 +60,7 @@ def _export_model(args) -> int:
     from pmcal.machines import resolve
 
     machine = getattr(args, "selected_machine", None) or resolve(args.machine)   # unknown: one line, exit 2
-    if not machine.spec.legacy:
-        raise InputError(f"'export-model' writes the calibrated model of ocpm_2dof and planar_2dof; not yet "
-                         f"available for machine '{machine.name}'", field="--machine")
-    out = export_model(args.params, args.output, machine.name)
+    out = export_model(args.params, args.output, machine)
     for name, where in out["in_mjcf"].items():
         progress.status(f"{name}: in the MJCF ({where})")
     for name in out["comment_only"] + out["not_in_mjcf"]:
@@ -89,7 +102,8 @@ def register(sub: CommandSet) -> None:
                         "uncertainty and time stamp; space or comma separated; '//' comments), or a CSV with "
                         "--columns; docs/formats.md")
     p.add_argument("--log", required=True, metavar="LOG.csv",
-                   help="controller log CSV: pose_id, m1_cmd_deg, m2_cmd_deg (deg), optional time_s (s), temp_c "
+                   help="controller log CSV: pose_id, the machine's motor columns as in its measurement file "
+                        "(m1_cmd_deg, m2_cmd_deg ..., _mm for a prismatic motor), optional time_s (s), temp_c "
                         "(degC)")
     p.add_argument("-o", "--output", required=True, metavar="MEAS.csv",
                    help="measurement CSV to write (docs/formats.md); frame and units in its '#' header")
@@ -98,7 +112,7 @@ def register(sub: CommandSet) -> None:
     p.add_argument("--names", default=None, metavar="REGEX",
                    help="pattern of the point names (name fields joined by one space) with named groups "
                         "'pose' (its digits are the log's pose number: P007 is pose 7) and 'target' (the nest: "
-                        "T1, T2, ...); default: last field target, the one before it pose, a collection ignored")
+                        "T1, T2, ... or its site name in machine.toml); default: last field target, the one before it pose, a collection ignored")
     p.add_argument("--columns", default=None, metavar="name=COL,x=COL,y=COL,z=COL[,time=COL]",
                    help="read a plain CSV of points instead, with this column map (pose=COL,target=COL instead "
                         "of name=COL allowed); coordinates in --units")

@@ -28,6 +28,8 @@ def register(sub: CommandSet) -> None:
                    help="number of poses (default: ocpm_2dof 24; planar_2dof 6, the paper's, even and >= 6)")
     m.add_argument("--targets", default=None, metavar="TARGETS.csv",
                    help="explicit target orientations (phi_deg, theta_deg) instead of planned poses")
+    m.add_argument("--plan", default=None, metavar="PLAN.csv",
+                   help="the commands of a campaign plan ('twin plan') instead of drawn poses")
     m.add_argument("--noise", type=float, default=None, metavar="MM",
                    help="tracker noise, standard deviation per coordinate, mm (default from the machine)")
     m.add_argument("--servo-noise", type=float, default=None, metavar="DEG",

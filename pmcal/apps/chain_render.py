@@ -1,0 +1,75 @@
+"""``pmcal --machine DIR twin render``: a PNG of a machine folder's twin at a task pose (routed from
+:mod:`pmcal.apps.chain`).
+
+The pose is reached as the twin reaches it (inverse kinematics on the task coordinates of machine.toml,
+the chain assembled by :class:`pmcal.twin.closed_chain.ClosedChainTwin` with the errors of ``--errors``);
+the picture draws the folder's ``scene.xml`` (else its model) in that configuration, from MuJoCo's free
+camera (the scene's ``<statistic>`` and ``<global azimuth/elevation>``). The links are drawn with their
+nominal geometry: errors of a fraction of a millimetre do not show at this scale.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pmcal.apps.chain_commands import error_set
+from pmcal.errors import InputError, RunError
+from pmcal.fileio import atomic_write
+
+
+def parse_task_pose(text: str | None, coordinates: tuple[str, ...]) -> np.ndarray | None:
+    """``--pose C1,C2,...`` as task coordinates (mm / deg, the order of machine.toml [task]); None: home."""
+    if text is None:
+        return None
+    try:
+        values = np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        values = np.array([])
+    if len(values) != len(coordinates) or not np.isfinite(values).all():
+        raise InputError(f"expected {len(coordinates)} comma-separated numbers ({','.join(coordinates)}), "
+                         f"got '{text}'", field="--pose")
+    return values
+
+
+def twin_render(args) -> int:
+    """Write the PNG of ``args.output``: the twin at ``--pose`` (default: the ``home`` keyframe)."""
+    import mujoco
+
+    from pmcal.twin.render import RenderUnavailable, render_model_png
+
+    machine = args.selected_machine
+    twin = machine.twin
+    spec = machine.spec
+    pose = parse_task_pose(args.pose, spec.task.coordinates)
+    errors = error_set(machine, args.errors)
+    params = errors if isinstance(errors, dict) else None
+    if pose is None:
+        qpos = twin.solve(twin.home_commands[None], params)[0]
+    else:
+        cmd, reasons = twin.inverse_report(pose[None], params)
+        if reasons[0]:
+            raise InputError(f"pose {args.pose}: {reasons[0]}", field="--pose")
+        qpos = twin.solve(cmd, params)[0]
+    if not np.isfinite(qpos).all():
+        raise InputError(f"the chain of {machine.name} does not assemble at pose {args.pose or 'home'}",
+                         field="--pose")
+    scene = spec.folder / "scene.xml"
+    m = mujoco.MjModel.from_xml_path(str(scene if scene.is_file() else spec.model_path))
+    if m.nq != len(qpos):
+        raise InputError(f"{scene.name} has {m.nq} joint coordinates, the model {len(qpos)}: the scene must "
+                         f"include the model and add no joints", file=str(scene))
+    # the offscreen buffer must hold the image (MJCF <visual><global offwidth/offheight>, default 640 x 480)
+    m.vis.global_.offwidth = max(int(m.vis.global_.offwidth), args.width)
+    m.vis.global_.offheight = max(int(m.vis.global_.offheight), args.height)
+    d = mujoco.MjData(m)
+    d.qpos[:] = qpos
+    mujoco.mj_forward(m, d)
+    cam = mujoco.MjvCamera()
+    mujoco.mjv_defaultFreeCamera(m, cam)
+    try:
+        png = render_model_png(m, d, args.width, args.height, cam)
+    except RenderUnavailable as exc:
+        raise RunError(str(exc)) from None
+    with atomic_write(args.output, "wb") as fh:
+        fh.write(png)
+    return 0

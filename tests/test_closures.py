@@ -1,0 +1,126 @@
+"""Loop closures written either way (site-based or MuJoCo's body-based connect/weld) give the same
+machine: :mod:`pmcal.twin.closures` against MuJoCo's own constraint residuals, and a five-bar written from
+scratch (tests/data/fivebar) against its closed form (tests/chain_references.py), through the whole
+folder-machine path and the calibrated model's export."""
+
+import json
+import shutil
+
+import mujoco
+import numpy as np
+import pytest
+
+from pmcal.cli import main
+from pmcal.machines import Machine
+from pmcal.twin.closures import compile_with_site_closures
+from tests.chain_references import fivebar_fk
+
+FIVEBAR = "tests/data/fivebar"
+BODY_CONNECT = '<connect name="tip" body1="left_link" body2="right_link" anchor="0.1 0.2 0"/>'
+
+MIXED = """<mujoco><worldbody>
+<body name="a"><joint name="ja" type="hinge" axis="0 0 1"/><geom size=".01"/>
+ <body name="b" pos="0.1 0 0"><joint name="jb" type="hinge" axis="0 1 0"/><geom size=".01"/></body></body>
+<body name="c" pos="0.2 0.05 0.01" euler="10 20 30"><joint name="jc" type="ball"/><geom size=".01"/></body>
+<body name="d" pos="-0.2 0.05 0.01"><joint name="jd" type="slide" axis="1 0 0"/>
+ <joint name="jd2" type="hinge" axis="0 1 0"/><geom size=".01"/></body>
+</worldbody><equality>
+<weld name="w" body1="b" body2="c" anchor="0.01 0.02 0.03" relpose="0.1 0.04 0.01 0.9 0.1 0.2 0.3"/>
+<weld body1="a" body2="d" anchor="0.01 0 0.03"/>
+<connect name="k" body1="b" body2="d" anchor="0.02 0.01 0"/>
+<connect name="kw" body1="c" anchor="0.02 0.01 0"/>
+</equality></mujoco>"""
+
+
+def test_converted_closures_have_mujocos_own_residuals(tmp_path):
+    """Welds (explicit relpose, and derived from qpos0), connects (one to the world): at 20 random
+    configurations the site-based model's equality residuals equal the body-based model's as MuJoCo computes
+    them (efc_pos), to rounding."""
+    path = tmp_path / "mixed.xml"
+    path.write_text(MIXED)
+    m0 = mujoco.MjModel.from_xml_path(str(path))
+    m1 = compile_with_site_closures(path)
+    assert {int(v) for v in m1.eq_objtype} == {int(mujoco.mjtObj.mjOBJ_SITE)}
+    names = {mujoco.mj_id2name(m1, mujoco.mjtObj.mjOBJ_SITE, i) for i in range(m1.nsite)}
+    assert {"w_site1", "w_site2", "closure1_site1", "k_site2", "kw_site2"} <= names
+    rng = np.random.default_rng(0)
+    d0, d1 = mujoco.MjData(m0), mujoco.MjData(m1)
+    ball = m0.jnt_qposadr[2]
+    for _ in range(20):
+        q = m0.qpos0 + rng.normal(0.0, 0.3, m0.nq)
+        q[ball:ball + 4] /= np.linalg.norm(q[ball:ball + 4])
+        res = []
+        for m, d in ((m0, d0), (m1, d1)):
+            d.qpos[:] = q
+            mujoco.mj_forward(m, d)
+            res.append(d.efc_pos[d.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY].copy())
+        assert len(res[0]) == 18 and np.abs(res[0]).max() > 1e-2
+        assert np.abs(res[0] - res[1]).max() < 1e-12
+
+
+def fivebar_folder(tmp_path, body_based: bool):
+    folder = tmp_path / ("fivebar_body" if body_based else "fivebar")
+    shutil.copytree(FIVEBAR, folder)
+    if body_based:
+        xml = folder / "fivebar.xml"
+        text = xml.read_text()
+        site = '<connect name="tip" site1="left_tip" site2="right_tip"/>'
+        assert site in text
+        xml.write_text(text.replace(site, BODY_CONNECT))
+    return folder
+
+
+def test_fivebar_matches_its_closed_form_either_way(tmp_path):
+    """The nominal five-bar, closed site-based or body-based: tool and SMR where the circle intersection
+    puts them (1e-8 mm, the assembly tolerance) over the motor ranges, and with the same errors (the anchor sites named per form)
+    the same nests."""
+    twins = [Machine.from_folder(fivebar_folder(tmp_path, b)).twin for b in (False, True)]
+    cmd = np.random.default_rng(3).uniform(-30.0, 30.0, size=(40, 2))
+    tool, smr = fivebar_fk(cmd)
+    for twin in twins:
+        y = twin.targets(cmd)
+        assert np.isfinite(y).all()
+        assert np.abs(y[:, 0, :2] - tool).max() < 1e-8 and np.abs(y[:, 1, :2] - smr).max() < 1e-8
+        assert np.abs(y[:, 0, 2] - 20.0).max() < 1e-9
+    site, body = twins
+    assert {"tip_site1.dx", "tip_site2.dy"} <= set(body.error_keys)
+    rename = {"left_tip": "tip_site1", "right_tip": "tip_site2"}
+    errors = {"left_crank.dx": 0.3, "right_link.drz": 0.05, "left_tip.dy": -0.2, "right_tip.dx": 0.15,
+              "m2.dzero": 0.04}
+    as_body = {rename.get(k.split(".")[0], k.split(".")[0]) + "." + k.split(".")[1]: v for k, v in errors.items()}
+    assert np.abs(site.targets(cmd, errors) - body.targets(cmd, as_body)).max() < 1e-9
+
+
+def test_body_based_fivebar_whole_chain_and_export(tmp_path, capsys):
+    """The body-based five-bar through the command line (measure, identify, targets, compensate, export):
+    identification leaves the tracker noise (chi2/dof ~ 1), and the exported model (its closure turned
+    site-based) closes the loop at the calibrated assembly, read by plain MuJoCo."""
+    folder = fivebar_folder(tmp_path, True)
+    argv = ["--quiet", "--machine", str(folder)]
+    d = tmp_path
+    for cmd in (["twin", "measure", "--poses", "40", "--seed", "2", "-o", d / "m.csv"],
+                ["identify", d / "m.csv", "-o", d / "p.json"], ["targets", "-o", d / "tg.csv"],
+                ["compensate", d / "p.json", "--targets", d / "tg.csv", "-o", d / "s.csv"],
+                ["export-model", d / "p.json", "-o", d / "cal" / "fivebar.xml"]):
+        (d / "cal").mkdir(exist_ok=True)
+        assert main(argv + [str(c) for c in cmd]) == 0, cmd
+    doc = json.loads((d / "p.json").read_text())
+    assert 0.6 < doc["chi2_per_dof"] < 1.5          # 160 coordinates, ~16 base errors: chi2/dof 1 +- 0.12
+    text = (d / "cal" / "fivebar.xml").read_text()
+    assert 'site1="tip_site1"' in text and "body1=" not in text
+    mach = Machine.from_folder(folder)
+    params = doc["params"]
+    cmd = mach.twin.sample_commands(8, np.random.default_rng(4))
+    q = mach.twin.solve(cmd, params)
+    m = mujoco.MjModel.from_xml_path(str(d / "cal" / "fivebar.xml"))
+    data = mujoco.MjData(m)
+    shift = mach.twin.errors.zero_offset * mach.twin.motor_unit
+    kin = mach.twin.kinematics(q)                    # the twin's closure sites come first among its points
+    for qi, xs in zip(q, kin.site_xpos):
+        data.qpos[:] = qi
+        data.qpos[mach.twin.motor_qadr] -= shift
+        mujoco.mj_forward(m, data)
+        gap = data.efc_pos[data.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY]
+        # a planar loop closed by a connect, with out-of-plane errors: closed in the least-squares sense;
+        # MuJoCo reads back the calibrated twin's own compromise (its gap, site1 - site2, m)
+        assert np.abs(gap - (xs[0] - xs[1])).max() < 1e-9
