@@ -29,12 +29,10 @@ from pmcal.twin.planar.config import SCENE_XML, PlanarMachine, default_machine
 CHAIN_DIR = machine_dir("planar_2dof") / "chain"
 
 
-@lru_cache(maxsize=2)
-def chain_twin(scene: bool = False) -> ClosedChainTwin:
-    """The generic twin of ``mjcf/planar_2dof/chain`` (cached: its warm starts serve every later solve);
-    ``scene``: compiled from ``scene.xml`` (floor, light, camera) for pictures."""
-    spec = MachineSpec.load(CHAIN_DIR)
-    return ClosedChainTwin(spec, mujoco.MjModel.from_xml_path(str(SCENE_XML)) if scene else None)
+@lru_cache(maxsize=1)
+def chain_twin() -> ClosedChainTwin:
+    """The generic twin of ``mjcf/planar_2dof/chain`` (cached: its warm starts serve every later solve)."""
+    return ClosedChainTwin(MachineSpec.load(CHAIN_DIR))
 
 
 @dataclass
@@ -54,10 +52,10 @@ class PlanarTwin:
     #: cells (mm) of the positions this twin has solved by task-space continuation (:meth:`assemble`)
     CELL_MM = 5.0
 
-    def __init__(self, errors: Errors | None = None, machine: PlanarMachine | None = None, scene: bool = False):
+    def __init__(self, errors: Errors | None = None, machine: PlanarMachine | None = None):
         self.machine = machine or default_machine()
         self.errors = errors if errors is not None else Errors()
-        self.chain = chain_twin(scene)
+        self.chain = chain_twin()
         self._known_cells: set = set()
         self.params = expand_names(self.chain.spec.names, self.errors.as_interface())
 
@@ -136,14 +134,13 @@ def commands_for(twin: PlanarTwin, r: np.ndarray, comp: np.ndarray | None = None
 def render_png(twin: PlanarTwin, motor: np.ndarray | None = None, width: int = 800, height: int = 600,
                camera: str = "front") -> bytes:
     """PNG of the machine (``scene.xml``: floor, light, ``camera``) with the motors at ``motor`` (2,) rad
-    (default: home), the loops closed."""
+    (default: home), the loops closed by the twin; the links drawn with their nominal geometry (errors of a
+    fraction of a millimetre do not show)."""
     from pmcal.twin.render import render_model_png
 
-    scene = PlanarTwin(twin.errors, twin.machine, scene=True)
     motor = twin.machine.geometry.home if motor is None else np.asarray(motor, dtype=float)
-    q = scene.assemble(motor[None]).qpos[0]
-    m = scene.model
+    m = mujoco.MjModel.from_xml_path(str(SCENE_XML))
     d = mujoco.MjData(m)
-    d.qpos[:] = q
+    d.qpos[:] = twin.assemble(motor[None]).qpos[0]
     mujoco.mj_forward(m, d)
     return render_model_png(m, d, width, height, camera)
