@@ -258,7 +258,7 @@ def _parse_symbol_info(entry: bytes) -> tuple[int, str]:
 
 
 def _norm(type_name: str) -> str:
-    """Type names compare without spaces and case (``ARRAY [0..99,0..99,0..1] OF LREAL``)."""
+    """Type names compare without spaces and case (``ARRAY [0..19999] OF LREAL``)."""
     return "".join(type_name.split()).upper()
 
 

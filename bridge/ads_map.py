@@ -3,8 +3,9 @@
 Configuration as data: :class:`AdsMap` names the GVL and the AMS port; the symbols (names, PLC types,
 sizes) and the write allow-lists come from the GVL declaration in :mod:`pmcal.bridge.plc_types`.
 Each symbol is transferred with an explicit ctypes type of exactly the symbol's size
-(``ARRAY [..] OF LREAL`` as ``c_double * 20000``, structs as their packed byte image), never with
-pyads' type guessing (which silently writes nothing for 2-D arrays).
+(``ARRAY [0..19999] OF LREAL``, format 4's flat table, as ``c_double * 20000``; structs as their packed
+byte image: ST_CompTableHeader 248 bytes, ST_CompTableLookupIn 32, ST_CompTableLookupOut 64), never with
+pyads' type guessing (which silently writes nothing for multi-dimensional arrays).
 """
 
 from __future__ import annotations

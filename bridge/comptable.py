@@ -1,74 +1,110 @@
-"""The compensation table: a 2-D grid over target orientation holding corrected motor commands.
+"""The compensation table: a grid over 1 to 3 task axes holding the commands of N motors (format 4).
 
-Format specification: ``docs/compensation_table.md``. Units: degrees everywhere in this module (it is
-an interface type, written to files and sent to the PLC).
+Format specification: ``docs/compensation_table.md``. Units: each task axis and each motor carries its
+unit (``deg`` for angles and revolute motors, ``mm`` for positions and prismatic motors); this module
+never converts.
 
-The grid spans ``phi_deg`` (azimuth) from ``phi_min_deg`` to ``phi_max_deg`` in ``n_phi`` nodes and
-``theta_deg`` (tilt) from ``theta_min_deg`` to ``theta_max_deg`` in ``n_theta`` nodes, both ends
-included. ``values[i, j, k]`` is, for motor ``k`` (0: m1, 1: m2) in degrees, the correction to add to
-the nominal closed-form inverse kinematics (``reference``, :mod:`pmcal.bridge.nominal`, format version 2)
-so that the calibrated machine reaches (phi_i, theta_j); with ``reference=None`` it is the absolute
-command (format version 1 semantics). The array layout is the PLC's memory layout
-``ARRAY[0..NPHI_MAX-1, 0..NTHETA_MAX-1, 0..1] OF LREAL`` restricted to the used nodes (last index
-fastest, little-endian IEEE-754 double).
+Axis ``a`` spans ``axes[a].min`` to ``axes[a].max`` in ``axes[a].n`` nodes, both ends included.
+``values[i0, ..., k]`` (shape ``(n_0, ..., n_{A-1}, N)``) is, for motor ``k`` (m1..mN), what the table
+holds at the node, by its ``reference`` (header ``nReference``):
 
-Longer than the project's ~400 lines on purpose: the type, its checks and its two file formats
-(JSON, CSV, versions 1 and 2) form one interface specification with docs/compensation_table.md.
+- ``None`` (0): the absolute command that makes the calibrated machine reach the node;
+- a :class:`~pmcal.bridge.nominal.NominalReference` (1): the correction added to the ocpm nominal
+  closed-form IK that the PLC computes in ST (only 2 axes phi/theta and 2 revolute motors);
+- :data:`CONTROLLER` (2, ``"controller"`` in the files): the correction the integrator adds to the motion
+  controller's *own* nominal inverse kinematics, ``m_calibrated(node) - m_nominal(node)`` (as machine-tool
+  volumetric compensation). The PLC's table code never sees that IK, so for such a table each motor's
+  ``min``/``max`` bound the *correction* (and ``max_step`` its change between neighbours), not the
+  command; the commands' own limits stay with the controller (its axis limits).
+ The PLC stores the used values as one flat
+``ARRAY[0..NVALUES_MAX-1] OF LREAL`` in C order of this array (last axis, then motor, fastest),
+little-endian IEEE-754 double. Files (JSON, CSV; formats 1 to 3 still read): :mod:`pmcal.bridge.comptable_files`.
 
 Typical use by the identification code::
 
-    table = CompTable.from_setpoints(my_setpoints, machine="ocpm_2dof", version=7,
-                                     n_phi=73, n_theta=31, motor_limits_deg=(-120.0, 60.0))
+    table = CompTable.from_grid(fill, machine="delta_3dof", version=7,
+                                axes=[Axis("x", "mm", -100, 100, 11), Axis("y", "mm", -100, 100, 11)],
+                                motors=[Motor("m1", "deg", -35, 80, 10)] * 3)   # names fixed to m1..mN
     table.validate()
     table.save("comp.json")          # JSON plus comp.csv beside it, both written atomically
 """
 
 from __future__ import annotations
 
-import binascii
-import csv
 import hashlib
-import json
 import math
+import re
 import struct
 import zlib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from pmcal.bridge.nominal import NominalReference
+from pmcal.bridge.nominal import REFERENCE_CONTROLLER, REFERENCE_NOMINAL_IK, REFERENCE_NONE, NominalReference
 from pmcal.errors import InputError
-from pmcal.fileio import atomic_write
 
 FORMAT = "pmcal-comptable"
-#: 3: CRC-32 over the PLC header image and the data (``crc32``); 2 (read): CRC-16 over the data only;
-#: 1 (read, converted): absolute commands. Values relative to the nominal IK (``reference``) since 2.
-FORMAT_VERSION = 3
-READ_VERSIONS = (1, 2, 3)
-#: fixed PLC array sizes (ARRAY[0..NPHI_MAX-1, 0..NTHETA_MAX-1, 0..1] OF LREAL)
-NPHI_MAX = 100
-NTHETA_MAX = 100
+#: 4: 1-3 task axes, N motors with per-motor limits, flat PLC array; 3 (read): 2 axes, 2 motors, CRC-32;
+#: 2 (read): CRC-16 over the data only; 1 (read, converted): absolute commands.
+FORMAT_VERSION = 4
+READ_VERSIONS = (1, 2, 3, 4)
+#: fixed PLC sizes (GVL_CompTableParam): axes, motors and LREAL values a table holds at most
+NAXES_MAX = 3
+NMOTOR_MAX = 6
+NVALUES_MAX = 20_000
 #: table versions are UDINT on the PLC; 0 means "no table"
 VERSION_MAX = 2**32 - 1
 #: STRING(27) on the PLC
 MACHINE_MAX_LEN = 27
-#: largest azimuth span (deg); the PLC never wraps phi, so a table covers at most one turn
+#: largest azimuth span (deg) of a table with the nominal-IK reference (axis 0 is phi, never wrapped)
 PHI_SPAN_MAX_DEG = 360.0
-#: largest magnitude of a grid limit, motor limit or max step (deg): GVL_CompTableParam.LIMIT_ABS_MAX, so
-#: every difference the PLC forms between limits or commands stays finite
-LIMIT_ABS_MAX_DEG = 1.0e6
-#: ST_CompTableHeader, 104 bytes (pack_mode 1, naturally aligned): fPhiMin .. fMaxStep (7 LREAL),
-#: nTableVersion UDINT, nFormatVersion, nPhi, nTheta, nReference UINT, nCrc, nReferenceCrc DWORD,
-#: sMachine STRING(27)
-HEADER_STRUCT = struct.Struct("<7dI4H2I28s")
-CSV_COLUMNS = ("phi_deg", "theta_deg", "m1_deg", "m2_deg")
-#: CSV columns of a table with a nominal-IK reference (the values are corrections)
-CSV_COLUMNS_REF = ("phi_deg", "theta_deg", "dm1_deg", "dm2_deg")
-MOTOR_FIELDS = ("m1_deg", "m2_deg")
+#: largest magnitude of a grid limit, motor limit or max step (deg or mm): GVL_CompTableParam.LIMIT_ABS_MAX,
+#: so every difference the PLC forms between limits or commands stays finite
+LIMIT_ABS_MAX = 1.0e6
+LIMIT_ABS_MAX_DEG = LIMIT_ABS_MAX
+#: GVL_CompTableParam.CORRECTION_ABS_MAX: largest correction bound (deg or mm, per motor) a table with the
+#: controller reference may declare; the PLC refuses wider bounds (LIMITS) whatever the table says
+CORRECTION_ABS_MAX = 5.0
+#: ST_CompTableHeader, 248 bytes (pack_mode 1, naturally aligned): aAxisMin[3], aAxisMax[3], aMotorMin[6],
+#: aMotorMax[6], aMaxStep[6] (LREAL), nTableVersion UDINT, nFormatVersion, nAxes, aN[3], nMotors,
+#: nReference UINT, nPrismatic WORD, nCrc, nReferenceCrc DWORD, sMachine STRING(27)
+HEADER_STRUCT = struct.Struct(f"<{2 * NAXES_MAX + 3 * NMOTOR_MAX}dI{NAXES_MAX + 5}H2I28s")
+#: the axes and motors of the seeded machines' tables (formats 1 to 3 hold these only)
+PHI, THETA = "phi", "theta"
+MOTOR_UNITS = ("deg", "mm")
+_NAME = re.compile(r"[A-Za-z][A-Za-z0-9]*")
 
-Setpoints = Callable[[np.ndarray, np.ndarray], np.ndarray]
+Fill = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class ControllerReference:
+    """Reference kind 2 (``nReference = 2``): the values are corrections to add to the motion controller's
+    own nominal inverse kinematics. Nothing to carry (``nReferenceCrc = 0``): the PLC's table code never
+    computes that IK; the integrator adds the looked-up correction to it (docs/commissioning.md)."""
+
+    KIND = "controller"
+
+    def as_dict(self) -> dict:
+        return {"kind": self.KIND}
+
+    def pack(self) -> bytes:
+        """No geometry: nothing is appended to the data for the SHA-256."""
+        return b""
+
+    def crc32(self) -> int:
+        """``nReferenceCrc``: 0."""
+        return 0
+
+    def defect(self) -> str | None:
+        return None
+
+
+#: the controller reference (kind 2); ``reference="controller"`` in :class:`CompTable` means this
+CONTROLLER = ControllerReference()
+Reference = NominalReference | ControllerReference
 
 
 def crc32(data: bytes, crc: int = 0) -> int:
@@ -81,152 +117,251 @@ def crc32(data: bytes, crc: int = 0) -> int:
     return zlib.crc32(data, crc)
 
 
-def pack_header(limits: dict, *, version: int, format_version: int, n_phi: int, n_theta: int, reference: int,
-                crc: int, reference_crc: int, machine: str) -> bytes:
-    """The ST_CompTableHeader image (:data:`HEADER_STRUCT`); ``limits`` in :class:`GridLimits` order."""
-    name = machine.encode("ascii", "replace")[:MACHINE_MAX_LEN]
-    return HEADER_STRUCT.pack(*limits.values(), version, format_version, n_phi, n_theta, reference, crc,
-                              reference_crc, name)
+@dataclass(frozen=True)
+class Axis:
+    """A task axis of the grid: ``name`` (letters and digits), ``unit`` (``deg``/``mm``), first and last
+    node ``min``/``max`` in that unit, ``n`` nodes (both ends included)."""
+
+    name: str
+    unit: str
+    min: float
+    max: float
+    n: int
+
+    @property
+    def column(self) -> str:
+        """CSV column of the axis, e.g. ``x_mm``, ``phi_deg``."""
+        return f"{self.name}_{self.unit}"
+
+    def nodes(self) -> np.ndarray:
+        """The node coordinates: ``min + k*(max-min)/(n-1)``, the last one exactly ``max``."""
+        return _nodes(self.min, self.max, self.n)
+
+    @classmethod
+    def of_column(cls, column: str, lo: float, hi: float, n: int) -> "Axis":
+        """An axis from a task-coordinate column name such as ``x_mm`` or ``phi_deg``."""
+        name, _, unit = column.rpartition("_")
+        return cls(name, unit, float(lo), float(hi), int(n))
+
+
+@dataclass(frozen=True)
+class Motor:
+    """A motor of the table: ``name`` (m1..mN by position), ``unit`` (``deg`` revolute, ``mm`` prismatic),
+    command limits ``min``/``max`` and the largest change ``max_step`` between neighbouring nodes."""
+
+    name: str
+    unit: str
+    min: float
+    max: float
+    max_step: float
+
+    @property
+    def column(self) -> str:
+        """CSV column of an absolute command, e.g. ``m1_deg``; a correction is ``d`` + this."""
+        return f"{self.name}_{self.unit}"
 
 
 class Defect(NamedTuple):
-    """The first thing wrong with a table: what kind, a message, where (node and motor field)."""
+    """The first thing wrong with a table: what kind, a message, where (node index tuple and motor column)."""
 
-    kind: str          # grid_size, grid_limits, limits, version, machine, not_finite, out_of_range, step
+    kind: str          # grid_size, grid_limits, limits, version, machine, not_finite, out_of_range, step, reference
     message: str
-    node: tuple[int, int] | None = None
+    node: tuple[int, ...] | None = None
     field: str | None = None
 
 
-def bilinear(values: np.ndarray, phi_lim: tuple[float, float], theta_lim: tuple[float, float],
-             phi_deg, theta_deg) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear interpolation on a grid, with exactly the arithmetic of ``FB_CompTableLookup`` (ST).
+def multilinear(values: np.ndarray, lows: Sequence[float], highs: Sequence[float], points) -> tuple[np.ndarray,
+                                                                                                  np.ndarray]:
+    """Multilinear interpolation over 1 to 3 axes, with exactly the arithmetic of ``FB_CompTableLookup`` (ST).
 
-    ``values`` is (n_phi, n_theta, 2) in deg; ``phi_deg``/``theta_deg`` broadcast together.
-    Returns ``(m_deg, inside)``: ``m_deg`` of shape (..., 2) and a boolean mask of the points inside
-    the grid (outside points get NaN). Per point, in IEEE double, in this order::
+    ``values`` has shape (n_0, ..., n_{A-1}, N); ``points`` (..., A) in the axes' units. Returns
+    ``(m, inside)``: ``m`` of shape (..., N) and the mask of points inside the grid (outside: NaN).
+    Per point and axis a, in IEEE double::
 
-        u  := (phi - phi_min) / (phi_max - phi_min) * (n_phi - 1)
-        i  := MIN(TRUNC(u), n_phi - 2);   fu := u - i          (same for theta: v, j, fv)
-        a  := A[i,j]   + (A[i+1,j]   - A[i,j])   * fu
-        b  := A[i,j+1] + (A[i+1,j+1] - A[i,j+1]) * fu
-        m  := a + (b - a) * fv
+        u_a := (x_a - min_a) / (max_a - min_a) * (n_a - 1)
+        i_a := MIN(TRUNC(u_a), n_a - 2);   f_a := u_a - i_a
+
+    then the 2**A corner values (corner c: offset bit a of c along axis a) are reduced axis by axis, axis 0
+    first: ``C[c] := C[2c] + (C[2c+1] - C[2c]) * f_a``. For two axes this is the bilinear scheme
+    ``a := A[i,j] + (A[i+1,j] - A[i,j]) * fu; b := A[i,j+1] + ...; m := a + (b - a) * fv``.
     """
-    phi, theta = np.broadcast_arrays(np.asarray(phi_deg, dtype=np.float64),
-                                     np.asarray(theta_deg, dtype=np.float64))
-    n_phi, n_theta = values.shape[0], values.shape[1]
-    inside = ((phi >= phi_lim[0]) & (phi <= phi_lim[1])
-              & (theta >= theta_lim[0]) & (theta <= theta_lim[1]))
-    p = np.where(inside, phi, phi_lim[0])
-    t = np.where(inside, theta, theta_lim[0])
-    u = (p - phi_lim[0]) / (phi_lim[1] - phi_lim[0]) * float(n_phi - 1)
-    v = (t - theta_lim[0]) / (theta_lim[1] - theta_lim[0]) * float(n_theta - 1)
-    i = np.minimum(np.trunc(u), n_phi - 2).astype(np.intp)
-    j = np.minimum(np.trunc(v), n_theta - 2).astype(np.intp)
-    fu = (u - i)[..., None]
-    fv = (v - j)[..., None]
-    a00, a10 = values[i, j], values[i + 1, j]
-    a01, a11 = values[i, j + 1], values[i + 1, j + 1]
-    a = a00 + (a10 - a00) * fu
-    b = a01 + (a11 - a01) * fu
-    m = a + (b - a) * fv
+    n_axes = values.ndim - 1
+    x = np.asarray(points, dtype=np.float64)
+    if x.shape[-1] != n_axes:
+        raise ValueError(f"points have {x.shape[-1]} coordinates, the table {n_axes} axes")
+    lo, hi = np.asarray(lows, float), np.asarray(highs, float)
+    inside = np.all((x >= lo) & (x <= hi), axis=-1)
+    x = np.where(inside[..., None], x, lo)
+    idx, frac = [], []
+    for a in range(n_axes):
+        n = values.shape[a]
+        u = (x[..., a] - lo[a]) / (hi[a] - lo[a]) * float(n - 1)
+        i = np.minimum(np.trunc(u), n - 2).astype(np.intp)
+        idx.append(i)
+        frac.append((u - i)[..., None])
+    corners = [values[tuple(idx[a] + ((c >> a) & 1) for a in range(n_axes))] for c in range(2 ** n_axes)]
+    for a in range(n_axes):
+        corners = [corners[2 * c] + (corners[2 * c + 1] - corners[2 * c]) * frac[a]
+                   for c in range(len(corners) // 2)]
+    m = np.array(corners[0], dtype=np.float64)
     m[~inside] = np.nan
     return m, inside
 
 
-@dataclass
-class GridLimits:
-    """Grid span and motor limits of a table, deg (shared by :class:`CompTable` and the PLC header)."""
-
-    phi_min_deg: float
-    phi_max_deg: float
-    theta_min_deg: float
-    theta_max_deg: float
-    m_min_deg: float
-    m_max_deg: float
-    max_step_deg: float
-
-    def limits(self) -> dict[str, float]:
-        """The seven limits as keyword arguments."""
-        return {f.name: getattr(self, f.name) for f in fields(GridLimits)}
+def bilinear(values: np.ndarray, phi_lim: tuple[float, float], theta_lim: tuple[float, float],
+             phi_deg, theta_deg) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`multilinear` of a 2-axis table at (phi, theta) (broadcast together)."""
+    phi, theta = np.broadcast_arrays(np.asarray(phi_deg, float), np.asarray(theta_deg, float))
+    return multilinear(values, (phi_lim[0], theta_lim[0]), (phi_lim[1], theta_lim[1]),
+                       np.stack([phi, theta], axis=-1))
 
 
-@dataclass(eq=False, kw_only=True)
-class CompTable(GridLimits):
-    """A compensation table (deg). ``values`` has shape (n_phi, n_theta, 2): m1_deg, m2_deg per node.
+@dataclass(eq=False, init=False)
+class CompTable:
+    """A compensation table: ``values`` of shape (n_0, .., n_{A-1}, N) over ``axes`` for ``motors``.
 
     Keyword-only. ``version`` is the table version (UDINT, 1..2**32-1) that the PLC requires to increase
-    strictly. ``max_step_deg`` bounds the change of either motor command between neighbouring nodes.
-    ``reference``: the nominal IK the values are corrections to (None: values are absolute commands).
-    ``source`` (not part of the data) names the file the table was read from, for error messages.
+    strictly. ``reference``: what the values are corrections to: None (absolute commands), a
+    :class:`NominalReference` (the PLC's ocpm nominal IK; only for axes phi, theta in deg and motors m1, m2
+    in deg), or :data:`CONTROLLER` / ``"controller"`` (the motion controller's own nominal IK; any axes
+    and motors; ``min``/``max``/``max_step`` of the motors then bound the correction). ``source`` (not part of the data) names the file
+    the table was read from, for error messages. Without ``axes``/``motors`` the keywords of format 3
+    (``phi_min_deg`` .. ``theta_max_deg``, ``m_min_deg``, ``m_max_deg``, ``max_step_deg``) build a
+    2-axis table of 2 motors in deg.
     """
 
     machine: str
     version: int
     values: np.ndarray
-    reference: NominalReference | None = None
+    axes: tuple[Axis, ...]
+    motors: tuple[Motor, ...]
+    reference: Reference | None = None
     source: str | None = field(default=None, repr=False)
 
-    def __post_init__(self) -> None:
-        self.values = np.ascontiguousarray(self.values, dtype="<f8")
-        if self.values.ndim != 3 or self.values.shape[2] != 2:
-            raise InputError(f"table values must have shape (n_phi, n_theta, 2), got {self.values.shape}",
-                             file=self.source, field="values")
-        for name, value in self.limits().items():
-            setattr(self, name, float(value))
+    def __init__(self, *, machine: str, version: int, values, axes: Sequence[Axis] | None = None,
+                 motors: Sequence[Motor] | None = None, reference: Reference | str | None = None,
+                 source: str | None = None, **legacy) -> None:
+        if reference == ControllerReference.KIND:
+            reference = CONTROLLER
+        elif isinstance(reference, str):
+            raise ValueError(f"reference must be 'controller', a NominalReference, CONTROLLER or None, "
+                             f"got {reference!r}")
+        self.machine, self.version, self.reference, self.source = machine, version, reference, source
+        self.values = np.ascontiguousarray(values, dtype="<f8")
+        if axes is None or motors is None:
+            axes, motors = _legacy_axes(self.values, legacy, source)
+        elif legacy:
+            raise TypeError(f"unexpected keywords {sorted(legacy)} next to axes/motors")
+        self.axes = tuple(Axis(a.name, a.unit, float(a.min), float(a.max), int(a.n)) for a in axes)
+        self.motors = tuple(Motor(f"m{k + 1}", m.unit, float(m.min), float(m.max), float(m.max_step))
+                            for k, m in enumerate(motors))
+        want = tuple(a.n for a in self.axes) + (len(self.motors),)
+        if self.values.shape != want:
+            raise InputError(f"table values have shape {self.values.shape}, axes and motors say {want}",
+                             file=source, field="values")
 
     # ---- geometry -------------------------------------------------------------------------
     @property
-    def n_phi(self) -> int:
-        return int(self.values.shape[0])
+    def n_axes(self) -> int:
+        return len(self.axes)
 
     @property
-    def n_theta(self) -> int:
-        return int(self.values.shape[1])
+    def n_motors(self) -> int:
+        return len(self.motors)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Nodes per axis."""
+        return tuple(a.n for a in self.axes)
+
+    def nodes(self) -> np.ndarray:
+        """Node coordinates (n_0, .., n_{A-1}, A) in the axes' units, C order as ``values``."""
+        grids = np.meshgrid(*(a.nodes() for a in self.axes), indexing="ij")
+        return np.stack(grids, axis=-1)
+
+    @property
+    def reference_code(self) -> int:
+        """``nReference`` of the header: 0 absolute, 1 ocpm nominal IK (PLC), 2 controller's own IK."""
+        if self.reference is None:
+            return REFERENCE_NONE
+        return REFERENCE_CONTROLLER if isinstance(self.reference, ControllerReference) else REFERENCE_NOMINAL_IK
+
+    @property
+    def controller_reference(self) -> bool:
+        """The values are corrections to the controller's own IK (kind 2): limits bound the corrections."""
+        return isinstance(self.reference, ControllerReference)
+
+    def columns(self) -> tuple[str, ...]:
+        """CSV columns: the axes, then the motors (``dm1_deg`` .. for a table with a reference)."""
+        d = "" if self.reference is None else "d"
+        return tuple(a.column for a in self.axes) + tuple(d + m.column for m in self.motors)
+
+    # the seeded machines' names for a 2-axis table of 2 motors (phi, theta; m1, m2)
+    n_phi = property(lambda self: self.axes[0].n)
+    n_theta = property(lambda self: self.axes[1].n)
+    phi_min_deg = property(lambda self: self.axes[0].min)
+    phi_max_deg = property(lambda self: self.axes[0].max)
+    theta_min_deg = property(lambda self: self.axes[1].min)
+    theta_max_deg = property(lambda self: self.axes[1].max)
+    m_min_deg = property(lambda self: self.motors[0].min)
+    m_max_deg = property(lambda self: self.motors[0].max)
+    max_step_deg = property(lambda self: self.motors[0].max_step)
 
     def phi_nodes_deg(self) -> np.ndarray:
-        """Azimuth of the grid rows, deg (both ends included)."""
-        return _nodes(self.phi_min_deg, self.phi_max_deg, self.n_phi)
+        return self.axes[0].nodes()
 
     def theta_nodes_deg(self) -> np.ndarray:
-        """Tilt of the grid columns, deg (both ends included)."""
-        return _nodes(self.theta_min_deg, self.theta_max_deg, self.n_theta)
+        return self.axes[1].nodes()
 
     def with_version(self, version: int) -> "CompTable":
         """A copy with another table version (values shared, read-only use)."""
-        return replace(self, version=int(version))
+        return CompTable(machine=self.machine, version=int(version), values=self.values, axes=self.axes,
+                         motors=self.motors, reference=self.reference, source=self.source)
 
     # ---- checksums ------------------------------------------------------------------------
     def data_bytes(self) -> bytes:
-        """The used nodes as the PLC stores them row by row: little-endian doubles, C order."""
+        """The used values as the PLC stores them: little-endian doubles, C order (flat)."""
         return self.values.tobytes(order="C")
 
     def nominal_at_nodes(self) -> np.ndarray:
-        """The reference commands (n_phi, n_theta, 2) deg at the nodes; zeros without reference."""
+        """The reference commands at the nodes (same shape as ``values``); zeros without reference.
+
+        Not available for the controller reference (the controller's IK is not part of the table):
+        ValueError."""
         if self.reference is None:
             return np.zeros_like(self.values)
-        pp, tt = np.meshgrid(self.phi_nodes_deg(), self.theta_nodes_deg(), indexing="ij")
-        return self.reference.commands_deg(pp, tt)
+        if self.controller_reference:
+            raise ValueError("a table of corrections to the controller's IK does not hold that IK: add the "
+                             "controller's nominal commands to the values")
+        x = self.nodes()
+        return self.reference.commands_deg(x[..., 0], x[..., 1])
 
     def commands_at_nodes(self) -> np.ndarray:
-        """Absolute motor commands (n_phi, n_theta, 2) deg at the nodes: reference + correction."""
+        """Absolute motor commands at the nodes: reference + correction (ValueError for the controller
+        reference, see :meth:`nominal_at_nodes`)."""
         return self.values if self.reference is None else self.nominal_at_nodes() + self.values
+
+    def limited_at_nodes(self) -> np.ndarray:
+        """What the motors' ``min``/``max``/``max_step`` apply to, at the nodes: the absolute commands,
+        or for the controller reference the corrections themselves (the PLC's phases 4 to 6)."""
+        return self.values if self.controller_reference else self.commands_at_nodes()
 
     def header_bytes(self, crc: int = 0) -> bytes:
         """The PLC header image of this table (ST_CompTableHeader) with ``nCrc = crc``."""
         ref = self.reference
-        return pack_header(self.limits(), version=int(self.version), format_version=FORMAT_VERSION,
-                           n_phi=self.n_phi, n_theta=self.n_theta, reference=0 if ref is None else 1, crc=crc,
+        return pack_header(self.axes, self.motors, version=int(self.version), format_version=FORMAT_VERSION,
+                           reference=self.reference_code, crc=crc,
                            reference_crc=0 if ref is None else ref.crc32(), machine=self.machine)
 
     def crc32(self) -> int:
-        """CRC-32 (:func:`crc32`) over :meth:`header_bytes` with ``nCrc = 0``, then :meth:`data_bytes`
-        (the used nodes row by row): what the PLC recomputes over its copy before using the table."""
+        """CRC-32 (:func:`crc32`) over :meth:`header_bytes` with ``nCrc = 0``, then :meth:`data_bytes`:
+        what the PLC recomputes over its copy before using the table."""
         return crc32(self.data_bytes(), crc32(self.header_bytes(0)))
 
     def sha256(self) -> str:
         """SHA-256 (hex) over :meth:`data_bytes` followed by the reference geometry's five LREALs
-        (:meth:`NominalReference.pack`, nothing without a reference), for the files and the audit trail."""
+        (:meth:`NominalReference.pack`; nothing without a reference or with the controller reference, whose
+        kind the CRC-32 seals through ``nReference``), for the files and the audit trail."""
         ref = b"" if self.reference is None else self.reference.pack()
         return hashlib.sha256(self.data_bytes() + ref).hexdigest()
 
@@ -239,23 +374,32 @@ class CompTable(GridLimits):
         return self.header_defect(active_version) or self.data_defect()
 
     def header_defect(self, active_version: int | None = None) -> Defect | None:
-        """Grid size and limits, motor limits and max step, version range and recency, machine name."""
-        if not (2 <= self.n_phi <= NPHI_MAX and 2 <= self.n_theta <= NTHETA_MAX):
-            return Defect("grid_size", f"grid {self.n_phi}x{self.n_theta} outside 2x2..{NPHI_MAX}x{NTHETA_MAX}")
-        if self.reference is not None and self.reference.defect():
-            return Defect("reference", self.reference.defect())
-        grid = (self.phi_min_deg, self.phi_max_deg, self.theta_min_deg, self.theta_max_deg)
-        if not all(math.isfinite(g) and abs(g) <= LIMIT_ABS_MAX_DEG for g in grid):
-            return Defect("grid_limits", f"grid limits must be finite, at most {LIMIT_ABS_MAX_DEG:g} deg in size")
-        if not (self.phi_min_deg < self.phi_max_deg and self.theta_min_deg < self.theta_max_deg):
-            return Defect("grid_limits", "grid limits must increase (phi_min < phi_max, theta_min < theta_max)")
-        if self.phi_max_deg - self.phi_min_deg > PHI_SPAN_MAX_DEG:
-            return Defect("grid_limits", f"phi span exceeds {PHI_SPAN_MAX_DEG:g} deg")
-        lims = (self.m_min_deg, self.m_max_deg, self.max_step_deg)
-        if not (all(math.isfinite(x) and abs(x) <= LIMIT_ABS_MAX_DEG for x in lims)
-                and self.m_min_deg < self.m_max_deg and self.max_step_deg > 0.0):
-            return Defect("limits", f"motor limits and max_step must be finite, at most {LIMIT_ABS_MAX_DEG:g} deg "
-                                    "in size, with m_min < m_max and max_step > 0")
+        """Grid size, reference, grid limits, motor limits and max steps, version, machine name."""
+        size = self.size_defect()
+        if size:
+            return Defect("grid_size", size)
+        if self.reference is not None and not self.controller_reference:
+            if not self.reference_fits():
+                return Defect("reference", "the nominal-IK reference needs axes phi, theta (deg) and motors "
+                                           "m1, m2 (deg)")
+            if self.reference.defect():
+                return Defect("reference", self.reference.defect())
+        for a in self.axes:
+            if not (_bounded(a.min) and _bounded(a.max)):
+                return Defect("grid_limits", f"axis {a.name}: limits must be finite, at most {LIMIT_ABS_MAX:g} "
+                                             f"{a.unit} in size", field=a.column)
+            if not a.min < a.max:
+                return Defect("grid_limits", f"axis {a.name}: min must be below max", field=a.column)
+        if self.reference_code == REFERENCE_NOMINAL_IK and self.axes[0].max - self.axes[0].min > PHI_SPAN_MAX_DEG:
+            return Defect("grid_limits", f"phi span exceeds {PHI_SPAN_MAX_DEG:g} deg", field="phi_deg")
+        for m in self.motors:
+            if not (all(_bounded(x) for x in (m.min, m.max, m.max_step)) and m.min < m.max and m.max_step > 0.0):
+                return Defect("limits", f"motor {m.name}: limits and max_step must be finite, at most "
+                                        f"{LIMIT_ABS_MAX:g} {m.unit} in size, with min < max and max_step > 0",
+                              field=m.column)
+            if self.controller_reference and max(abs(m.min), abs(m.max)) > CORRECTION_ABS_MAX:
+                return Defect("limits", f"motor {m.name}: correction bounds [{m.min:g}, {m.max:g}] {m.unit} exceed "
+                                        f"the PLC's CORRECTION_ABS_MAX {CORRECTION_ABS_MAX:g}", field=m.column)
         if not (isinstance(self.version, (int, np.integer)) and 1 <= int(self.version) <= VERSION_MAX):
             return Defect("version", f"table version {self.version!r} outside 1..{VERSION_MAX}")
         if active_version is not None and int(self.version) <= int(active_version):
@@ -265,158 +409,177 @@ class CompTable(GridLimits):
             return Defect("machine", f"machine name must be 1..{MACHINE_MAX_LEN} ASCII characters")
         return None
 
-    def data_defect(self) -> Defect | None:
-        """All values finite, then all within the motor limits, then every step within max_step.
+    def size_defect(self) -> str | None:
+        """Why the grid does not fit the PLC (axes, nodes per axis, motors, total values), or None."""
+        if not 1 <= self.n_axes <= NAXES_MAX:
+            return f"{self.n_axes} axes: a table has 1..{NAXES_MAX}"
+        if any(a.n < 2 for a in self.axes):
+            return f"grid {'x'.join(map(str, self.shape))}: every axis needs at least 2 nodes"
+        if not 1 <= self.n_motors <= NMOTOR_MAX:
+            return f"{self.n_motors} motors: a table holds 1..{NMOTOR_MAX}"
+        if self.values.size > NVALUES_MAX:
+            return (f"grid {'x'.join(map(str, self.shape))} x {self.n_motors} motors = {self.values.size} values, "
+                    f"more than the PLC's {NVALUES_MAX}")
+        if any(m.unit not in MOTOR_UNITS for m in self.motors):
+            return f"motor units must be one of {', '.join(MOTOR_UNITS)}"
+        if any(not _NAME.fullmatch(a.name) or not _NAME.fullmatch(a.unit) for a in self.axes) \
+                or len({a.name for a in self.axes}) < self.n_axes:
+            return "axis names and units must be distinct words of letters and digits"
+        return None
 
-        Limits and steps apply to the absolute commands (reference + correction) at the nodes.
-        Each check covers the whole table before the next starts (as FB_CompTableCheck's phases).
+    def reference_fits(self) -> bool:
+        """The nominal-IK reference applies: axes phi, theta in deg and two motors in deg."""
+        return ([a.column for a in self.axes] == ["phi_deg", "theta_deg"]
+                and [m.unit for m in self.motors] == ["deg", "deg"])
+
+    def data_defect(self) -> Defect | None:
+        """All values finite, then all within their motor's limits, then every step within its max_step.
+
+        Limits and steps apply to the absolute commands (reference + correction) at the nodes; with the
+        controller reference to the corrections (:meth:`limited_at_nodes`: the commands need the
+        controller's IK, which the table does not hold; ``pmcal compensate`` checks them when it writes
+        the table). Each check covers the whole table before the next starts (as FB_CompTableCheck's phases).
         """
         bad = ~np.isfinite(self.values)
         if bad.any():
             return self._node_defect("not_finite", bad, "is not a finite number")
-        v = self.commands_at_nodes()
+        v = self.limited_at_nodes()
         bad = ~np.isfinite(v)
         if bad.any():
             return self._node_defect("not_finite", bad, "gives a nominal command out of reach")
-        bad = (v < self.m_min_deg) | (v > self.m_max_deg)
+        lo = np.array([m.min for m in self.motors])
+        hi = np.array([m.max for m in self.motors])
+        bad = (v < lo) | (v > hi)
         if bad.any():
-            return self._node_defect("out_of_range", bad, f"outside the motor limits "
-                                     f"[{self.m_min_deg:g}, {self.m_max_deg:g}] deg")
-        for axis, name in ((0, "phi"), (1, "theta")):
+            k = int(np.argwhere(bad)[0][-1])
+            m = self.motors[k]
+            what = "correction bounds" if self.controller_reference else "motor limits"
+            return self._node_defect("out_of_range", bad, f"outside the {what} [{m.min:g}, {m.max:g}] "
+                                                          f"{m.unit} of {m.name}")
+        step_max = np.array([m.max_step for m in self.motors])
+        for axis, a in enumerate(self.axes):
             step = np.abs(np.diff(v, axis=axis))
-            bad = step > self.max_step_deg
+            bad = step > step_max
             if bad.any():
-                i, j, k = (int(x) for x in np.argwhere(bad)[0])
-                nxt = (i + 1, j) if axis == 0 else (i, j + 1)
-                return Defect("step", f"step of {step[i, j, k]:.6g} deg to the next node along {name} "
-                                      f"{nxt} exceeds max_step {self.max_step_deg:g} deg", (i, j), MOTOR_FIELDS[k])
+                *node, k = (int(x) for x in np.argwhere(bad)[0])
+                nxt = list(node)
+                nxt[axis] += 1
+                m = self.motors[k]
+                what = "correction step" if self.controller_reference else "step"
+                return Defect("step", f"{what} of {step[tuple(node) + (k,)]:.6g} {m.unit} to the next node along "
+                                      f"{a.name} {tuple(nxt)} exceeds max_step {m.max_step:g} {m.unit} of {m.name}",
+                              tuple(node), self._field(k))
         return None
+
+    def _field(self, k: int) -> str:
+        """The CSV column of motor k's values (``dm1_deg`` for the controller reference)."""
+        return ("d" if self.controller_reference else "") + self.motors[k].column
 
     def validate(self, active_version: int | None = None) -> "CompTable":
         """Raise :class:`InputError` naming file, row (CSV node row) and field on the first defect.
 
-        Checks: grid size (2..100 each way), grid and motor limits, version range (and newer than
-        ``active_version`` when given), finiteness, motor range, steps between neighbours, machine
-        name. Returns ``self`` so calls chain.
+        Checks, in the PLC's order: grid size (1..3 axes of >= 2 nodes, 1..6 motors, at most 20 000
+        values), reference, grid and motor limits (controller reference: correction bounds within
+        :data:`CORRECTION_ABS_MAX`), version range (and newer than ``active_version`` when given), machine
+        name, finiteness, motor ranges, steps between neighbours (controller reference: of the corrections;
+        the commands are the controller's and not checked here). Returns ``self``.
         """
         d = self.defect(active_version)
         if d is None:
             return self
         if d.node is None:
             raise InputError(d.message, file=self.source, field=d.field)
-        i, j = d.node
-        where = (f"node ({i}, {j}) at phi={self.phi_nodes_deg()[i]:.6g} deg, "
-                 f"theta={self.theta_nodes_deg()[j]:.6g} deg: ")
-        raise InputError(where + d.message, file=self.source, row=i * self.n_theta + j + 1, field=d.field)
+        x = self.nodes()[d.node]
+        where = "node " + str(d.node) + " at " + ", ".join(f"{a.name}={v:.6g} {a.unit}" for a, v in zip(self.axes, x))
+        row = int(np.ravel_multi_index(d.node, self.shape)) + 1
+        raise InputError(f"{where}: {d.message}", file=self.source, row=row, field=d.field)
 
     def _node_defect(self, kind: str, bad: np.ndarray, what: str) -> Defect:
-        i, j, k = (int(x) for x in np.argwhere(bad)[0])
-        if self.reference is None or kind == "not_finite":
-            text = f"{MOTOR_FIELDS[k]} = {float(self.values[i, j, k])!r} {what}"
+        *node, k = (int(x) for x in np.argwhere(bad)[0])
+        at = tuple(node) + (k,)
+        col = self._field(k)
+        if self.reference is None or self.controller_reference or kind == "not_finite":
+            text = f"{col} = {float(self.values[at])!r} {what}"
         else:
-            text = (f"command {MOTOR_FIELDS[k]} = nominal + correction "
-                    f"{float(self.values[i, j, k])!r} = {float(self.commands_at_nodes()[i, j, k])!r} {what}")
-        return Defect(kind, text, (i, j), MOTOR_FIELDS[k])
+            text = (f"command {self.motors[k].column} = nominal + correction {float(self.values[at])!r} = "
+                    f"{float(self.commands_at_nodes()[at])!r} {what}")
+        return Defect(kind, text, tuple(node), col)
 
     # ---- evaluation -----------------------------------------------------------------------
-    def interpolate(self, phi_deg, theta_deg) -> np.ndarray:
-        """Motor commands (..., 2) in deg at target orientations, as FB_CompTableLookup on the PLC.
+    def lookup(self, points) -> np.ndarray:
+        """Motor commands (..., N) at task points (..., A), as FB_CompTableLookup on the PLC.
 
-        ``reference(phi, theta) + bilinear(values)`` (bilinear alone without reference), in that
-        order of IEEE operations. Raises :class:`InputError` if a target lies outside the grid (the
-        PLC refuses it too).
+        ``reference + multilinear(values)`` (multilinear alone without reference), in that order of IEEE
+        operations. With the controller reference: the interpolated corrections, which the caller adds to
+        the controller's nominal IK at the same points. Raises :class:`InputError` if a point lies outside the grid (the PLC refuses it too).
         """
-        m, inside = lookup(self.values, self.reference, (self.phi_min_deg, self.phi_max_deg),
-                           (self.theta_min_deg, self.theta_max_deg), phi_deg, theta_deg)
+        m, inside = lookup(self.values, self.reference, [a.min for a in self.axes], [a.max for a in self.axes],
+                           points)
         if not inside.all():
-            raise InputError(f"target orientation outside the table grid phi [{self.phi_min_deg:g}, "
-                             f"{self.phi_max_deg:g}] deg, theta [{self.theta_min_deg:g}, {self.theta_max_deg:g}] deg",
-                             file=self.source)
+            box = ", ".join(f"{a.name} [{a.min:g}, {a.max:g}] {a.unit}" for a in self.axes)
+            raise InputError(f"target outside the table grid {box}", file=self.source)
         return m
 
-    @classmethod
-    def from_setpoints(cls, setpoints: Setpoints, *, machine: str, version: int, n_phi: int = 73,
-                       n_theta: int = 31, phi_range_deg: tuple[float, float] = (0.0, 360.0),
-                       theta_range_deg: tuple[float, float] = (0.0, 60.0),
-                       motor_limits_deg: tuple[float, float] = (-180.0, 180.0),
-                       max_step_deg: float = 10.0,
-                       reference: NominalReference | str | None = "nominal_ik") -> "CompTable":
-        """Fill a table from ``setpoints(phi_deg[N], theta_deg[N]) -> m_deg[N, 2]``.
+    def interpolate(self, phi_deg, theta_deg) -> np.ndarray:
+        """:meth:`lookup` of a 2-axis (phi, theta) table: commands (..., N) deg."""
+        phi, theta = np.broadcast_arrays(np.asarray(phi_deg, float), np.asarray(theta_deg, float))
+        return self.lookup(np.stack([phi, theta], axis=-1))
 
-        The callable receives the N = n_phi*n_theta node coordinates (deg) in row order
-        (phi outer, theta inner) and returns the corrected (absolute) motor commands (deg). The table
-        stores them relative to ``reference``: ``"nominal_ik"`` (default) is the machine's nominal
-        closed-form IK (:meth:`NominalReference.default`), a :class:`NominalReference` another
-        geometry, ``None`` absolute commands (the version-1 scheme). Not validated.
-        """
+    @classmethod
+    def from_grid(cls, fill: Fill, *, machine: str, version: int, axes: Sequence[Axis], motors: Sequence[Motor],
+                  reference: Reference | str | None = None, nominal: Fill | None = None) -> "CompTable":
+        """Fill a table from ``fill(points[P, A]) -> commands[P, N]`` (absolute commands at the nodes, in
+        C order: last axis fastest). Stored relative to ``reference`` (None: absolute). With the controller
+        reference, ``nominal(points[P, A]) -> commands[P, N]`` is the controller's nominal IK and the table
+        holds ``fill - nominal`` (``motors`` then bound those corrections). Not validated."""
+        proto = cls(machine=machine, version=int(version), axes=axes, motors=motors,
+                    values=np.zeros(tuple(a.n for a in axes) + (len(motors),)))
+        x = proto.nodes()
+        pts = x.reshape(-1, len(axes))
+        m = np.asarray(fill(pts), dtype=np.float64)
+        if m.shape != (pts.shape[0], len(motors)):
+            raise ValueError(f"fill returned shape {m.shape}, expected ({pts.shape[0]}, {len(motors)})")
+        m = m.reshape(proto.values.shape)
+        if reference == ControllerReference.KIND or isinstance(reference, ControllerReference):
+            if nominal is None:
+                raise ValueError("the controller reference needs nominal= (the controller's nominal IK)")
+            m = m - np.asarray(nominal(pts), dtype=np.float64).reshape(m.shape)
+        elif reference is not None:
+            m = m - reference.commands_deg(x[..., 0], x[..., 1])
+        return cls(machine=machine, version=int(version), axes=proto.axes, motors=proto.motors, values=m,
+                   reference=reference)
+
+    @classmethod
+    def from_setpoints(cls, setpoints: Callable[[np.ndarray, np.ndarray], np.ndarray], *, machine: str,
+                       version: int, n_phi: int = 73, n_theta: int = 31,
+                       phi_range_deg: tuple[float, float] = (0.0, 360.0),
+                       theta_range_deg: tuple[float, float] = (0.0, 60.0),
+                       motor_limits_deg: tuple[float, float] = (-180.0, 180.0), max_step_deg: float = 10.0,
+                       reference: NominalReference | str | None = "nominal_ik") -> "CompTable":
+        """A 2-axis (phi, theta) table of 2 motors from ``setpoints(phi_deg[P], theta_deg[P]) -> m_deg[P, 2]``
+        (the seeded machines' tables). ``reference``: ``"nominal_ik"`` (default, :meth:`NominalReference.default`),
+        a :class:`NominalReference`, or None (absolute commands). Not validated."""
         if isinstance(reference, str):
             if reference != "nominal_ik":
                 raise ValueError(f"reference must be 'nominal_ik', a NominalReference or None, got {reference!r}")
             reference = NominalReference.default()
-        phi = _nodes(*phi_range_deg, n_phi)
-        theta = _nodes(*theta_range_deg, n_theta)
-        pp, tt = np.meshgrid(phi, theta, indexing="ij")
-        m = np.asarray(setpoints(pp.ravel(), tt.ravel()), dtype=np.float64)
-        if m.shape != (pp.size, 2):
-            raise ValueError(f"setpoints returned shape {m.shape}, expected ({pp.size}, 2)")
-        m = m.reshape(n_phi, n_theta, 2)
-        if reference is not None:
-            m = m - reference.commands_deg(pp, tt)
-        return cls(machine=machine, version=int(version), phi_min_deg=phi_range_deg[0],
-                   phi_max_deg=phi_range_deg[1], theta_min_deg=theta_range_deg[0],
-                   theta_max_deg=theta_range_deg[1], m_min_deg=motor_limits_deg[0],
-                   m_max_deg=motor_limits_deg[1], max_step_deg=max_step_deg, values=m, reference=reference)
+        axes = (Axis(PHI, "deg", *phi_range_deg, n_phi), Axis(THETA, "deg", *theta_range_deg, n_theta))
+        motors = [Motor("m", "deg", motor_limits_deg[0], motor_limits_deg[1], max_step_deg)] * 2
+        return cls.from_grid(lambda p: setpoints(p[:, 0], p[:, 1]), machine=machine, version=version, axes=axes,
+                             motors=motors, reference=reference)
 
-    # ---- files ----------------------------------------------------------------------------
+    # ---- files (pmcal.bridge.comptable_files) ----------------------------------------------
     def header_dict(self) -> dict:
-        """Header fields as written to JSON (also the CSV comment block)."""
-        return {
-            "format": FORMAT, "format_version": FORMAT_VERSION, "machine": self.machine,
-            "table_version": int(self.version),
-            "grid": {"n_phi": self.n_phi, "n_theta": self.n_theta,
-                     "phi_min_deg": self.phi_min_deg, "phi_max_deg": self.phi_max_deg,
-                     "theta_min_deg": self.theta_min_deg, "theta_max_deg": self.theta_max_deg},
-            "limits": {"m_min_deg": self.m_min_deg, "m_max_deg": self.m_max_deg,
-                       "max_step_deg": self.max_step_deg},
-            "reference": {"kind": "none"} if self.reference is None else self.reference.as_dict(),
-            "crc32": f"0x{self.crc32():08X}", "sha256": self.sha256(),
-        }
+        from pmcal.bridge.comptable_files import header_dict
+        return header_dict(self)
 
     def to_json(self, path: str | Path) -> None:
-        """Write the JSON file atomically (header, nested ``values[i][j] = [m1, m2]``, checksums)."""
-        doc = self.header_dict()
-        doc["layout"] = ("values[i_phi][i_theta] = [m1_deg, m2_deg]; node = min + index*(max-min)/(n-1)"
-                         if self.reference is None else
-                         "values[i_phi][i_theta] = [dm1_deg, dm2_deg] added to the nominal IK of 'reference'; "
-                         "node = min + index*(max-min)/(n-1)")
-        doc["values"] = self.values.tolist()
-        try:
-            text = json.dumps(doc, indent=1, allow_nan=False)
-        except ValueError:
-            raise InputError("table holds NaN or infinite values; not written", file=str(path),
-                             field="values") from None
-        with atomic_write(path) as fh:
-            fh.write(text + "\n")
+        from pmcal.bridge.comptable_files import write_json
+        write_json(self, path)
 
     def to_csv(self, path: str | Path) -> None:
-        """Write the CSV atomically: ``#`` header lines, then one row per node in memory order."""
-        h = self.header_dict()
-        g, lim = h["grid"], h["limits"]
-        with atomic_write(path) as fh:
-            fh.write(f"# {FORMAT} format_version={FORMAT_VERSION}\n")
-            fh.write(f"# machine={self.machine}\n# table_version={self.version}\n")
-            fh.write("# grid " + " ".join(f"{k}={_num(v)}" for k, v in g.items()) + "\n")
-            fh.write("# limits " + " ".join(f"{k}={_num(v)}" for k, v in lim.items()) + "\n")
-            fh.write("# reference " + " ".join(f"{k}={v if k == 'kind' else _num(v)}"
-                                               for k, v in h["reference"].items()) + "\n")
-            fh.write(f"# crc32={h['crc32']} sha256={h['sha256']}\n")
-            w = csv.writer(fh, lineterminator="\n")
-            w.writerow(CSV_COLUMNS if self.reference is None else CSV_COLUMNS_REF)
-            phi, theta = self.phi_nodes_deg(), self.theta_nodes_deg()
-            for i in range(self.n_phi):
-                for j in range(self.n_theta):
-                    w.writerow((_num(phi[i]), _num(theta[j]), _num(self.values[i, j, 0]),
-                                _num(self.values[i, j, 1])))
+        from pmcal.bridge.comptable_files import write_csv
+        write_csv(self, path)
 
     def save(self, json_path: str | Path) -> tuple[Path, Path]:
         """Write ``json_path`` and the CSV beside it (same stem, ``.csv``); returns both paths."""
@@ -428,229 +591,75 @@ class CompTable(GridLimits):
 
     @classmethod
     def load(cls, path: str | Path) -> "CompTable":
-        """Read a table from ``.json`` or ``.csv`` (by suffix)."""
-        p = Path(path)
-        if p.suffix.lower() == ".csv":
-            return cls.from_csv(p)
-        return cls.from_json(p)
+        """Read a table from ``.json`` or ``.csv`` (by suffix), formats 1 to 4."""
+        from pmcal.bridge.comptable_files import read_csv, read_json
+        return read_csv(path) if Path(path).suffix.lower() == ".csv" else read_json(path)
 
     @classmethod
     def from_json(cls, path: str | Path) -> "CompTable":
-        """Read and check the JSON file (structure, grid shape, checksums); values not validated."""
-        src = str(path)
-        try:
-            doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
-        except FileNotFoundError:
-            raise InputError("file not found", file=src) from None
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InputError(f"not a JSON file: {exc}", file=src) from None
-        if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-            raise InputError(f"not a compensation table (expected \"format\": \"{FORMAT}\")", file=src,
-                             field="format")
-        fv = _check_format_version(doc.get("format_version"), src)
-        grid, lim = _section(doc, "grid", src), _section(doc, "limits", src)
-        reference = None if fv == 1 else _reference(_section(doc, "reference", src), src)
-        n_phi, n_theta = _int(grid, "n_phi", src), _int(grid, "n_theta", src)
-        try:
-            values = np.asarray(doc.get("values"), dtype=np.float64)
-        except (TypeError, ValueError):
-            raise InputError("values must be numbers nested [n_phi][n_theta][2]", file=src, field="values") from None
-        if values.shape != (n_phi, n_theta, 2):
-            raise InputError(f"values have shape {values.shape}, header says ({n_phi}, {n_theta}, 2)",
-                             file=src, field="values")
-        table = cls(machine=_str(doc, "machine", src), version=_int(doc, "table_version", src),
-                    phi_min_deg=_float(grid, "phi_min_deg", src), phi_max_deg=_float(grid, "phi_max_deg", src),
-                    theta_min_deg=_float(grid, "theta_min_deg", src),
-                    theta_max_deg=_float(grid, "theta_max_deg", src),
-                    m_min_deg=_float(lim, "m_min_deg", src), m_max_deg=_float(lim, "m_max_deg", src),
-                    max_step_deg=_float(lim, "max_step_deg", src), values=values, reference=reference,
-                    source=src)
-        _check_sums(table, doc, src, fv)
-        return table
+        from pmcal.bridge.comptable_files import read_json
+        return read_json(path)
 
     @classmethod
     def from_csv(cls, path: str | Path) -> "CompTable":
-        """Read and check the CSV file (header comments, node coordinates, checksums)."""
-        src = str(path)
-        try:
-            lines = Path(path).read_text(encoding="utf-8-sig").splitlines()
-        except FileNotFoundError:
-            raise InputError("file not found", file=src) from None
-        except UnicodeDecodeError:
-            raise InputError("not a UTF-8 text file", file=src) from None
-        meta: dict[str, str] = {}
-        body = []
-        for line in lines:
-            if line.startswith("#") and not body:
-                for tok in line[1:].split():
-                    if "=" in tok:
-                        k, _, v = tok.partition("=")
-                        meta[k] = v
-                    elif tok == FORMAT:
-                        meta["format"] = FORMAT
-            elif line.strip():
-                body.append(line)
-        if meta.get("format") != FORMAT:
-            raise InputError(f"not a compensation table (first comment must name {FORMAT})", file=src)
-        fv = _check_format_version(_parse(meta, "format_version", int, src), src)
-        n_phi, n_theta = _parse(meta, "n_phi", int, src), _parse(meta, "n_theta", int, src)
-        reference = None
-        if fv >= 2:
-            kind = meta.get("kind")
-            ref_doc = {"kind": kind}
-            if kind == "nominal_ik":
-                ref_doc.update({k: _parse(meta, k, float, src) for k in NominalReference.KEYS})
-            reference = _reference(ref_doc, src)
-        columns = CSV_COLUMNS if reference is None else CSV_COLUMNS_REF
-        if not body or tuple(c.strip() for c in body[0].split(",")) != columns:
-            raise InputError(f"header row must be {','.join(columns)}", file=src)
-        rows = list(csv.reader(body[1:]))
-        if len(rows) != n_phi * n_theta or n_phi < 1 or n_theta < 1:
-            raise InputError(f"{len(rows)} data rows, header grid {n_phi}x{n_theta} needs {n_phi * n_theta}",
-                             file=src, field="n_phi")
-        table = cls(machine=meta.get("machine", ""), version=_parse(meta, "table_version", int, src),
-                    phi_min_deg=_parse(meta, "phi_min_deg", float, src),
-                    phi_max_deg=_parse(meta, "phi_max_deg", float, src),
-                    theta_min_deg=_parse(meta, "theta_min_deg", float, src),
-                    theta_max_deg=_parse(meta, "theta_max_deg", float, src),
-                    m_min_deg=_parse(meta, "m_min_deg", float, src), m_max_deg=_parse(meta, "m_max_deg", float, src),
-                    max_step_deg=_parse(meta, "max_step_deg", float, src),
-                    values=np.zeros((n_phi, n_theta, 2)), reference=reference, source=src)
-        phi, theta = table.phi_nodes_deg(), table.theta_nodes_deg()
-        for r, row in enumerate(rows, start=1):
-            if len(row) != 4:
-                raise InputError(f"expected 4 fields, got {len(row)}", file=src, row=r)
-            nums = []
-            for name, text in zip(columns, row):
-                try:
-                    nums.append(float(text))
-                except ValueError:
-                    raise InputError(f"not a number: {text!r}", file=src, row=r, field=name) from None
-            i, j = divmod(r - 1, n_theta)
-            for name, got, want in (("phi_deg", nums[0], phi[i]), ("theta_deg", nums[1], theta[j])):
-                if not abs(got - want) <= 1e-9 * max(1.0, abs(want)):
-                    raise InputError(f"{got:g} is not the grid node {want:.10g} expected at this row "
-                                     "(rows go phi-major, theta fastest)", file=src, row=r, field=name)
-            table.values[i, j] = nums[2:]
-        _check_sums(table, meta, src, fv)
-        return table
+        from pmcal.bridge.comptable_files import read_csv
+        return read_csv(path)
 
 
 # ---- helpers ------------------------------------------------------------------------------
 
+def pack_header(axes: Sequence[Axis], motors: Sequence[Motor], *, version: int, format_version: int,
+                reference: int, crc: int, reference_crc: int, machine: str) -> bytes:
+    """The ST_CompTableHeader image (:data:`HEADER_STRUCT`); unused axis and motor slots are 0."""
+    pad_a = [0.0] * (NAXES_MAX - len(axes))
+    pad_m = [0.0] * (NMOTOR_MAX - len(motors))
+    prismatic = sum(1 << k for k, m in enumerate(motors) if m.unit == "mm")
+    name = machine.encode("ascii", "replace")[:MACHINE_MAX_LEN]
+    return HEADER_STRUCT.pack(*[a.min for a in axes], *pad_a, *[a.max for a in axes], *pad_a,
+                              *[m.min for m in motors], *pad_m, *[m.max for m in motors], *pad_m,
+                              *[m.max_step for m in motors], *pad_m, version, format_version, len(axes),
+                              *[a.n for a in axes], *[0] * (NAXES_MAX - len(axes)), len(motors), reference,
+                              prismatic, crc, reference_crc, name)
+
+
+def lookup(values: np.ndarray, reference: Reference | None, lows: Sequence[float],
+           highs: Sequence[float], points) -> tuple[np.ndarray, np.ndarray]:
+    """FB_CompTableLookup: ``reference(x0, x1) + multilinear(values)``, and the inside mask (the controller
+    reference: ``multilinear(values)``, the correction, as without reference).
+
+    Shared by :meth:`CompTable.lookup` and the tests' PLC twin, so both give the same bits.
+    """
+    m, inside = multilinear(values, lows, highs, points)
+    if isinstance(reference, NominalReference):
+        x = np.asarray(points, float)
+        m = reference.commands_deg(x[..., 0], x[..., 1]) + m
+        m[~inside] = np.nan
+    return m, inside
+
+
 def _nodes(lo: float, hi: float, n: int) -> np.ndarray:
-    """n nodes from lo to hi, deg: lo + k*(hi-lo)/(n-1), the last one exactly hi."""
+    """n nodes from lo to hi: lo + k*(hi-lo)/(n-1), the last one exactly hi."""
     k = np.arange(n, dtype=np.float64)
-    out = lo + k * ((hi - lo) / (n - 1)) if n > 1 else np.array([float(lo)])
+    out = lo + k * ((hi - lo) / (n - 1)) if n > 1 else np.array([float(lo)] * n)
     if n > 1:
         out[-1] = hi
     return out
 
 
-def _num(x) -> str:
-    """Shortest text that reads back to the same double (repr), integers without '.0'."""
-    x = float(x)
-    if x.is_integer() and abs(x) < 1e15 and math.copysign(1.0, x) > 0:
-        return str(int(x))
-    return repr(x)
+def _bounded(x: float) -> bool:
+    return math.isfinite(x) and abs(x) <= LIMIT_ABS_MAX
 
 
-def _check_format_version(v, src: str) -> int:
-    """The format version of a file; version 1 (absolute commands) is read as a table without reference."""
-    if isinstance(v, bool) or v not in READ_VERSIONS:
-        raise InputError(f"format_version {v!r} not supported (this reader knows "
-                         f"{', '.join(map(str, READ_VERSIONS))})", file=src, field="format_version")
-    return int(v)
-
-
-def _reference(doc: dict, src: str) -> NominalReference | None:
-    kind = doc.get("kind")
-    if kind == "none":
-        return None
-    if kind != "nominal_ik":
-        raise InputError(f"reference kind must be 'nominal_ik' or 'none', got {kind!r}", file=src,
-                         field="reference")
-    ref = NominalReference(**{k: _float(doc, k, src) for k in NominalReference.KEYS})
-    if ref.defect():
-        raise InputError(ref.defect(), file=src, field="reference")
-    return ref
-
-
-def lookup(values: np.ndarray, reference: NominalReference | None, phi_lim: tuple[float, float],
-           theta_lim: tuple[float, float], phi_deg, theta_deg) -> tuple[np.ndarray, np.ndarray]:
-    """FB_CompTableLookup: ``reference(phi, theta) + bilinear(values)`` (deg), and the inside mask.
-
-    Shared by :meth:`CompTable.interpolate` and the PLC twin, so both give the same bits.
-    """
-    m, inside = bilinear(values, phi_lim, theta_lim, phi_deg, theta_deg)
-    if reference is not None:
-        m = reference.commands_deg(phi_deg, theta_deg) + m
-        m[~inside] = np.nan
-    return m, inside
-
-
-def _section(doc: dict, key: str, src: str) -> dict:
-    sec = doc.get(key)
-    if not isinstance(sec, dict):
-        raise InputError(f"missing section '{key}'", file=src, field=key)
-    return sec
-
-
-def _int(d: dict, key: str, src: str) -> int:
-    v = d.get(key)
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise InputError(f"must be an integer, got {v!r}", file=src, field=key)
-    return v
-
-
-def _float(d: dict, key: str, src: str) -> float:
-    v = d.get(key)
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise InputError(f"must be a number, got {v!r}", file=src, field=key)
-    return float(v)
-
-
-def _str(d: dict, key: str, src: str) -> str:
-    v = d.get(key)
-    if not isinstance(v, str):
-        raise InputError(f"must be a string, got {v!r}", file=src, field=key)
-    return v
-
-
-def _parse(meta: dict, key: str, kind: type, src: str):
-    if key not in meta:
-        raise InputError(f"missing '{key}=' in the # header lines", file=src, field=key)
-    try:
-        return kind(meta[key])
-    except ValueError:
-        raise InputError(f"bad value {meta[key]!r} in the # header lines", file=src, field=key) from None
-
-
-def _check_sums(table: CompTable, doc: dict, src: str, format_version: int = FORMAT_VERSION) -> None:
-    """Compare the checksums stored in a file with the data read from it; both must be present.
-
-    Format 3 carries ``crc32`` (:meth:`CompTable.crc32`: header image and data); formats 1 and 2 carry
-    ``crc16_ccitt`` (CRC-16/CCITT-FALSE over the data only), still read. A version-1 file's SHA-256 covers
-    the values only (it has no reference).
-    """
-    name = "crc32" if format_version >= 3 else "crc16_ccitt"
-    crc_text, sha_text = doc.get(name), doc.get("sha256")
-    for key, text in ((name, crc_text), ("sha256", sha_text)):
-        if text is None:
-            raise InputError(f"no {key} checksum: a table must carry {name} and sha256 "
-                             "(write it with pmcal; edited files are refused)", file=src, field=key)
-    if not np.isfinite(table.values).all():
-        return   # validate() names the bad node; a checksum message would hide it
-    try:
-        crc = int(str(crc_text), 16)
-    except ValueError:
-        raise InputError(f"bad CRC {crc_text!r}", file=src, field=name) from None
-    want = table.crc32() if format_version >= 3 else binascii.crc_hqx(table.data_bytes(), 0xFFFF)
-    if crc != want:
-        width = 8 if format_version >= 3 else 4
-        raise InputError(f"CRC mismatch: file says 0x{crc:0{width}X}, data give 0x{want:0{width}X} "
-                         "(file edited or damaged)", file=src, field=name)
-    sha = table.sha256() if format_version >= 2 else hashlib.sha256(table.data_bytes()).hexdigest()
-    if str(sha_text).lower() != sha:
-        raise InputError("SHA-256 mismatch between the file's checksum and its data (file edited or damaged)",
-                         file=src, field="sha256")
+def _legacy_axes(values: np.ndarray, kw: dict, source: str | None) -> tuple[tuple[Axis, ...], tuple[Motor, ...]]:
+    """Axes phi, theta and motors m1, m2 (deg) from format-3 keywords."""
+    keys = ("phi_min_deg", "phi_max_deg", "theta_min_deg", "theta_max_deg", "m_min_deg", "m_max_deg",
+            "max_step_deg")
+    if set(kw) != set(keys):
+        raise TypeError(f"CompTable needs axes= and motors=, or the keywords {', '.join(keys)}")
+    if values.ndim != 3 or values.shape[2] != 2:
+        raise InputError(f"table values must have shape (n_phi, n_theta, 2), got {values.shape}", file=source,
+                         field="values")
+    axes = (Axis(PHI, "deg", kw["phi_min_deg"], kw["phi_max_deg"], values.shape[0]),
+            Axis(THETA, "deg", kw["theta_min_deg"], kw["theta_max_deg"], values.shape[1]))
+    m = Motor("m", "deg", kw["m_min_deg"], kw["m_max_deg"], kw["max_step_deg"])
+    return axes, (m, m)

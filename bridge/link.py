@@ -32,7 +32,7 @@ class PlcLink(Protocol):
     def write_claim(self, token: int) -> None: ...
     def stage(self, header: bytes, rows: bytes) -> tuple[bytes, bytes]: ...
     def read_back(self, data_size: int) -> tuple[bytes, bytes]: ...
-    def lookup(self, phi_deg: float, theta_deg: float, timeout_s: float = 1.0) -> LookupOut: ...
+    def lookup(self, *x: float, timeout_s: float = 1.0) -> LookupOut: ...
 
 
 class LinkBase:
@@ -73,12 +73,13 @@ class LinkBase:
         """``nStagingClaim := token`` (a session token claims the staging area; 0 releases it)."""
         self.write_symbol("staging_claim", int(token).to_bytes(4, "little"))
 
-    def lookup(self, phi_deg: float, theta_deg: float, timeout_s: float = 1.0) -> LookupOut:
-        """Motor targets (deg) for (phi, theta) in deg from FB_CompTableLookup; waits for the answer."""
+    def lookup(self, *x: float, timeout_s: float = 1.0) -> LookupOut:
+        """Motor targets (deg or mm) for the task point ``x`` (1 to 3 coordinates in the table's axis units,
+        e.g. ``lookup(phi_deg, theta_deg)``) from FB_CompTableLookup; waits for the answer."""
         if self._lookup_seq is None:
             self._lookup_seq = LookupOut.unpack(self.read_symbol("lookup_out")).seq
         self._lookup_seq = (self._lookup_seq + 1) & 0xFFFFFFFF or 1
-        self.write_symbol("lookup_in", LookupIn(float(phi_deg), float(theta_deg), self._lookup_seq).pack())
+        self.write_symbol("lookup_in", LookupIn(tuple(float(v) for v in x), self._lookup_seq).pack())
         deadline = time.monotonic() + timeout_s
         while True:
             out = LookupOut.unpack(self.read_symbol("lookup_out"))

@@ -18,7 +18,8 @@ from pmcal.bridge.errors import AckTimeout, DeviceError, InterfaceError, LinkErr
 from pmcal.bridge.link import LinkBase
 from pmcal.bridge.modbus_map import (MAGIC, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap, from_registers,
                                to_registers)
-from pmcal.bridge.plc_types import INTERFACE_VERSION, LREAL_SIZE, NPHI_MAX, NTHETA_MAX, PUSH_WRITES
+from pmcal.bridge.comptable import NAXES_MAX, NMOTOR_MAX, NVALUES_MAX
+from pmcal.bridge.plc_types import INTERFACE_VERSION, LREAL_SIZE, PUSH_WRITES
 
 MODBUS_TCP_PORT = 502
 
@@ -67,11 +68,11 @@ class ModbusLink(LinkBase):
     def check_interface(self) -> None:
         """Magic, interface version, array sizes and window as expected; the PLC task is cycling."""
         r = self.rmap
-        info = self._read(r.MAGIC, 5)
-        expect = [MAGIC, INTERFACE_VERSION, NPHI_MAX, NTHETA_MAX, r.window_lreals]
+        info = self._read(r.MAGIC, 6)
+        expect = [MAGIC, INTERFACE_VERSION, NVALUES_MAX, NMOTOR_MAX, r.window_lreals, NAXES_MAX]
         if info != expect:
             raise InterfaceError(f"Modbus area at {self.target} register {r.base} holds {info}, expected "
-                                 f"{expect} (magic, interface version, NPHI_MAX, NTHETA_MAX, window): "
+                                 f"{expect} (magic, interface version, NVALUES_MAX, NMOTOR_MAX, window, NAXES_MAX): "
                                  "PLC code or register map does not match")
         first = self.read_state().cycle
         deadline = time.monotonic() + self.page_timeout_s
@@ -151,9 +152,12 @@ class ModbusLink(LinkBase):
         if not any(offset in r and offset + len(regs) - 1 in r for r in self._allowed):
             raise WriteNotAllowed(f"refusing to write registers {self.rmap.base + offset}.."
                                   f"{self.rmap.base + offset + len(regs) - 1}: not in this client's allow-list")
-        addr = self.rmap.base + offset
-        self._call(f"write registers {addr}..{addr + len(regs) - 1}", self._conn().write_registers,
-                   addr, regs, device_id=self.rmap.device_id)
+        # FC16 carries at most 123 registers: a format-4 header (124) goes in two requests
+        for k in range(0, len(regs), self.rmap.chunk):
+            addr = self.rmap.base + offset + k
+            part = regs[k:k + self.rmap.chunk]
+            self._call(f"write registers {addr}..{addr + len(part) - 1}", self._conn().write_registers,
+                       addr, part, device_id=self.rmap.device_id)
 
     def _call(self, what: str, fn, *args, **kwargs):
         """Run a pymodbus request: exceptions -> LinkError, exception responses -> DeviceError."""

@@ -7,9 +7,9 @@ registers below are that struct's words, and any PLC variable crosses Modbus as 
 register k of a value = bytes ``2k, 2k+1`` of its little-endian image. For an LREAL this is what
 pymodbus calls ``convert_to_registers([x], DATATYPE.FLOAT64, word_order="little")``.
 
-A 100x100x2 LREAL table is 80 000 registers, more than the area (and than Modbus' 65 536 addresses),
+A table of 20 000 LREALs (100x100 nodes x 2 motors) is 80 000 registers, more than the area (and than Modbus' 65 536 addresses),
 so the table moves through a paged window: the bridge fills the window (FC16, at most 123 registers a
-request; 120 used = 30 LREAL), then writes the page control block (index, count, command, sequence);
+request; 120 used = 30 LREAL) of 2970 LREALs, then writes the page control block (index, count, command, sequence);
 the PLC copies window <-> ``aShadow`` at ``index * window_lreals`` and echoes the sequence number.
 Offsets are registers relative to ``base``.
 """
@@ -46,7 +46,7 @@ class ModbusMap:
 
     base: int = 0x3000             # first holding register of the area (TF6250 default: %MB0)
     area_size: int = 12288         # registers mapped (TF6250 default 0x3000..0x5FFF)
-    window_lreals: int = 3000      # page window capacity, LREAL
+    window_lreals: int = 2970      # page window capacity, LREAL
     device_id: int = 1
     chunk: int = 120               # registers per FC16 request (whole LREALs, <= 123)
     read_chunk: int = FC3_MAX      # registers per FC3 request
@@ -54,22 +54,23 @@ class ModbusMap:
     # ---- information block (PLC writes) ----
     MAGIC: int = 0
     INTERFACE_VERSION: int = 1      # register offset (the value is plc_types.INTERFACE_VERSION)
-    NPHI_MAX: int = 2
-    NTHETA_MAX: int = 3
+    VALUES_MAX: int = 2             # NVALUES_MAX
+    MOTORS_MAX: int = 3             # NMOTOR_MAX
     WINDOW_LREALS: int = 4
+    AXES_MAX: int = 5               # NAXES_MAX
     # ---- staging and commit (bridge writes) ----
-    SHADOW_HEADER: int = 8         # ST_CompTableHeader, 52 registers
-    COMMIT_VERSION: int = 60       # nCommitToken: UDINT, low word first
-    PAGE_CONTROL: int = 62         # nPageIndex, nPageCount (LREAL), nPageCmd, nPageSeq
+    SHADOW_HEADER: int = 8         # ST_CompTableHeader, 124 registers
+    COMMIT_VERSION: int = 132      # nCommitToken: UDINT, low word first
+    PAGE_CONTROL: int = 134        # nPageIndex, nPageCount (LREAL), nPageCmd, nPageSeq
     # ---- PLC answers ----
-    PAGE_ACK: int = 66             # nPageSeqDone, ePageStatus
-    STATE: int = 68                # ST_CompTableState, 12 registers
-    ACTIVE_HEADER: int = 80        # ST_CompTableHeader, 52 registers
+    PAGE_ACK: int = 138            # nPageSeqDone, ePageStatus
+    STATE: int = 140               # ST_CompTableState, 12 registers
+    ACTIVE_HEADER: int = 152       # ST_CompTableHeader, 124 registers
     # ---- motor-target lookup ----
-    LOOKUP_IN: int = 132           # ST_CompTableLookupIn, 12 registers (bridge writes)
-    LOOKUP_OUT: int = 144          # ST_CompTableLookupOut, 16 registers (PLC writes)
-    STAGING_CLAIM: int = 160       # UDINT session token, low word first (bridge writes; 0 releases)
-    WINDOW: int = 256              # ARRAY[0..window_lreals-1] OF LREAL
+    LOOKUP_IN: int = 276           # ST_CompTableLookupIn, 16 registers (bridge writes)
+    LOOKUP_OUT: int = 292          # ST_CompTableLookupOut, 32 registers (PLC writes)
+    STAGING_CLAIM: int = 324       # UDINT session token, low word first (bridge writes; 0 releases)
+    WINDOW: int = 384              # ARRAY[0..window_lreals-1] OF LREAL
 
     def __post_init__(self) -> None:
         if not 0 < self.chunk <= FC16_MAX or self.chunk % 4:

@@ -36,6 +36,8 @@ import numpy as np
 #: nReference codes of ST_CompTableHeader
 REFERENCE_NONE = 0
 REFERENCE_NOMINAL_IK = 1
+#: the values are corrections to the motion controller's own nominal IK (not computed by the PLC's table code)
+REFERENCE_CONTROLLER = 2
 _PACK = struct.Struct("<5d")
 DEG = math.pi / 180.0          # the ST constants: PI / 180 and 180 / PI as LREAL
 RAD = 180.0 / math.pi

@@ -15,20 +15,20 @@ from enum import IntEnum
 
 import numpy as np
 
-from pmcal.bridge.comptable import HEADER_STRUCT, NPHI_MAX, NTHETA_MAX, CompTable, GridLimits, pack_header
-from pmcal.bridge.nominal import REFERENCE_NONE
+from pmcal.bridge.comptable import (HEADER_STRUCT, NAXES_MAX, NMOTOR_MAX, NVALUES_MAX, Axis, CompTable, Motor,
+                                    pack_header)
+from pmcal.bridge.nominal import REFERENCE_CONTROLLER, REFERENCE_NONE  # noqa: F401  (REFERENCE_CONTROLLER: re-exported)
 
 #: FB_CompTableManager.tCommitTimeout default (s): a checked table that motion keeps from being swapped
 #: in is dropped with SWAP_TIMEOUT after this long. The bridge's ack time-out (5 s) is longer, so the
 #: user always sees the PLC's verdict.
 COMMIT_TIMEOUT_S = 4.0
 #: interface version of GVL_CompTable (bumped when any layout below changes)
-INTERFACE_VERSION = 3
+INTERFACE_VERSION = 4
 LREAL_SIZE = 8
-#: ARRAY[0..NPHI_MAX-1, 0..NTHETA_MAX-1, 0..1] OF LREAL
-SHADOW_LREALS = NPHI_MAX * NTHETA_MAX * 2
+#: ARRAY[0..NVALUES_MAX-1] OF LREAL: the used values first, in C order (last axis, then motor, fastest)
+SHADOW_LREALS = NVALUES_MAX
 SHADOW_SIZE = SHADOW_LREALS * LREAL_SIZE
-ROW_SIZE = NTHETA_MAX * 2 * LREAL_SIZE          # one phi row of the PLC array, bytes
 
 
 class Status(IntEnum):
@@ -83,7 +83,7 @@ class LookupResult(IntEnum):
     NO_TABLE = 2
 
 
-#: ST_CompTableHeader (bridge.comptable.HEADER_STRUCT: the CRC covers this image): 104 bytes
+#: ST_CompTableHeader (bridge.comptable.HEADER_STRUCT: the CRC covers this image): 248 bytes
 _HEADER = HEADER_STRUCT
 #: ST_CompTableState: nAckToken, nActiveVersion, nCycle (UDINT); eStatus, eState (INT); nActiveCrc (DWORD);
 #: nStagingOwner (UDINT) = 24 bytes
@@ -91,10 +91,11 @@ _STATE = struct.Struct("<3I2H2I")
 #: GVL_CompTableParam.STAGING_LEASE (s): an owner silent this long while another client claims loses the
 #: staging area; a client waits this long (plus a margin) for it
 STAGING_LEASE_S = 30.0
-#: ST_CompTableLookupIn: fPhi, fTheta (LREAL), nSeq (UDINT), 4 reserved = 24 bytes
-_LOOKUP_IN = struct.Struct("<2dI4x")
-#: ST_CompTableLookupOut: fM1, fM2 (LREAL), nSeq, nTableVersion (UDINT), eResult (INT), 6 reserved
-_LOOKUP_OUT = struct.Struct("<2d2IH6x")
+#: ST_CompTableLookupIn: aX[3] (LREAL), nSeq (UDINT), 4 reserved = 32 bytes
+_LOOKUP_IN = struct.Struct(f"<{NAXES_MAX}dI4x")
+#: ST_CompTableLookupOut: aM[6] (LREAL), nSeq, nTableVersion (UDINT), eResult (INT), nMotors (UINT),
+#: bCorrection (BOOL), 3 reserved = 64 bytes
+_LOOKUP_OUT = struct.Struct(f"<{NMOTOR_MAX}d2IhH?3x")
 
 HEADER_SIZE = _HEADER.size
 STATE_SIZE = _STATE.size
@@ -103,34 +104,74 @@ LOOKUP_OUT_SIZE = _LOOKUP_OUT.size
 
 
 @dataclass(kw_only=True)
-class Header(GridLimits):
-    """ST_CompTableHeader: what the PLC needs to check and use a table (deg). Limits first, as packed."""
+class Header:
+    """ST_CompTableHeader: what the PLC needs to check and use a table. Tuples hold the used axes and
+    motors (``n``, ``axis_min``, ``axis_max`` one per axis; ``motor_min``, ``motor_max``, ``max_step``,
+    ``prismatic`` one per motor); :meth:`pack` pads the unused slots with 0. ``n_axes``/``n_motors``
+    (nAxes/nMotors) default to the tuples' lengths and may differ from them in a hostile header."""
 
+    axis_min: tuple[float, ...]
+    axis_max: tuple[float, ...]
+    n: tuple[int, ...]
+    motor_min: tuple[float, ...]
+    motor_max: tuple[float, ...]
+    max_step: tuple[float, ...]
     table_version: int
     format_version: int
-    n_phi: int
-    n_theta: int
-    crc: int                             # nCrc: CRC-32 over this header with nCrc = 0, then the used nodes
+    crc: int                             # nCrc: CRC-32 over this header with nCrc = 0, then the used values
     machine: str
-    reference: int = REFERENCE_NONE      # nReference: 0 absolute commands, 1 corrections to the nominal IK
+    reference: int = REFERENCE_NONE      # nReference: 0 absolute commands, 1 corrections to the nominal IK,
+    #                                      2 corrections to the controller's own IK
     reference_crc: int = 0               # nReferenceCrc: NominalReference.crc32() of the reference geometry
+    prismatic: int = 0                   # nPrismatic: bit k set = motor k in mm
+    n_axes: int | None = None
+    n_motors: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.n_axes is None:
+            self.n_axes = len(self.n)
+        if self.n_motors is None:
+            self.n_motors = len(self.motor_min)
 
     def pack(self) -> bytes:
-        return pack_header(self.limits(), version=self.table_version, format_version=self.format_version,
-                           n_phi=self.n_phi, n_theta=self.n_theta, reference=self.reference, crc=self.crc,
-                           reference_crc=self.reference_crc, machine=self.machine)
+        axes = [Axis("a", "u", lo, hi, n) for lo, hi, n in zip(self.axis_min, self.axis_max, self.n)]
+        motors = [Motor("m", "deg", lo, hi, st) for lo, hi, st in zip(self.motor_min, self.motor_max, self.max_step)]
+        raw = bytearray(pack_header(axes[:NAXES_MAX], motors[:NMOTOR_MAX], version=self.table_version,
+                                    format_version=self.format_version, reference=self.reference, crc=self.crc,
+                                    reference_crc=self.reference_crc, machine=self.machine))
+        struct.pack_into("<H", raw, _OFF_NAXES, self.n_axes & 0xFFFF)
+        struct.pack_into("<HHH", raw, _OFF_NMOTORS, self.n_motors & 0xFFFF, self.reference, self.prismatic)
+        return bytes(raw)
 
     @classmethod
     def unpack(cls, data: bytes) -> "Header":
         f = _HEADER.unpack(data)
-        names = [x.name for x in dataclasses.fields(GridLimits)]
-        return cls(**dict(zip(names, f[:7])), table_version=f[7], format_version=f[8], n_phi=f[9], n_theta=f[10],
-                   reference=f[11], crc=f[12], reference_crc=f[13],
-                   machine=f[14].split(b"\0", 1)[0].decode("ascii", "replace"))
+        na, nm = NAXES_MAX, NMOTOR_MAX
+        d = 2 * na + 3 * nm
+        n_axes, n_motors = f[d + 2], f[d + 3 + na]
+        ua, um = min(n_axes, na), min(n_motors, nm)
+        return cls(axis_min=f[0:ua], axis_max=f[na:na + ua], motor_min=f[2 * na:2 * na + um],
+                   motor_max=f[2 * na + nm:2 * na + nm + um], max_step=f[2 * na + 2 * nm:2 * na + 2 * nm + um],
+                   table_version=f[d], format_version=f[d + 1], n=f[d + 3:d + 3 + ua], n_axes=n_axes,
+                   n_motors=n_motors, reference=f[d + 4 + na], prismatic=f[d + 5 + na], crc=f[d + 6 + na],
+                   reference_crc=f[d + 7 + na], machine=f[d + 8 + na].split(b"\0", 1)[0].decode("ascii", "replace"))
 
     @classmethod
     def of(cls, table: CompTable) -> "Header":
         return cls.unpack(table.header_bytes(table.crc32()))
+
+    @property
+    def n_values(self) -> int:
+        """Values the header's grid uses (0 if it does not fit: F_CompTableValueCount)."""
+        if not (1 <= self.n_axes <= NAXES_MAX and 1 <= self.n_motors <= NMOTOR_MAX) or min(self.n) < 2:
+            return 0
+        total = self.n_motors * int(np.prod(self.n))
+        return total if total <= NVALUES_MAX else 0
+
+
+#: byte offsets of nAxes and nMotors in ST_CompTableHeader
+_OFF_NAXES = 8 * (2 * NAXES_MAX + 3 * NMOTOR_MAX) + 6
+_OFF_NMOTORS = _OFF_NAXES + 2 + 2 * NAXES_MAX
 
 
 @dataclass(frozen=True)
@@ -157,37 +198,54 @@ class PlcState:
 
 @dataclass(frozen=True)
 class LookupIn:
-    """ST_CompTableLookupIn: a target orientation (deg) and a request sequence number."""
+    """ST_CompTableLookupIn: a task point (the table's axis units, up to 3 coordinates) and a request
+    sequence number."""
 
-    phi_deg: float
-    theta_deg: float
+    x: tuple[float, ...]
     seq: int
 
     def pack(self) -> bytes:
-        return _LOOKUP_IN.pack(self.phi_deg, self.theta_deg, self.seq)
+        x = tuple(float(v) for v in self.x) + (0.0,) * (NAXES_MAX - len(self.x))
+        return _LOOKUP_IN.pack(*x, self.seq)
 
     @classmethod
     def unpack(cls, data: bytes) -> "LookupIn":
-        return cls(*_LOOKUP_IN.unpack(data))
+        *x, seq = _LOOKUP_IN.unpack(data)
+        return cls(tuple(x), seq)
 
 
 @dataclass(frozen=True)
 class LookupOut:
-    """ST_CompTableLookupOut: motor targets (deg) for request ``seq`` from table ``table_version``."""
+    """ST_CompTableLookupOut: motor targets (deg or mm; ``m`` holds ``n_motors`` values) for request ``seq``
+    from table ``table_version``. ``correction`` (bCorrection): ``m`` are corrections to add to the
+    controller's own nominal IK (a table with nReference = 2), not commands."""
 
-    m1_deg: float
-    m2_deg: float
+    m: tuple[float, ...]
     seq: int
     table_version: int
     result: LookupResult
+    n_motors: int = 0
+    correction: bool = False
 
     def pack(self) -> bytes:
-        return _LOOKUP_OUT.pack(self.m1_deg, self.m2_deg, self.seq, self.table_version, int(self.result))
+        m = tuple(self.m) + (0.0,) * (NMOTOR_MAX - len(self.m))
+        return _LOOKUP_OUT.pack(*m, self.seq, self.table_version, int(self.result), self.n_motors,
+                                bool(self.correction))
 
     @classmethod
     def unpack(cls, data: bytes) -> "LookupOut":
-        m1, m2, seq, ver, res = _LOOKUP_OUT.unpack(data)
-        return cls(m1, m2, seq, ver, _enum(LookupResult, res))
+        f = _LOOKUP_OUT.unpack(data)
+        nm = f[NMOTOR_MAX + 3]
+        return cls(tuple(f[:min(nm, NMOTOR_MAX)]), f[NMOTOR_MAX], f[NMOTOR_MAX + 1],
+                   _enum(LookupResult, f[NMOTOR_MAX + 2]), nm, bool(f[NMOTOR_MAX + 4]))
+
+    @property
+    def m1_deg(self) -> float:
+        return self.m[0] if self.m else 0.0
+
+    @property
+    def m2_deg(self) -> float:
+        return self.m[1] if len(self.m) > 1 else 0.0
 
 
 @dataclass(frozen=True)
@@ -205,8 +263,7 @@ class Symbol:
 SYMBOLS: tuple[Symbol, ...] = (
     Symbol("interface_version", "nInterfaceVersion", "UINT", 2, "plc"),
     Symbol("shadow_header", "stShadowHeader", "ST_CompTableHeader", HEADER_SIZE, "bridge"),
-    Symbol("shadow", "aShadow", f"ARRAY [0..{NPHI_MAX - 1},0..{NTHETA_MAX - 1},0..1] OF LREAL",
-           SHADOW_SIZE, "bridge"),
+    Symbol("shadow", "aShadow", f"ARRAY [0..{NVALUES_MAX - 1}] OF LREAL", SHADOW_SIZE, "bridge"),
     Symbol("commit", "nCommitToken", "UDINT", 4, "bridge"),
     Symbol("staging_claim", "nStagingClaim", "UDINT", 4, "bridge"),
     Symbol("state", "stState", "ST_CompTableState", STATE_SIZE, "plc"),
@@ -229,15 +286,13 @@ def _enum(kind, value: int):
 
 
 def shadow_rows(table: CompTable) -> bytes:
-    """The first ``n_phi`` rows of the PLC array ``aShadow`` holding ``table`` (unused theta slots 0).
+    """The used part of the PLC array ``aShadow`` holding ``table``: its values, flat, C order.
 
-    Row i starts at byte ``i * ROW_SIZE``; node (i, j), motor k at ``((i*NTHETA_MAX + j)*2 + k)*8``.
+    Value p (motor k of node (i0, .., i_{A-1})) at byte ``8*p``, ``p = ((i0*n1 + i1)*n2 + i2)*N + k``.
     """
-    buf = np.zeros((table.n_phi, NTHETA_MAX, 2), dtype="<f8")
-    buf[:, :table.n_theta, :] = table.values
-    return buf.tobytes()
+    return table.data_bytes()
 
 
 def used_values(header: Header, shadow: np.ndarray) -> np.ndarray:
-    """The used nodes (n_phi, n_theta, 2) of a full shadow array (NPHI_MAX, NTHETA_MAX, 2)."""
-    return shadow[:header.n_phi, :header.n_theta, :]
+    """The used values of a flat shadow array, shaped (n_0, .., n_{A-1}, N)."""
+    return shadow[:header.n_values].reshape(tuple(header.n) + (header.n_motors,))

@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from pmcal.bridge.comptable import NTHETA_MAX, CompTable
+from pmcal.bridge.comptable import CompTable
 from pmcal.bridge.errors import AckTimeout, BridgeError, LinkError, ReadbackMismatch, Rejected, StagingBusy
 from pmcal.bridge.link import PlcLink
 from pmcal.bridge.plc_types import (HEADER_SIZE, LREAL_SIZE, STAGING_LEASE_S, Header, PlcState, State, Status,
@@ -275,7 +275,7 @@ class _Run:
         t = time.perf_counter()
         back_header, back_rows = link.read_back(len(sent_rows))
         rep.timings_s["readback"] = time.perf_counter() - t
-        _compare(sent_header, sent_rows, back_header, back_rows)
+        _compare(sent_header, sent_rows, back_header, back_rows, self.table.n_motors)
         # commit and wait for the acknowledgement
         t = time.perf_counter()
         if link.read_state().staging_owner != self.token:
@@ -357,16 +357,18 @@ _REASONS = {
     Status.STALE_VERSION: "not newer than the active table",
     Status.GRID_SIZE: "grid size outside the PLC arrays",
     Status.GRID_LIMITS: "grid limits not finite or not increasing",
-    Status.LIMITS: "motor limits or max step invalid",
+    Status.LIMITS: "motor limits or max step invalid (a correction table: bounds beyond the PLC's "
+                   "CORRECTION_ABS_MAX)",
     Status.CRC_MISMATCH: "CRC of the staged data differs from the header: data damaged after staging",
     Status.NOT_FINITE: "NaN or infinite value",
-    Status.OUT_OF_RANGE: "value outside the motor limits",
+    Status.OUT_OF_RANGE: "value outside the motor limits (a correction table: outside its correction bounds)",
     Status.STEP_TOO_LARGE: "step between neighbouring nodes too large",
     Status.CRC_SELFTEST: "the PLC's CRC function fails its self-test",
     Status.WITHDRAWN: "commit withdrawn by another client",
     Status.SWAP_TIMEOUT: "motion did not allow the buffer swap within the PLC's commit time-out",
     Status.PLC_STARTING: "the PLC kept re-checking its persistent table after a restart; try again",
-    Status.REFERENCE_MISMATCH: "the table's nominal-IK reference differs from the PLC's GVL_CompTableParam.REF_*",
+    Status.REFERENCE_MISMATCH: "the table's nominal-IK reference differs from the PLC's GVL_CompTableParam.REF_*, "
+                               "or the PLC program does not know the table's reference kind",
     Status.MACHINE_MISMATCH: "the table names another machine than the PLC's GVL_CompTableParam.MACHINE",
 }
 
@@ -410,7 +412,7 @@ def _release(link: PlcLink) -> None:
         pass
 
 
-def _compare(sent_header: bytes, sent_rows: bytes, back_header: bytes, back_rows: bytes) -> None:
+def _compare(sent_header: bytes, sent_rows: bytes, back_header: bytes, back_rows: bytes, n_motors: int) -> None:
     """Raise :class:`ReadbackMismatch` naming the first differing header byte or table node."""
     if back_header != sent_header:
         pos = next(i for i in range(HEADER_SIZE) if i >= len(back_header) or back_header[i] != sent_header[i])
@@ -419,10 +421,9 @@ def _compare(sent_header: bytes, sent_rows: bytes, back_header: bytes, back_rows
         n = min(len(back_rows), len(sent_rows))
         pos = next((i for i in range(0, n, LREAL_SIZE)
                     if back_rows[i:i + LREAL_SIZE] != sent_rows[i:i + LREAL_SIZE]), n)
-        k = pos // LREAL_SIZE
-        i, rest = divmod(k, NTHETA_MAX * 2)
-        j, m = divmod(rest, 2)
-        raise ReadbackMismatch(f"read-back of the staged table differs at node ({i}, {j}) m{m + 1}_deg")
+        node, m = divmod(pos // LREAL_SIZE, n_motors)
+        raise ReadbackMismatch(f"read-back of the staged table differs at value {pos // LREAL_SIZE} (node {node} "
+                               f"in memory order, motor m{m + 1})")
 
 
 def check_writable(path: str | os.PathLike, what: str, replace: bool = False) -> None:

@@ -130,6 +130,32 @@ class ClosureSpec:
     joint_springs: bool = False
 
 
+#: nodes per axis of a machine folder's compensation table, and the max step (deg or mm), unless [table] says
+TABLE_NODES_DEFAULT = 9
+TABLE_MAX_STEP_DEFAULT = 10.0
+#: what a folder machine's table holds by default: corrections to the motion controller's own nominal IK
+#: ("controller") or absolute commands ("none"); the largest correction and correction step (deg or mm)
+TABLE_REFERENCES = ("controller", "none")
+TABLE_MAX_CORRECTION_DEFAULT = 1.0
+TABLE_MAX_CORRECTION_STEP_DEFAULT = 0.25
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """``[table]`` grid of a compensation table: nodes per axis, the box it spans (per axis [lo, hi] in the
+    axis' unit), the largest command change between neighbouring nodes allowed (deg or mm, every motor);
+    what the table holds (``reference``: ``"controller"``, corrections to the motion controller's own
+    nominal IK, or ``"none"``, absolute commands), and for corrections the largest correction and the
+    largest change of a correction between neighbouring nodes (deg or mm, every motor)."""
+
+    nodes: tuple[int, ...]
+    box: Mapping[str, tuple[float, float]]
+    max_step: float
+    reference: str = "controller"
+    max_correction: float = TABLE_MAX_CORRECTION_DEFAULT
+    max_correction_step: float = TABLE_MAX_CORRECTION_STEP_DEFAULT
+
+
 @dataclass(frozen=True)
 class MachineSpec:
     """A validated machine folder (see module docstring and ``docs/machine_toml.md``).
@@ -175,6 +201,7 @@ class MachineSpec:
     errors: ErrorSpec = field(default_factory=ErrorSpec)
     sigma_mm: float = 0.01
     table_axes: tuple[str, ...] = ()
+    table: "TableSpec | None" = None
     home: str = "home"
     closures: ClosureSpec | None = None
     legacy: bool = False
@@ -366,10 +393,11 @@ class _Loader:
         task = self.task()
         workspace = self.workspace(task)
         table_axes = self.table_axes(task)
+        table = self.table_grid(table_axes, workspace)
         return MachineSpec(name=name, folder=self.folder, model_path=self.model, title=title, motors=motors,
                            targets=targets, measure=measure, reference=reference, names=self.names_map(motors),
                            task=task, workspace=workspace,
-                           errors=self.errors(motors), sigma_mm=sigma, table_axes=table_axes, home=home,
+                           errors=self.errors(motors), sigma_mm=sigma, table_axes=table_axes, table=table, home=home,
                            closures=self.closures(), legacy=False, kind="chain")
 
     def names_map(self, motors: tuple[MotorSpec, ...]) -> Mapping[str, tuple[str, ...]]:
@@ -477,9 +505,31 @@ class _Loader:
                                                             f"{', '.join(task.coordinates)})")
         return MappingProxyType(out)
 
+    def table_grid(self, axes: tuple[str, ...], workspace) -> "TableSpec | None":
+        """``[table] nodes`` (per axis, default 9), one ``[lo, hi]`` per axis (default: the workspace box),
+        ``max_step`` (deg or mm, default 10), ``reference`` (``controller`` default, or ``none``),
+        ``max_correction`` (default 1) and ``max_correction_step`` (default 0.25), deg or mm."""
+        if not axes:
+            return None
+        tab = self.table("table", required=False)
+        nodes = tab.get("nodes", [TABLE_NODES_DEFAULT] * len(axes))
+        if (not isinstance(nodes, list) or len(nodes) != len(axes)
+                or any(isinstance(n, bool) or not isinstance(n, int) or n < 2 for n in nodes)):
+            raise self.err("table.nodes", f"must be one integer >= 2 per table axis ({len(axes)}), got {nodes!r}")
+        box = {a: self.interval(tab[a], f"table.{a}") if a in tab else workspace[a] for a in axes}
+        step = self.number(tab, "max_step", "table", default=TABLE_MAX_STEP_DEFAULT, positive=True)
+        reference = tab.get("reference", TABLE_REFERENCES[0])
+        if reference not in TABLE_REFERENCES:
+            raise self.err("table.reference", f"must be one of {', '.join(TABLE_REFERENCES)}, got {reference!r}")
+        corr = self.number(tab, "max_correction", "table", default=TABLE_MAX_CORRECTION_DEFAULT, positive=True)
+        corr_step = self.number(tab, "max_correction_step", "table", default=TABLE_MAX_CORRECTION_STEP_DEFAULT,
+                                positive=True)
+        return TableSpec(tuple(nodes), MappingProxyType(box), step, reference, corr, corr_step)
+
     def table_axes(self, task: TaskSpec) -> tuple[str, ...]:
         tab = self.table("table", required=False)
-        self.known(tab, "table", ("axes",))
+        self.known(tab, "table", ("axes", "nodes", "max_step", "reference", "max_correction", "max_correction_step")
+                   + tuple(task.coordinates))
         axes = self.strings(tab.get("axes", []), "table.axes")
         if len(axes) > 3:
             raise self.err("table.axes", f"a compensation table has at most 3 axes, got {len(axes)}; leave it "

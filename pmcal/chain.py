@@ -22,6 +22,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from pmcal import progress
+from pmcal.bridge.comptable import CONTROLLER, CORRECTION_ABS_MAX, NMOTOR_MAX, Axis, CompTable, Motor
 from pmcal.calib.chain_design import POOL_FACTOR, POOL_MIN, CampaignDesign, design_campaign
 from pmcal.calib.closed_chain import compensate_targets, identify_chain, reading_covariance, reading_operator
 from pmcal.errors import InputError, RunError
@@ -288,3 +289,103 @@ def compensate(machine, params: Mapping[str, float], task: np.ndarray, path: str
         raise InputError(f"not reachable by the identified machine: {why[0]}", file=path, row=int(i) + 1,
                          field=machine.spec.task.coordinates[0])
     return commands
+
+
+#: most axes and motors a compensation table holds (the PLC's arrays, docs/compensation_table.md)
+TABLE_AXES_MAX = 3
+
+
+def table_refusal(machine) -> str | None:
+    """Why ``machine`` gets no compensation table (one line, with what it gets instead), or None."""
+    axes, coords = machine.spec.table_axes, machine.spec.task.coordinates
+    if len(coords) > TABLE_AXES_MAX:
+        why = (f"its {len(coords)} task coordinates ({', '.join(coords)}) are more than a compensation table "
+               f"holds ({TABLE_AXES_MAX} axes at most)")
+    elif len(machine.spec.motors) > NMOTOR_MAX:
+        why = f"its {len(machine.spec.motors)} motors are more than a table holds ({NMOTOR_MAX} at most)"
+    elif not axes:
+        why = "machine.toml names no [table] axes"
+    elif len(axes) < len(coords):
+        why = f"the [table] axes ({', '.join(axes)}) cover {len(axes)} of its {len(coords)} task coordinates"
+    else:
+        return None
+    return (f"no compensation table for machine {machine.name}: {why}; this machine gets offline compensation "
+            f"of target lists: compensate PARAMS.json --targets TARGETS.csv -o SETPOINTS.csv")
+
+
+def compensation_table(machine, params: Mapping[str, float], version: int, nodes=None, absolute: bool | None = None):
+    """The compensation table (format 4) of a machine folder: a grid over its ``[table]`` axes (``[table]
+    nodes`` per axis, or ``nodes``; the box of ``[table]`` or the workspace).
+
+    By default (``[table] reference = "controller"``) the table holds, at each node, the correction to add
+    to the motion controller's own nominal inverse kinematics: ``m_calibrated - m_nominal`` (deg or mm),
+    with ``m_calibrated`` the identified machine's IK (:func:`compensate_targets`) and ``m_nominal`` the
+    nominal MJCF twin's (``machine.twin.inverse(task, None)``), header ``nReference = 2``; the motors'
+    ``min``/``max`` are then ``-+[table] max_correction`` and ``max_step`` is ``[table]
+    max_correction_step``. With ``absolute`` (or ``[table] reference = "none"``) it holds the absolute
+    commands (``nReference = 0``). Either way the absolute commands are checked first: a node the
+    identified machine cannot reach, or reaches only outside a motor's range (``[[motors]] range``), is an
+    :class:`InputError` naming the node (its CSV row); so is, for absolute commands, a step above ``[table]
+    max_step`` between neighbours (corrections do not interpolate the commands: their steps do not
+    matter), and for corrections a node the nominal machine cannot reach, and a correction or correction
+    step above its bound. Validated."""
+    why = table_refusal(machine)
+    if why:
+        raise InputError(why, field="--table")
+    spec = machine.spec
+    grid = spec.table
+    nodes = tuple(int(n) for n in (nodes or grid.nodes))
+    if len(nodes) != len(spec.table_axes) or min(nodes) < 2:
+        raise InputError(f"expected {len(spec.table_axes)} node counts >= 2 (one per table axis "
+                         f"{', '.join(spec.table_axes)}), got {','.join(map(str, nodes))}", field="--grid")
+    axes = [Axis.of_column(a, *grid.box[a], n) for a, n in zip(spec.table_axes, nodes)]
+    motors = [Motor(m.name, m.unit, m.range[0], m.range[1], grid.max_step) for m in spec.motors]
+    order = [spec.table_axes.index(c) for c in spec.task.coordinates]
+    coords = spec.task.coordinates
+
+    def fill(points: np.ndarray) -> np.ndarray:
+        task = points[:, order]
+        progress.status(f"compensation table: inverse kinematics at {len(task)} nodes")
+        commands = compensate_targets(machine.twin, dict(params), task)
+        lo = np.array([m.min for m in motors])
+        hi = np.array([m.max for m in motors])
+        ok = np.isfinite(commands).all(axis=1) & np.all((commands >= lo) & (commands <= hi), axis=1)
+        for i in np.flatnonzero(~ok)[:1]:
+            where = ", ".join(f"{c}={v:g}" for c, v in zip(coords, task[i]))
+            raise InputError(f"table node {where} is not reachable by the identified machine within its motor "
+                             "ranges; shrink the table box ([table] in machine.toml)", row=int(i) + 1, field="grid")
+        return commands
+
+    table = CompTable.from_grid(fill, machine=spec.name, version=int(version), axes=axes, motors=motors)
+    absolute = bool(absolute) or (absolute is None and grid.reference == "none")
+    defect = table.defect()
+    if defect is not None and (absolute or defect.kind != "step"):
+        table.validate()                      # names the node; a correction table's commands need no max_step
+    if absolute:
+        return table
+    if grid.max_correction > CORRECTION_ABS_MAX:
+        raise InputError(f"{grid.max_correction:g} is more than the PLC accepts (GVL_CompTableParam."
+                         f"CORRECTION_ABS_MAX {CORRECTION_ABS_MAX:g})", file=str(spec.folder / "machine.toml"),
+                         field="table.max_correction")
+
+    def nominal(points: np.ndarray) -> np.ndarray:
+        task = points[:, order]
+        commands = machine.twin.inverse(task, None)
+        for i in np.flatnonzero(~np.isfinite(commands).all(axis=1))[:1]:
+            where = ", ".join(f"{c}={v:g}" for c, v in zip(coords, task[i]))
+            raise InputError(f"table node {where} is not reachable by the nominal machine (the controller's "
+                             "inverse kinematics): no correction to it; shrink the table box ([table] in "
+                             "machine.toml)", row=int(i) + 1, field="grid")
+        return commands
+
+    c, step = grid.max_correction, grid.max_correction_step
+    bounds = [Motor(m.name, m.unit, -c, c, step) for m in motors]
+    corrections = CompTable(machine=spec.name, version=int(version), axes=table.axes, motors=bounds,
+                            values=table.values - nominal(table.nodes().reshape(-1, len(axes))).reshape(
+                                table.values.shape), reference=CONTROLLER)
+    try:
+        return corrections.validate()
+    except InputError as exc:
+        raise InputError(f"{exc.message}; the calibration moves this node further than [table] max_correction "
+                         f"{c:g} / max_correction_step {step:g} allow: check the calibration, or raise them in "
+                         "machine.toml", row=exc.row, field=exc.field) from None

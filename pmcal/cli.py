@@ -277,6 +277,9 @@ def _main(argv: list[str] | None = None) -> int:
     except MemoryError:
         print("pmcal: failed: out of memory (input too large?)", file=sys.stderr)
         return 1
+    except BrokenPipeError:          # the reader of stdout went away (pmcal ... | head): stop quietly
+        _silence_stdout()
+        return BROKEN_PIPE_STATUS
     except OSError as exc:           # a file the command needed could not be read or written
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"pmcal: error: {where}{exc.strerror or exc}", file=sys.stderr)
@@ -290,13 +293,31 @@ def _main(argv: list[str] | None = None) -> int:
         return 1
 
 
-def run() -> None:  # pragma: no cover -- console script entry point
-    """Entry point of the console script: Ctrl-C during imports also ends with one line."""
+#: exit status when stdout's reader closed the pipe: what a shell reports for a command SIGPIPE ended
+BROKEN_PIPE_STATUS = 128 + 13
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null, so the interpreter's last flush does not fail on the closed pipe again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):     # stdout is no file (captured by a test)
+        pass
+
+
+def run() -> None:
+    """Entry point of the console script (``pmcal``): :func:`main`; Ctrl-C ends with one line (exit 130), a
+    closed stdout (``pmcal ... | head``) with none (exit 141), never with a traceback."""
     try:
         status = main()
+        sys.stdout.flush()
     except KeyboardInterrupt:
         print("pmcal: interrupted", file=sys.stderr)
         status = 130
+    except BrokenPipeError:
+        _silence_stdout()
+        status = BROKEN_PIPE_STATUS
     sys.exit(status)
 
 

@@ -86,19 +86,19 @@ def test_partial_writes_by_offset_and_array_elements_by_name(ads_plc, conn):
     base = conn.get_symbol(SHADOW).index_offset
     rng = np.random.default_rng(7)
     values = rng.normal(size=3)
-    k = 2 * 100 * 5 + 2 * 7 + 1                          # node (5, 7), motor 2: flat LREAL index
+    k = (5 * 13 + 7) * 2 + 1                             # node (5, 7) of a 37 x 13 grid, motor 2: flat index
     conn.write(IG_PLC_DATA, base + 8 * k, values.tolist(), pyads.PLCTYPE_ARR_LREAL(3))
     t = ctypes.c_double * SHADOW_LREALS
     whole = np.frombuffer(bytes(conn.read_by_name(SHADOW, t, return_ctypes=True)), dtype="<f8")
     expect = np.zeros(SHADOW_LREALS)
     expect[k:k + 3] = values
     assert np.array_equal(whole, expect)
-    assert conn.read_by_name(f"{SHADOW}[5,7,1]", pyads.PLCTYPE_LREAL) == values[0]
-    assert conn.read_by_name("gvl_comptable.ASHADOW[5, 8, 0]", pyads.PLCTYPE_LREAL) == values[1]   # any case
-    conn.write_by_name(f"{SHADOW}[99,99,1]", 2.5, pyads.PLCTYPE_LREAL)
-    assert whole.size - 1 == 2 * 100 * 99 + 2 * 99 + 1
+    assert conn.read_by_name(f"{SHADOW}[{k}]", pyads.PLCTYPE_LREAL) == values[0]
+    assert conn.read_by_name(f"gvl_comptable.ASHADOW[ {k + 1} ]", pyads.PLCTYPE_LREAL) == values[1]   # any case
+    conn.write_by_name(f"{SHADOW}[19999]", 2.5, pyads.PLCTYPE_LREAL)
+    assert whole.size - 1 == 19999
     assert np.frombuffer(ads_plc.twin.read_symbol("shadow"), dtype="<f8")[-1] == 2.5
-    assert _code(conn.read_by_name, f"{SHADOW}[100,0,0]", pyads.PLCTYPE_LREAL) == 0x710   # index out of range
+    assert _code(conn.read_by_name, f"{SHADOW}[20000]", pyads.PLCTYPE_LREAL) == 0x710   # index out of range
 
 
 def test_error_codes_and_handle_lifetime(ads_plc, conn):
@@ -236,7 +236,7 @@ def test_symbol_upload_lists_the_visible_gvl(conn):
     assert set(symbols) == {f"GVL_CompTable.{n}" for n in ("nInterfaceVersion", "stShadowHeader", "aShadow",
                                                             "nCommitToken", "nStagingClaim", "stState",
                                                             "stActiveHeader", "stLookupIn", "stLookupOut")}
-    assert symbols[SHADOW].symbol_type.replace(" ", "") == "ARRAY[0..99,0..99,0..1]OFLREAL"
+    assert symbols[SHADOW].symbol_type.replace(" ", "") == "ARRAY[0..19999]OFLREAL"
     assert all(s.index_group == IG_PLC_DATA for s in symbols.values())
 
 
@@ -246,7 +246,7 @@ def test_struct_members_are_symbols_of_their_own(ads_plc, conn):
     assert conn.read_by_name("gvl_comptable.ststate.ncycle", pyads.PLCTYPE_UDINT) > first
     conn.write_by_name("GVL_CompTable.stShadowHeader.nTableVersion", 77, pyads.PLCTYPE_UDINT)
     header = ads_plc.twin.read_symbol("shadow_header")
-    assert struct.unpack_from("<I", header, 56)[0] == 77 and header[:56] == bytes(56)   # byte 56 per the DUT
+    assert struct.unpack_from("<I", header, 192)[0] == 77 and header[:192] == bytes(192)   # byte 192 per the DUT
     assert conn.read_by_name("GVL_CompTable.stShadowHeader.sMachine", pyads.PLCTYPE_STRING) == ""
     assert _code(conn.read_by_name, "GVL_CompTable.stState.nNoSuchMember", pyads.PLCTYPE_UDINT) == 0x710
     assert _code(conn.write_by_name, "GVL_CompTable.stState.nCycle", 1, pyads.PLCTYPE_ULINT) == 0x705

@@ -15,7 +15,7 @@ from pmcal.bridge.faults import Fault, Kind, Point
 from pmcal.bridge.modbus import ModbusLink, parse_host_port
 from pmcal.bridge.modbus_map import FC16_MAX, ModbusMap, from_registers, to_registers
 from pmcal.bridge.modbus_mock import ModbusMockPlc
-from pmcal.bridge.plc_types import HEADER_SIZE, LOOKUP_WRITES, ROW_SIZE, Header, LookupResult, shadow_rows
+from pmcal.bridge.plc_types import HEADER_SIZE, LOOKUP_WRITES, SHADOW_SIZE, Header, LookupResult, shadow_rows
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.errors import InputError
 from tests.bridge_fixtures import (BIG_TABLE_ACK_S, BIG_TABLE_TIMEOUT_S, TIMEOUT_S, assert_within_cycle_budget,  # noqa: F401
@@ -32,7 +32,7 @@ def test_round_trip_100x100x2_bit_exact(modbus_plc):
     header, values = modbus_plc.twin.active_table()
     assert values.tobytes() == table.values.tobytes() and header == Header.of(table)
     sent = Header.of(table).pack() + shadow_rows(table)
-    assert rep.bytes_sent == HEADER_SIZE + 100 * ROW_SIZE == len(sent)     # 80 052 registers
+    assert rep.bytes_sent == HEADER_SIZE + SHADOW_SIZE == len(sent)     # 80 124 registers
     assert rep.sha256_sent == hashlib.sha256(sent).hexdigest()
     assert_within_cycle_budget(modbus_plc)
 
@@ -49,12 +49,12 @@ def test_registers_are_the_twincat_memory_image():
 def test_paged_window_moves_many_pages_bit_exact():
     table = make_table(version=1, n_phi=37, n_theta=13)
     with running(ModbusMockPlc(rmap=SMALL, lifetime_s=60.0)) as plc:
-        assert len(SMALL.pages(37 * ROW_SIZE // 8)) == 30
+        assert len(SMALL.pages(table.values.size)) == 4             # 962 LREALs in pages of 250
         rep = push(modbus_link(plc), table)
         assert rep.result == "ok"
         assert plc.twin.active_table()[1].tobytes() == table.values.tobytes()
         with modbus_link(plc) as link:
-            assert link.read_back(37 * ROW_SIZE)[1] == shadow_rows(table)
+            assert link.read_back(8 * table.values.size)[1] == shadow_rows(table)
 
 
 def test_page_outside_the_shadow_buffer_is_refused(modbus_plc):
@@ -104,7 +104,7 @@ def test_dry_run_writes_nothing(modbus_plc):
 def test_writes_outside_the_allow_list_never_leave_the_client(modbus_plc):
     with modbus_link(modbus_plc) as link:
         with pytest.raises(WriteNotAllowed, match="allow-list"):
-            link.write_symbol("lookup_in", bytes(24))
+            link.write_symbol("lookup_in", bytes(32))
         with pytest.raises(WriteNotAllowed):
             link._write(modbus_plc.rmap.STATE, [0])
         with pytest.raises(WriteNotAllowed):                      # runs past the window's end

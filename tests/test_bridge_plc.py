@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX, crc32
+from pmcal.bridge.comptable import FORMAT_VERSION, NAXES_MAX, NMOTOR_MAX, NVALUES_MAX, crc32
 from pmcal.bridge import plc_types
 from pmcal.bridge.modbus_map import MAGIC, PAGE_LOAD, PAGE_STORE, ModbusMap
 from pmcal.bridge.nominal import NominalReference
@@ -100,11 +100,11 @@ def _bad(kind: str):
     elif kind == "stale":
         h = Header.of(make_table(version=1, n_phi=9, n_theta=5))
     elif kind == "grid_size":
-        h = replace(h, n_phi=NPHI_MAX + 1)
+        h = replace(h, n=(NVALUES_MAX // 2 + 1, 2))
     elif kind == "grid_limits":
-        h = replace(h, theta_max_deg=-1.0)
+        h = replace(h, axis_max=(h.axis_max[0], -1.0))
     elif kind == "limits":
-        h = replace(h, max_step_deg=float("nan"))
+        h = replace(h, max_step=(h.max_step[0], float("nan")))
     elif kind == "crc":
         h = replace(h, crc=h.crc ^ 0x0100)
     else:
@@ -190,7 +190,7 @@ def test_a_nan_target_is_out_of_grid_and_the_task_runs_on():
 
 def _lookup(twin: PlcTwin, phi: float, theta: float) -> LookupOut:
     seq = LookupOut.unpack(twin.read_symbol("lookup_out")).seq + 1
-    twin.write_symbol("lookup_in", LookupIn(phi, theta, seq).pack())
+    twin.write_symbol("lookup_in", LookupIn((phi, theta), seq).pack())
     twin.cycle()
     out = LookupOut.unpack(twin.read_symbol("lookup_out"))
     assert out.seq == seq
@@ -292,7 +292,7 @@ def test_st_enums_match_the_bridge():
 
 def test_st_constants_match_the_bridge():
     rmap = ModbusMap()
-    assert (CONST["NPHI_MAX"], CONST["NTHETA_MAX"]) == (NPHI_MAX, NTHETA_MAX)
+    assert (CONST["NAXES_MAX"], CONST["NMOTOR_MAX"], CONST["NVALUES_MAX"]) == (NAXES_MAX, NMOTOR_MAX, NVALUES_MAX)
     assert (CONST["INTERFACE_VERSION"], CONST["FORMAT_VERSION"]) == (plc_types.INTERFACE_VERSION, FORMAT_VERSION)
     assert (CONST["WINDOW_LREALS"], CONST["MB_MAGIC"]) == (rmap.window_lreals, MAGIC)
     assert (CONST["PAGE_STORE"], CONST["PAGE_LOAD"]) == (PAGE_STORE, PAGE_LOAD)
@@ -304,17 +304,17 @@ def test_st_constants_match_the_bridge():
 
 
 def test_st_structs_have_the_bridge_byte_layout():
-    assert _size("ST_CompTableHeader") == plc_types.HEADER_SIZE == 104
+    assert _size("ST_CompTableHeader") == plc_types.HEADER_SIZE == 248
     assert _size("ST_CompTableState") == plc_types.STATE_SIZE == 24
-    assert _size("ST_CompTableLookupIn") == plc_types.LOOKUP_IN_SIZE == 24
-    assert _size("ST_CompTableLookupOut") == plc_types.LOOKUP_OUT_SIZE == 32
+    assert _size("ST_CompTableLookupIn") == plc_types.LOOKUP_IN_SIZE == 32
+    assert _size("ST_CompTableLookupOut") == plc_types.LOOKUP_OUT_SIZE == 64
     h = _offsets("ST_CompTableHeader")
-    assert (h["nTableVersion"], h["nPhi"], h["nReference"], h["nCrc"], h["nReferenceCrc"], h["sMachine"]) == (
-        56, 62, 66, 68, 72, 76)
+    assert (h["aMotorMin"], h["nTableVersion"], h["nAxes"], h["aN"], h["nMotors"], h["nReference"], h["nPrismatic"],
+            h["nCrc"], h["nReferenceCrc"], h["sMachine"]) == (48, 192, 198, 200, 206, 208, 210, 212, 216, 220)
     st = _offsets("ST_CompTableState")
     assert (st["nAckToken"], st["eStatus"], st["eState"], st["nActiveCrc"], st["nStagingOwner"]) == (0, 12, 14, 16, 20)
     packed = Header.of(make_table(version=0x01020304)).pack()
-    assert packed[56:60] == bytes([4, 3, 2, 1]) and Header.unpack(packed).table_version == 0x01020304
+    assert packed[192:196] == bytes([4, 3, 2, 1]) and Header.unpack(packed).table_version == 0x01020304
 
 
 def test_st_modbus_area_matches_the_register_map():

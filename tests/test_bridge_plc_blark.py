@@ -14,7 +14,7 @@ blark_parse = pytest.importorskip("blark.parse")
 from blark.summary import CodeSummary  # noqa: E402
 
 from pmcal.bridge import plc_types  # noqa: E402
-from pmcal.bridge.comptable import FORMAT_VERSION, NPHI_MAX, NTHETA_MAX  # noqa: E402
+from pmcal.bridge.comptable import FORMAT_VERSION, NAXES_MAX, NMOTOR_MAX, NVALUES_MAX  # noqa: E402
 from pmcal.bridge.modbus_map import ModbusMap  # noqa: E402
 from pmcal.bridge.nominal import NominalReference  # noqa: E402
 
@@ -85,9 +85,10 @@ def test_header_and_state_offsets_match_the_packed_formats(summary):
 
     fmt = plc_types._HEADER.format.lstrip("<")
     header = {n: off for n, off, _ in _layout(summary, "ST_CompTableHeader")}
-    assert header["nTableVersion"] == st.calcsize("<7d")
-    assert header["nReference"] == st.calcsize("<7dI3H") and header["nCrc"] == st.calcsize("<7dI4H")
-    assert header["nReferenceCrc"] == header["nCrc"] + 4 and header["sMachine"] == st.calcsize("<7dI4H2I")
+    assert header["aMotorMin"] == st.calcsize("<6d") and header["nTableVersion"] == st.calcsize("<24d")
+    assert header["nAxes"] == st.calcsize("<24dIH") and header["nMotors"] == st.calcsize("<24dI5H")
+    assert header["nReference"] == st.calcsize("<24dI6H") and header["nCrc"] == st.calcsize("<24dI8H")
+    assert header["nReferenceCrc"] == header["nCrc"] + 4 and header["sMachine"] == st.calcsize("<24dI8H2I")
     assert st.calcsize("<" + fmt) == plc_types.HEADER_SIZE
     state = {n: off for n, off, _ in _layout(summary, "ST_CompTableState")}
     assert state["nActiveCrc"] == st.calcsize("<3I2H") and state["nStagingOwner"] == st.calcsize("<3I2HI")
@@ -104,7 +105,7 @@ def test_modbus_area_offsets_match_the_register_map(summary):
 
 def test_constants_match_the_bridge(summary):
     c = _consts(summary)
-    assert (int(c["NPHI_MAX"]), int(c["NTHETA_MAX"])) == (NPHI_MAX, NTHETA_MAX)
+    assert (int(c["NAXES_MAX"]), int(c["NMOTOR_MAX"]), int(c["NVALUES_MAX"])) == (NAXES_MAX, NMOTOR_MAX, NVALUES_MAX)
     assert (int(c["INTERFACE_VERSION"]), int(c["FORMAT_VERSION"])) == (plc_types.INTERFACE_VERSION, FORMAT_VERSION)
     ref = NominalReference.default()
     assert tuple(float(c[k]) for k in ("REF_A_MM", "REF_H_MM", "REF_L_MM", "REF_PSI1_DEG", "REF_PSI2_DEG")) == (

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.interpolate import RegularGridInterpolator
@@ -28,17 +30,32 @@ def crc32_bitwise(data: bytes, crc: int = 0) -> int:
 
 
 def header_image(table, crc: int) -> bytes:
-    """ST_CompTableHeader as the DUT comments lay it out (offsets 0..103), written out field by field."""
+    """ST_CompTableHeader of format 4 as the DUT comments lay it out (offsets 0..247), field by field."""
     import struct
 
     ref = table.reference
-    out = struct.pack("<7d", *table.limits().values())                          # 0..55
-    out += struct.pack("<I", table.version)                                      # 56 nTableVersion
-    out += struct.pack("<4H", 3, table.n_phi, table.n_theta, 0 if ref is None else 1)   # 60..67
-    out += struct.pack("<I", crc)                                                # 68 nCrc
-    out += struct.pack("<I", 0 if ref is None else crc32_bitwise(ref.pack()))    # 72 nReferenceCrc
-    out += table.machine.encode().ljust(28, b"\0")                               # 76 sMachine STRING(27)
+    pad = lambda xs, n: list(xs) + [0] * (n - len(xs))                           # noqa: E731
+    out = struct.pack("<3d", *pad([a.min for a in table.axes], 3))                 # 0 aAxisMin
+    out += struct.pack("<3d", *pad([a.max for a in table.axes], 3))                # 24 aAxisMax
+    out += struct.pack("<6d", *pad([m.min for m in table.motors], 6))              # 48 aMotorMin
+    out += struct.pack("<6d", *pad([m.max for m in table.motors], 6))              # 96 aMotorMax
+    out += struct.pack("<6d", *pad([m.max_step for m in table.motors], 6))         # 144 aMaxStep
+    out += struct.pack("<I", table.version)                                        # 192 nTableVersion
+    out += struct.pack("<2H", 4, len(table.axes))                                  # 196 nFormatVersion, nAxes
+    out += struct.pack("<3H", *pad([a.n for a in table.axes], 3))                  # 200 aN
+    out += struct.pack("<2H", len(table.motors), 0 if ref is None else 1)          # 206 nMotors, nReference
+    out += struct.pack("<H", sum(1 << k for k, m in enumerate(table.motors) if m.unit == "mm"))  # 210
+    out += struct.pack("<I", crc)                                                  # 212 nCrc
+    out += struct.pack("<I", 0 if ref is None else crc32_bitwise(ref.pack()))      # 216 nReferenceCrc
+    out += table.machine.encode().ljust(28, b"\0")                                # 220 sMachine STRING(27)
     return out
+
+
+def limits_of(table) -> dict:
+    """The format-3 keywords of a 2-axis, 2-motor table."""
+    return dict(phi_min_deg=table.phi_min_deg, phi_max_deg=table.phi_max_deg, theta_min_deg=table.theta_min_deg,
+                theta_max_deg=table.theta_max_deg, m_min_deg=table.m_min_deg, m_max_deg=table.m_max_deg,
+                max_step_deg=table.max_step_deg)
 
 
 # ---- CRC ----------------------------------------------------------------------------------
@@ -52,9 +69,9 @@ def test_crc_pinned_vector_is_ieee_crc32():
 
 def test_crc_covers_the_header_with_its_crc_zeroed_then_the_rows():
     table = make_table(n_phi=9, n_theta=5)
-    assert table.header_bytes(0) == header_image(table, 0) and len(header_image(table, 0)) == 104
+    assert table.header_bytes(0) == header_image(table, 0) and len(header_image(table, 0)) == 248
     crc = crc32(header_image(table, 0))
-    for i in range(table.n_phi):          # FB_CompTableCheck: chained over the rows, split over cycles
+    for i in range(table.n_phi):          # FB_CompTableCheck: chained over the values, split over cycles
         crc = crc32(table.values[i].tobytes(), crc)
     assert crc == table.crc32() == crc32_bitwise(header_image(table, 0) + table.data_bytes())
     # the header counts: another version or machine gives another CRC over the same data
@@ -101,7 +118,7 @@ def test_bad_values_are_refused_naming_row_and_field(what, field, kind):
     assert kind in str(exc.value)
 
 
-@pytest.mark.parametrize("n_phi, n_theta", [(1, 10), (10, 1), (101, 10), (10, 101)])
+@pytest.mark.parametrize("n_phi, n_theta", [(1, 10), (10, 1), (101, 100), (100, 101)])
 def test_wrong_grid_size_is_refused(n_phi, n_theta):
     table = CompTable(machine="m", version=1, values=np.zeros((n_phi, n_theta, 2)), **LIMITS)
     assert table.defect().kind == "grid_size"
@@ -121,14 +138,12 @@ def test_stale_and_equal_versions_are_refused():
 
 def test_limits_and_grid_limits_are_checked():
     t = make_table()
-    t.phi_max_deg = t.phi_min_deg
-    assert t.defect().kind == "grid_limits"
-    t = make_table()
-    t.phi_max_deg = 400.0
-    assert t.defect().kind == "grid_limits"
-    t = make_table()
-    t.m_min_deg, t.m_max_deg = 10.0, -10.0
-    assert t.defect().kind == "limits"
+    phi, theta = t.axes
+    assert replace(t, axes=(replace(phi, max=phi.min), theta)).defect().kind == "grid_limits"
+    assert replace(t, axes=(replace(phi, max=400.0), theta)).defect().kind == "grid_limits"
+    m1, m2 = t.motors
+    assert replace(t, motors=(m1, replace(m2, min=10.0, max=-10.0))).defect().kind == "limits"
+    assert replace(t, motors=(replace(m1, max_step=float("nan")), m2)).defect().kind == "limits"
 
 
 # ---- files ----------------------------------------------------------------------------------
@@ -142,7 +157,7 @@ def test_json_and_csv_round_trip_bit_exact(tmp_path):
         assert back.crc32() == table.crc32() and back.sha256() == table.sha256()
         assert (back.version, back.machine, back.n_phi, back.n_theta) == (5, "ocpm_2dof", 100, 100)
     doc = json.loads(jp.read_text())
-    assert doc["format"] == "pmcal-comptable" and doc["format_version"] == 3
+    assert doc["format"] == "pmcal-comptable" and doc["format_version"] == 4
     assert doc["crc32"] == f"0x{table.crc32():08X}" and doc["sha256"] == table.sha256()
     lines = cp.read_text().splitlines()
     assert lines[0].startswith("# pmcal-comptable") and "phi_deg,theta_deg,dm1_deg,dm2_deg" in lines
@@ -243,10 +258,13 @@ def _v1_file(tmp_path, table):
     import binascii
     import hashlib
 
-    doc = table.header_dict()
-    doc.pop("reference")
-    doc["format_version"] = 1
-    del doc["crc32"]                                   # formats 1 and 2: CRC-16/CCITT-FALSE over the values
+    doc = {"format": "pmcal-comptable", "format_version": 1, "machine": table.machine,
+           "table_version": int(table.version),
+           "grid": {"n_phi": table.n_phi, "n_theta": table.n_theta, "phi_min_deg": table.phi_min_deg,
+                    "phi_max_deg": table.phi_max_deg, "theta_min_deg": table.theta_min_deg,
+                    "theta_max_deg": table.theta_max_deg},
+           "limits": {"m_min_deg": table.m_min_deg, "m_max_deg": table.m_max_deg, "max_step_deg": table.max_step_deg}}
+                                      # formats 1 and 2: CRC-16/CCITT-FALSE over the values
     doc["crc16_ccitt"] = f"0x{binascii.crc_hqx(table.values.tobytes(), 0xFFFF):04X}"
     doc["sha256"] = hashlib.sha256(table.values.tobytes()).hexdigest()
     doc["values"] = table.values.tolist()
@@ -258,18 +276,18 @@ def _v1_file(tmp_path, table):
 def test_version_1_file_is_read_as_absolute_commands_with_the_same_lookup(tmp_path):
     ref_table = make_table(version=4, n_phi=37, n_theta=13)
     absolute = CompTable(machine="ocpm_2dof", version=4, values=ref_table.commands_at_nodes(),
-                         **ref_table.limits())
+                         **limits_of(ref_table))
     back = CompTable.load(_v1_file(tmp_path, absolute))
     assert back.reference is None and back.values.tobytes() == absolute.values.tobytes()
     back.validate()
-    # saving writes format 3 (reference kind none), which reads back to the same table
+    # saving writes format 4 (reference kind none), which reads back to the same table
     jp, cp = back.save(tmp_path / "v2.json")
     assert json.loads(jp.read_text())["reference"] == {"kind": "none"}
     for again in (CompTable.load(jp), CompTable.load(cp)):
         assert again.reference is None and again.values.tobytes() == absolute.values.tobytes()
 
 
-@pytest.mark.parametrize("version", [0, 4, "2"])
+@pytest.mark.parametrize("version", [0, 5, "2"])
 def test_unknown_format_version_is_refused(tmp_path, version):
     jp, _ = make_table().save(tmp_path / "comp.json")
     doc = json.loads(jp.read_text())

@@ -84,7 +84,7 @@ def test_help_speaks_of_the_machines_own_columns_and_defaults(capsys, tmp_path):
     with pytest.raises(SystemExit):
         main(["--machine", str(folder), "--help"])
     out = " ".join(capsys.readouterr().out.split())
-    assert "demo not available for a machine folder" in out and "diagnose not available" in out
+    assert "loop not available for a machine folder" in out and "the whole job on delta_3dof" in out
 
 
 def test_options_a_folder_machine_does_not_have_are_refused(capsys, delta):
@@ -264,10 +264,88 @@ def test_a_bad_parameters_file_is_one_line(capsys, delta, tmp_path, case):
 
 
 def test_a_table_is_refused_with_what_the_machine_gets_instead(capsys, delta, tmp_path):
+    """The hexapod's six task coordinates are more than a table holds: one line, and what it gets instead."""
+    _, d = delta
+    hexapod = copy_machine("hexapod_6dof", tmp_path)
+    line = one_line_error(capsys, "--machine", hexapod, "compensate", d / "nominal.json", "--table",
+                          tmp_path / "t.json", says=["--table", "6 task coordinates", "offline compensation of target lists"])
+    assert "--targets" in line and not (tmp_path / "t.json").exists()
+
+
+def test_a_delta_table_over_its_table_axes(capsys, delta, tmp_path):
+    """The Delta's [table] grid: a format-4 table of 3 axes and 3 motors, the nominal machine's commands."""
+    from pmcal.bridge.comptable import CompTable
+
     folder, d = delta
-    line = one_line_error(capsys, "--machine", folder, "compensate", d / "nominal.json", "--table",
-                          tmp_path / "t.json", says=["--table", "offline compensation of target lists"])
-    assert "--targets" in line and not list(tmp_path.iterdir())
+    status, out, err = run(capsys, "--machine", folder, "compensate", d / "nominal.json", "--table",
+                           tmp_path / "t.json", "--grid", "7,7,4", "--table-version", "5")
+    assert status == 0, err
+    assert "7x7x4 nodes over x_mm, y_mm, z_mm, 3 motors" in out and f"wrote {tmp_path / 't.csv'}" in out
+    t = CompTable.load(tmp_path / "t.csv")
+    assert (t.shape, t.n_motors, t.version, [m.column for m in t.motors]) == ((7, 7, 4), 3, 5,
+                                                                              ["m1_deg", "m2_deg", "m3_deg"])
+    one_line_error(capsys, "--machine", folder, "compensate", d / "nominal.json", "--table", tmp_path / "u.json",
+                   "--grid", "3,3", says="--grid")
+
+
+def test_a_delta_table_holds_corrections_to_the_controllers_ik(capsys, delta, tmp_path):
+    """By default the table holds m_identified - m_nominal (nReference 2): a zero offset of 0.2 deg on motor 1
+    is a correction of exactly -0.2 deg of m1 at every node (the twin's convention: command = joint angle -
+    dzero) and 0 on the others; --absolute writes the commands, nominal + correction; [table] bounds them;
+    the commands' max_step applies to absolute tables only."""
+    from pmcal.bridge.comptable import CompTable
+    from pmcal.machines import Machine
+
+    folder, d = delta
+    (tmp_path / "p.json").write_text(json.dumps({"mechanism": "delta_3dof", "params": {"m1.dzero": 0.2}}))
+    grid = ["--grid", "5,5,4", "--table-version", "6"]
+    status, out, err = run(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table",
+                           tmp_path / "c.json", *grid)
+    assert status == 0 and "corrections to add to the controller's nominal IK (nReference 2)" in out, err
+    status, out, err = run(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table",
+                           tmp_path / "a.json", *grid, "--absolute")
+    assert status == 0 and "absolute motor commands" in out, err
+    c, a = CompTable.load(tmp_path / "c.csv"), CompTable.load(tmp_path / "a.json")
+    assert (c.reference_code, a.reference_code) == (2, 0)
+    assert c.columns()[3:] == ("dm1_deg", "dm2_deg", "dm3_deg")
+    assert [(m.min, m.max, m.max_step) for m in c.motors] == [(-1.0, 1.0, 0.25)] * 3      # [table] defaults
+    np.testing.assert_allclose(c.values[..., 0], -0.2, atol=1e-7)
+    np.testing.assert_allclose(c.values[..., 1:], 0.0, atol=1e-7)
+    twin = Machine.from_folder(folder).twin
+    nominal = twin.inverse(c.nodes().reshape(-1, 3), None).reshape(c.values.shape)
+    np.testing.assert_allclose(a.values, nominal + c.values, rtol=0, atol=1e-9)
+    # a coarse grid: the commands step more than [table] max_step between nodes, the corrections do not
+    coarse = ["--grid", "3,3,2", "--table-version", "6"]
+    assert run(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "k.json",
+               *coarse)[0] == 0
+    one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "k2.json",
+                   *coarse, "--absolute", says=["exceeds max_step 15 deg"])
+
+    toml = folder / "machine.toml"
+    text = toml.read_text()
+
+    def table_key(key, value):                  # machine.toml with [table] key = value (the Delta sets all)
+        assert re.search(rf"^{key} = ", text, flags=re.M)
+        toml.write_text(re.sub(rf"^{key} = [^#\n]*", f"{key} = {value} ", text, flags=re.M))
+    try:
+        table_key("max_correction", "0.1")
+        line = one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table",
+                              tmp_path / "x.json", *grid, says=["row 1", "dm1_deg", "max_correction 0.1"])
+        assert "correction bounds" in line and not (tmp_path / "x.json").exists()
+        table_key("max_correction", "6")
+        one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "x.json",
+                       *grid, says=["table.max_correction", "CORRECTION_ABS_MAX 5"])
+        table_key("reference", '"nominal_ik"')
+        one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "x.json",
+                       *grid, says=["table.reference", "controller, none"])
+        table_key("reference", '"none"')
+        assert run(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "n.json",
+                   *grid)[0] == 0
+        assert CompTable.load(tmp_path / "n.json").values.tobytes() == a.values.tobytes()
+    finally:
+        toml.write_text(text)
+    one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--targets", d / "tg.csv",
+                   "-o", tmp_path / "s.csv", "--absolute", says="--absolute")
 
 
 def test_twin_options_of_a_folder_machine(capsys, delta, tmp_path):
@@ -302,8 +380,8 @@ def test_identify_leaves_out_poses_with_a_blocked_target_and_says_so(capsys, del
 
 def test_commands_a_folder_machine_does_not_have_say_so(capsys, delta, tmp_path):
     folder, d = delta
-    one_line_error(capsys, "--machine", folder, "diagnose", d / "m.csv", "--json", tmp_path / "d.json",
-                   says=["'diagnose' is not available for machine 'delta_3dof'"])
+    one_line_error(capsys, "--machine", folder, "loop",
+                   says=["the twin loop exists for ocpm_2dof only"])
 
 
 def test_nominal_compensation_reaches_the_targets_on_the_nominal_twin(capsys, delta, tmp_path):
@@ -437,3 +515,30 @@ def test_plan_is_measured_and_its_predicted_uncertainty_is_what_identify_reports
     assert np.all(np.abs(identified / planned - 1.0) < 0.10), np.max(np.abs(identified / planned - 1.0))
     one_line_error(capsys, "--machine", folder, "twin", "plan", "--poses", "3", "-o", d / "p3.csv",
                    says="3 poses give 27 coordinates for 42 base errors: plan at least 5 poses")
+
+
+# ---------------------------------------------------------------- demo of a folder machine
+def test_demo_of_a_folder_machine(delta, capsys):
+    """``pmcal --machine DIR demo`` on the Delta's copy: the folder with every step's file and the report;
+    compensation takes the held-out position error from millimetres (the random errors) to the
+    identification's prediction: the realised RMS over 60 targets is one draw of the parameter error
+    (a few dominant directions, about chi with 5 degrees of freedom), so within 0.3..2 of the predicted RMS."""
+    folder, d = delta
+    out = d / "demo"
+    status, stdout, err = run(capsys, "--machine", folder, "demo", "--out", out, "--seed", "4")
+    assert status == 0, err
+    assert {p.name for p in out.iterdir()} >= {"report.html", "summary.json", "plan.csv", "measurements.csv",
+                                              "params.json", "targets.csv", "setpoints.csv", "table.json"}
+    s = json.loads((out / "summary.json").read_text())
+    assert s["position_rms_before_mm"] > 1.0                     # errors of 0.5 mm / 0.1 deg over a 1 m machine
+    assert 0.3 < s["position_rms_after_mm"] / s["position_rms_predicted_mm"] < 2.0
+    assert 0.7 < s["chi2_per_dof"] < 1.3                         # 432 coordinates: 1 +- 0.07
+    html = (out / "report.html").read_text()
+    assert "held-out targets" in html and "data:image/png;base64," in html
+    assert f"{s['position_rms_after_mm']:.4f} mm RMS" in stdout
+    # the table holds corrections to the controller's IK: its interpolation adds a few micrometres (the
+    # 13 x 13 x 9 grid's bound is 0.007 mm, tests/test_delta_table_chain.py) to the exact IK's error
+    t = s["table"]
+    assert t["reference"] == "controller" and t["targets_inside"] >= 5
+    assert t["position_rms_mm"] < s["position_rms_after_mm"] + 0.01
+    assert (out / "table.json").is_file()

@@ -3,8 +3,8 @@ client: a stopped task keeps its registers readable and writable but nothing mov
 ``stState`` stands still); while the runtime boots after a restart the server answers exception 4
 (server device failure) and then serves again; during the restart itself nothing listens.
 
-Register offsets are ST_CompTableModbusArea's (plc/DUTs): stState at 68, its nCycle (UDINT, low word
-first) at 72..73, nCommitToken at 60..61; base 16#3000.
+Register offsets are ST_CompTableModbusArea's (plc/DUTs): stState at 140, its nCycle (UDINT, low word
+first) at 144..145, nCommitToken at 132..133; base 16#3000.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from pmcal.bridge.modbus_mock import ModbusMockPlc
 from tests.bridge_fixtures import during_restart, running
 
 BASE = 0x3000
-CYCLE = BASE + 72
-COMMIT = BASE + 60
+CYCLE = BASE + 144
+COMMIT = BASE + 132
 
 
 def _cycle(client) -> int:

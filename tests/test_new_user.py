@@ -286,3 +286,18 @@ def test_planar_identify_records_its_rank_and_compensate_refuses_a_flagged_file(
     assert digest(d) == before
     assert main(["--quiet", "--machine", "planar_2dof", "compensate", str(d / "weak.json"), "--targets",
                  str(d / "t.csv"), "-o", str(d / "s.csv"), "--force"]) == 0
+
+
+def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path):
+    """``pmcal mock-plc ... | head -1``: when the reader of stdout closes the pipe, pmcal stops without an
+    error line, with the status a shell reports for a command SIGPIPE ended (141)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "from pmcal.cli import run; run()",        # the console script
+                             "mock-plc", "--modbus", "--seconds", "5"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+    proc.stdout.close()                         # the reader is gone before the first line
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=30) == 141
+    assert "Broken pipe" not in err and "Traceback" not in err, err

@@ -261,10 +261,10 @@ def test_header_bytes_round_trip_through_plc_memory():
     header = plc_types.Header.of(make_table(version=7, n_phi=9, n_theta=5))
     rt.write_bytes("GVL_CompTable.stShadowHeader", header.pack())
     g = "GVL_CompTable.stShadowHeader"
-    assert (rt.read_value(f"{g}.nTableVersion"), rt.read_value(f"{g}.nPhi"), rt.read_value(f"{g}.nTheta"),
-            rt.read_value(f"{g}.nCrc"), rt.read_value(f"{g}.fMaxStep")) == (
-        7, 9, 5, header.crc, header.max_step_deg)
-    assert struct.unpack("<d", rt.read_bytes(f"{g}.fThetaMax"))[0] == header.theta_max_deg
+    assert (rt.read_value(f"{g}.nTableVersion"), rt.read_value(f"{g}.aN[0]"), rt.read_value(f"{g}.aN[1]"),
+            rt.read_value(f"{g}.nMotors"), rt.read_value(f"{g}.nCrc"), rt.read_value(f"{g}.aMaxStep[1]")) == (
+        7, 9, 5, 2, header.crc, header.max_step[1])
+    assert struct.unpack("<d", rt.read_bytes(f"{g}.aAxisMax[1]"))[0] == header.axis_max[1]
 
 
 def test_unsupported_st_is_named(tmp_path):
@@ -282,3 +282,31 @@ def test_the_shipped_st_uses_no_name_twincat_lacks():
         pytest.xfail(f"today's ST calls {sorted(prog.nonstandard)} "
                      f"in {sorted(set().union(*prog.nonstandard.values()))}; the ST engineer's F_Atan2 replaces it")
     assert prog.nonstandard == {}
+
+
+def test_a_function_with_in_out_arguments_runs_every_call(tmp_path):
+    """Pure FUNCTIONs are evaluated once per input; a VAR_IN_OUT argument is an address whose contents
+    change between calls (and may be written), so such a function runs every time."""
+    src = """
+FUNCTION F_Sum : UDINT
+VAR_IN_OUT
+    a : ARRAY[0..1] OF UDINT;
+    out : UDINT;
+END_VAR
+F_Sum := a[0] + a[1];
+out := F_Sum;
+END_FUNCTION
+
+PROGRAM MAIN
+VAR
+    a : ARRAY[0..1] OF UDINT;  o : UDINT;  r1, r2 : UDINT;
+END_VAR
+a[0] := 2; a[1] := 3;
+r1 := F_Sum(a := a, out := o);
+a[1] := 10;
+o := 0;
+r2 := F_Sum(a := a, out := o);
+END_PROGRAM
+"""
+    rt = run_st(tmp_path, src)
+    assert (rt.read_value("MAIN.r1"), rt.read_value("MAIN.r2"), rt.read_value("MAIN.o")) == (5, 12, 12)

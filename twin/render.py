@@ -41,6 +41,27 @@ def render_png(qpos: np.ndarray | None = None, errors=None, width: int = 800, he
     return render_model_png(m, d, width, height, cam)
 
 
+def render_machine_png(spec, qpos: np.ndarray, width: int = 800, height: int = 600) -> bytes:
+    """PNG of a machine folder (``spec``: its :class:`pmcal.mechanism.machine_spec.MachineSpec`): its
+    ``scene.xml`` (else its model) at configuration ``qpos`` (of the model's joints), from MuJoCo's free
+    camera (the scene's ``<statistic>`` and ``<global azimuth/elevation>``). ValueError when the scene adds
+    joints to the model."""
+    scene = spec.folder / "scene.xml"
+    m = mujoco.MjModel.from_xml_path(str(scene if scene.is_file() else spec.model_path))
+    if m.nq != len(qpos):
+        raise ValueError(f"{m.nq} joint coordinates, the model {len(qpos)}: the scene must include the model and "
+                         "add no joints")
+    # the offscreen buffer must hold the image (MJCF <visual><global offwidth/offheight>, default 640 x 480)
+    m.vis.global_.offwidth = max(int(m.vis.global_.offwidth), width)
+    m.vis.global_.offheight = max(int(m.vis.global_.offheight), height)
+    d = mujoco.MjData(m)
+    d.qpos[:] = qpos
+    mujoco.mj_forward(m, d)
+    cam = mujoco.MjvCamera()
+    mujoco.mjv_defaultFreeCamera(m, cam)
+    return render_model_png(m, d, width, height, cam)
+
+
 def render_model_png(m: mujoco.MjModel, d: mujoco.MjData, width: int, height: int, camera=None) -> bytes:
     """PNG of any model in state ``d`` (forward already run), seen from ``camera`` (name, id or MjvCamera)."""
     try:

@@ -618,7 +618,10 @@ class Compiler:
         params = [v for v in pou.order if v.block in ("VAR_INPUT", "VAR_IN_OUT")]
         args = ", ".join(["this"] * (pou.kind == "method") + [f"a_{v.name}" for v in params])
         def_line = len(self.out)
-        self.pure = pou.kind == "function" and bool(params)
+        # a VAR_IN_OUT argument is an address: the same key may hold other contents on the next call, and
+        # the function may write through it, so such a function is never evaluated once per input
+        self.pure = (pou.kind == "function" and bool(params)
+                     and not any(v.block == "VAR_IN_OUT" for v in pou.order))
         self._line(f"def {pou.pyname}({args}):", 0)
         self._line(f"_CALLS[{pou.index}] += 1", 1)
         fa = pou.frame_addr

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from pmcal.bridge.comptable import NPHI_MAX, NTHETA_MAX, CompTable
+from pmcal.bridge.comptable import CompTable
 from pmcal.bridge.nominal import NominalReference
 from pmcal.bridge.plc_runtime.runtime import PlcRuntime
 from pmcal.bridge.plc_types import SYMBOL, Header, PlcState, shadow_rows, used_values
@@ -183,8 +183,7 @@ class PlcTwin:
             k = self._active()
             h = Header.unpack(self.runtime.read_bytes(f"{GVL}.aHeader[{k}]"))
             data = self.runtime.read_bytes(f"{GVL}.aBuffer[{k}]")
-            values = np.frombuffer(data, dtype="<f8").reshape(NPHI_MAX, NTHETA_MAX, 2)
-            return h, used_values(h, values).copy()
+            return h, used_values(h, np.frombuffer(data, dtype="<f8")).copy()
 
     # ---- the PLC task ---------------------------------------------------------------------
     def cycle(self) -> bool:

@@ -19,10 +19,11 @@ _NOT_HERE = {
                      "--outliers", "--stiffness-ratio"),
     "twin render": ("--preset", "--stiffness-ratio"),
     "twin plan": ("--for-diagnosis", "--frame", "--theta-max", "--from"),
+    "demo": ("--full", "--hidden-effect"),
     "identify": ("--model", "--method", "--seed", "--allow-rank-deficient", "--frame", "--nest-tolerance",
-                 "--robust"),
+                 "--robust", "--history"),
     "targets": ("--theta-max",),
-    "diagnose": ("--model", "--frame", "--nest-tolerance"),
+    "diagnose": ("--model", "--frame", "--nest-tolerance", "--params", "--report", "--force"),
 }
 #: choices of ``twin measure --errors`` besides a parameters file
 ERROR_CHOICES = ("random", "none")
@@ -62,20 +63,30 @@ def option_help(machine) -> dict:
         ("compensate", ""): f"corrected motor commands for targets ({task})",
         ("compensate", "--targets"): f"targets CSV: {task} ('pmcal --machine {spec.name} targets' writes one)",
         ("compensate", "-o"): f"setpoints CSV to write: the targets with {motors} appended",
-        ("compensate", "--table"): "compensation table: not available for a machine folder yet (offline "
-                                   "compensation of target lists: --targets, -o)",
-        ("compensate", "--grid"): "table grid (not available for a machine folder yet)",
-        ("compensate", "--table-version"): "table version (not available for a machine folder yet)",
+        ("compensate", "--table"): "write the compensation table for the PLC (format 4: JSON, CSV beside) over "
+                                   f"the [table] axes ({', '.join(spec.table_axes) or 'none: offline only'})",
+        ("compensate", "--grid"): {"metavar": "N1,N2,..", "help": "table nodes per [table] axis (default: "
+                                   "machine.toml [table] nodes)"},
+        ("compensate", "--table-version"): "table version (1..2**32-1, must increase on the PLC); default: Unix time",
+        ("compensate", "--absolute"): "the table holds absolute motor commands (nReference 0) instead of the "
+                                      "corrections to add to the controller's own nominal IK (nReference 2, "
+                                      f"default unless [table] reference = \"none\"); docs/compensation_table.md",
         ("evaluate", ""): "position error of a parameter set against a measurement file (RMS, mm)",
     })
     table.update({(cmd, ""): "not available for a machine folder (the seeded machines' command)"
-                  for cmd in ("demo", "diagnose", "loop")})
+                  for cmd in ("loop",)})
     table.update({
         ("twin render", "--pose"): {
             "metavar": ",".join(spec.task.coordinates), "default": None,
             "help": f"task pose ({task}; mm, deg) the twin reaches by inverse kinematics (default: the "
                     f"'{spec.home}' keyframe)"},
         ("twin render", "--errors"): "error set of the real machine: a parameters file (default none)",
+        ("diagnose", ""): "what the geometric model leaves in a campaign: backlash, zero drift, frame drift, "
+                          "thermal expansion named only when they hold on held-out rows, else unexplained",
+        ("diagnose", "--sigma"): f"tracker noise, mm (default {sigma})",
+        ("demo", ""): f"the whole job on {spec.name}'s twin: planned campaign, identification, compensation, "
+                      "HTML report",
+        ("demo", "--seed"): "random seed of the virtual machine's errors and the campaign (default 1)",
         ("twin plan", ""): "write the poses to measure, chosen D-optimally for identification (plan CSV)",
         ("twin plan", "--poses"): {"default": DEFAULT_POSES,
                                    "help": f"number of poses (default {DEFAULT_POSES})"},
@@ -89,7 +100,8 @@ def option_help(machine) -> dict:
 #: command -> module that implements it (a function of the same name taking the parsed arguments)
 ROUTES = {**{name: "pmcal.apps.chain_commands"
              for name in ("twin_measure", "identify", "targets", "compensate", "evaluate")},
-          "twin_render": "pmcal.apps.chain_render", "twin_plan": "pmcal.apps.chain_plan"}
+          "twin_render": "pmcal.apps.chain_render", "twin_plan": "pmcal.apps.chain_plan",
+          "demo": "pmcal.apps.chain_plan", "diagnose": "pmcal.apps.chain_diagnose"}
 
 
 def __getattr__(name: str):

@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -12,8 +13,8 @@ import numpy as np
 from pmcal import progress
 from pmcal.apps import error_stats
 from pmcal.apps.chain import ERROR_CHOICES, command_defaults
-from pmcal.chain import (campaign, check_assembles, compensate as commands_for, identify as run_identification,
-                         params_document, residuals, sample_targets)
+from pmcal.chain import (campaign, check_assembles, compensate as commands_for, compensation_table,
+                         identify as run_identification, params_document, residuals, sample_targets, table_refusal)
 from pmcal.csvio import LONG_POSES
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
@@ -137,8 +138,10 @@ def compensate(args) -> int:
     """``pmcal --machine DIR compensate PARAMS.json --targets TARGETS.csv -o SETPOINTS.csv``: offline
     compensation of a target list (the identified machine's inverse kinematics)."""
     machine = _machine(args)
-    if getattr(args, "table", None) or getattr(args, "grid", None) or getattr(args, "table_version", None):
-        raise InputError(table_refusal(machine), field="--table")
+    if getattr(args, "table", None):
+        return _table(args, machine)
+    if getattr(args, "grid", None) or getattr(args, "table_version", None) or getattr(args, "absolute", False):
+        raise InputError("--grid, --table-version and --absolute go with --table TABLE.json", field="--grid")
     if not args.targets or not args.output:
         raise InputError(f"machine {machine.name} needs --targets TARGETS.csv and -o SETPOINTS.csv",
                          field="--targets" if not args.targets else "-o")
@@ -171,21 +174,31 @@ def evaluate(args) -> int:
     return 0
 
 
-#: most axes a compensation table holds
-TABLE_AXES_MAX = 3
-
-
-def table_refusal(machine) -> str:
-    """Why ``compensate --table`` is refused for a machine folder, and what it gets instead."""
-    axes, coords = machine.spec.table_axes, machine.spec.task.coordinates
-    if len(coords) > TABLE_AXES_MAX:
-        why = (f"its {len(coords)} task coordinates ({', '.join(coords)}) are more than a compensation table "
-               f"holds ({TABLE_AXES_MAX} axes at most)")
-    elif not axes:
-        why = "machine.toml names no [table] axes"
-    elif len(axes) < len(coords):
-        why = f"the [table] axes ({', '.join(axes)}) cover {len(axes)} of its {len(coords)} task coordinates"
-    else:
-        why = "compensation tables of a machine folder are not supported by the PLC bridge yet"
-    return (f"no compensation table for machine {machine.name}: {why}; this machine gets offline compensation "
-            f"of target lists: compensate PARAMS.json --targets TARGETS.csv -o SETPOINTS.csv")
+def _table(args, machine) -> int:
+    """``compensate PARAMS.json --table TABLE.json [--grid N1,N2,N3] [--table-version V] [--absolute]``: the
+    format-4 compensation table over the machine's [table] axes (docs/compensation_table.md), JSON and CSV
+    beside: corrections to the controller's own nominal IK, or with ``--absolute`` motor commands."""
+    why = table_refusal(machine)
+    if why:
+        raise InputError(why, field="--table")
+    if args.targets:
+        raise InputError("--table writes a table over the [table] grid; --targets is for target lists",
+                         field="--targets")
+    version = int(time.time()) if args.table_version is None else args.table_version
+    if not 1 <= version <= 2**32 - 1:
+        raise InputError(f"table version {version} outside 1..4294967295", field="--table-version")
+    nodes = None
+    if args.grid:
+        try:
+            nodes = [int(v) for v in str(args.grid).split(",")]
+        except ValueError:
+            raise InputError(f"expected node counts N1,N2,.. (integers), got '{args.grid}'", field="--grid") from None
+    params, _ = read_params(args.params, machine.spec, _units(machine))
+    table = compensation_table(machine, params, version, nodes, absolute=True if args.absolute else None)
+    table.save(args.table)
+    shape = "x".join(map(str, table.shape))
+    kind = ("corrections to add to the controller's nominal IK (nReference 2)" if table.controller_reference
+            else "absolute motor commands")
+    print(f"compensation table version {version}: {shape} nodes over {', '.join(a.column for a in table.axes)}, "
+          f"{table.n_motors} motors, {kind}, CRC-32 0x{table.crc32():08X}")
+    return 0

@@ -33,9 +33,7 @@ def parse_task_pose(text: str | None, coordinates: tuple[str, ...]) -> np.ndarra
 
 def twin_render(args) -> int:
     """Write the PNG of ``args.output``: the twin at ``--pose`` (default: the ``home`` keyframe)."""
-    import mujoco
-
-    from pmcal.twin.render import RenderUnavailable, render_model_png
+    from pmcal.twin.render import RenderUnavailable, render_machine_png
 
     machine = args.selected_machine
     twin = machine.twin
@@ -53,23 +51,12 @@ def twin_render(args) -> int:
     if not np.isfinite(qpos).all():
         raise InputError(f"the chain of {machine.name} does not assemble at pose {args.pose or 'home'}",
                          field="--pose")
-    scene = spec.folder / "scene.xml"
-    m = mujoco.MjModel.from_xml_path(str(scene if scene.is_file() else spec.model_path))
-    if m.nq != len(qpos):
-        raise InputError(f"{scene.name} has {m.nq} joint coordinates, the model {len(qpos)}: the scene must "
-                         f"include the model and add no joints", file=str(scene))
-    # the offscreen buffer must hold the image (MJCF <visual><global offwidth/offheight>, default 640 x 480)
-    m.vis.global_.offwidth = max(int(m.vis.global_.offwidth), args.width)
-    m.vis.global_.offheight = max(int(m.vis.global_.offheight), args.height)
-    d = mujoco.MjData(m)
-    d.qpos[:] = qpos
-    mujoco.mj_forward(m, d)
-    cam = mujoco.MjvCamera()
-    mujoco.mjv_defaultFreeCamera(m, cam)
     try:
-        png = render_model_png(m, d, args.width, args.height, cam)
+        png = render_machine_png(machine.spec, qpos, args.width, args.height)
     except RenderUnavailable as exc:
         raise RunError(str(exc)) from None
+    except ValueError as exc:                  # the scene adds joints
+        raise InputError(str(exc), file=str(machine.spec.folder / "scene.xml")) from None
     with atomic_write(args.output, "wb") as fh:
         fh.write(png)
     return 0

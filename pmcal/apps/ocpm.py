@@ -12,7 +12,7 @@ from pmcal.commands.options import ABSENT, HIDDEN
 
 #: this machine's wording of the commands' options (:mod:`pmcal.commands.options`)
 OPTION_HELP = {
-    ("twin measure", "--plan"): ABSENT,
+    ("twin measure", "--plan"): ABSENT, ("compensate", "--absolute"): ABSENT,
     ("twin measure", "--servo-noise"): HIDDEN, ("identify", "--allow-rank-deficient"): HIDDEN,
     ("twin measure", "--poses"): "number of poses, 1..2000 (default 24)",
     ("identify", "--model"): "error model: whole closed chain (full, default) or the paper's per-limb real "

@@ -17,7 +17,7 @@ from pmcal.errors import InputError, RunError
 
 #: this machine's wording of the commands' options (:mod:`pmcal.commands.options`)
 OPTION_HELP = {
-    ("twin measure", "--plan"): ABSENT,
+    ("twin measure", "--plan"): ABSENT, ("compensate", "--absolute"): ABSENT,
     **{("twin measure", o): HIDDEN for o in ("--stiffness-ratio", "--effect", "--payload", "--temperature",
                                               "--shuffle", "--seconds-per-pose", "--theta-max",
                                               "--no-random-approach", "--tracker-pose", "--nest-error",

@@ -154,7 +154,9 @@ def cmd_push(args) -> int:
     if not (args.wait_motion >= 0.0) or args.wait_motion > 3600.0:
         raise InputError(f"wait for motion must be 0..3600 s, got {args.wait_motion}", field="--wait-motion")
     table = CompTable.load(args.table).validate()       # checksums and values: before connecting
-    check_table_for(table, args.table, getattr(args, "machine", None), bool(args.force))
+    selected = getattr(args, "selected_machine", None)       # a folder's machine goes by its name, not its path
+    check_table_for(table, args.table, selected.name if selected is not None else getattr(args, "machine", None),
+                    bool(args.force))
     link = make_link(args, writes=frozenset() if args.dry_run else None)
     _quiet_libraries()
     audit = args.audit                                   # _audit_default: None with --no-audit
@@ -209,8 +211,9 @@ def plc_status(link) -> dict:
             "interface_version": _interface_version(), "active_version": st.active_version,
             "active_crc32": f"0x{st.active_crc:08X}", "machine": h.machine if st.active_version else None,
             "format_version": h.format_version if st.active_version else None,
-            "reference": {0: "none", 1: "nominal_ik"}.get(h.reference, h.reference) if st.active_version else None,
-            "grid": [h.n_phi, h.n_theta] if st.active_version else None,
+            "reference": {0: "none", 1: "nominal_ik", 2: "controller"}.get(h.reference, h.reference) if st.active_version else None,
+            "grid": list(h.n) if st.active_version else None,
+            "motors": h.n_motors if st.active_version else None,
             "last_status": name(st.status), "state": name(st.state), "ack_token": st.ack_token,
             "staging_owner": f"0x{st.staging_owner:08X}" if st.staging_owner else None,
             "plc_cycle": st.cycle,

@@ -77,6 +77,9 @@ def register(sub: CommandSet) -> None:
                    help="table grid: points in phi (0..360 deg) and theta (0..theta_max); default 73,31")
     p.add_argument("--table-version", type=int, default=None, metavar="N",
                    help="table version (1..2**32-1, must increase on the PLC); default: Unix time")
+    p.add_argument("--absolute", action="store_true",
+                   help="machine folders: the table holds absolute motor commands, not corrections to the "
+                        "controller's own IK")
     p.add_argument("--force", action="store_true",
                    help="use a calibration that identify flagged not usable (its campaign determines too little)")
     p.set_defaults(func=_cmd("compensate"))

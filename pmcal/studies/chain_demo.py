@@ -1,0 +1,184 @@
+"""The whole job on a machine folder (``pmcal --machine DIR demo``): a planned campaign on its twin with
+random geometric errors, identification, compensation of held-out targets, and what it gained, judged on
+the twin's true machine. Units: mm and degrees.
+
+:func:`chain_demo` computes a :class:`ChainDemo`; :mod:`pmcal.reports.chain_demo` turns it into the HTML
+report; :func:`run_chain_demo` writes the folder (``report.html``, the files of every step, ``summary.json``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pmcal import progress
+from pmcal.chain import (campaign, compensate, compensation_table, identify, params_document, plan, random_errors,
+                         sample_targets, table_refusal)
+from pmcal.fileio import atomic_directory, write_json
+from pmcal.io_chain import write_measurements, write_plan, write_setpoints, write_targets
+from pmcal.mechanism.task_space import POSITION, task_difference
+
+#: poses of the demo's campaign, held-out targets of its evaluation
+CAMPAIGN_POSES, HELD_OUT = 48, 60
+
+
+@dataclass
+class ChainDemo:
+    """What the demo computed (mm and degrees; task errors per held-out target).
+
+    truth : the twin's geometric errors. design : the planned campaign
+    (:class:`pmcal.calib.chain_design.CampaignDesign`). meas : its measurements. result : the
+    identification (:class:`pmcal.calib.closed_chain.ChainIdentResult`). task : (n, C) held-out targets.
+    error_nominal, error_compensated : (n, C) task-coordinate errors of the true machine driven by the
+    nominal inverse kinematics and by the compensated commands. predicted : (n, C) standard deviation of
+    the compensated error the identification's covariance predicts. table : the compensation table for the
+    PLC (:class:`pmcal.bridge.comptable.CompTable`; None when the machine gets none, ``table_note`` says
+    why). inside : the held-out targets inside its grid. error_table : (inside, C) the true machine's error
+    driven by the controller's nominal inverse kinematics plus the table's correction (the PLC's lookup).
+    timings : s per step.
+    """
+
+    machine: object
+    seed: int
+    truth: dict
+    design: object
+    meas: object
+    result: object
+    task: np.ndarray
+    commands_nominal: np.ndarray
+    commands_compensated: np.ndarray
+    error_nominal: np.ndarray
+    error_compensated: np.ndarray
+    predicted: np.ndarray
+    table: object = None
+    table_note: str = ""
+    inside: np.ndarray | None = None
+    error_table: np.ndarray | None = None
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def coordinates(self) -> tuple[str, ...]:
+        return self.machine.spec.task.coordinates
+
+    def position_error(self, err: np.ndarray) -> np.ndarray:
+        """Distance (n,) mm of the task site from its target, over the position coordinates."""
+        idx = [i for i, c in enumerate(self.coordinates) if c in POSITION]
+        return np.linalg.norm(err[:, idx], axis=1) if idx else np.zeros(len(err))
+
+    def summary(self) -> dict:
+        """The figures of the report's first card (JSON-ready)."""
+        before, after = self.position_error(self.error_nominal), self.position_error(self.error_compensated)
+        idx = [i for i, c in enumerate(self.coordinates) if c in POSITION]
+        predicted = np.sqrt(np.mean(np.sum(self.predicted[:, idx] ** 2, axis=1))) if idx else float("nan")
+        r = self.result
+        return {"machine": self.machine.name, "seed": self.seed, "campaign_poses": len(self.meas),
+                "held_out_targets": len(self.task), "errors": len(r.params), "base_errors": len(r.base),
+                "plan_gain": self.design.gain, "chi2_per_dof": r.chi2_per_dof, "residual_rms_mm": r.residual_rms_mm,
+                "position_rms_before_mm": float(np.sqrt(np.mean(before ** 2))),
+                "position_max_before_mm": float(before.max()),
+                "position_rms_after_mm": float(np.sqrt(np.mean(after ** 2))),
+                "position_max_after_mm": float(after.max()),
+                "position_rms_predicted_mm": float(predicted),
+                "per_coordinate_rms_after": {c: float(np.sqrt(np.mean(self.error_compensated[:, i] ** 2)))
+                                             for i, c in enumerate(self.coordinates)},
+                "table": None if self.table is None else {
+                    "axes": [f"{a.column} {a.min:g}..{a.max:g} ({a.n} nodes)" for a in self.table.axes],
+                    "reference": "controller" if self.table.reference is not None else "none",
+                    "targets_inside": int(self.inside.sum()),
+                    "position_rms_mm": float(np.sqrt(np.mean(self.position_error(self.error_table) ** 2))),
+                    "position_max_mm": float(self.position_error(self.error_table).max())},
+                "table_note": self.table_note,
+                "timings_s": self.timings}
+
+
+def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
+    """Run the demo's steps on ``machine`` (a :class:`pmcal.machines.Machine` folder), writing each step's
+    file into ``out`` when given; progress on stderr."""
+    twin = machine.twin
+    rng = np.random.default_rng(seed)
+    timings: dict[str, float] = {}
+    steps = ("plan", "measure", "identify", "compensate", "table", "evaluate")
+    with progress.progress(total=len(steps), desc="pmcal demo", unit="step") as bar:
+        def step(name):
+            bar.set_description(f"pmcal demo: {name}")
+            timings[name] = time.perf_counter()
+
+        def done(name):
+            timings[name] = time.perf_counter() - timings[name]
+            bar.update(1)
+
+        step("plan")
+        truth = random_errors(machine, rng)
+        design = plan(machine, CAMPAIGN_POSES, seed=seed)
+        done("plan")
+        step("measure")
+        meas, _ = campaign(machine, CAMPAIGN_POSES, seed=seed, errors=truth, commands=design.commands)
+        done("measure")
+        step("identify")
+        res = identify(machine, meas)
+        done("identify")
+        step("compensate")
+        task = sample_targets(machine, HELD_OUT, seed=seed + 1000)
+        nominal = twin.inverse(task, None)
+        compensated = compensate(machine, res.params, task)
+        done("compensate")
+        step("table")
+        coords = machine.spec.task.coordinates
+        table, inside, err_table = None, None, None
+        note = table_refusal(machine) or ""
+        if not note:
+            table = compensation_table(machine, res.params, version=1)
+            order = [coords.index(a.column) for a in table.axes]
+            lo, hi = np.array([a.min for a in table.axes]), np.array([a.max for a in table.axes])
+            inside = np.all((task[:, order] >= lo) & (task[:, order] <= hi), axis=1)
+            table_cmd = table.lookup(task[inside][:, order])
+            if table.reference is not None:           # corrections to the controller's nominal IK
+                table_cmd = nominal[inside] + table_cmd
+            err_table = task_difference(twin.forward(table_cmd, truth), task[inside], coords)
+        done("table")
+        step("evaluate")
+        err_nominal = task_difference(twin.forward(nominal, truth), task, coords)
+        err_comp = task_difference(twin.forward(compensated, truth), task, coords)
+        J = twin.task_jacobian(compensated, res.params, res.base)
+        predicted = np.sqrt(np.einsum("ncp,pq,ncq->nc", J, res.covariance, J))
+        done("evaluate")
+    demo = ChainDemo(machine=machine, seed=seed, truth=truth, design=design, meas=meas, result=res, task=task,
+                     commands_nominal=nominal, commands_compensated=compensated, error_nominal=err_nominal,
+                     error_compensated=err_comp, predicted=predicted, table=table, table_note=note, inside=inside,
+                     error_table=err_table, timings=timings)
+    if out is not None:
+        spec = machine.spec
+        write_plan(out / "plan.csv", spec, design.commands, [f"pmcal demo: D-optimal plan, seed {seed}"])
+        write_measurements(out / "measurements.csv", spec, meas, [
+            f"pmcal demo: machine {machine.name}, random errors of machine.toml's sizes, seed {seed}",
+            "true errors (mm, deg): " + ", ".join(f"{k}={v:.6g}" for k, v in truth.items())])
+        write_json(out / "params.json", params_document(machine, res, "measurements.csv"))
+        write_targets(out / "targets.csv", spec, task, [f"pmcal demo: held-out targets, seed {seed + 1000}"])
+        write_setpoints(out / "setpoints.csv", spec, task, compensated,
+                        ["pmcal demo: compensated commands (identified model's inverse kinematics)"])
+        if table is not None:
+            table.save(out / "table.json")
+    return demo
+
+
+def run_chain_demo(machine, out: Path, seed: int) -> int:
+    """``pmcal --machine DIR demo``: :func:`chain_demo` into the folder ``out`` (replaced as a whole), with
+    the HTML report and ``summary.json``; one line of figures on stdout."""
+    from pmcal.reports.chain_demo import chain_demo_report
+
+    t0 = time.perf_counter()
+    with atomic_directory(out) as tmp:
+        demo = chain_demo(machine, seed, tmp)
+        demo.timings["total"] = time.perf_counter() - t0
+        summary = demo.summary()
+        chain_demo_report(demo).write(tmp / "report.html")
+        write_json(tmp / "summary.json", summary)
+    print(f"pmcal demo: {out}/report.html in {time.perf_counter() - t0:.0f} s; {machine.name}: position error on "
+          f"{summary['held_out_targets']} held-out targets {summary['position_rms_before_mm']:.4f} -> "
+          f"{summary['position_rms_after_mm']:.4f} mm RMS (predicted {summary['position_rms_predicted_mm']:.4f})"
+          + (f"; through the PLC table {summary['table']['position_rms_mm']:.4f} mm RMS on the "
+             f"{summary['table']['targets_inside']} inside its grid" if summary["table"] else ""), flush=True)
+    return 0
