@@ -180,7 +180,7 @@ class ChainIdentResult:
     rank, condition_number : of the base Jacobian (whitened, prior-scaled, column-normalised).
     chi2, dof, chi2_per_dof : whitened residual sum of squares at the solution, its degrees of freedom
         (target coordinates minus effective parameters), their ratio (about 1 when the model fits to noise).
-    residual_rms_mm : RMS target residual, mm.
+    residual_rms_mm : RMS target (or reading) residual, mm (not whitened).
     sigma_mm : the tracker noise used, mm.
     n_poses : poses used (finite commands and targets).
     success, message, nfev, wall_time : from the solver.
@@ -245,19 +245,108 @@ def flat_jacobian(model: ChainModel, commands, params, keys) -> np.ndarray:
     return J.reshape(-1, len(keys))
 
 
+def reading_operator(n_poses: int, reference: str = "previous", segments=None) -> np.ndarray:
+    """(rows, n_poses) matrix turning per-pose distances into the readings of a scale relative to a
+    reference pose: ``"previous"`` gives ``d_{k+1} - d_k``, ``"first"`` gives ``d_k - d_first`` (k after the
+    first), within each chain of poses (``segments``: one label per pose, a new chain where it changes;
+    None: one chain). Rows follow the poses' order.
+
+    >>> reading_operator(3)
+    array([[-1.,  1.,  0.],
+           [ 0., -1.,  1.]])
+    """
+    seg = np.zeros(n_poses, int) if segments is None else np.asarray(segments)
+    if len(seg) != n_poses:
+        raise ValueError(f"{len(seg)} chain labels for {n_poses} poses")
+    start = np.r_[True, seg[1:] != seg[:-1]] if n_poses else np.zeros(0, bool)
+    first = np.maximum.accumulate(np.where(start, np.arange(n_poses), 0)) if n_poses else np.zeros(0, int)
+    rows = np.flatnonzero(~start)
+    D = np.zeros((rows.size, n_poses))
+    D[np.arange(rows.size), rows] = 1.0
+    D[np.arange(rows.size), rows - 1 if reference == "previous" else first[rows]] = -1.0
+    if reference not in ("previous", "first"):
+        raise ValueError(f"unknown reading reference {reference!r} (previous or first)")
+    return D
+
+
+class _Observations:
+    """What identification fits: the measured values ``y`` (flat, mm) and the model's prediction and exact
+    Jacobian of them at the campaign's commands. Tracker nests (``model.targets``, N x K x 3) or, for a
+    model whose ``reading_reference`` is set (``measure = "distance"``), scale readings: ``D`` times the
+    distances of :meth:`observe` (:func:`reading_operator`)."""
+
+    def __init__(self, model: ChainModel, commands: np.ndarray, measured, segments=None, covariance=None,
+                 sigma: float = 1.0):
+        self.model = model
+        self.reference = getattr(model, "reading_reference", None)
+        measured = np.asarray(measured, float)
+        if self.reference is None:
+            if measured.ndim != 3 or measured.shape[0] != commands.shape[0] or measured.shape[2] != 3:
+                raise ValueError(f"targets must be (N, K, 3) with N = {commands.shape[0]} poses, got "
+                                 f"{measured.shape}")
+            ok = _valid(commands, measured)
+            self.commands, self.y = commands[ok], measured[ok].reshape(-1)
+            self.D = None
+        else:
+            D = reading_operator(len(commands), self.reference, segments)
+            if measured.shape != (D.shape[0],):
+                raise ValueError(f"{measured.size} readings for {D.shape[0]} pose pairs of {len(commands)} poses")
+            if not np.isfinite(commands).all():
+                raise ValueError("a reading campaign needs every pose's commands")
+            ok = np.isfinite(measured)
+            self.commands, self.y, self.D = commands, measured[ok], D[ok]
+        self.n_poses = len(self.commands)
+        # correlated noise (covariance C of the measured values): W = sigma L^-1 (C = L L^T) turns residuals
+        # into independent ones of size sigma, so the rest of the fit reads as with white noise
+        self.W = None
+        if covariance is not None:
+            C = np.asarray(covariance, float)
+            if C.shape != (len(measured.reshape(-1)),) * 2:
+                raise ValueError(f"covariance must be ({measured.size}, {measured.size}), got {C.shape}")
+            keep = np.isfinite(measured.reshape(-1)) if self.D is not None else \
+                np.repeat(ok, measured.shape[1] * 3)
+            C = C[np.ix_(keep, keep)]
+            self.W = sigma * scipy.linalg.solve_triangular(np.linalg.cholesky(C), np.eye(len(C)), lower=True)
+            self.y_mm = self.y
+            self.y = self.W @ self.y
+
+    def residual_mm(self, params, whitened: np.ndarray) -> np.ndarray:
+        """The residuals in mm (not whitened) at ``params``, given the whitened ones of the fit."""
+        if self.W is None:
+            return whitened
+        raw = self.model.targets(self.commands, params).reshape(-1) if self.D is None else \
+            self.D @ self.model.observe(self.commands, params)[:, 0]
+        return self.y_mm - raw
+
+    def _white(self, v: np.ndarray) -> np.ndarray:
+        return v if self.W is None else self.W @ v
+
+    def predict(self, params) -> np.ndarray:
+        if self.D is None:
+            return self._white(self.model.targets(self.commands, params).reshape(-1))
+        return self._white(self.D @ self.model.observe(self.commands, params)[:, 0])
+
+    def jacobian(self, params, keys) -> np.ndarray:
+        if self.D is None:
+            return self._white(flat_jacobian(self.model, self.commands, params, keys))
+        return self._white(self.D @ self.model.observation_jacobian(self.commands, params, keys)[:, 0, :])
+
+
 @blas_policy()
 def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None = None,
                    keys: list[str] | None = None, *, prior: bool = True, rank_tol: float = RANK_TOL,
                    max_nfev: int | None = 100, method: str = "lm", seed: int | None = None,
-                   **options) -> ChainIdentResult:
+                   segments=None, covariance=None, **options) -> ChainIdentResult:
     """Identify the geometric errors of a closed-chain machine from tracker measurements.
 
     Parameters
     ----------
     model : the machine (:class:`~pmcal.calib.chain_model.ChainModel`).
     commands : (N, M) motor commands of the campaign, deg / mm.
-    targets : (N, K, 3) measured nest positions, mm, base frame.
-    sigma_mm : tracker noise (1 sigma per coordinate), mm; default the model's ``sigma_mm``.
+    targets : (N, K, 3) measured nest positions, mm, base frame; for a model measuring a distance (its
+        ``reading_reference`` set: ``measure = "distance"``) the scale readings (rows,) mm, one per row of
+        :func:`reading_operator` (NaN: a reading missing).
+    sigma_mm : tracker noise (1 sigma per coordinate or reading), mm; default the model's ``sigma_mm``.
     keys : the errors to consider (default every ``model.error_keys``); reduced to the base set.
     prior : add the Tikhonov prior (module docstring); False: plain LM on the base set.
     rank_tol : relative QR threshold of the base-set reduction (:func:`base_parameters`).
@@ -266,6 +355,10 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         paper's hybrid GA; ``"tikhonov"`` with the L-curve; ``"tsvd"``; ...) run on the same base-set
         problem (with the prior unless ``prior=False``); ``seed`` and ``options`` go to it. The global
         methods evaluate a population of machines per generation: slow on a whole chain.
+    segments : for readings: a chain label per pose (a new chain of readings where it changes); None: one.
+    covariance : (n, n) covariance (mm^2) of the measured values (the flattened targets or the readings),
+        for correlated noise, e.g. :func:`reading_covariance` (motor motion errors enter adjacent readings);
+        the fit is then generalised least squares. None: independent noise of ``sigma_mm``.
 
     Runs under pmcal's BLAS thread policy (:func:`pmcal.threads.blas_policy`: one thread unless
     ``PMCAL_BLAS_THREADS`` says otherwise; threads spinning on these small matrices cost 10-100x).
@@ -283,19 +376,17 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         raise ValueError(f"unknown identification method {method!r} (known: {', '.join(METHODS)})")
     t0 = time.perf_counter()
     commands = np.atleast_2d(np.asarray(commands, float))
-    targets = np.asarray(targets, float)
-    if targets.ndim != 3 or targets.shape[0] != commands.shape[0] or targets.shape[2] != 3:
-        raise ValueError(f"targets must be (N, K, 3) with N = {commands.shape[0]} poses, got {targets.shape}")
     sigma = float(model.sigma_mm if sigma_mm is None else sigma_mm)
     if not (np.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma_mm must be positive, got {sigma_mm}")
-    ok = _valid(commands, targets)
-    commands, targets = commands[ok], targets[ok]
+    obs = _Observations(model, commands, targets, segments, covariance, sigma)
+    commands = obs.commands
     keys = list(keys or model.error_keys)
     scale = model.prior_std(keys)
-    J0 = flat_jacobian(model, commands, None, keys)
+    J0 = obs.jacobian(None, keys)
     if not np.isfinite(J0).all():
-        bad = np.flatnonzero(~np.isfinite(J0.reshape(len(commands), -1)).all(axis=1))
+        bad = np.flatnonzero(~np.isfinite(model.observe(commands) if obs.D is not None else
+                                          J0.reshape(len(commands), -1)).all(axis=1))
         raise ValueError(f"the nominal machine cannot assemble {len(bad)} measured pose(s) (rows "
                          f"{', '.join(str(i + 1) for i in bad[:5])}): are they inside the workspace?")
     basis = base_parameters(J0 / sigma, keys, scale, rank_tol)
@@ -303,7 +394,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     units = model.error_units(base)
     prior_cov = base_prior_cov(model, basis)
     sb = np.sqrt(np.diag(prior_cov))
-    y = targets.reshape(-1)
+    y = obs.y
     if y.size < len(base):
         raise ValueError(f"{len(commands)} poses give {y.size} coordinates for {len(base)} base parameters")
 
@@ -313,13 +404,13 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     memo: dict[bytes, np.ndarray] = {}                 # the Jacobian at the last points asked (LM, result)
 
     def fun(X: np.ndarray) -> np.ndarray:
-        return np.stack([y - model.targets(commands, params_of(x)).reshape(-1) for x in X])
+        return np.stack([y - obs.predict(params_of(x)) for x in X])
 
     def jac(x: np.ndarray) -> np.ndarray:
         key = np.asarray(x, float).tobytes()
         if key not in memo:
             memo.clear()
-            memo[key] = -flat_jacobian(model, commands, params_of(x), base)
+            memo[key] = -obs.jacobian(params_of(x), base)
         return memo[key]
 
     problem = box_problem(fun, base, units, half_width=50.0 * sb, sigma=sigma, jac=jac, scale=sb,
@@ -345,19 +436,44 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         crlb=dict(zip(base, map(float, crlb_std))), combinations=basis.combinations,
         unidentifiable=basis.unidentifiable, weak=[k for k, c, s in zip(base, crlb_std, sb) if c > s],
         rank=basis.rank, condition_number=basis.condition_number, chi2=chi2, dof=dof, chi2_per_dof=chi2 / dof,
-        residual_rms_mm=float(np.sqrt(np.mean(resid**2))), sigma_mm=sigma, n_poses=int(len(commands)),
+        residual_rms_mm=float(np.sqrt(np.mean(obs.residual_mm(params_of(x), resid) ** 2))), sigma_mm=sigma, n_poses=int(len(commands)),
         success=bool(sol.success), message=str(sol.message), nfev=int(sol.n_eval),
         wall_time=time.perf_counter() - t0, basis=basis, solver=sol,
         info={"effective_parameters": p_eff, "prior_std": dict(zip(base, map(float, sb)))})
 
 
+def reading_covariance(model: ChainModel, commands, motor_sigma, sigma: float | None = None,
+                       segments=None, params: Mapping[str, float] | None = None) -> np.ndarray:
+    """Covariance (rows, rows) mm^2 of the scale readings of a distance-measuring ``model`` when each pose is
+    held at its commands plus independent motor motion errors of ``motor_sigma`` (M,) (deg / mm, 1 sigma):
+    ``sigma^2 I + D diag_k(g_k S g_k^T) D^T`` with ``g_k`` the exact derivative of pose k's distance with
+    respect to the motor commands (the model's ``mK.dzero`` columns: a zero offset is a command shift),
+    ``S = diag(motor_sigma^2)`` and ``D`` :func:`reading_operator`. A motion error enters the readings before
+    and after its pose: adjacent readings correlate (the paper 003 noise model, eq. 34-35, for any machine).
+    """
+    sigma = float(model.sigma_mm if sigma is None else sigma)
+    commands = np.atleast_2d(commands)
+    D = reading_operator(len(commands), model.reading_reference, segments)
+    keys = [f"m{j + 1}.dzero" for j in range(commands.shape[1])]
+    g = model.observation_jacobian(commands, params, keys)[:, 0, :]            # (N, M)
+    motion = np.sum((g * np.asarray(motor_sigma, float)) ** 2, axis=1)
+    return sigma**2 * np.eye(D.shape[0]) + (D * motion) @ D.T
+
+
 def crlb(model: ChainModel, commands, params: Mapping[str, float] | None, keys: list[str],
-         sigma: float | None = None) -> np.ndarray:
+         sigma: float | None = None, segments=None) -> np.ndarray:
     """Cramér-Rao standard deviations (len(keys),) of ``keys`` (their units) from a campaign at ``commands``
     (N, M) on the machine with errors ``params``, tracker noise ``sigma`` mm (default the model's):
-    ``sqrt(diag(sigma^2 (J^T J)^-1))``; inf for keys the campaign does not determine (pass a base set)."""
+    ``sqrt(diag(sigma^2 (J^T J)^-1))``; inf for keys the campaign does not determine (pass a base set).
+    A model measuring a distance is read as scale readings (:func:`reading_operator`, ``segments``)."""
     sigma = float(model.sigma_mm if sigma is None else sigma)
-    J = flat_jacobian(model, np.atleast_2d(commands), params, list(keys))
+    commands = np.atleast_2d(commands)
+    reference = getattr(model, "reading_reference", None)
+    if reference is None:
+        J = flat_jacobian(model, commands, params, list(keys))
+    else:
+        J = reading_operator(len(commands), reference, segments) @ \
+            model.observation_jacobian(commands, params, list(keys))[:, 0, :]
     J = J[np.isfinite(J).all(axis=1)] / sigma
     F = J.T @ J
     try:

@@ -46,7 +46,9 @@ TASK_COORDINATES = ("x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg", "phi_d
 #: The six components of a frame error: translation (mm) and rotation (deg) about the parent frame's axes.
 ERROR_COMPONENTS = ("dx", "dy", "dz", "drx", "dry", "drz")
 MOTOR_KINDS = {"revolute": ("hinge", "deg"), "prismatic": ("slide", "mm")}
-MEASURES = ("position", "pose")
+MEASURES = ("position", "pose", "distance")
+#: ``[tracker] reference`` of a ``"distance"`` measurement: what a reading is relative to
+DISTANCE_REFERENCES = ("previous", "first")
 #: ``[machine] kind`` values routed to the seeded machines' dedicated code.
 LEGACY_KINDS = ("ocpm_2dof", "planar_2dof")
 
@@ -65,6 +67,8 @@ class MotorSpec:
     unit : ``"deg"`` (revolute) or ``"mm"`` (prismatic): the unit of commands, ``range`` and ``zero``.
     range : (lo, hi) allowed commands, in ``unit``.
     zero : the command that puts the joint at qpos 0: joint position = command - zero (in ``unit``).
+    sigma : the motor's motion error, 1 sigma in ``unit`` (the servo's positioning repeatability): the twin's
+        campaigns hold each pose at the command plus such an error; 0: exact.
     """
 
     name: str
@@ -73,15 +77,18 @@ class MotorSpec:
     unit: str
     range: tuple[float, float]
     zero: float = 0.0
+    sigma: float = 0.0
 
 
 @dataclass(frozen=True)
 class TaskSpec:
-    """Task coordinates: the pose of MJCF site ``site`` in the world frame, as the columns ``coordinates``
-    (a subset of :data:`TASK_COORDINATES`, in the given order)."""
+    """Task coordinates: the pose of MJCF site ``site`` in the world frame (or in the frame of the site
+    ``frame`` on the fixed base, the frame of the machine's drawing), as the columns ``coordinates`` (a
+    subset of :data:`TASK_COORDINATES`, in the given order)."""
 
     site: str
     coordinates: tuple[str, ...]
+    frame: str | None = None
 
 
 @dataclass(frozen=True)
@@ -157,8 +164,14 @@ class MachineSpec:
     folder, model_path : the folder and its MJCF file (absolute paths).
     motors : one :class:`MotorSpec` per actuated joint, M of them.
     targets : MJCF site names of the tracker nests, K of them (CSV columns ``t1_x`` ... ``tK_z``, mm).
-    measure : ``"position"`` (each nest's position) or ``"pose"`` (the platform pose from a rigid fit of
-        the >= 3 nests).
+    measure : ``"position"`` (each nest's position), ``"pose"`` (the platform pose from a rigid fit of
+        the >= 3 nests) or ``"distance"`` (the distance between the two ``targets`` sites, read by a linear
+        scale relative to a reference pose: ``reference``).
+    reference : for ``measure = "distance"``: ``"previous"`` (each reading is the change of the distance
+        since the previous pose of the campaign: a scale whose head is reset after each reading) or
+        ``"first"`` (the change since the campaign's first pose: an incremental scale zeroed there).
+    names : the machine's own names of errors (a paper's, an interface's) -> the frame-error keys each moves
+        together with the same value (``[names]``; e.g. ``{"dtheta1": ("m1.dzero",)}``).
     task : :class:`TaskSpec`.
     workspace : task coordinate -> (lo, hi): the box campaigns and target lists sample (then filtered by
         reachability and motor ranges), in the coordinate's unit.
@@ -181,6 +194,8 @@ class MachineSpec:
     motors: tuple[MotorSpec, ...] = ()
     targets: tuple[str, ...] = ()
     measure: str = "position"
+    reference: str = "previous"
+    names: Mapping[str, tuple[str, ...]] = field(default_factory=lambda: MappingProxyType({}))
     task: TaskSpec | None = None
     workspace: Mapping[str, tuple[float, float]] = field(default_factory=lambda: MappingProxyType({}))
     errors: ErrorSpec = field(default_factory=ErrorSpec)
@@ -217,6 +232,25 @@ class MachineSpec:
             and what to write instead.
         """
         return _Loader(Path(folder)).spec()
+
+
+def expand_names(names: Mapping[str, tuple[str, ...]], values: Mapping[str, float]) -> dict[str, float]:
+    """Frame errors ``{frame key: value}`` of errors given by a machine's own names (``[names]``: name -> the
+    frame-error keys it moves together by its value; keys moved by several names get the sum).
+
+    >>> expand_names({"de1x": ("a.dx", "b.dx"), "dtheta1": ("m1.dzero",)}, {"de1x": 0.1})
+    {'a.dx': 0.1, 'b.dx': 0.1, 'm1.dzero': 0.0}
+
+    Raises KeyError for a name not in ``names``.
+    """
+    unknown = set(values) - set(names)
+    if unknown:
+        raise KeyError(f"unknown error name(s): {', '.join(sorted(unknown))} (known: {', '.join(names)})")
+    out: dict[str, float] = {}
+    for name, keys in names.items():
+        for k in keys:
+            out[k] = out.get(k, 0.0) + float(values.get(name, 0.0))
+    return out
 
 
 class _Loader:
@@ -331,7 +365,7 @@ class _Loader:
                                             f"relative to the folder)")
         self.names = self.model_names(self.model)
         self.known(self.doc, "", ("machine", "motors", "tracker", "task", "workspace", "errors", "table",
-                                  "closures") + RECORD_SECTIONS)
+                                  "closures", "names") + RECORD_SECTIONS)
         self.known(mach, "machine", ("kind", "name", "title", "model", "home"))
         home = self.text(mach, "home", "machine", default="home")
         if home not in self.names.keyframes:
@@ -348,16 +382,43 @@ class _Loader:
         measure = self.text(tracker, "measure", "tracker", default="position", choices=MEASURES)
         if measure == "pose" and len(targets) < 3:
             raise self.err("tracker.measure", f"'pose' needs at least 3 targets, got {len(targets)}")
+        if measure == "distance" and len(targets) != 2:
+            raise self.err("tracker.targets", f"'distance' measures between exactly 2 sites (the scale's two "
+                                              f"ends), got {len(targets)}")
+        if "reference" in tracker and measure != "distance":
+            raise self.err("tracker.reference", "only a 'distance' measurement has a reference pose")
+        reference = self.text(tracker, "reference", "tracker", default="previous", choices=DISTANCE_REFERENCES)
         sigma = self.number(tracker, "sigma_mm", "tracker", positive=True)
-        self.known(tracker, "tracker", ("targets", "measure", "sigma_mm"))
+        self.known(tracker, "tracker", ("targets", "measure", "sigma_mm", "reference"))
         task = self.task()
         workspace = self.workspace(task)
         table_axes = self.table_axes(task)
         table = self.table_grid(table_axes, workspace)
         return MachineSpec(name=name, folder=self.folder, model_path=self.model, title=title, motors=motors,
-                           targets=targets, measure=measure, task=task, workspace=workspace,
+                           targets=targets, measure=measure, reference=reference, names=self.names_map(motors),
+                           task=task, workspace=workspace,
                            errors=self.errors(motors), sigma_mm=sigma, table_axes=table_axes, table=table, home=home,
                            closures=self.closures(), legacy=False, kind="chain")
+
+    def names_map(self, motors: tuple[MotorSpec, ...]) -> Mapping[str, tuple[str, ...]]:
+        """``[names]``: name -> frame-error key or list of keys (each a ``<frame>.<component>`` of a body or
+        site of the model, or ``mK.dzero``); the keys' existence under ``[errors]`` is the twin's check."""
+        tab = self.table("names", required=False)
+        out = {}
+        for name, v in tab.items():
+            keys = self.strings([v] if isinstance(v, str) else v, f"names.{name}")
+            if not keys:
+                raise self.err(f"names.{name}", "needs at least one frame-error key")
+            for k in keys:
+                frame, _, comp = k.rpartition(".")
+                motor = {f"m{i}" for i in range(1, len(motors) + 1)}
+                if frame in motor and comp == "dzero":
+                    continue
+                if comp not in ERROR_COMPONENTS or frame not in set(self.names.bodies) | set(self.names.sites):
+                    raise self.err(f"names.{name}", f"{k!r} is not a frame error (<body or site>.<dx|dy|dz|drx|"
+                                                    f"dry|drz> or mK.dzero; docs/machine_toml.md)")
+            out[name] = keys
+        return MappingProxyType(out)
 
     def closures(self) -> ClosureSpec | None:
         tab = self.table("closures", required=False)
@@ -405,14 +466,19 @@ class _Loader:
                 raise self.err(f"{where}.unit", f"a {kind} motor's commands are in {unit!r}, got {given!r}")
             rng = self.interval(row.get("range"), f"{where}.range")
             zero = self.number(row, "zero", where, default=0.0)
-            self.known(row, where, ("joint", "kind", "unit", "range", "zero"))
-            out.append(MotorSpec(name=f"m{i}", joint=joint, kind=kind, unit=unit, range=rng, zero=zero))
+            sigma = self.number(row, "sigma", where, default=0.0)
+            if sigma < 0:
+                raise self.err(f"{where}.sigma", f"must be >= 0 (a standard deviation in {unit}), got {sigma!r}")
+            self.known(row, where, ("joint", "kind", "unit", "range", "zero", "sigma"))
+            out.append(MotorSpec(name=f"m{i}", joint=joint, kind=kind, unit=unit, range=rng, zero=zero,
+                                 sigma=sigma))
         return tuple(out)
 
     def task(self) -> TaskSpec:
         tab = self.table("task")
-        self.known(tab, "task", ("site", "coordinates"))
+        self.known(tab, "task", ("site", "coordinates", "frame"))
         site = self.site(self.text(tab, "site", "task"), "task.site")
+        frame = self.site(self.text(tab, "frame", "task"), "task.frame") if "frame" in tab else None
         coords = self.strings(tab.get("coordinates"), "task.coordinates")
         for c in coords:
             if c not in TASK_COORDINATES:
@@ -423,7 +489,7 @@ class _Loader:
             raise self.err("task.coordinates", "phi_deg and theta_deg go together, without rx/ry/rz_deg")
         if not coords:
             raise self.err("task.coordinates", "needs at least one coordinate")
-        return TaskSpec(site=site, coordinates=coords)
+        return TaskSpec(site=site, coordinates=coords, frame=frame)
 
     def workspace(self, task: TaskSpec) -> Mapping[str, tuple[float, float]]:
         tab = self.table("workspace")

@@ -24,7 +24,7 @@ import numpy as np
 from pmcal import progress
 from pmcal.bridge.comptable import CONTROLLER, CORRECTION_ABS_MAX, NMOTOR_MAX, Axis, CompTable, Motor
 from pmcal.calib.chain_design import POOL_FACTOR, POOL_MIN, CampaignDesign, design_campaign
-from pmcal.calib.closed_chain import compensate_targets, identify_chain
+from pmcal.calib.closed_chain import compensate_targets, identify_chain, reading_covariance, reading_operator
 from pmcal.errors import InputError, RunError
 from pmcal.io_chain import UNIT_SLIPS, ChainMeasurements
 
@@ -59,6 +59,10 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     seconds_per_pose : time between poses, s (the ``time_s`` column).
     source : the file ``task`` came from (for messages).
 
+    Each pose is held at its commands plus the motors' motion error (``[[motors]] sigma``, if set; the
+    file records the commands). A machine measuring a distance gets scale readings: the change of the
+    distance relative to the reference pose (``[tracker] reference``) plus the noise ``sigma_mm`` per reading.
+
     Returns
     -------
     (measurements, truth) : the measured targets (mm, base frame) and the error set measured. A pose the
@@ -82,11 +86,19 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     elif commands is None:
         commands = twin.sample_commands(poses, rng)
 
+    motor_sigma = np.array([m.sigma for m in machine.spec.motors])
+    distance = machine.spec.measure == "distance"
+
     def measured(cmd):
         """The rows of ``cmd`` the erroneous machine assembles on the nominal one's branch, and their
-        readings."""
-        y = twin.measure(cmd, truth, rng, sigma)
-        ok = (distance_from_nominal(machine, cmd, y) <= PLAUSIBLE_TARGET_MM).all(axis=1)
+        readings (distance machines: the distances, noise-free; the readings are taken below)."""
+        held = cmd + rng.normal(0.0, motor_sigma, cmd.shape) if motor_sigma.any() else cmd
+        if distance:
+            y = twin.observe(held, truth)
+            ok = np.abs(y - twin.observe(cmd))[:, 0] <= PLAUSIBLE_TARGET_MM
+        else:
+            y = twin.measure(held, truth, rng, sigma)
+            ok = (distance_from_nominal(machine, cmd, y) <= PLAUSIBLE_TARGET_MM).all(axis=1)
         return cmd[ok], y[ok]
 
     got, wanted = [], len(commands)
@@ -108,8 +120,15 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     if short > 0:
         raise RunError(f"the erroneous machine assembles too few of the drawn poses ({short} missing)")
     n = len(commands)
+    readings = None
+    if distance:
+        D = reading_operator(n, machine.spec.reference)
+        readings = np.full(n, np.nan)
+        readings[1:] = D @ y[:, 0] + rng.normal(0.0, sigma, n - 1)
+        y = np.zeros((n, 0, 3))
     ids = list(pose_id) if pose_id is not None else [f"P{i + 1}" for i in range(n)]
-    meas = ChainMeasurements(pose_id=ids, commands=commands, targets=y, time_s=np.arange(n) * float(seconds_per_pose))
+    meas = ChainMeasurements(pose_id=ids, commands=commands, targets=y,
+                             time_s=np.arange(n) * float(seconds_per_pose), readings=readings)
     return meas, truth
 
 
@@ -141,7 +160,10 @@ def distance_from_nominal(machine, commands: np.ndarray, targets: np.ndarray) ->
 def check_assembles(machine, meas: ChainMeasurements, limit_mm: float = PLAUSIBLE_TARGET_MM) -> None:
     """Catch a wrong unit or a mislabelled row before identifying: every row's commands assemble the
     nominal chain, every measured target is within ``limit_mm`` of where the nominal machine puts it.
-    An :class:`InputError` names file, row and field."""
+    An :class:`InputError` names file, row and field. A machine measuring a distance: every row assembles,
+    and the readings are the changes of the distance the commands give, in mm (:func:`check_readings`)."""
+    if machine.spec.measure == "distance":
+        return check_readings(machine, meas, limit_mm)
     d = distance_from_nominal(machine, meas.commands, meas.targets)
     for i in np.flatnonzero(np.isinf(d).any(axis=1)):
         raise InputError("the nominal machine cannot assemble at these commands (wrong machine or units?)",
@@ -160,13 +182,54 @@ def check_assembles(machine, meas: ChainMeasurements, limit_mm: float = PLAUSIBL
                          f"{limit_mm:g} mm){hint}", file=meas.path, row=i + 1, field=f"t{k + 1}_x")
 
 
+#: accepted least-squares ratio of scale readings to the nominal machine's distance changes (geometric errors
+#: change them by a few per cent; metres or micrometres by 1000)
+PLAUSIBLE_READING_RATIO = (0.5, 2.0)
+
+
+def check_readings(machine, meas: ChainMeasurements, limit_mm: float = PLAUSIBLE_TARGET_MM) -> None:
+    """A distance machine's measurement file against its nominal twin: every row assembles, the readings
+    follow the distance changes the commands give (their least-squares ratio within
+    :data:`PLAUSIBLE_READING_RATIO`: a unit mix-up moves it by 1000) and none is more than ``limit_mm``
+    from the nominal change."""
+    d0 = machine.twin.observe(meas.commands)[:, 0]
+    field = machine.spec.motor_columns[0]
+    for i in np.flatnonzero(~np.isfinite(d0)):
+        raise InputError("the nominal machine cannot assemble at these commands (wrong machine or units?)",
+                         file=meas.path, row=int(i) + 1, field=field)
+    rows = np.flatnonzero(~meas.chain_starts())
+    expected = reading_operator(len(meas), machine.spec.reference, meas.chain) @ d0
+    got = meas.reading_rows()
+    scale = float(expected @ expected)
+    if scale >= 1.0:                              # under 1 mm of change the ratio says nothing
+        ratio = float(got @ expected) / scale
+        lo, hi = PLAUSIBLE_READING_RATIO
+        if not lo <= ratio <= hi:
+            hint = " (metres?)" if abs(ratio) < 0.01 else " (micrometres?)" if abs(ratio) > 100 else ""
+            raise InputError(f"the readings are {ratio:.3g} times the distance changes the commands give: they "
+                             f"must be in mm{hint}", file=meas.path, row=int(rows[np.argmax(np.abs(expected))]) + 1,
+                             field="reading_mm")
+    off = np.abs(got - expected)
+    if off.size and off.max() > limit_mm:
+        k = int(np.argmax(off))
+        raise InputError(f"reading {got[k]:.4g} mm is {off[k]:.4g} mm from the change the nominal machine gives "
+                         f"(limit {limit_mm:g} mm)", file=meas.path, row=int(rows[k]) + 1, field="reading_mm")
+
+
 def identify(machine, meas: ChainMeasurements, sigma_mm: float | None = None):
     """Identify the machine's geometric errors from a measurement campaign: the base set the campaign
-    determines, by Levenberg-Marquardt with the Tikhonov prior of machine.toml
+    determines, by Levenberg-Marquardt with the Tikhonov prior of machine.toml (a distance machine whose
+    motors have a motion error ``sigma``: generalised least squares with :func:`reading_covariance`)
     (:func:`pmcal.calib.closed_chain.identify_chain`). Checks first that the file is plausible for the
     machine (:func:`check_assembles`). Returns the :class:`~pmcal.calib.closed_chain.ChainIdentResult`."""
     check_assembles(machine, meas)
     try:
+        if machine.spec.measure == "distance":
+            motor_sigma = [m.sigma for m in machine.spec.motors]
+            cov = reading_covariance(machine.twin, meas.commands, motor_sigma, sigma_mm, meas.chain) \
+                if any(motor_sigma) and machine.spec.errors.motor_zero else None
+            return identify_chain(machine.twin, meas.commands, meas.reading_rows(), sigma_mm, segments=meas.chain,
+                                  covariance=cov)
         return identify_chain(machine.twin, meas.commands, meas.targets, sigma_mm)
     except ValueError as exc:            # too few poses for the base set, poses the machine cannot assemble
         raise InputError(str(exc), file=meas.path) from None
@@ -197,7 +260,13 @@ def params_document(machine, result, source: str | None = None) -> dict:
 
 def residuals(machine, params: Mapping[str, float] | None, meas: ChainMeasurements) -> np.ndarray:
     """Distance (n, K) mm between each measured target and where the machine with errors ``params`` puts it
-    at the row's commands (NaN for a blocked target or a row it cannot assemble)."""
+    at the row's commands (NaN for a blocked target or a row it cannot assemble); for a machine measuring a
+    distance, (n, 1) the reading minus the change that machine gives (NaN on the first pose of a chain)."""
+    if machine.spec.measure == "distance":
+        out = np.full((len(meas), 1), np.nan)
+        D = reading_operator(len(meas), machine.spec.reference, meas.chain)
+        out[~meas.chain_starts(), 0] = meas.reading_rows() - D @ machine.twin.observe(meas.commands, params)[:, 0]
+        return out
     return np.linalg.norm(meas.targets - machine.twin.targets(meas.commands, params), axis=2)
 
 

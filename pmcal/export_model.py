@@ -5,10 +5,9 @@ Where each identified quantity goes (docs/formats.md, "Calibrated model"):
 - geometry (every ``L<j>.*`` and ``SS.*`` key; planar: ``de*``, ``dL*``, ``dl*``, ``drM*``): body, site and
   joint frames of the machine's MJCF, as the twin inserts them (:func:`pmcal.twin.export.calibrated_xml`);
 - nest offsets of a tracker-frame calibration: the target sites ``T1``..;
-- ``ocpm_2dof`` motor zero offsets ``L1.dtheta``, ``L2.dtheta``: the motor joints' ``ref = -dtheta``, so
-  the joint coordinate (and the position servo's control) is the commanded angle while the link sits
-  ``dtheta`` further on; ``planar_2dof`` zero offsets: the active links' body frames turned by ``dtheta``
-  (the planar twin's convention), the motor joint again reads the command;
+- motor zero offsets (``ocpm_2dof`` ``L1.dtheta``, ``L2.dtheta``; ``planar_2dof`` ``dtheta1``, ``dtheta2``):
+  the motor joints' ``ref = -dtheta``, so the joint coordinate (and the position servo's control) is the
+  commanded angle while the link sits ``dtheta`` further on;
 - closure stiffness ratio (``ocpm_2dof``): ``custom`` numerics ``pmcal_stiffness_ratio`` and
   ``pmcal_passive_closure_stiffness`` (N/m) and the machine.toml; MuJoCo's soft constraints have no
   stiffness in N/m, so the exported model simulates like the dynamic twin (:data:`SIMULATION_OPTIONS`,
@@ -41,7 +40,6 @@ from pmcal.twin.export import calibrated_xml
 from pmcal.twin.machine import Twin
 from pmcal.twin.model import MM, MODEL_XML, build_model, load_model
 from pmcal.twin.planar.config import MODEL_XML as PLANAR_XML, default_machine
-from pmcal.twin.planar.model import build_spec
 from pmcal.twin.planar.twin import PlanarTwin
 
 #: Simulation settings of the exported ocpm_2dof model, those of the dynamic twin (:mod:`pmcal.twin.dynamics`):
@@ -130,28 +128,21 @@ def _ocpm(params_path: str):
 
 
 def _planar(params_path: str):
+    """The planar robot's calibration: its paper-named errors (``io_planar``) mapped onto the frame errors of
+    ``mjcf/planar_2dof/chain`` (``[names]``), exported as a machine folder's (:func:`_frames`)."""
     errors, doc = read_planar_params(params_path)
-    machine = default_machine()
-    m = build_spec(machine, errors).compile()
-    home = np.asarray(machine.geometry.home, float)          # motor commands of home P0, rad
-    poses = PlanarTwin(errors, machine).assemble(home[None])
-    if not poses.converged.all():
-        raise RunError("the calibrated machine does not assemble at home")
-    edits = dict(keyframe=("home", poses.qpos[0], home))
+    planar = PlanarTwin(errors, default_machine())
+    m, edits = _frames(planar.chain, planar.chain.spec, planar.params)
     facts = {"machine": "planar_2dof", "model": doc.get("model", ""),
              "zero_offsets_deg": list(np.rad2deg(errors.dtheta)),
-             "zero_offsets_as": "active links' body frames turned by dtheta: the motor joint reads the command"}
+             "zero_offsets_as": "motor joints' ref = -dtheta: joint coordinate = commanded angle"}
     return PLANAR_XML, PLANAR_XML.parent / "machine.toml", m, edits, doc.get("params", {}), doc, facts
 
 
-def _chain(params_path: str, machine):
-    """A machine folder's calibration (``pmcal --machine DIR identify``): the twin's frames with the
-    identified errors, motor zero offsets as the motor joints' ``ref`` (joint coordinate = command - zero,
-    as in the nominal model, while the link sits ``dzero`` further on), the home keyframe re-assembled."""
-    from pmcal.io_chain import read_params as read_chain_params
-
-    twin, spec = machine.twin, machine.spec
-    params, doc = read_chain_params(params_path, spec, dict(zip(twin.error_keys, twin.error_units())))
+def _frames(twin, spec, params: dict):
+    """The compiled model with the frame errors ``params`` and the MJCF edits that carry the rest: motor zero
+    offsets as the motor joints' ``ref`` (joint coordinate = command - zero, as in the nominal model, while
+    the link sits ``dzero`` further on), the home keyframe re-assembled."""
     twin.set_params(params)
     qpos = twin.solve(twin.home_commands[None], params)[0]
     if not np.isfinite(qpos).all():
@@ -161,7 +152,17 @@ def _chain(params_path: str, machine):
     qpos[twin.motor_qadr] -= shift
     key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, spec.home)
     refs = {mot.joint: float(m.qpos0[a] - d) for mot, a, d in zip(spec.motors, twin.motor_qadr, shift) if d}
-    edits = dict(joint_ref=refs, keyframe=(spec.home, qpos, m.key_ctrl[key].copy()))
+    return m, dict(joint_ref=refs, keyframe=(spec.home, qpos, m.key_ctrl[key].copy()))
+
+
+def _chain(params_path: str, machine):
+    """A machine folder's calibration (``pmcal --machine DIR identify``): the twin's frames with the
+    identified errors (:func:`_frames`)."""
+    from pmcal.io_chain import read_params as read_chain_params
+
+    twin, spec = machine.twin, machine.spec
+    params, doc = read_chain_params(params_path, spec, dict(zip(twin.error_keys, twin.error_units())))
+    m, edits = _frames(twin, spec, params)
     zero = [f"{v:.6g} {mot.unit}" for mot, v in zip(spec.motors, twin.errors.zero_offset)]
     facts = {"machine": spec.name, "model": "chain", "zero_offsets": zero,
              "zero_offsets_as": "motor joints' ref lowered by dzero: joint coordinate = command - zero"}

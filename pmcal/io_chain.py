@@ -3,7 +3,10 @@ targets, the task coordinates its ``machine.toml`` names.
 
 - measurement CSV: ``pose_id``, ``m1_cmd_deg`` ... ``mN_cmd_deg`` (``_mm`` for a prismatic motor),
   ``t1_x`` ... ``tK_z`` (mm, base frame; a blocked target has its three cells empty), optional ``time_s``
-  (s) and ``temp_c`` (degC);
+  (s) and ``temp_c`` (degC); a machine measuring a distance (``[tracker] measure = "distance"``) has
+  ``reading_mm`` instead of the targets (the scale's reading relative to its reference pose, mm; empty on
+  the first pose of a chain) and optionally ``chain`` (a label per pose: a new chain of readings, the
+  scale re-zeroed, where it changes);
 - plan CSV: ``pose_id`` and the motor columns (the commands to drive, in order);
 - targets CSV: the task coordinates (``x_mm, y_mm, z_mm`` ...); setpoints CSV: the same with ``m1_deg`` ...
   ``mN_deg`` (or ``_mm``) appended;
@@ -30,6 +33,8 @@ from pmcal.mechanism.machine_spec import MachineSpec
 
 #: the optional context columns of a measurement CSV
 CONTEXT_COLUMNS = ("time_s", "temp_c")
+#: the reading column of a machine measuring a distance, and its optional chain label column
+READING_COLUMN, CHAIN_COLUMN = "reading_mm", "chain"
 #: largest plausible magnitude of a geometric error per unit (beyond it a unit mix-up is likelier)
 PLAUSIBLE_PARAM = {"mm": 25.0, "deg": 10.0}
 #: per command unit: the factor that turns a value in the likely wrong unit into it (radians, metres), and
@@ -43,7 +48,9 @@ class ChainMeasurements:
     """A measurement file of a machine folder.
 
     pose_id : list of str; commands : (n, M) deg or mm per motor; targets : (n, K, 3) mm, base frame, NaN for
-    a blocked target; time_s, temp_c : (n,) or None; path : the file (for messages).
+    a blocked target ((n, 0, 3) for a machine measuring a distance); time_s, temp_c : (n,) or None; path :
+    the file (for messages). readings : (n,) mm for a machine measuring a distance, NaN on the first pose
+    of each chain (else None); chain : (n,) chain labels (None: one chain).
     """
 
     pose_id: list[str]
@@ -52,6 +59,18 @@ class ChainMeasurements:
     time_s: np.ndarray | None = None
     temp_c: np.ndarray | None = None
     path: str = ""
+    readings: np.ndarray | None = None
+    chain: np.ndarray | None = None
+
+    def chain_starts(self) -> np.ndarray:
+        """(n,) True on the first pose of each chain of readings."""
+        c = np.zeros(len(self), int) if self.chain is None else np.asarray(self.chain)
+        return np.r_[True, c[1:] != c[:-1]] if len(c) else np.zeros(0, bool)
+
+    def reading_rows(self) -> np.ndarray:
+        """The readings (rows,) mm, one per pose but the first of each chain (the rows of
+        :func:`pmcal.calib.closed_chain.reading_operator`)."""
+        return self.readings[~self.chain_starts()]
 
     def __len__(self) -> int:
         return len(self.pose_id)
@@ -67,7 +86,8 @@ def min_visible_targets(spec: MachineSpec) -> int:
     return 3 if spec.measure == "pose" else 1
 
 
-def _check_header(t, spec: MachineSpec, expected: tuple[str, ...], what: str) -> None:
+def _check_header(t, spec: MachineSpec, expected: tuple[str, ...], what: str,
+                  optional: tuple[str, ...] = CONTEXT_COLUMNS) -> None:
     """Unknown columns, a motor or target the machine does not have (measurement files: also a motor column
     in the wrong unit), missing columns."""
     measurement = "pose_id" in expected
@@ -86,7 +106,7 @@ def _check_header(t, spec: MachineSpec, expected: tuple[str, ...], what: str) ->
                              file=t.path, field=c)
         raise InputError(f"unknown column in a {what} of {spec.name} (columns: {', '.join(expected)})",
                          file=t.path, field=c)
-    t.require(c for c in expected if c not in CONTEXT_COLUMNS)
+    t.require(c for c in expected if c not in optional)
 
 
 def check_commands(commands: np.ndarray, spec: MachineSpec, path: str, columns: tuple[str, ...]) -> None:
@@ -119,6 +139,8 @@ def read_measurements(path: str | Path, spec: MachineSpec) -> ChainMeasurements:
     """
     t = read_csv(path, max_rows=MAX_POSES)
     motors, targets = spec.motor_columns, spec.target_columns
+    if spec.measure == "distance":
+        return _read_readings(t, spec)
     _check_header(t, spec, ("pose_id",) + motors + targets + CONTEXT_COLUMNS, "measurement file")
     ids = t.unique_ids("pose_id")
     commands = np.stack([t.numbers(c) for c in motors], axis=1)
@@ -131,10 +153,42 @@ def read_measurements(path: str | Path, spec: MachineSpec) -> ChainMeasurements:
     return ChainMeasurements(pose_id=ids, commands=commands, targets=coords, path=t.path, **optional)
 
 
+def _read_readings(t, spec: MachineSpec) -> ChainMeasurements:
+    """The measurement file of a machine measuring a distance (module docstring): a reading on every pose
+    but the first of each chain, none on the first."""
+    motors = spec.motor_columns
+    _check_header(t, spec, ("pose_id",) + motors + (READING_COLUMN, CHAIN_COLUMN) + CONTEXT_COLUMNS,
+                  "measurement file", optional=CONTEXT_COLUMNS + (CHAIN_COLUMN,))
+    ids = t.unique_ids("pose_id")
+    commands = np.stack([t.numbers(c) for c in motors], axis=1)
+    check_commands(commands, spec, t.path, motors)
+    readings = t.numbers(READING_COLUMN, allow_empty=True)
+    chain = np.array(t.text(CHAIN_COLUMN)) if t.has(CHAIN_COLUMN) else None
+    meas = ChainMeasurements(pose_id=ids, commands=commands, targets=np.zeros((len(ids), 0, 3)), path=t.path,
+                             readings=readings, chain=chain,
+                             **{c: (t.numbers(c, allow_empty=True) if t.has(c) else None) for c in CONTEXT_COLUMNS})
+    for i, (first, v) in enumerate(zip(meas.chain_starts(), readings)):
+        if chain is not None and chain[i] == "":
+            raise InputError("empty chain label", file=t.path, row=i + 1, field=CHAIN_COLUMN)
+        if first and np.isfinite(v):
+            raise InputError("the first pose of a chain has no reading (the scale is zeroed there): leave "
+                             f"{READING_COLUMN} empty", file=t.path, row=i + 1, field=READING_COLUMN)
+        if not first and not np.isfinite(v):
+            raise InputError("missing reading (relative to the reference pose)", file=t.path, row=i + 1,
+                             field=READING_COLUMN)
+    check_context(t.path, temp_c=meas.temp_c)
+    return meas
+
+
 def write_measurements(path: str | Path, spec: MachineSpec, meas: ChainMeasurements, comments=()) -> None:
-    """Write a measurement CSV (module docstring) atomically; NaN targets as empty cells."""
+    """Write a measurement CSV (module docstring) atomically; NaN targets (readings) as empty cells."""
     cols = [(c, meas.commands[:, j], "{:.6f}") for j, c in enumerate(spec.motor_columns)]
-    cols += [(c, meas.targets[:, i // 3, i % 3], "{:.5f}") for i, c in enumerate(spec.target_columns)]
+    if spec.measure == "distance":
+        cols.append((READING_COLUMN, meas.readings, "{:.6f}"))
+        if meas.chain is not None:
+            cols.append((CHAIN_COLUMN, np.asarray(meas.chain, float), "{:.0f}"))
+    cols += [(c, meas.targets[:, i // 3, i % 3], "{:.5f}") for i, c in enumerate(spec.target_columns)
+             if spec.measure != "distance"]
     for name, values, fmt in (("time_s", meas.time_s, "{:.2f}"), ("temp_c", meas.temp_c, "{:.3f}")):
         if values is not None:
             cols.append((name, np.asarray(values, float), fmt))

@@ -172,7 +172,7 @@ def write_setpoints(path: str | Path, header: list[str], rows: list[list[str]], 
 
 
 #: error models of a planar parameters file (docs/planar_measurement_format.md)
-PARAM_MODELS = ("simplified", "full")
+PARAM_MODELS = ("simplified", "full", "chain")
 #: largest plausible magnitude of a planar error, per unit (beyond: a unit mix-up)
 PLAUSIBLE_PARAM = {"deg": 30.0, "mm": 50.0}
 

@@ -24,8 +24,9 @@ from pmcal.twin.export import simulate
 from pmcal.twin.forward import FullChainModel
 from pmcal.twin.machine import Twin
 from pmcal.twin.model import MM, ModelIndex
-from pmcal.twin.planar.model import CLOSURES, PlanarIndex
-from pmcal.twin.planar.twin import PlanarTwin
+from pmcal.mechanism.machine_spec import MachineSpec
+from pmcal.mjcf import machine_dir
+from pmcal.twin.closed_chain import ClosedChainTwin
 from pmcal.twin.tracker import LaserTracker
 from pmcal.io_planar import read_measurements as read_planar, read_params as read_planar_params
 from pmcal.twin.planar.config import default_machine
@@ -128,17 +129,11 @@ def test_planar_export_reproduces_identified_model(tmp_path):
     length = np.linalg.norm(mm_vector(g, predicted), axis=1)              # |O1 O2|: what the scale measures
     assert abs(errors.drM).max() > 0.1 and abs(errors.dtheta).max() > 1e-3
     m = mujoco.MjModel.from_xml_path(str(tmp_path / "planar.xml"))
-    idx = PlanarIndex.of(m)
-    asm = BatchAssembler(m, idx, Stiffness(closure=np.ones(len(CLOSURES)), ss_axial=0.0),
-                         held_dofs=idx.dadr_base, tol=1e-13, max_iter=40)
-    res = asm.solve(PlanarTwin(None, machine).initial_qpos(theta))       # nominal start, motors at commands
-    P = asm.sites(len(theta), np.array([idx.site_P]))[:, 0]
-    z0 = m.body_pos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "base")][2]
-    xy = np.stack([P[:, 0], P[:, 2] - z0], axis=1) / MM
-    assert res.converged.all() and np.abs(xy - predicted).max() < TOL_MM
-    O1O2 = asm.sites(len(theta), np.array([idx.site_O2]))[:, 0] - m.site_pos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "O1")] \
-        - m.body_pos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "base")]
-    assert np.abs(np.linalg.norm(O1O2, axis=1) / MM - length).max() < TOL_MM
+    # the exported file assembled as it stands (no errors added), motor joints at the commands (ref = -dtheta)
+    twin = ClosedChainTwin(MachineSpec.load(machine_dir("planar_2dof") / "chain"), model=m)
+    cmd = np.rad2deg(theta)
+    assert np.abs(twin.forward(cmd) - predicted).max() < TOL_MM
+    assert np.abs(twin.observe(cmd)[:, 0] - length).max() < TOL_MM
     assert no_warnings(simulate(tmp_path / "planar.xml", steps=500)[1])
 
 

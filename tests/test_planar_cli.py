@@ -175,3 +175,25 @@ def test_twin_measure_with_an_error_file(tmp_path):
     out = tmp_path / "m.csv"
     assert run("twin", "measure", "--errors", str(errors), "--poses", "6", "--noise", "0", "-o", str(out)) == 0
     assert len(read_measurements(out, G).ids) == 6
+
+
+def test_chain_model_finds_the_rank_9_of_the_full_model(campaign, tmp_path):
+    """``--model chain``: the paper's 12 errors on the generic closed-chain core. It finds by itself what
+    docs/planar.md derives by hand: rank 9 (translating the base with O1 in x and y, turning the robot
+    about O1 change no reading), the three combinations named; the fit explains the readings."""
+    params = tmp_path / "chain.json"
+    assert run("identify", str(campaign), "-o", str(params), "--model", "chain") == 0
+    doc = json.loads(params.read_text())
+    assert doc["model"] == "chain" and doc["rank"] == 9 and len(doc["unidentifiable"]) == 3
+    assert set(doc["params"]) == set(M.preset("group1").as_interface())
+    assert len(set(doc["params"]) - set(doc["identifiable"])) == 3
+    ev = tmp_path / "eval.json"
+    assert run("evaluate", str(params), str(campaign), "--json", str(ev)) == 0
+    e = json.loads(ev.read_text())
+    # noise-free readings; the fit assumes the paper's servo noise (0.0024 deg: ~0.02 mm per reading)
+    assert e["rms_params"] < 0.05 * e["rms_nominal"] and e["rms_params"] == pytest.approx(doc["residual_rms_mm"],
+                                                                                        rel=1e-3)
+    out = tmp_path / "s.csv"
+    targets = tmp_path / "t.csv"
+    targets.write_text("x_mm,y_mm\n0,-700\n100,-650\n")
+    assert run("compensate", str(params), "--targets", str(targets), "-o", str(out)) == 0

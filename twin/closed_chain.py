@@ -65,6 +65,7 @@ from typing import Mapping
 
 import mujoco
 import numpy as np
+from scipy.spatial import cKDTree
 
 from pmcal.errors import InputError
 from pmcal.mechanism.machine_spec import MachineSpec
@@ -159,6 +160,21 @@ class ClosedChainTwin:
         self._warm_cmd = np.zeros((0, self.n_motors))
         self._warm_qpos = np.zeros((0, m.nq))
         self.home_commands = self._commands_of(self.home_qpos[None])[0]
+        self._read_task_frame()
+
+    def _read_task_frame(self) -> None:
+        """World pose (m, rotation matrix) of the frame task coordinates are written in: ``[task] frame``, a
+        site on the fixed base, taken on the nominal model at home; the world frame without it."""
+        self._frame_p, self._frame_R = np.zeros(3), np.eye(3)
+        if self.spec.task.frame:
+            sid = mujoco.mj_name2id(self.model, _OBJ.mjOBJ_SITE, self.spec.task.frame)
+            self._kin(self.home_qpos, jac=False)
+            self._frame_p = self.data.site_xpos[sid].copy()
+            self._frame_R = self.data.site_xmat[sid].reshape(3, 3).copy()
+
+    def _in_task_frame(self, p_m: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (..., 3) m and orientations (..., 3, 3) in world -> in the task frame."""
+        return (p_m - self._frame_p) @ self._frame_R, self._frame_R.T @ R
 
     @classmethod
     def from_folder(cls, folder) -> "ClosedChainTwin":
@@ -347,14 +363,33 @@ class ClosedChainTwin:
         active = np.arange(len(Q))
         cols = self.passive if goals is None else np.arange(nv)
         tp = self._task_p
+        need_jr = weld or (goals is not None and not all(c in POSITION for c in self.spec.task.coordinates))
+        two_pass = rigid and goals is None
         for _ in range(self.MAX_ITER):
             if not active.size:
                 break
+            if two_pass:
+                # residuals first (kinematics only): the poses that already meet the tolerance need no
+                # Jacobians (the last iteration of every pose)
+                sp = np.empty((len(active), self.points.size, 3))
+                sm = np.empty((len(active), self.points.size, 3, 3)) if weld else None
+                for a, i in enumerate(active):
+                    d.qpos[:] = Q[i]
+                    mujoco.mj_kinematics(m, d)
+                    sp[a] = d.site_xpos[self.points]
+                    if weld:
+                        sm[a] = d.site_xmat[self.points].reshape(-1, 3, 3)
+                r, _ = self._closure_rows(sp, sm, None, None, Q[active], with_jac=False)
+                met = np.max(np.abs(r), axis=1) < tol[active]
+                done[active[met]] = True
+                active = active[~met]
+                if not active.size:
+                    break
             A = len(active)
             sp = np.empty((A, self.points.size, 3))
             sm = np.empty((A, self.points.size, 3, 3)) if weld else None
             jp = np.zeros((A, self.points.size, 3, nv))
-            jr = np.zeros((A, self.points.size, 3, nv))
+            jr = np.zeros((A, self.points.size, 3, nv)) if need_jr else None
             Rt = np.empty((A, 3, 3))
             for a, i in enumerate(active):
                 d.qpos[:] = Q[i]
@@ -365,13 +400,20 @@ class ClosedChainTwin:
                     sm[a] = d.site_xmat[self.points].reshape(-1, 3, 3)
                 if goals is not None:
                     Rt[a] = d.site_xmat[self.task_site].reshape(3, 3)
-                for k in range(P):
-                    mujoco.mj_jacSite(m, d, jp[a, k], jr[a, k], pts[k])
+                ja = jp[a]
+                if need_jr:
+                    jra = jr[a]
+                    for k in range(P):
+                        mujoco.mj_jacSite(m, d, ja[k], jra[k], pts[k])
+                else:
+                    for k in range(P):
+                        mujoco.mj_jacSite(m, d, ja[k], None, pts[k])
             r, J = self._closure_rows(sp, sm, jp, jr, Q[active])
             if goals is not None:
-                rt, Jt = self._task_rows_batch(sp[:, tp], Rt, jp[:, tp], jr[:, tp], goals[active])
+                rt, Jt = self._task_rows_batch(sp[:, tp], Rt, jp[:, tp], None if jr is None else jr[:, tp],
+                                               goals[active])
                 r, J = np.concatenate([r, rt], axis=1), np.concatenate([J, Jt], axis=1)
-            if rigid:
+            if rigid and not two_pass:
                 met = np.max(np.abs(r), axis=1) < tol[active]
                 done[active[met]] = True
                 active, r, J = active[~met], r[~met], J[~met]
@@ -473,10 +515,19 @@ class ClosedChainTwin:
         known_cmd = np.concatenate([self.home_commands[None], self._warm_cmd])
         known_q = np.concatenate([self.home_qpos[None], self._warm_qpos])
         # All poses together: each from its nearest assembled configuration, by continuation in lockstep.
-        dist = np.max(np.abs(known_cmd[None, :, :] - cmd[:, None, :]) / span, axis=2) if len(cmd) else \
-            np.zeros((0, 1))
-        start = np.argmin(dist, axis=1)
-        n_sub = np.maximum(1, np.ceil(dist[np.arange(len(cmd)), start] / self.PATH_STEP)).astype(int)
+        # nearest known configuration in the largest motor move (a fraction of each range), by a k-d tree;
+        # of equally near ones the oldest (home first): the same start for every solve of a pose, so
+        # solves that differ only in the errors differ only by them (finite differences stay clean)
+        start = np.zeros(len(cmd), int)
+        near = np.zeros(len(cmd))
+        finite = np.isfinite(cmd).all(axis=1)
+        if finite.any():
+            tree = cKDTree(known_cmd / span)
+            x = cmd[finite] / span
+            near[finite] = tree.query(x, p=np.inf)[0]
+            start[finite] = [min(ball) for ball in tree.query_ball_point(x, near[finite] * (1 + 1e-12) + 1e-15,
+                                                                        p=np.inf)]
+        n_sub = np.maximum(1, np.ceil(near / self.PATH_STEP)).astype(int)
         Q = known_q[start].copy()
         j0 = Q[:, self.motor_qadr].copy()
         alive = np.isfinite(joints).all(axis=1)
@@ -535,6 +586,10 @@ class ClosedChainTwin:
         qpos = self.solve(commands, params)
         return self._sites_mm(qpos, self.target_sites)
 
+    def observe_at(self, qpos: np.ndarray) -> np.ndarray:
+        """:meth:`observe` at assembled configurations ``qpos`` (N, nq) (a :meth:`solve`'s): (N, R) mm."""
+        return self._observed(self._sites_mm(qpos, self.target_sites))
+
     def _sites_mm(self, qpos: np.ndarray, sites: np.ndarray) -> np.ndarray:
         out = np.full((len(qpos), len(sites), 3), np.nan)
         for i, q in enumerate(qpos):
@@ -559,6 +614,43 @@ class ClosedChainTwin:
         kin, dpos, _ = self._point_jacobians(commands, params, keys)
         return dpos[:, self._tp] / MM
 
+    # ------------------------------------------------------------------ observations (what is read of a pose)
+    @property
+    def reading_reference(self) -> str | None:
+        """``[tracker] reference`` of a ``"distance"`` measurement (``"previous"`` / ``"first"``), else None:
+        identification then fits scale readings (:func:`pmcal.calib.closed_chain.reading_operator`)."""
+        return self.spec.reference if self.spec.measure == "distance" else None
+
+    @property
+    def n_observed(self) -> int:
+        """Values read of each pose: 3 K nest coordinates, or 1 distance (``measure = "distance"``)."""
+        return 1 if self.spec.measure == "distance" else 3 * self.n_targets
+
+    def observe(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
+        """What the tracker reads of each pose, before a reference is taken off: (N, R) mm. ``"position"``
+        and ``"pose"``: the nest coordinates ``t1_x .. tK_z`` (R = 3 K, world frame); ``"distance"``: the
+        distance between the two target sites (R = 1; the scale reads its change relative to a reference
+        pose, :func:`pmcal.calib.closed_chain.reading_operator`). NaN rows where the chain cannot assemble."""
+        y = self.targets(commands, params)
+        return self._observed(y)
+
+    def _observed(self, y: np.ndarray) -> np.ndarray:
+        if self.spec.measure == "distance":
+            return np.linalg.norm(y[:, 1] - y[:, 0], axis=1)[:, None]
+        return y.reshape(len(y), -1)
+
+    def observation_jacobian(self, commands, params: Mapping[str, float] | None = None,
+                             keys: list[str] | None = None) -> np.ndarray:
+        """Exact d :meth:`observe` / d errors (N, R, P), mm per key unit (IFT, module docstring): for a
+        distance ``|b - a|`` the unit vector from a to b times the difference of the two sites' derivatives."""
+        kin, dpos, _ = self._point_jacobians(commands, params, keys)
+        J = dpos[:, self._tp] / MM                                        # (N, K, 3, P)
+        if self.spec.measure != "distance":
+            return J.reshape(len(J), -1, J.shape[-1])
+        v = kin.site_xpos[:, self._tp[1]] - kin.site_xpos[:, self._tp[0]]
+        u = v / np.linalg.norm(v, axis=1, keepdims=True)
+        return np.einsum("nc,ncp->np", u, J[:, 1] - J[:, 0])[:, None, :]
+
     def task_jacobian(self, commands, params: Mapping[str, float] | None = None,
                       keys: list[str] | None = None) -> np.ndarray:
         """Exact d task coordinates / d errors (N, C, P) at fixed commands (N, M): how far each error moves
@@ -568,15 +660,17 @@ class ClosedChainTwin:
         coords = self.spec.task.coordinates
         out = np.full((len(kin.qpos), len(coords), dpos.shape[-1]), np.nan)
         tp = self._task_p
+        Rf = self._frame_R.T
         for i, c in enumerate(coords):
             if c in POSITION:
-                out[:, i] = dpos[:, tp, POSITION.index(c)] / MM
+                out[:, i] = (Rf @ dpos[:, tp])[:, POSITION.index(c)] / MM
         ang = [i for i, c in enumerate(coords) if c not in POSITION]
         if ang:
             for n in range(len(kin.qpos)):
                 if np.isfinite(kin.qpos[n]).all():
-                    D = self._angle_rates(kin.site_xpos[n, tp] / MM, kin.site_xmat[n, tp])
-                    out[n, ang] = D @ drot[n, tp]
+                    p, R = self._in_task_frame(kin.site_xpos[n, tp], kin.site_xmat[n, tp])
+                    D = self._angle_rates(p / MM, R)
+                    out[n, ang] = D @ Rf @ drot[n, tp]
         return out
 
     def _point_jacobians(self, commands, params, keys):
@@ -626,9 +720,9 @@ class ClosedChainTwin:
         for i, q in enumerate(qpos):
             if np.isfinite(q).all():
                 self._kin(q, jac=False)
-                p = self.data.site_xpos[self.task_site] / MM
-                R = self.data.site_xmat[self.task_site].reshape(3, 3)
-                out[i] = task_coordinates(p[None], R[None], coords)[0]
+                p, R = self._in_task_frame(self.data.site_xpos[self.task_site],
+                                           self.data.site_xmat[self.task_site].reshape(3, 3))
+                out[i] = task_coordinates(p[None] / MM, R[None], coords)[0]
         return out
 
     def forward(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
@@ -654,6 +748,9 @@ class ClosedChainTwin:
         ``jr`` (A, 3, nv), towards ``goals`` (A, C) (task units)."""
         coords = self.spec.task.coordinates
         is_pos = np.array([c in POSITION for c in coords])
+        p_m, R = self._in_task_frame(p_m, R)
+        jp = self._frame_R.T @ jp
+        jr = None if jr is None else self._frame_R.T @ jr
         now = task_coordinates(p_m / MM, R, coords)
         diff = task_difference(now, goals, coords)
         r = np.where(is_pos, diff * MM, diff * DEG)

@@ -163,7 +163,8 @@ def evaluate(args) -> int:
     check_assembles(machine, meas)
     d = residuals(machine, params, meas)
     stats = error_stats(d)
-    print(f"target position error over {len(meas)} poses: rms {stats['rms']:.4f} mm, max {stats['max']:.4f} mm")
+    what = "reading error" if machine.spec.measure == "distance" else "target position error"
+    print(f"{what} over {len(meas)} poses: rms {stats['rms']:.4f} mm, max {stats['max']:.4f} mm")
     if args.json:
         per_pose = [{"pose_id": pid, "position_error_mm": [None if np.isnan(v) else float(v) for v in row]}
                     for pid, row in zip(meas.pose_id, d)]

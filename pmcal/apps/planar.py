@@ -58,7 +58,8 @@ def option_help(machine) -> dict:
     return OPTION_HELP
 
 
-MODEL_CHOICES = {None: "simplified", "paper": "simplified", "simplified": "simplified", "full": "full"}
+MODEL_CHOICES = {None: "simplified", "paper": "simplified", "simplified": "simplified", "full": "full",
+                 "chain": "chain"}
 
 
 def _status(text: str) -> None:
@@ -92,7 +93,9 @@ def identify(args) -> int:
     machine = _machine()
     model = MODEL_CHOICES.get(getattr(args, "model", None))
     if model is None:
-        raise InputError(f"unknown model '{args.model}' (simplified/paper or full)", field="--model")
+        raise InputError(f"unknown model '{args.model}' (simplified/paper, full or chain)", field="--model")
+    if model == "chain":
+        return identify_chain_model(args, machine)
     method = getattr(args, "method", None) or machine.calibration.method
     if method not in METHODS:
         raise InputError(f"unknown method '{method}' for planar_2dof ({', '.join(METHODS)})", field="--method")
@@ -125,6 +128,50 @@ def identify(args) -> int:
     if not doc["success"]:
         from pmcal import progress
         progress.warning(doc["message"])
+    return 0
+
+
+def identify_chain_model(args, machine) -> int:
+    """``identify --model chain``: the paper's 12 errors on the generic closed-chain core
+    (``mjcf/planar_2dof/chain``: exact model, IFT Jacobian, generalised least squares with the servo and
+    scale noise, Tikhonov prior): the identifiable base set is found from the data and the combinations it
+    cannot separate are written out (``unidentifiable``)."""
+    from pmcal.calib.chain_model import NamedModel
+    from pmcal.calib.closed_chain import identify_chain, reading_covariance
+    from pmcal.fileio import write_json
+    from pmcal.io_planar import MECHANISM, read_measurements
+    from pmcal.mechanism.planar.geometry import ERROR_KEYS, interface_unit
+    from pmcal.twin.planar.twin import PlanarTwin
+
+    if getattr(args, "method", None):
+        raise InputError("--model chain fits by least squares on the exact model (no --method)", field="--method")
+    meas = read_measurements(args.measurements, machine.geometry)
+    noise = _noise(machine, getattr(args, "sigma", None))
+    twin = PlanarTwin(None, machine)
+    twin.assemble(meas.theta_cmd)                        # the measured poses on the paper's branch (warm starts)
+    named = NamedModel(twin.chain, twin.chain.spec.names)
+    cmd = np.rad2deg(meas.theta_cmd)
+    servo = [math.degrees(noise.servo)] * 2
+    cov = reading_covariance(twin.chain, cmd, servo, noise.scale, meas.segments)
+    try:
+        res = identify_chain(named, cmd, meas.readings, noise.scale, keys=list(ERROR_KEYS), segments=meas.segments,
+                             covariance=cov)
+    except ValueError as exc:
+        raise InputError(str(exc), file=meas.path) from None
+    doc = {"mechanism": MECHANISM, "model": "chain", "method": "lm+tikhonov (generic closed-chain core)",
+           "params": {k: float(res.params[k]) for k in ERROR_KEYS},
+           "units": {k: interface_unit(k) for k in ERROR_KEYS}, "identifiable": list(res.base),
+           "uncertainty": dict(res.std), "crlb": dict(res.crlb), "combinations": dict(res.combinations),
+           "unidentifiable": list(res.unidentifiable), "weak": list(res.weak), "rank": int(res.rank),
+           "condition_number": float(res.condition_number), "residual_rms_mm": float(res.residual_rms_mm),
+           "chi2_per_dof": float(res.chi2_per_dof), "n_readings": int(len(meas.readings)),
+           "n_positions": len(meas.ids), "source": str(args.measurements), "success": bool(res.success),
+           "message": res.message, "noise": {"scale_sigma_mm": noise.scale, "servo_sigma_deg": servo[0]}}
+    write_json(args.output, doc)
+    p = doc["params"]
+    print(f"chain model: {res.rank} of {len(ERROR_KEYS)} errors identifiable (base set); dtheta1 = "
+          f"{p['dtheta1']:.4f} deg, dtheta2 = {p['dtheta2']:.4f} deg; residual {res.residual_rms_mm:.4f} mm rms "
+          f"-> {args.output}")
     return 0
 
 
@@ -239,8 +286,7 @@ def twin_measure(args) -> int:
     from pmcal.mechanism.planar.noise import Noise
     from pmcal import progress
     from pmcal.io_planar import MAX_POSITIONS, read_targets, write_measurements
-    from pmcal.twin.planar.campaign import commands_for, measure
-    from pmcal.twin.planar.twin import PlanarTwin
+    from pmcal.twin.planar.twin import PlanarTwin, commands_for, measure
 
     machine = _machine()
     errors, source = _errors_from_args(args, machine)
@@ -281,8 +327,7 @@ def twin_render(args) -> int:
     """PNG of the twin; ``--pose X,Y`` is the position of P in mm (the default ``0,0`` means home P0)."""
     from pmcal.mechanism.planar.kinematics import inverse
     from pmcal.fileio import atomic_write
-    from pmcal.twin.planar.render import render_png
-    from pmcal.twin.planar.twin import PlanarTwin
+    from pmcal.twin.planar.twin import PlanarTwin, render_png
     from pmcal.twin.render import RenderUnavailable
 
     machine = _machine()

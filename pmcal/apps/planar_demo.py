@@ -113,10 +113,9 @@ def demo(args) -> int:
     from pmcal.fileio import write_json
     from pmcal.io_planar import params_document, write_measurements
     from pmcal.reports.html import matplotlib_agg
-    from pmcal.twin.planar.campaign import commands_for, measure
     from pmcal.twin.planar.config import default_machine
     from pmcal.apps.planar_study import GROUPS, PAPER, evaluate_at, run_study, settings
-    from pmcal.twin.planar.twin import PlanarTwin
+    from pmcal.twin.planar.twin import PlanarTwin, commands_for, measure
 
     if getattr(args, "hidden_effect", None):
         raise InputError("hidden effects are not available for planar_2dof", field="--hidden-effect")
@@ -198,7 +197,7 @@ def demo(args) -> int:
             picture = "not drawn"
             try:
                 if draw:
-                    from pmcal.twin.planar.render import render_png
+                    from pmcal.twin.planar.twin import render_png
                     picture = render_png(tw1, width=720, height=540)
             except Exception as exc:  # rendering is optional (no OpenGL): the report says so
                 picture = f"{exc.__class__.__name__}: {exc}"

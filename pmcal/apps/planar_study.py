@@ -15,8 +15,7 @@ from pmcal.calib.planar.calibration import CalibrationRun, calibrate_many
 from pmcal.mechanism.planar.geometry import Errors
 from pmcal.mechanism.planar.kinematics import forward
 from pmcal.mechanism.planar.noise import Noise
-from pmcal.twin.planar.campaign import batch_measure, commands_for
-from pmcal.twin.planar.twin import PlanarTwin
+from pmcal.twin.planar.twin import PlanarTwin, batch_measure, commands_for
 
 
 @dataclass

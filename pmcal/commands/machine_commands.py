@@ -41,10 +41,11 @@ def register(sub: CommandSet) -> None:
                    help="identification method. ocpm_2dof --model paper: hga (default), ga, pso, sa, lm, "
                         "tikhonov, tsvd; --model full: the whole-chain least squares. planar_2dof: tsvd "
                         "(default), ls, gls")
-    p.add_argument("--model", default=None, choices=["full", "paper", "simplified"],
+    p.add_argument("--model", default=None, choices=["full", "paper", "simplified", "chain"],
                    help="error model. ocpm_2dof: whole closed chain (full, default) or the paper's per-limb "
                         "real IK (paper). planar_2dof: the paper's 4-parameter model (simplified = paper, "
-                        "default) or all 12 parameters (full)")
+                        "default), all 12 parameters (full), or all 12 on the generic closed-chain core "
+                        "(chain: exact model, identifiable base set found, docs/closed_chain.md)")
     p.add_argument("--sigma", type=float, default=None, help="tracker noise, mm (machine default)")
     p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods (default 0)")
     p.add_argument("--allow-rank-deficient", action="store_true",

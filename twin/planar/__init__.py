@@ -1,6 +1,6 @@
-"""Digital twin of the planar 2-DOF robot with its measuring mechanism (paper 003).
+"""The planar robot (paper 003) on the generic closed-chain core.
 
-:mod:`~pmcal.twin.planar.config` (machine.toml), :mod:`~pmcal.twin.planar.model` (MJCF with errors),
-:mod:`~pmcal.twin.planar.twin` (loop closure, P and the linear scale), :mod:`~pmcal.twin.planar.campaign` (noisy
-readings), :mod:`~pmcal.apps.planar_study` (Monte Carlo of the calibration loop), :mod:`~pmcal.twin.planar.render`.
+:mod:`~pmcal.twin.planar.config` (the paper's machine.toml: geometry, noise, presets, calibration and design
+settings), :mod:`~pmcal.twin.planar.twin` (the twin: ``mjcf/planar_2dof/chain`` on
+:class:`pmcal.twin.closed_chain.ClosedChainTwin`, the paper's campaigns, pictures).
 """

@@ -48,13 +48,6 @@ class DesignSettings:
 
 
 @dataclass(frozen=True)
-class TwinSettings:
-    base_height_m: float = 1.2
-    parallelogram_proximal: np.ndarray = field(default_factory=lambda: np.array([0.0, 60.0]))
-    parallelogram_distal: np.ndarray = field(default_factory=lambda: np.array([60.0, 0.0]))
-
-
-@dataclass(frozen=True)
 class PlanarMachine:
     """Everything machine.toml says (mm, rad)."""
 
@@ -64,7 +57,6 @@ class PlanarMachine:
     scale_range: float
     calibration: CalibrationSettings
     design: DesignSettings
-    twin: TwinSettings
     presets: dict[str, Errors]
     source: str = ""
 
@@ -176,14 +168,6 @@ def load_machine(path: str | Path | None = None) -> PlanarMachine:
                       scale_range=scale_range),
         grid_step=rd.number("design", "grid_step", positive=True), positions=int(k),
         method=rd.text("design", "method", ("tsvd", "ls", "gls"), "gls"))
-    twin = TwinSettings(
-        base_height_m=rd.number("twin", "base_height_m", positive=True),
-        parallelogram_proximal=rd.vector("twin", "parallelogram_proximal"),
-        parallelogram_distal=rd.vector("twin", "parallelogram_distal"))
-    for key, v in (("parallelogram_proximal", twin.parallelogram_proximal),
-                   ("parallelogram_distal", twin.parallelogram_distal)):
-        if np.linalg.norm(v) < 1.0:
-            raise InputError("offset must be at least 1 mm", file=p, field=f"[twin] {key}")
     presets = {}
     for name, values in doc.get("presets", {}).items():
         if not isinstance(values, dict):
@@ -198,7 +182,7 @@ def load_machine(path: str | Path | None = None) -> PlanarMachine:
     if "nominal" not in presets:
         presets["nominal"] = Errors()
     return PlanarMachine(geometry=geom, workspace=ws, noise=noise, scale_range=scale_range, calibration=cal,
-                         design=design, twin=twin, presets=presets, source=p)
+                         design=design, presets=presets, source=p)
 
 
 @lru_cache(maxsize=1)

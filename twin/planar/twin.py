@@ -1,104 +1,146 @@
-"""The planar robot's digital twin: the MuJoCo model of the real machine placed at motor angles.
+"""The planar robot's digital twin: the generic closed-chain core on ``mjcf/planar_2dof/chain``.
 
-With the motors held, the four loops are closed exactly by Gauss-Newton on the site-based connect
-residuals (:class:`pmcal.twin.assembly.BatchAssembler`: MuJoCo kinematics and site Jacobians, all poses at
-once). The platform's reference point P and the linear scale (the slide joint ``scale_slide``) are then
-read off the model. Interface units: mm and radians (seed plane, y up); SI inside MuJoCo.
+The machine is data (docs/closed_chain.md, "Seeded machines"): the MJCF, its linear scale as a ``"distance"``
+measurement between O1 and O2, the task point P in the seed frame O-xy (site O), and the paper's error
+names mapped onto frame displacements (``[names]``). :class:`PlanarTwin` closes the loops with
+:class:`pmcal.twin.closed_chain.ClosedChainTwin` (Newton with the motors held, on the home branch) and reads
+P and |O1 O2|; :func:`measure` runs the paper's campaigns (servo error eq. 35 on the held angles, one scale
+error eq. 34 per reading). Interface units: mm and radians (seed plane); SI inside MuJoCo.
 """
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
+from functools import lru_cache
 
+import mujoco
 import numpy as np
 
+from pmcal.errors import RunError
+from pmcal.mechanism.machine_spec import MachineSpec, expand_names
 from pmcal.mechanism.planar.geometry import Errors
-from pmcal.mechanism.planar.kinematics import elbows, forward, mm_vector
-from pmcal.twin.assembly import BatchAssembler, Stiffness
-from pmcal.twin.planar.config import PlanarMachine, default_machine
-from pmcal.twin.planar.model import CLOSURES, MM, build_model, scale_reference
+from pmcal.mechanism.planar.kinematics import forward, inverse
+from pmcal.mechanism.planar.noise import Noise
+from pmcal.mjcf import machine_dir
+from pmcal.twin.closed_chain import ClosedChainTwin
+from pmcal.twin.planar.config import SCENE_XML, PlanarMachine, default_machine
 
-#: largest closure gap (m) accepted as an assembled pose
-CLOSURE_TOL_M = 1e-10
+#: the planar robot described as data for the generic core
+CHAIN_DIR = machine_dir("planar_2dof") / "chain"
+
+
+@lru_cache(maxsize=1)
+def chain_twin() -> ClosedChainTwin:
+    """The generic twin of ``mjcf/planar_2dof/chain`` (cached: its warm starts serve every later solve)."""
+    return ClosedChainTwin(MachineSpec.load(CHAIN_DIR))
 
 
 @dataclass
 class PlanarPoses:
-    """Assembled poses (N of them).
-
-    r : (N, 2) position of P, mm (seed frame). length : (N,) |O1 O2|, mm. scale : (N,) slide joint
-    reading, mm (length minus the nominal home length). motor : (N, 2) motor joint angles, rad.
-    gap : (N,) largest closure gap, m. converged : (N,) bool. qpos : (N, nq) MuJoCo configurations.
-    """
+    """Assembled poses (N of them): r (N, 2) position of P, mm (seed frame); length (N,) |O1 O2|, mm;
+    motor (N, 2) held motor angles, rad; qpos (N, nq) MuJoCo configurations."""
 
     r: np.ndarray
     length: np.ndarray
-    scale: np.ndarray
     motor: np.ndarray
-    gap: np.ndarray
-    converged: np.ndarray
     qpos: np.ndarray
 
 
 class PlanarTwin:
-    """A real planar robot: nominal model + ``errors`` (zero offsets, geometric errors, MAEMM)."""
+    """A real planar robot: the nominal MJCF with ``errors`` (zero offsets, geometric errors, MAEMM)."""
 
-    def __init__(self, errors: Errors | None = None, machine: PlanarMachine | None = None,
-                 nthread: int | None = None):
+    #: cells (mm) of the positions this twin has solved by task-space continuation (:meth:`assemble`)
+    CELL_MM = 5.0
+
+    def __init__(self, errors: Errors | None = None, machine: PlanarMachine | None = None):
         self.machine = machine or default_machine()
         self.errors = errors if errors is not None else Errors()
-        self.model, self.index = build_model(self.machine, self.errors)
-        self.rho_ref = scale_reference(self.machine)
-        self.z0 = self.machine.twin.base_height_m
-        # A consistent mechanism: every closure closes; equal weights, no load on the scale's slide.
-        stiffness = Stiffness(closure=np.ones(len(CLOSURES)), ss_axial=0.0)
-        # The assembler switches constraints off in the model it is given: it gets its own copy, and
-        # ``self.model`` stays a complete model for simulation and rendering.
-        self.assembler = BatchAssembler(copy.deepcopy(self.model), self.index, stiffness,
-                                        held_dofs=self.index.dadr_base, tol=1e-13, max_iter=40, nthread=nthread)
+        self.chain = chain_twin()
+        self._known_cells: set = set()
+        self.params = expand_names(self.chain.spec.names, self.errors.as_interface())
 
-    def to_plane(self, xyz: np.ndarray) -> np.ndarray:
-        """World points (..., 3) m -> seed plane (..., 2) mm."""
-        xyz = np.asarray(xyz, dtype=float)
-        return np.stack([xyz[..., 0] / MM, (xyz[..., 2] - self.z0) / MM], axis=-1)
-
-    def initial_qpos(self, motor: np.ndarray) -> np.ndarray:
-        """Starting configurations (N, nq) on the paper's assembly branch, from the nominal closed forms.
-
-        Only the branch matters: Gauss-Newton then converges to the model's own closure.
-        """
-        motor = np.atleast_2d(np.asarray(motor, dtype=float))
-        g = self.machine.geometry
-        r = forward(g, motor)
-        if not np.all(np.isfinite(r)):
-            bad = int(np.flatnonzero(~np.all(np.isfinite(r), axis=1))[0])
-            raise ValueError(f"motor angles {np.rad2deg(motor[bad])} deg are out of the robot's reach")
-        w = r[:, None, :] - elbows(g, motor)
-        phi = np.arctan2(w[..., 1], w[..., 0])
-        lam = mm_vector(g, r)
-        q = np.zeros((len(motor), self.model.nq))
-        a = self.index.qadr
-        q[:, a["right_motor"]], q[:, a["left_motor"]] = motor[:, 0], motor[:, 1]
-        q[:, a["right_shaft"]] = -motor[:, 0]
-        q[:, a["right_passive"]] = motor[:, 0]
-        q[:, a["right_distal"]] = phi[:, 0]
-        q[:, a["right_distal_b"]] = phi[:, 0]
-        q[:, a["platform_pin"]] = -phi[:, 0]
-        q[:, a["left_distal"]] = phi[:, 1] - motor[:, 1]
-        q[:, a["scale_pivot"]] = np.arctan2(lam[:, 1], lam[:, 0])
-        q[:, a["scale_slide"]] = (np.linalg.norm(lam, axis=1) - self.rho_ref) * MM
-        return q
+    @property
+    def model(self) -> mujoco.MjModel:
+        """The compiled model with this machine's frame errors written in (zero offsets are joint offsets)."""
+        self.chain.set_params(self.params)
+        return self.chain.model
 
     def assemble(self, motor: np.ndarray) -> PlanarPoses:
-        """Close the loops with the motor joints at ``motor`` (N, 2) rad (what the servos really hold) and
-        read P and the linear scale."""
+        """Close the loops with the motor joints at ``motor`` (N, 2) rad (what the servos really hold: the
+        zero offsets are added here) and read P and |O1 O2|. RunError where the chain does not assemble."""
         motor = np.atleast_2d(np.asarray(motor, dtype=float))
-        q = self.initial_qpos(motor)
-        res = self.assembler.solve(q)
-        n = len(motor)
-        gap = np.linalg.norm(res.gaps, axis=-1).max(axis=1)
-        P = self.assembler.sites(n, np.array([self.index.site_P]))[:, 0]
-        scale = res.qpos[:, self.index.qadr_slide] / MM
-        return PlanarPoses(r=self.to_plane(P), length=self.rho_ref + scale, scale=scale, motor=motor,
-                           gap=gap, converged=res.converged & (gap < CLOSURE_TOL_M), qpos=res.qpos)
+        self._learn_branch(motor)
+        q = self.chain.solve(np.rad2deg(motor), self.params)
+        bad = ~np.isfinite(q).all(axis=1)
+        if bad.any():
+            raise RunError(f"the twin did not assemble at motor angles {np.rad2deg(motor[bad][0])} deg")
+        return PlanarPoses(r=self.chain.task_of(q), length=self.chain.observe_at(q)[:, 0], motor=motor, qpos=q)
+
+
+    def _learn_branch(self, motor: np.ndarray) -> None:
+        """Solve new regions of the workspace by task-space continuation from home first (inverse
+        kinematics at the positions the closed forms give, one per 5 mm cell): the straight motor path from
+        home to a far pose may cross a singularity onto another assembly branch; the poses solved here are
+        the warm starts, on the paper's branch, of every later solve near them."""
+        r = forward(self.machine.geometry, motor)
+        cells = np.round(r / self.CELL_MM)
+        known = self._known_cells
+        new = {}
+        for cell, pos in zip(map(tuple, cells), r):
+            if cell not in known and cell not in new and np.isfinite(pos).all():
+                new[cell] = pos
+        if new:
+            self.chain.inverse(np.array(list(new.values())), self.params)
+            known.update(new)
+
+
+@dataclass
+class Campaign:
+    """Chains of readings (rad, mm): theta_cmd (S, K, 2) commanded angles; readings (S, K-1) scale changes
+    between adjacent positions; poses the S*K assembled poses (row-major)."""
+
+    theta_cmd: np.ndarray
+    readings: np.ndarray
+    poses: PlanarPoses
+
+
+def measure(twin: PlanarTwin, theta_cmd: np.ndarray, noise: Noise, rng: np.random.Generator) -> Campaign:
+    """Measure chains of positions: ``theta_cmd`` (K, 2) or (S, K, 2) rad, S independent chains; each pose
+    held at the command plus the servo error, each reading the change of |O1 O2| plus one scale error."""
+    cmd = np.asarray(theta_cmd, dtype=float)
+    cmd3 = cmd[None] if cmd.ndim == 2 else cmd
+    S, K, _ = cmd3.shape
+    poses = twin.assemble((cmd3 + rng.normal(0.0, noise.servo, cmd3.shape)).reshape(S * K, 2))
+    readings = np.diff(poses.length.reshape(S, K), axis=1) + rng.normal(0.0, noise.scale, (S, K - 1))
+    return Campaign(theta_cmd=cmd3, readings=readings, poses=poses)
+
+
+def batch_measure(twin: PlanarTwin, noise: Noise, rng: np.random.Generator):
+    """A ``measure(theta_cmd (S, K, 2), ids)`` callback for :func:`pmcal.calib.planar.calibration.calibrate_many`."""
+    def run(theta_cmd: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        return measure(twin, theta_cmd, noise, rng).readings
+    return run
+
+
+def commands_for(twin: PlanarTwin, r: np.ndarray, comp: np.ndarray | None = None) -> np.ndarray:
+    """Motor commands (K, 2) rad that the controller sends for nominal positions ``r`` (K, 2) mm (the paper's
+    eq. 3 on the nominal geometry), with zero-offset compensation ``comp`` (rad) if given."""
+    theta = inverse(twin.machine.geometry, r)
+    if not np.all(np.isfinite(theta)):
+        raise ValueError("a position is out of the nominal robot's reach")
+    return theta - (np.zeros(2) if comp is None else comp)
+
+
+def render_png(twin: PlanarTwin, motor: np.ndarray | None = None, width: int = 800, height: int = 600,
+               camera: str = "front") -> bytes:
+    """PNG of the machine (``scene.xml``: floor, light, ``camera``) with the motors at ``motor`` (2,) rad
+    (default: home), the loops closed by the twin; the links drawn with their nominal geometry (errors of a
+    fraction of a millimetre do not show)."""
+    from pmcal.twin.render import render_model_png
+
+    motor = twin.machine.geometry.home if motor is None else np.asarray(motor, dtype=float)
+    m = mujoco.MjModel.from_xml_path(str(SCENE_XML))
+    d = mujoco.MjData(m)
+    d.qpos[:] = twin.assemble(motor[None]).qpos[0]
+    mujoco.mj_forward(m, d)
+    return render_model_png(m, d, width, height, camera)
