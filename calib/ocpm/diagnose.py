@@ -91,7 +91,9 @@ class DiagnoseOptions:
     min_transfer, transfer_z : a name must also transfer across the workspace (:func:`transfer_shares`):
         with whole regions held out (:func:`region_folds`), when the named model leaves a held-out excess
         over the noise of more than ``transfer_z`` standard deviations there, every named effect must
-        remove at least ``min_transfer`` of the held-out excess of the model without it.
+        remove at least ``min_transfer`` of the held-out excess of the model without it, unless it removes
+        at least ``transfer_exempt`` of the held-out excess in the stratified folds (a name that explains
+        nearly all of it there is the explanation; a partial one must show that its part transfers).
     """
 
     baseline_keys: list[str] | None = None
@@ -112,6 +114,7 @@ class DiagnoseOptions:
     min_held_out: float = 0.5
     min_transfer: float = 0.8
     transfer_z: float = 3.0
+    transfer_exempt: float = 0.95
     priors: Priors = field(default_factory=Priors)
     initial: dict[str, float] | None = None      # start of the baseline fit (interface units), e.g. P.json
     max_nfev: int = 60
@@ -840,12 +843,16 @@ def _earned_on_held_out(pb: _Problem, named: list[str], res: IdentResult, lin: L
       least ``min_held_out`` of the held-out excess of the model without it (:func:`held_out_shares`). One
       that does not is a significant sliver of a larger structure outside its family (a floor slide fitted
       as passive-limb geometry: 2 % of it).
-    - Its parameters must transfer across the workspace: when the named model leaves a significant excess
-      on regions held out whole (``z_left`` > ``transfer_z``), every named effect must remove at least
-      ``min_transfer`` of the region-held-out excess of the model without it (:func:`transfer_shares`). A
-      family can fit the shape of an effect outside it so well that nothing is left in the stratified
-      folds (a tracker range error growing with distance, fitted as passive-limb geometry plus thermal
-      parts); fitted on part of the workspace it does not predict the rest.
+    - A name that explains only part of the held-out structure in the stratified folds (share below
+      ``transfer_exempt``) must show that its part transfers across the workspace: when the named model
+      leaves a significant excess on regions held out whole (``z_left`` > ``transfer_z``), it must remove
+      at least ``min_transfer`` of the region-held-out excess of the model without it
+      (:func:`transfer_shares`). Two families can share the shape of an effect outside both so well that
+      nothing is left in the stratified folds (a tracker range error growing with distance, fitted as
+      passive-limb geometry, 69-90 % of it, plus thermal parts, 45-69 %); fitted on part of the workspace
+      they do not predict the rest. A name that explains nearly all the stratified held-out structure is
+      exempt: a form of its family slightly outside the model (cross-sim's steel body with nests that do
+      not expand: share 0.999, region share 0.31) is still that family.
 
     A name that fails is not named, the weakest first, and the rest are measured again; the structure is
     then reported unexplained with what it follows. Returns (named, fit, lin, shares)."""
@@ -856,8 +863,8 @@ def _earned_on_held_out(pb: _Problem, named: list[str], res: IdentResult, lin: L
         transfer.update(transfer_shares(pb, named, res, lin))
         structure = omnibus(lin, fit(lin, lin.cols(list(res.names))), pb.noise, pb.opt).structure
         weak_held = [n for n in named if structure and shares[n] < pb.opt.min_held_out]
-        weak_moved = [n for n in named if transfer[n].z_left > pb.opt.transfer_z
-                      and transfer[n].share < pb.opt.min_transfer]
+        weak_moved = [n for n in named if shares[n] < pb.opt.transfer_exempt
+                      and transfer[n].z_left > pb.opt.transfer_z and transfer[n].share < pb.opt.min_transfer]
         if not weak_held and not weak_moved:
             break
         if weak_held:
