@@ -293,6 +293,30 @@ def summarise(rows: list[dict]) -> list[list]:
     return table
 
 
+def coverage(rows: list[dict]) -> list[list]:
+    """Per-motor 95 % interval coverage over the runs that named a per-motor effect: per effect, quantity
+    (backlash full band, drift rate, eccentricity amplitude and phase) and motor, hits / checks."""
+    what = {"backlash": ("full band",), "zero_offset_drift": ("rate",), "encoder_eccentricity": ("amplitude", "phase")}
+    count: dict[tuple, list[int]] = {}
+    for r in rows:
+        for name, hits in r.get("motor_coverage", {}).items():
+            q = what[name]
+            per = len(hits) // 2                  # checks per motor (the phase only where the truth has one)
+            for m in range(2):
+                for k, hit in enumerate(hits[m * per:(m + 1) * per]):
+                    c = count.setdefault((name, q[k], m + 1), [0, 0])
+                    c[0] += int(hit)
+                    c[1] += 1
+    return [[n, q, m, f"{h}/{t}", h / t] for (n, q, m), (h, t) in sorted(count.items())]
+
+
+COVERAGE_HEADER = ["effect", "quantity", "motor", "in 95 % interval", "coverage"]
+
+HEADER = ["case", "runs", "exactly its names", "named right", "other name", "runs w/ other", "unexplained",
+          "unexplained w/ correlate", "gap before (med)", "gap after (med)", "max after/noise",
+          "truth in 95% CI", "per-motor CI hits", "runtime med s", "runtime max s"]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20, help="seeds per effect case")
@@ -303,9 +327,20 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="JSON output (default benchmarks/results/diagnose_bench.json)")
     ap.add_argument("--source", choices=("twin", "xsim", "both"), default="twin",
                     help="campaigns from the twin, the independent simulator tests/crosssim, or both")
+    ap.add_argument("--partial", type=int, default=0, metavar="K",
+                    help="write the runs so far to the JSON every K runs (summarise them with --summarise)")
+    ap.add_argument("--summarise", metavar="JSON", default=None,
+                    help="print the table of the runs in a JSON this script wrote (also a partial one)")
     ap.add_argument("--campaign-size", action="store_true",
                     help="only the clean cases at 48 and 128 poses: the smallest effect each campaign detects at 90 %%")
     args = ap.parse_args(argv)
+    if args.summarise:
+        import json
+
+        doc = json.loads(Path(args.summarise).read_text())
+        print_table(f"Discrepancy diagnosis ({args.summarise}, {len(doc['runs'])} runs)", HEADER, summarise(doc["runs"]))
+        print_table("Per-motor 95 % intervals", COVERAGE_HEADER, coverage(doc["runs"]))
+        return 0
     if args.campaign_size:
         return campaign_size(args)
     jobs = []
@@ -323,14 +358,17 @@ def main(argv=None) -> int:
             print(f"\r{i}/{len(jobs)} {r['case']} seed {r['seed']}: {r['named']} "
                   f"{r['gap_before']:.4f} -> {r['gap_after']:.4f} mm ({r['runtime_s']:.1f} s)      ",
                   end="", flush=True)
+            if args.partial and i % args.partial == 0 and i < len(jobs):   # a long run stopped early keeps its rows
+                write_json("diagnose_bench", {"poses": args.poses, "sigma_mm": SIGMA, "partial": f"{i}/{len(jobs)}",
+                                              "runs": rows}, args.out)
     print()
-    header = ["case", "runs", "exactly its names", "named right", "other name", "runs w/ other", "unexplained",
-              "unexplained w/ correlate", "gap before (med)", "gap after (med)", "max after/noise",
-              "truth in 95% CI", "per-motor CI hits", "runtime med s", "runtime max s"]
+    header = HEADER
     table = summarise(rows)
     print_table(f"Discrepancy diagnosis, {args.poses} poses, sigma {SIGMA} mm", header, table)
+    print_table("Per-motor 95 % intervals", COVERAGE_HEADER, coverage(rows))
     write_json("diagnose_bench", {"poses": args.poses, "sigma_mm": SIGMA, "wall_s": time.perf_counter() - t0,
-                                  "header": header, "table": table, "runs": rows}, args.out)
+                                  "header": header, "table": table, "coverage": coverage(rows), "runs": rows},
+               args.out)
     return 0
 
 
