@@ -340,7 +340,8 @@ def main(argv=None) -> int:
 
         doc = json.loads(Path(args.summarise).read_text())
         print_table(f"Discrepancy diagnosis ({args.summarise}, {len(doc['runs'])} runs)", HEADER, summarise(doc["runs"]))
-        print_table("Per-motor 95 % intervals", COVERAGE_HEADER, coverage(doc["runs"]))
+        if coverage(doc["runs"]):
+            print_table("Per-motor 95 % intervals", COVERAGE_HEADER, coverage(doc["runs"]))
         return 0
     if args.campaign_size:
         return campaign_size(args)
@@ -366,7 +367,8 @@ def main(argv=None) -> int:
     header = HEADER
     table = summarise(rows)
     print_table(f"Discrepancy diagnosis, {args.poses} poses, sigma {SIGMA} mm", header, table)
-    print_table("Per-motor 95 % intervals", COVERAGE_HEADER, coverage(rows))
+    if coverage(rows):
+        print_table("Per-motor 95 % intervals", COVERAGE_HEADER, coverage(rows))
     write_json("diagnose_bench", {"poses": args.poses, "sigma_mm": SIGMA, "wall_s": time.perf_counter() - t0,
                                   "header": header, "table": table, "coverage": coverage(rows), "runs": rows},
                args.out)
