@@ -264,14 +264,16 @@ def test_an_effect_no_family_holds_is_not_given_the_nearest_name(tmp_path):
 
 def test_a_shape_two_families_share_does_not_earn_their_names(tmp_path):
     """A tracker range error growing with the distance (6e-5 d^2/2500 mm, no family holds it): passive-limb
-    geometry and thermal parts together fit it to the noise in the stratified folds (each explaining only
-    part of it there: 45-90 %), so before the transfer check it was named over-constraint + thermal. Fitted
-    on the other regions of the workspace they do not predict a region held out whole (share < 0.8 with a
-    significant excess left): nothing is named, the structure is reported unexplained with what it follows."""
+    geometry and thermal parts together fit it to the noise (the omnibus test finds nothing left after
+    both), so it was named over-constraint + thermal. Held out, each explains only part of it, clearly
+    measured (thermal 59 %, then over-constraint alone 77 %): below the 80 % a clearly measured share needs,
+    nothing is named, the structure is reported unexplained with what it follows; the share with whole
+    workspace regions held out is reported beside it."""
     d = _diagnose(tmp_path, ["tracker_scale"], seed=1000)
     assert d.effects == [] and d.unexplained and d.unexplained_context
-    refused = [c for c in d.candidates.values() if c.reason.startswith("on held-out regions")]
-    assert refused and all(c.verdict == "explains only part of the structure" for c in refused)
-    assert all(c.transfer_share < 0.8 and c.held_out_share < 0.95 for c in refused)
+    for name in ("overconstraint", "thermal_expansion"):
+        c = d.candidates[name]
+        assert c.verdict == "explains only part of the structure" and c.reason.startswith("on held-out poses")
+        assert c.held_out_share < 0.8 and np.isfinite(c.transfer_share)
     doc = {c["name"]: c for c in d.to_json()["candidates"]}
-    assert all(doc[c.name]["transfer_share"] == pytest.approx(c.transfer_share) for c in refused)
+    assert doc["overconstraint"]["transfer_share"] == pytest.approx(d.candidates["overconstraint"].transfer_share)

@@ -101,14 +101,15 @@ def test_pose_leverage_closed_forms():
     assert np.allclose(np.delete(h, 7), q * a**2 / ((P - 1) * q * a**2 + 1.0), rtol=1e-12)
 
 
-def test_held_out_noise_expectation_holds_when_regions_are_held_out_whole():
+def test_held_out_misfit_is_chi_square_when_regions_are_held_out_whole():
     """A polynomial in a pose coordinate x (well determined, unit priors) fitted on noise alone: with the
     poses held out in contiguous blocks of x (a region whole, the far blocks predicted by extrapolation)
-    the held-out sum of squares averages what :func:`_held_out_sums` expects under noise (1 + each held-out
-    prediction's noise variance a row): the mean ratio over 200 draws is 1 within 0.015 (a draw scatters
-    by ~5 %, the mean by ~0.4 %), where the plain row count is ~2.7 % short (the extrapolated blocks). A
-    signal outside the columns adds its held-out misfit (3 sin(4x): ~40 % above the expectation)."""
-    from pmcal.calib.ocpm.diagnose import _held_out_sums
+    the held-out misfit standardised by its predictive covariance (:func:`_held_out_sums`) is chi-square
+    with a degree of freedom a row: over 200 draws its mean ratio to the rows is 1 within 0.015 (a draw
+    scatters by ~4.5 %, the mean by ~0.3 %) and its spread that of chi-square (sqrt(2/n) within 20 %),
+    whereas the plain held-out sum of squares is ~2.7 % high (the extrapolated blocks). A signal outside
+    the columns adds its held-out misfit (3 sin(4x): ~40 % above)."""
+    from pmcal.calib.ocpm.diagnose import _cv, _held_out_sums
 
     rng = np.random.default_rng(3)
     P, q = 120, 9
@@ -120,13 +121,15 @@ def test_held_out_noise_expectation_holds_when_regions_are_held_out_whole():
     for _ in range(200):
         lin = Linearization(r=J @ rng.normal(0, 0.05, 4) + rng.normal(size=P * q), J=J, keys=list("abcd"),
                             z0=np.zeros(4), pose=pose, sigma=1.0, scale=np.ones(4), mean=np.zeros(4))
-        s, e = _held_out_sums(lin, cols, folds, inside)
-        ratios.append(s / e)
-        plain.append(s / inside.sum())
+        s, n = _held_out_sums(lin, cols, folds, inside)
+        ratios.append(s / n)
+        cv = _cv(lin, cols, np.repeat(folds, q))
+        plain.append(cv @ cv / n)
     assert abs(np.mean(ratios) - 1.0) < 0.015 and np.mean(plain) > 1.015
+    assert abs(np.std(ratios) / np.sqrt(2.0 / (P * q)) - 1.0) < 0.2
     lin.r = lin.r + 3.0 * np.sin(4 * x)                      # a shape the cubic does not hold
-    s, e = _held_out_sums(lin, cols, folds, inside)
-    assert s > 1.2 * e
+    s, n = _held_out_sums(lin, cols, folds, inside)
+    assert s > 1.2 * n
 
 
 def test_region_folds_are_contiguous_parts_of_the_workspace():
