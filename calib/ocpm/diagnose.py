@@ -891,9 +891,9 @@ def _earned_on_held_out(pb: _Problem, named: list[str], res: IdentResult, lin: L
         named = [n for n in named if n != weak]
         res = pb.refit(res, named) if named else pb.baseline
         lin = pb.linearize(res, named)
-    for n, c in board.items():
-        c.held_out_share = shares.get(n, float("nan"))
-        c.transfer_share = transfer[n].share if n in transfer else float("nan")
+    for n, c in board.items():                  # an earlier pass's measurement stays when this one had none
+        c.held_out_share = shares.get(n, c.held_out_share)
+        c.transfer_share = transfer[n].share if n in transfer else c.transfer_share
     return named, res, lin, shares
 
 
