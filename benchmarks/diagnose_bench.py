@@ -186,16 +186,16 @@ def run_one(job: tuple[str, int, int]) -> dict:
     assert meas.approach is None                  # logged as a user logs it: the approach is inferred
     outside_effect(case, meas)
     effects.REALISTIC["encoder_eccentricity"] = 0.01
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     d = diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA))
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     inside = {v.name: within_interval(d, twin, v.name) for v in d.named if v.name in names}
     e = twin.effects
     truths = {n: per_motor_truth(n, getattr(e, n), e.encoder_phase_deg if n == "encoder_eccentricity" else None)
               for n in ("backlash", "encoder_eccentricity", "zero_offset_drift") if getattr(e, n) is not None}
     return {**_common(d, names), "case": case, "seed": seed, "poses": len(meas), "named": d.effects, "verdict": d.verdict,
             "motor_coverage": motor_coverage(d, truths),
-            "gap_before": d.gap_before, "gap_after": d.gap_after, "noise_floor": d.noise_floor, "runtime_s": wall,
+            "gap_before": d.gap_before, "gap_after": d.gap_after, "noise_floor": d.noise_floor, "runtime_s": wall, "cpu_s": cpu,
             "gap_after_all": d.gap_after_all, "extrapolated": d.extrapolated, "truth_in_interval": inside, "values": {v.name: v.value for v in d.named},
             "intervals": {v.name: v.interval for v in d.named}, "truth": {n: truth(twin, n) for n in names
                                                                           if n != "overconstraint"},
@@ -254,9 +254,9 @@ def run_xsim(case: str, seed: int, n: int) -> dict:
         path = Path(tmp) / "xsim.csv"
         write_csv(path, camp)
         meas = read_measurements(path)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     d = diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA))
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     names = vocabulary_names(XSIM_CASES[case])
     truths = {"backlash": per_motor_truth("backlash", fx.backlash),
               "encoder_eccentricity": per_motor_truth("encoder_eccentricity", fx.eccentricity,
@@ -264,7 +264,7 @@ def run_xsim(case: str, seed: int, n: int) -> dict:
               "zero_offset_drift": per_motor_truth("zero_offset_drift", fx.drift)}
     return {**_common(d, names), "case": f"xsim {case}", "seed": seed, "poses": len(meas), "named": d.effects,
             "verdict": d.verdict, "motor_coverage": motor_coverage(d, {n: truths[n] for n in names if n in truths}),
-            "gap_before": d.gap_before, "gap_after": d.gap_after, "noise_floor": d.noise_floor, "runtime_s": wall,
+            "gap_before": d.gap_before, "gap_after": d.gap_after, "noise_floor": d.noise_floor, "runtime_s": wall, "cpu_s": cpu,
             "gap_after_all": d.gap_after_all, "extrapolated": d.extrapolated, "truth_in_interval": {}, "values": {v.name: v.value for v in d.named},
             "intervals": {v.name: v.interval for v in d.named}, "truth": {}, "unexplained": d.unexplained}
 
@@ -289,8 +289,33 @@ def summarise(rows: list[dict]) -> list[list]:
                       float(np.median([r["gap_before"] for r in rs])), float(np.median([r["gap_after"] for r in rs])),
                       float(np.max(ratio)), float(np.mean(cover)) if cover else float("nan"),
                       f"{sum(motor)}/{len(motor)}" if motor else "–",
-                      float(np.median([r["runtime_s"] for r in rs])), float(np.max([r["runtime_s"] for r in rs]))])
+                      float(np.median([r["runtime_s"] for r in rs])), float(np.max([r["runtime_s"] for r in rs])),
+                      float(np.median([r.get("cpu_s", np.nan) for r in rs]))])
     return table
+
+
+def coverage(rows: list[dict]) -> list[list]:
+    """Per-motor 95 % interval coverage over the runs that named a per-motor effect: per effect, quantity
+    (backlash full band, drift rate, eccentricity amplitude and phase) and motor, hits / checks."""
+    what = {"backlash": ("full band",), "zero_offset_drift": ("rate",), "encoder_eccentricity": ("amplitude", "phase")}
+    count: dict[tuple, list[int]] = {}
+    for r in rows:
+        for name, hits in r.get("motor_coverage", {}).items():
+            q = what[name]
+            per = len(hits) // 2                  # checks per motor (the phase only where the truth has one)
+            for m in range(2):
+                for k, hit in enumerate(hits[m * per:(m + 1) * per]):
+                    c = count.setdefault((name, q[k], m + 1), [0, 0])
+                    c[0] += int(hit)
+                    c[1] += 1
+    return [[n, q, m, f"{h}/{t}", h / t] for (n, q, m), (h, t) in sorted(count.items())]
+
+
+COVERAGE_HEADER = ["effect", "quantity", "motor", "in 95 % interval", "coverage"]
+
+HEADER = ["case", "runs", "exactly its names", "named right", "other name", "runs w/ other", "unexplained",
+          "unexplained w/ correlate", "gap before (med)", "gap after (med)", "max after/noise",
+          "truth in 95% CI", "per-motor CI hits", "runtime med s", "runtime max s", "cpu med s"]
 
 
 def main(argv=None) -> int:
@@ -303,9 +328,21 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="JSON output (default benchmarks/results/diagnose_bench.json)")
     ap.add_argument("--source", choices=("twin", "xsim", "both"), default="twin",
                     help="campaigns from the twin, the independent simulator tests/crosssim, or both")
+    ap.add_argument("--partial", type=int, default=0, metavar="K",
+                    help="write the runs so far to the JSON every K runs (summarise them with --summarise)")
+    ap.add_argument("--summarise", metavar="JSON", default=None,
+                    help="print the table of the runs in a JSON this script wrote (also a partial one)")
     ap.add_argument("--campaign-size", action="store_true",
                     help="only the clean cases at 48 and 128 poses: the smallest effect each campaign detects at 90 %%")
     args = ap.parse_args(argv)
+    if args.summarise:
+        import json
+
+        doc = json.loads(Path(args.summarise).read_text())
+        print_table(f"Discrepancy diagnosis ({args.summarise}, {len(doc['runs'])} runs)", HEADER, summarise(doc["runs"]))
+        if coverage(doc["runs"]):
+            print_table("Per-motor 95 % intervals", COVERAGE_HEADER, coverage(doc["runs"]))
+        return 0
     if args.campaign_size:
         return campaign_size(args)
     jobs = []
@@ -323,14 +360,18 @@ def main(argv=None) -> int:
             print(f"\r{i}/{len(jobs)} {r['case']} seed {r['seed']}: {r['named']} "
                   f"{r['gap_before']:.4f} -> {r['gap_after']:.4f} mm ({r['runtime_s']:.1f} s)      ",
                   end="", flush=True)
+            if args.partial and i % args.partial == 0 and i < len(jobs):   # a long run stopped early keeps its rows
+                write_json("diagnose_bench", {"poses": args.poses, "sigma_mm": SIGMA, "partial": f"{i}/{len(jobs)}",
+                                              "runs": rows}, args.out)
     print()
-    header = ["case", "runs", "exactly its names", "named right", "other name", "runs w/ other", "unexplained",
-              "unexplained w/ correlate", "gap before (med)", "gap after (med)", "max after/noise",
-              "truth in 95% CI", "per-motor CI hits", "runtime med s", "runtime max s"]
+    header = HEADER
     table = summarise(rows)
     print_table(f"Discrepancy diagnosis, {args.poses} poses, sigma {SIGMA} mm", header, table)
+    if coverage(rows):
+        print_table("Per-motor 95 % intervals", COVERAGE_HEADER, coverage(rows))
     write_json("diagnose_bench", {"poses": args.poses, "sigma_mm": SIGMA, "wall_s": time.perf_counter() - t0,
-                                  "header": header, "table": table, "runs": rows}, args.out)
+                                  "header": header, "table": table, "coverage": coverage(rows), "runs": rows},
+               args.out)
     return 0
 
 

@@ -260,3 +260,20 @@ def test_an_effect_no_family_holds_is_not_given_the_nearest_name(tmp_path):
     assert oc.verdict == "explains only part of the structure" and oc.held_out_share < 0.5
     doc = next(c for c in d.to_json()["candidates"] if c["name"] == "overconstraint")
     assert doc["held_out_share"] == pytest.approx(oc.held_out_share)
+
+
+def test_a_shape_two_families_share_does_not_earn_their_names(tmp_path):
+    """A tracker range error growing with the distance (6e-5 d^2/2500 mm, no family holds it): passive-limb
+    geometry and thermal parts together fit it to the noise (the omnibus test finds nothing left after
+    both), so it was named over-constraint + thermal. Held out, each explains only part of it, clearly
+    measured: thermal 59 % (a measured share needs 75 %), then over-constraint alone 77 % with structure
+    left (it needs 90 % then): nothing is named, the structure is reported unexplained with what it
+    follows; the share with whole workspace regions held out is reported beside it."""
+    d = _diagnose(tmp_path, ["tracker_scale"], seed=1000)
+    assert d.effects == [] and d.unexplained and d.unexplained_context
+    for name in ("overconstraint", "thermal_expansion"):
+        c = d.candidates[name]
+        assert c.verdict == "explains only part of the structure" and c.reason.startswith("on held-out poses")
+        assert c.held_out_share < 0.8 and np.isfinite(c.transfer_share)
+    doc = {c["name"]: c for c in d.to_json()["candidates"]}
+    assert doc["overconstraint"]["transfer_share"] == pytest.approx(d.candidates["overconstraint"].transfer_share)

@@ -21,6 +21,9 @@ e. Cross-validation: the same selection runs inside each fold (training poses on
 f. The named effects with value ± 95 % interval are written into the model; ``gap_before`` and
    ``gap_after`` are RMS held-out disagreements (folds refitted, linearised at the full-data fits),
    without the poses that held out are predicted by extrapolation (leverage > 1, named in a note).
+f'. A name is earned on held-out data: it removes most of the held-out excess over the noise that the model
+   without it leaves (half when structure is left; 75 % wherever that share is measured clearly, 90 % then
+   with structure left); the share with workspace regions held out whole is reported beside it.
 g. Structure left after that (omnibus test, also robust to heavy-tailed noise) is flagged unexplained.
 
 Units: mm, rad inside (interface values of effects in :data:`VOCABULARY` units).
@@ -88,6 +91,11 @@ class DiagnoseOptions:
     min_held_out : when structure is left after the named model, a name stays only if, on the held-out
         poses, it removes at least this share of the held-out excess over the noise of the model without
         it (:func:`held_out_shares`); otherwise the structure is reported unexplained.
+    min_held_out_measured, min_held_out_left, measured_sd : where the name's own held-out improvement
+        stands out of the noise of a held-out sum of squares by more than ``measured_sd`` standard
+        deviations (the share is then measured, not noise), it must remove at least
+        ``min_held_out_measured`` of the held-out excess, and ``min_held_out_left`` of it when structure is
+        left after the named model (``min_held_out`` applies where the improvement is not measured clearly).
     """
 
     baseline_keys: list[str] | None = None
@@ -106,6 +114,9 @@ class DiagnoseOptions:
     max_leverage: float = 1.0
     max_extrapolated: float = 0.03
     min_held_out: float = 0.5
+    min_held_out_measured: float = 0.75
+    min_held_out_left: float = 0.9
+    measured_sd: float = 2.5
     priors: Priors = field(default_factory=Priors)
     initial: dict[str, float] | None = None      # start of the baseline fit (interface units), e.g. P.json
     max_nfev: int = 60
@@ -165,6 +176,20 @@ def stratified_folds(meas: Measurements, k: int, geom: Geometry) -> np.ndarray:
     return folds
 
 
+def region_folds(meas: Measurements, geom: Geometry, sectors: int = 4, bands: int = 2) -> np.ndarray:
+    """Workspace region of every pose (N,), for held-out checks that hold a region out whole: the azimuth
+    of the measured platform normal in ``sectors`` equal sectors times its tilt in ``bands`` bands of
+    equal pose count. Unlike :func:`stratified_folds` each fold is a contiguous part of the workspace,
+    so its held-out poses are predicted from parameters fitted on the other regions only."""
+    _, R, _ = meas.poses(geom)
+    normal = R[:, :, 2]
+    azimuth = np.arctan2(normal[:, 1], normal[:, 0])
+    sector = np.minimum(((azimuth + np.pi) / (2 * np.pi) * sectors).astype(int), sectors - 1)
+    tilt_rank = np.argsort(np.argsort(-normal[:, 2], kind="stable"), kind="stable")
+    band = tilt_rank * bands // len(meas)
+    return sector * bands + band
+
+
 # ======================================================================================== the steps
 def _at_noise(res: IdentResult) -> bool:
     """The fit's chi2/dof is within 1 + 3 sqrt(2/dof) (three standard deviations of chi2/dof for pure
@@ -199,6 +224,7 @@ class _Problem:
                           for keys in self.candidates.values() for k in keys}
 
         self.folds = stratified_folds(self.meas, opt.folds, geom)
+        self.regions = region_folds(self.meas, geom)
         #: full-data fits met so far: frozenset of effect names -> (fit, Huber-weighted linearisation or
         #: None when the fit does not assemble every pose); filled by the selection, read by the folds
         self.fits: dict[frozenset, tuple[IdentResult, Linearization | None]] = {}
@@ -732,7 +758,8 @@ def _own_context_left(pb: _Problem, named: list[str], res: IdentResult, lin: Lin
     return keep, res, pb.linearize(res, keep)
 
 
-def held_out_shares(pb: _Problem, named: list[str], res: IdentResult, lin: Linearization) -> dict[str, float]:
+def held_out_shares(pb: _Problem, named: list[str], res: IdentResult, lin: Linearization,
+                    excess_sd: dict[str, float] | None = None) -> dict[str, float]:
     """Share of the held-out structure each named effect removes: with ``S_without`` the held-out sum of
     squares (whitened, the cross-validation folds, poses predicted by extrapolation left out) of the named
     model without the effect (its columns set to zero, the rest refitted in every fold), ``S_with`` that of
@@ -740,7 +767,10 @@ def held_out_shares(pb: _Problem, named: list[str], res: IdentResult, lin: Linea
     the training share, each held-out prediction carrying its fit's variance), the share is
     ``(S_without - S_with) / (S_without - E)``: 1 when the effect explains everything beyond the noise on
     rows it was not fitted to, near 0 when it is a significant sliver of a larger structure. 1 when the
-    model without it leaves nothing beyond the noise (nothing to measure the share on)."""
+    model without it leaves nothing beyond the noise (nothing to measure the share on). ``excess_sd``, if
+    given, receives ``(S_without - S_with) / sqrt(2 n)`` per effect (n held-out rows): how clearly the
+    effect's own held-out improvement stands out of the noise of a held-out sum of squares (below ~2 the
+    share is mostly noise: a 0.01 deg eccentricity, 0.3-1.7)."""
     cols = lin.cols(list(res.names))
     inside = ~lin.rows(_extrapolated(pb, lin, res)[0])
     cv = _cv(lin, cols, pb.folds)
@@ -756,34 +786,118 @@ def held_out_shares(pb: _Problem, named: list[str], res: IdentResult, lin: Linea
         noise = inside.sum() * (1.0 + p_eff / (len(lin.r) * (1.0 - 1.0 / k)))
         excess = s_without - noise
         out[n] = 1.0 if excess <= 0 else float(min(max((s_without - s_with) / excess, 0.0), 1.0))
+        if excess_sd is not None:
+            excess_sd[n] = float((s_without - s_with) / np.sqrt(2.0 * inside.sum()))
+    return out
+
+
+def _held_out_sums(lin: Linearization, cols: np.ndarray, folds: np.ndarray, inside: np.ndarray,
+                   drop: np.ndarray | None = None) -> tuple[float, float]:
+    """Held-out misfit (whitened) over the rows ``inside`` of the model ``cols`` (``drop`` taken out), each
+    fold predicted from a fit on the others, standardised by its predictive covariance under noise alone,
+    and its expectation then (the number of rows). A held-out row's prediction error under noise is its
+    own noise plus what the training rows' noise does to the fit: covariance ``C = I + J M^-1 H M^-1 J^T``
+    (``J`` the held-out rows, ``H`` the training information, ``M = H + I`` with the unit priors), so
+    ``r^T C^-1 r`` is chi-square with a degree of freedom a row, for any split, also one that holds out
+    a region whole and so extrapolates (a few poses at the tilted edge of a region are predicted with
+    ~100 times the noise variance there; unstandardised they decide the sum by their one draw). The
+    prior's own uncertainty is not noise: a direction the training rows do not determine stays at the
+    prior, and what that leaves held out counts as misfit."""
+    s = e = 0.0
+    for f in np.unique(folds):
+        test = lin.rows(np.flatnonzero(folds == f))
+        sub = fit(lin, cols, ~test, drop)
+        keep = inside[test]
+        r = predict(lin, sub, test, drop)[keep]
+        J = lin.J[test][:, cols][keep]
+        A = np.linalg.solve(sub.info + np.eye(len(cols)), J.T)          # (p, rows)
+        C = np.eye(len(r)) + A.T @ sub.info @ A
+        s += float(r @ np.linalg.solve(C, r))
+        e += float(keep.sum())
+    return s, e
+
+
+@dataclass
+class Transfer:
+    """How a named effect transfers across the workspace (:func:`transfer_shares`)."""
+
+    share: float        # share of the region-held-out excess of the model without it that it removes
+    z_left: float       # region-held-out excess the named model leaves, in standard deviations of noise
+
+
+def transfer_shares(pb: _Problem, named: list[str], res: IdentResult, lin: Linearization) -> dict[str, Transfer]:
+    """Transfer of each named effect across the workspace, reported beside the held-out share (not used to
+    decide): with whole regions held out (:func:`region_folds`), ``S_with`` the standardised held-out
+    misfit of the named model, ``S_without`` that of the model without the effect and ``n`` the held-out
+    rows (:func:`_held_out_sums`), the share is ``(S_without - S_with) / (S_without - n)`` and ``z_left``
+    is ``(S_with - n) / sqrt(2 n)``. A physical effect has parameters of the machine: fitted on the other
+    regions they predict a region held out. Standardised by the predictive covariance, the cross-sim's
+    tracker range error fitted as passive-limb geometry plus thermal parts transfers about as well as it
+    is held out in the stratified folds (region shares 0.75-0.95, z_left 1.3-6.9, seeds 1000-1015): the
+    region split does not separate that alias reliably (docs/diagnose.md, Decisions)."""
+    cols = lin.cols(list(res.names))
+    inside = ~lin.rows(_extrapolated(pb, lin, res)[0])
+    s_with, e_with = _held_out_sums(lin, cols, pb.regions, inside)
+    z_left = (s_with - e_with) / np.sqrt(2.0 * inside.sum())
+    out = {}
+    for n in named:
+        drop = lin.cols(pb.candidates[n])
+        s0, e0 = _held_out_sums(lin, np.setdiff1d(cols, drop), pb.regions, inside, drop)
+        excess = s0 - e0
+        share = 1.0 if excess <= 0 else float(min(max((s0 - s_with) / excess, 0.0), 1.0))
+        out[n] = Transfer(share, float(z_left))
     return out
 
 
 def _earned_on_held_out(pb: _Problem, named: list[str], res: IdentResult, lin: Linearization,
                         board: dict[str, Candidate]):
-    """A name is earned on held-out data: when structure is left beyond the noise after the named model,
-    every named effect must remove at least ``min_held_out`` of the held-out excess of the model without
-    it (:func:`held_out_shares`). One that does not is a significant sliver of a larger structure outside
-    its family (a floor slide fitted as passive-limb geometry: 2 % of it); it is not named, and the
-    structure is reported unexplained with what it follows. The weakest goes first, then the rest are
-    measured again. Returns (named, fit, lin, shares)."""
+    """A name is earned on held-out data: every named effect must remove most of the held-out excess over
+    the noise that the model without it leaves (:func:`held_out_shares`, the stratified folds):
+
+    - where the share is measured clearly (the effect's own held-out improvement beyond ``measured_sd``
+      = 2.5 standard deviations of the noise of a held-out sum of squares), at least
+      ``min_held_out_measured`` (0.75) of it, structure left or not. Two families can share the
+      shape of an effect outside both so well that the omnibus test finds nothing left after them, while
+      each explains only part of it held out (a tracker range error growing with distance: passive-limb
+      geometry 68-96 %, thermal parts 35-79 %, 20 seeds); an effect that is all there is removes 0.88-1.0
+      of it (cross-sim one-motor drift the lowest; per-part thermal, one-motor backlash, frame drift,
+      backlash + thermal 0.97-1.0; twin 0.97-1.0), but a 0.02 deg eccentricity 0.796 (cross-sim seed 1):
+      the noise expectation of the stratified folds is a little low, which pulls a true share down;
+    - when structure is left after the named model, at least ``min_held_out_left`` (0.9) of a clearly
+      measured excess (the passive-limb geometry alone removes 68-85 % of the range error and leaves
+      0.4 sigma of structure: a name beside an unexplained structure must not be a share of it), and
+      ``min_held_out`` (0.5) where it is not measured clearly (the share is then mostly noise: a 0.01 deg
+      eccentricity removes 12-100 % of a held-out excess of ~2-4 sd with an improvement of 0.3-1.7 sd; the
+      range error's thermal share 59-79 % comes with 3.1-3.2 sd; a floor slide fitted as passive-limb
+      geometry: 2 % of it).
+
+    One that does not is not named, the weakest first, and the rest are measured again; the structure is
+    then reported unexplained with what it follows. The share with whole workspace regions held out
+    (:func:`transfer_shares`) is reported beside it (``transfer_share``), not used to decide (docs/diagnose.md,
+    Decisions). Returns (named, fit, lin, shares)."""
     shares: dict[str, float] = {}
+    transfer: dict[str, Transfer] = {}
     while named:
-        shares.update(held_out_shares(pb, named, res, lin))
-        if not omnibus(lin, fit(lin, lin.cols(list(res.names))), pb.noise, pb.opt).structure:
+        sd: dict[str, float] = {}
+        shares.update(held_out_shares(pb, named, res, lin, sd))
+        transfer.update(transfer_shares(pb, named, res, lin))
+        structure = omnibus(lin, fit(lin, lin.cols(list(res.names))), pb.noise, pb.opt).structure
+        need = {n: (pb.opt.min_held_out_left if structure else pb.opt.min_held_out_measured)
+                if sd[n] > pb.opt.measured_sd else (pb.opt.min_held_out if structure else 0.0) for n in named}
+        weak = [n for n in named if shares[n] < need[n]]
+        if not weak:
             break
-        weak = min(named, key=lambda n: shares[n])
-        if shares[weak] >= pb.opt.min_held_out:
-            break
+        weak = min(weak, key=lambda n: shares[n])
+        need = need[weak]
         board[weak].reason = (f"on held-out poses it removes {100 * shares[weak]:.0f} % of the structure beyond "
-                              f"the noise that the model without it leaves (a name needs "
-                              f"{100 * pb.opt.min_held_out:.0f} %): a part of a larger structure outside the "
-                              "family, not forced onto it")
+                              f"the noise that the model without it leaves (a name needs {100 * need:.0f} %): "
+                              "a part of a larger structure outside the family, not forced onto it")
         named = [n for n in named if n != weak]
         res = pb.refit(res, named) if named else pb.baseline
         lin = pb.linearize(res, named)
-    for n, c in board.items():
-        c.held_out_share = shares.get(n, float("nan"))
+    for n, c in board.items():                  # an earlier pass's measurement stays when this one had none
+        c.held_out_share = shares.get(n, c.held_out_share)
+        c.transfer_share = transfer[n].share if n in transfer else c.transfer_share
     return named, res, lin, shares
 
 
@@ -852,8 +966,12 @@ def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | 
     cv_before = _cv(lin0, lin0.cols(pb.model_keys0), pb.folds)
     cv_ran = bool(named)
     counts, named, res, lin = _confirm(pb, lin0, named, res, lin, board, cv_before)
-    named, res, lin = _own_context_left(pb, named, res, lin, board)
-    named, res, lin, shares = _earned_on_held_out(pb, named, res, lin, board)
+    while True:                     # each rule re-measured once the other has dropped a name
+        before = list(named)
+        named, res, lin = _own_context_left(pb, named, res, lin, board)
+        named, res, lin, shares = _earned_on_held_out(pb, named, res, lin, board)
+        if named == before:
+            break
 
     cv_after = _cv(lin, lin.cols(list(res.names)), pb.folds)       # f
     om1 = omnibus(lin, fit(lin, lin.cols(list(res.names))), pb.noise, opt)

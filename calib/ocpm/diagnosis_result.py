@@ -35,6 +35,7 @@ class Candidate:
     value: EffectValue | None = None
     cv_folds: int = 0
     held_out_share: float = float("nan")  # share of the held-out structure beyond the noise it removes
+    transfer_share: float = float("nan")  # the same with whole workspace regions held out
     detectable_90: float = float("nan")   # smallest size detected with probability 0.9 (value's unit)
     verdict: str = "not tested"
     fix: str = ""
@@ -109,6 +110,7 @@ class Diagnosis:
                           "survival": _num(c.survival), "power_at_typical_size": _num(c.power_typical),
                           "delta_chi2": _num(c.delta_chi2), "directions": _num(c.nu), "F": _num(c.F),
                           "share_of_structure": _num(c.share), "held_out_share": _num(c.held_out_share),
+                          "transfer_share": _num(c.transfer_share),
                           "detectable_at_90": _num(c.detectable_90),
                           "p_value": _num(c.p_value), "threshold": _num(c.threshold),
                           "value": val(c.value) if c.value else None, "cv_folds_selected": c.cv_folds,
