@@ -122,8 +122,8 @@ def motor_coverage(d, truths: dict[str, list[dict]]) -> dict[str, list[bool]]:
             lo, hi = m["interval"]
             hits.append(bool(lo <= t["value"] <= hi))
             if "phase_deg" in t and "phase_deg" in m and t["value"] > 0:
-                diff = (t["phase_deg"] - m["phase_deg"] + 180.0) % 360.0 - 180.0
-                hits.append(bool(abs(diff) <= 1.959964 * m["phase_std"]))
+                lo, hi = m["phase_interval"]
+                hits.append(bool((t["phase_deg"] - lo) % 360.0 <= hi - lo))
         out[v.name] = hits
     return out
 

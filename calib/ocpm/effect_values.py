@@ -197,9 +197,31 @@ def _delta(f, x: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
     return float(f0), float(np.sqrt(max(g @ cov @ g, 0.0)))
 
 
+def phase_interval(v: np.ndarray, cov: np.ndarray, level: float = 0.95) -> tuple[float, float]:
+    """Interval (deg, ``lo <= phase <= hi``, ``hi - lo <= 360``) of the phase ``atan2(v[1], v[0])`` of a 2-D
+    estimate ``v`` with covariance ``cov``: the angles the ``level`` confidence ellipse of ``v`` spans seen
+    from the origin (the whole circle when it holds the origin). The delta method's ``+-1.96 std`` is too
+    narrow when the amplitude is small against its uncertainty (the phase is then far from Gaussian); this
+    projection of the 2-D region covers at least ``level``."""
+    ph = float(np.rad2deg(np.arctan2(v[1], v[0])))
+    r2 = stats.chi2.ppf(level, 2)
+    try:
+        inside = float(v @ np.linalg.solve(cov, v)) <= r2
+    except np.linalg.LinAlgError:
+        inside = False
+    if inside or not np.all(np.isfinite(cov)):
+        return ph - 180.0, ph + 180.0
+    w, U = np.linalg.eigh(0.5 * (cov + cov.T))
+    t = np.linspace(0.0, 2.0 * np.pi, 721)
+    ring = v[:, None] + U @ (np.sqrt(np.clip(w, 0.0, None) * r2)[:, None] * np.stack([np.cos(t), np.sin(t)]))
+    d = (np.rad2deg(np.arctan2(ring[1], ring[0])) - ph + 180.0) % 360.0 - 180.0
+    return ph + float(d.min()), ph + float(d.max())
+
+
 def per_motor_values(name: str, x: np.ndarray, cov: np.ndarray) -> tuple[list[dict], tuple[int, ...]]:
     """Each motor's value of a per-motor effect (:data:`MOTOR_PARAMS`) with its 95 % interval (delta
-    method), interface units: backlash the full dead band 2 b (deg: the lost motion between the two
+    method; the eccentricity phase's from the amplitude's 2-D confidence region, :func:`phase_interval`),
+    interface units: backlash the full dead band 2 b (deg: the lost motion between the two
     approach directions), eccentricity the amplitude (deg) and phase (deg, ``a sin(theta + phase)``), drift
     the rate at the first pose (and the curvature when fitted). Also the motors that carry the effect:
     those whose own parameters differ from zero at 95 % (Wald test, 1 or 2 degrees of freedom). Empty for
@@ -213,7 +235,8 @@ def per_motor_values(name: str, x: np.ndarray, cov: np.ndarray) -> tuple[list[di
         item = {"motor": m + 1, "value": v, "std": sv, "interval": (v - Z95 * sv, v + Z95 * sv)}
         if name == "encoder_eccentricity":
             ph, sph = _delta(lambda z: float(np.rad2deg(np.arctan2(z[idx[1]], z[idx[0]]))), x, cov)
-            item.update(phase_deg=ph, phase_std=sph, phase_interval=(ph - Z95 * sph, ph + Z95 * sph))
+            item.update(phase_deg=ph, phase_std=sph,
+                        phase_interval=phase_interval(x[idx[:2]], cov[np.ix_(idx[:2], idx[:2])]))
         if name == "zero_offset_drift" and len(x) == 4:
             q, sq = float(np.rad2deg(x[idx[1]])), float(np.rad2deg(np.sqrt(max(cov[idx[1], idx[1]], 0.0))))
             item.update(curvature=q, curvature_std=sq)
