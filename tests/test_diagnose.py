@@ -299,12 +299,14 @@ def test_a_campaign_that_cannot_see_an_effect_says_what_would():
     assert bl.survival < 1e-6
 
 
+@pytest.mark.slow        # a false-name-rate study (the acceptance rates: benchmarks/diagnose_bench.py)
 def test_no_effect_data_gives_at_most_one_false_name_in_50_seeds():
     named = [diagnose(hidden_effect_campaign([], s, 32, SIGMA)[0], EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA)).effects
              for s in range(50)]
     assert sum(bool(n) for n in named) <= 1, named
 
 
+@pytest.mark.slow        # a false-name-rate study (the acceptance rates: benchmarks/diagnose_bench.py)
 def test_no_effect_heavy_tailed_noise_gives_at_most_one_false_name_in_30_seeds():
     """Student-t (3 dof) tracker noise, sigma estimated from the data."""
     named = [diagnose(hidden_effect_campaign([], s, 32, SIGMA, heavy_tails=True)[0], EffectChainModel(), DiagnoseOptions()).effects
