@@ -197,6 +197,32 @@ def _delta(f, x: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
     return float(f0), float(np.sqrt(max(g @ cov @ g, 0.0)))
 
 
+def _confidence_ring(v: np.ndarray, cov: np.ndarray, level: float) -> tuple[np.ndarray | None, bool]:
+    """Points (2, 721) on the boundary of the ``level`` confidence ellipse of a 2-D estimate ``v`` with
+    covariance ``cov``, and whether the ellipse holds the origin (None when ``cov`` is not finite)."""
+    if not np.all(np.isfinite(cov)):
+        return None, True
+    r2 = stats.chi2.ppf(level, 2)
+    try:
+        inside = float(v @ np.linalg.solve(cov, v)) <= r2
+    except np.linalg.LinAlgError:
+        inside = False
+    w, U = np.linalg.eigh(0.5 * (cov + cov.T))
+    t = np.linspace(0.0, 2.0 * np.pi, 721)
+    return v[:, None] + U @ (np.sqrt(np.clip(w, 0.0, None) * r2)[:, None] * np.stack([np.cos(t), np.sin(t)])), inside
+
+
+def amplitude_interval(v: np.ndarray, cov: np.ndarray, level: float = 0.95) -> tuple[float, float]:
+    """Interval of the amplitude ``|v|`` (units of ``v``) of a 2-D estimate: the distances from the origin
+    the ``level`` confidence ellipse spans (from 0 when it holds the origin). Near zero amplitude ``|v|``
+    is biased up and far from Gaussian (a Rice distribution), where the delta method's interval misses."""
+    ring, inside = _confidence_ring(v, cov, level)
+    if ring is None:
+        return 0.0, float("inf")
+    r = np.hypot(ring[0], ring[1])
+    return (0.0 if inside else float(r.min())), float(r.max())
+
+
 def phase_interval(v: np.ndarray, cov: np.ndarray, level: float = 0.95) -> tuple[float, float]:
     """Interval (deg, ``lo <= phase <= hi``, ``hi - lo <= 360``) of the phase ``atan2(v[1], v[0])`` of a 2-D
     estimate ``v`` with covariance ``cov``: the angles the ``level`` confidence ellipse of ``v`` spans seen
@@ -204,23 +230,17 @@ def phase_interval(v: np.ndarray, cov: np.ndarray, level: float = 0.95) -> tuple
     narrow when the amplitude is small against its uncertainty (the phase is then far from Gaussian); this
     projection of the 2-D region covers at least ``level``."""
     ph = float(np.rad2deg(np.arctan2(v[1], v[0])))
-    r2 = stats.chi2.ppf(level, 2)
-    try:
-        inside = float(v @ np.linalg.solve(cov, v)) <= r2
-    except np.linalg.LinAlgError:
-        inside = False
-    if inside or not np.all(np.isfinite(cov)):
+    ring, inside = _confidence_ring(v, cov, level)
+    if inside:
         return ph - 180.0, ph + 180.0
-    w, U = np.linalg.eigh(0.5 * (cov + cov.T))
-    t = np.linspace(0.0, 2.0 * np.pi, 721)
-    ring = v[:, None] + U @ (np.sqrt(np.clip(w, 0.0, None) * r2)[:, None] * np.stack([np.cos(t), np.sin(t)]))
     d = (np.rad2deg(np.arctan2(ring[1], ring[0])) - ph + 180.0) % 360.0 - 180.0
     return ph + float(d.min()), ph + float(d.max())
 
 
 def per_motor_values(name: str, x: np.ndarray, cov: np.ndarray) -> tuple[list[dict], tuple[int, ...]]:
     """Each motor's value of a per-motor effect (:data:`MOTOR_PARAMS`) with its 95 % interval (delta
-    method; the eccentricity phase's from the amplitude's 2-D confidence region, :func:`phase_interval`),
+    method; the eccentricity's amplitude and phase from its 2-D confidence region, :func:`amplitude_interval`,
+    :func:`phase_interval`),
     interface units: backlash the full dead band 2 b (deg: the lost motion between the two
     approach directions), eccentricity the amplitude (deg) and phase (deg, ``a sin(theta + phase)``), drift
     the rate at the first pose (and the curvature when fitted). Also the motors that carry the effect:
@@ -235,8 +255,10 @@ def per_motor_values(name: str, x: np.ndarray, cov: np.ndarray) -> tuple[list[di
         item = {"motor": m + 1, "value": v, "std": sv, "interval": (v - Z95 * sv, v + Z95 * sv)}
         if name == "encoder_eccentricity":
             ph, sph = _delta(lambda z: float(np.rad2deg(np.arctan2(z[idx[1]], z[idx[0]]))), x, cov)
-            item.update(phase_deg=ph, phase_std=sph,
-                        phase_interval=phase_interval(x[idx[:2]], cov[np.ix_(idx[:2], idx[:2])]))
+            v2, c2 = x[idx[:2]], cov[np.ix_(idx[:2], idx[:2])]
+            lo, hi = amplitude_interval(v2, c2)
+            item.update(interval=(float(np.rad2deg(lo)), float(np.rad2deg(hi))), phase_deg=ph, phase_std=sph,
+                        phase_interval=phase_interval(v2, c2))
         if name == "zero_offset_drift" and len(x) == 4:
             q, sq = float(np.rad2deg(x[idx[1]])), float(np.rad2deg(np.sqrt(max(cov[idx[1], idx[1]], 0.0))))
             item.update(curvature=q, curvature_std=sq)
