@@ -42,6 +42,7 @@ from scipy import stats
 
 from pmcal.calib.chain_model import ChainModel
 from pmcal.calib.closed_chain import ChainIdentResult, base_prior_cov, flat_jacobian
+from pmcal.mechanism.motion import approach_from_order
 
 #: family-wise false-name rate of the significance test
 ALPHA = 0.01
@@ -126,18 +127,6 @@ class ChainDiagnosis:
         return f"{'; '.join(parts)}; held-out gap {self.gap_before:.4f} -> {self.gap_after:.4f} mm"
 
 
-def approach_signs(commands: np.ndarray) -> np.ndarray:
-    """Direction of each motor's last move (N, M): +1, -1, 0 before its first move (row order = motion order)."""
-    d = np.diff(np.asarray(commands, float), axis=0)
-    s = np.zeros_like(commands, dtype=float)
-    last = np.zeros(commands.shape[1])
-    for i, row in enumerate(d, start=1):
-        moved = np.abs(row) > 1e-9
-        last[moved] = np.sign(row[moved])
-        s[i] = last
-    return s
-
-
 def _motor_jacobian(model: ChainModel, commands: np.ndarray, params) -> np.ndarray:
     """d targets / d motor joint (N, K, 3, M), mm per command unit: the zero offsets' exact Jacobian when the
     model has them, else central differences on the commands."""
@@ -159,7 +148,7 @@ def _families(model, commands, y, params, t, temp, time_unit, units):
     N, K, _ = y.shape
     M = commands.shape[1]
     Jm = _motor_jacobian(model, commands, params)                   # (N, K, 3, M)
-    s = approach_signs(commands)
+    s = approach_from_order(commands)
     fam = {"backlash": (-0.5 * Jm * s[:, None, None, :], [f"m{k + 1}.dead_band" for k in range(M)], units)}
     tt = t - t.mean()
     fam["zero_drift"] = (Jm * tt[:, None, None, None], [f"m{k + 1}.rate" for k in range(M)],
@@ -221,19 +210,19 @@ class _Linear:
             return slice(None)
         return (np.asarray(poses)[:, None] * self.k + np.arange(self.k)).ravel()
 
-    def held_out(self, G, folds) -> tuple[float, float, float]:
+    def held_out(self, G, folds, cov_all: np.ndarray) -> tuple[float, float, float]:
         """Mean squared whitened residual on held-out poses, each fold fitted on the others, with the mean
         and standard deviation it has when the model is right: the same folds run on :data:`NULL_DRAWS`
         campaigns ``d = J_b z + e`` (tracker noise ``e``, base errors ``z`` from their prior, whose pull the
-        fit carries) turned into this model's residuals (``d - A C A^T d``, the full fit's). Exact for the linear model, folds' correlations included: where
-        a fold extrapolates, its poses share one prediction error and both the mean and the spread grow."""
+        fit carries) turned into this model's residuals (``d - A C A^T d``, the full fit's, ``C = cov_all``
+        of :meth:`fit` on every row). Exact for the linear model, folds' correlations included: where a
+        fold extrapolates, its poses share one prediction error and both the mean and the spread grow."""
         A = np.concatenate([self.Jb, G], axis=1) if G is not None else self.Jb
         if self._null is None:            # noise, plus base errors drawn from their prior (its shrinkage)
             rng = np.random.default_rng(12345)
             L = np.linalg.cholesky(np.linalg.inv(self.P))
             self._null = rng.normal(size=(self.r.size, NULL_DRAWS)) + self.Jb @ (L @ rng.normal(
                 size=(self.Jb.shape[1], NULL_DRAWS)))
-        _, cov_all, _ = self.fit(G)
         R0 = self._null - A @ (cov_all @ (A.T @ self._null))
         R = np.concatenate([self.r[:, None], R0], axis=1)
         nb = self.Jb.shape[1]
@@ -293,10 +282,18 @@ def diagnose_chain(model: ChainModel, commands, targets, baseline: ChainIdentRes
     splits = [rng.permutation(len(y)) % FOLDS, _region_folds(commands, FOLDS, rng)]
     n_rows = r.size
 
-    def stats_of(G):
-        """Residual sum of squares, and per split the held-out (mean square, its noise-only value)."""
+    def columns(names: list[str]) -> np.ndarray | None:
+        return np.concatenate([fams[c][0] for c in names], axis=1) if names else None
+
+    def chi2_of(G) -> float:
         _, _, res = lin.fit(G)
-        return float(res @ res), [lin.held_out(G, s) for s in splits]
+        return float(res @ res)
+
+    def stats_of(G):
+        """The fit on every row (coefficients, covariance, residual sum of squares) and per split the
+        held-out (mean square, its noise-only mean and standard deviation)."""
+        x, cov, res = lin.fit(G)
+        return x, cov, float(res @ res), [lin.held_out(G, s, cov) for s in splits]
 
     def excess(ho) -> float:
         """Held-out structure beyond the noise, in standard deviations of a noise-only held-out residual,
@@ -306,7 +303,7 @@ def diagnose_chain(model: ChainModel, commands, targets, baseline: ChainIdentRes
         return (a - b) / sd
 
     noise_band = 3.0                                            # standard deviations
-    chi_cur, ho_cur = stats_of(None)
+    _, _, chi_cur, ho_cur = stats_of(None)
     ho_base = ho_cur
     chosen: list[str] = []
     named: list[NamedEffect] = []
@@ -315,14 +312,13 @@ def diagnose_chain(model: ChainModel, commands, targets, baseline: ChainIdentRes
         best = None
         remaining = [k for k in fams if k not in chosen]
         for k in remaining:
-            G = np.concatenate([fams[c][0] for c in chosen + [k]], axis=1)
-            chi, ho = stats_of(G)
+            G = columns(chosen + [k])
+            x, cov, chi, ho = stats_of(G)
             q = fams[k][0].shape[1]
             dof = n_rows - Jb.shape[1] - G.shape[1]
             F = ((chi_cur - chi) / q) / (chi / dof)
             pval = min(1.0, float(stats.f.sf(F, q, dof)) * len(remaining))
             share = min([(a[0] - b[0]) / (a[0] - a[1]) for a, b in zip(ho_cur, ho) if a[0] > a[1]] or [0.0])
-            x, cov, _ = lin.fit(G)
             vals = x[-q:]
             std = np.sqrt(np.clip(np.diag(cov)[-q:], 0.0, None))
             plausible = bool(np.all(np.abs(vals) <= PLAUSIBLE[k]))
@@ -343,20 +339,16 @@ def diagnose_chain(model: ChainModel, commands, targets, baseline: ChainIdentRes
             break
         k, cand, chi_cur, ho_cur, vals, std = best
         chosen.append(k)
-        labels, units = fams[k][1], fams[k][2]
-        effect = NamedEffect(name=k, labels=labels, units=units, values=vals, std=std,
-                             held_out_share=cand["held_out_share"], p_value=cand["p_value"], fix=FIX[k])
-        effect.motors = _carriers(effect)
-        named.append(effect)
+        named.append(NamedEffect(name=k, labels=fams[k][1], units=fams[k][2], values=vals, std=std,
+                                 held_out_share=cand["held_out_share"], p_value=cand["p_value"], fix=FIX[k]))
     # Backward: a family named early may have stood in for one named later (a frame drift's rotation looks
     # like the motors' zeros drifting together): drop each one the others make insignificant.
     for k in list(chosen)[::-1]:
         if len(chosen) < 2:
             break
         others = [c for c in chosen if c != k]
-        G_all = np.concatenate([fams[c][0] for c in chosen], axis=1)
-        G_rest = np.concatenate([fams[c][0] for c in others], axis=1)
-        chi_all, chi_rest = stats_of(G_all)[0], stats_of(G_rest)[0]
+        G_all = columns(chosen)
+        chi_all, chi_rest = chi2_of(G_all), chi2_of(columns(others))
         q = fams[k][0].shape[1]
         dof = n_rows - Jb.shape[1] - G_all.shape[1]
         pval = min(1.0, float(stats.f.sf(((chi_rest - chi_all) / q) / (chi_all / dof), q, dof)) * len(chosen))
@@ -364,10 +356,10 @@ def diagnose_chain(model: ChainModel, commands, targets, baseline: ChainIdentRes
             chosen.remove(k)
             named = [e for e in named if e.name != k]
             candidates[k]["verdict"] = f"explained by {', '.join(others)} (p = {pval:.2g} once they are in)"
-    if named:                                     # the values, intervals and held-out shares of the final set
-        G = np.concatenate([fams[c][0] for c in chosen], axis=1)
-        x, cov, _ = lin.fit(G)
-        _, ho_cur = stats_of(G)
+    G = columns(chosen)
+    x, cov, res = lin.fit(G)
+    ho_cur = [lin.held_out(G, s_, cov) for s_ in splits]
+    if named:                                     # the values, intervals and motors of the final set
         start = Jb.shape[1]
         for e in named:
             q = len(e.labels)
@@ -377,15 +369,13 @@ def diagnose_chain(model: ChainModel, commands, targets, baseline: ChainIdentRes
     for c in candidates.values():
         if c["name"] in chosen:
             c["verdict"] = "named"
-    G = np.concatenate([fams[c][0] for c in chosen], axis=1) if chosen else None
-    _, _, res = lin.fit(G)
     gap = lambda ho: float(np.sqrt(ho[0][0]) * sigma)  # noqa: E731   (random folds: the typical pose)
     unexplained = {}
     if excess(ho_cur) > noise_band:
         contexts = {"time" if has_time else "row order": t}
         if temp is not None:
             contexts["temperature"] = temp
-        s = approach_signs(commands)
+        s = approach_from_order(commands)
         for k in range(commands.shape[1]):
             contexts[f"m{k + 1} command"] = commands[:, k]
             contexts[f"m{k + 1} approach"] = s[:, k]

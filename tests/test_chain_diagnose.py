@@ -10,11 +10,12 @@ import shutil
 import numpy as np
 import pytest
 
-from pmcal.calib.chain_diagnose import approach_signs, diagnose_chain
+from pmcal.calib.chain_diagnose import diagnose_chain
 from pmcal.calib.closed_chain import identify_chain
 from pmcal.cli import main
 from pmcal.io_chain import ChainMeasurements, write_measurements
 from pmcal.machines import Machine
+from pmcal.mechanism.motion import approach_from_order
 from pmcal.mjcf import machine_dir
 from tests.chain_effects import delta_campaign, last_move
 
@@ -35,7 +36,7 @@ def diagnose(delta, seed=0, **effects):
 def test_approach_signs_agree_with_the_simulators():
     cmd = np.random.default_rng(1).uniform(-30, 60, size=(40, 3))
     cmd[5, 1] = cmd[4, 1]                                   # a motor that does not move keeps its sign
-    assert np.array_equal(approach_signs(cmd), last_move(cmd))
+    assert np.array_equal(approach_from_order(cmd), last_move(cmd))
 
 
 def test_clean_campaign_names_nothing(delta):

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pmcal.mechanism.ocpm.data import Measurements
+from pmcal.mechanism.motion import approach_from_order  # noqa: F401 (the ocpm modules import it from here)
 from pmcal.mechanism.ocpm.params import LIMB_FIELDS
 
 REFERENCE_TEMP_C = 20.0
@@ -221,18 +222,6 @@ def thermal_delta(temp_c: np.ndarray | None) -> np.ndarray | None:
     if temp_c is None or not np.all(np.isfinite(temp_c)):
         return None
     return np.asarray(temp_c, float) - REFERENCE_TEMP_C
-
-
-def approach_from_order(cmd_deg: np.ndarray) -> np.ndarray:
-    """Approach signs (N, 2) from the row order: the sign of each motor's last change of command (a row
-    that does not move a motor keeps its previous sign; the first row, whose history is unknown, is 0).
-    Rows must be in measurement (time) order, as docs/formats.md requires."""
-    cmd = np.atleast_2d(np.asarray(cmd_deg, float))
-    s = np.zeros_like(cmd)
-    s[1:] = np.sign(np.diff(cmd, axis=0))
-    for i in range(1, len(s)):
-        s[i] = np.where(s[i] == 0, s[i - 1], s[i])
-    return s
 
 
 # ---------------------------------------------------------------------------------------- families
