@@ -1,8 +1,9 @@
 """Application of a machine described by a folder (``--machine DIR``, or a built-in name of a
 ``kind = "chain"`` folder): its command-line wording and defaults from its machine.toml, and the routing of
-its commands (``twin measure``, ``identify``, ``targets``, ``compensate``, ``evaluate``) to
-:mod:`pmcal.apps.chain_commands` ``twin render`` to :mod:`pmcal.apps.chain_render` and ``twin plan`` to :mod:`pmcal.apps.chain_plan`, imported on first use like :mod:`pmcal.apps.ocpm`'s: building the parser
-(``--help``) needs only this module, a command imports the twin and SciPy.
+its commands (:data:`ROUTES`: ``twin measure``, ``identify``, ``targets``, ``compensate``, ``evaluate`` to
+:mod:`pmcal.apps.chain_commands`; ``twin render``, ``twin plan``, ``demo``, ``diagnose`` to their own
+modules), imported on first use like :mod:`pmcal.apps.ocpm`'s: building the parser (``--help``) needs only
+this module, a command imports the twin and SciPy.
 """
 
 from __future__ import annotations
@@ -101,7 +102,7 @@ def option_help(machine) -> dict:
 ROUTES = {**{name: "pmcal.apps.chain_commands"
              for name in ("twin_measure", "identify", "targets", "compensate", "evaluate")},
           "twin_render": "pmcal.apps.chain_render", "twin_plan": "pmcal.apps.chain_plan",
-          "demo": "pmcal.apps.chain_plan", "diagnose": "pmcal.apps.chain_diagnose"}
+          "demo": "pmcal.apps.chain_demo", "diagnose": "pmcal.apps.chain_diagnose"}
 
 
 def __getattr__(name: str):

@@ -1,8 +1,6 @@
 """``pmcal --machine DIR twin plan``: the poses to measure, chosen D-optimally for identification (routed
 from :mod:`pmcal.apps.chain`; the method: :mod:`pmcal.calib.chain_design`). The plan CSV holds the commands
 to drive in order (docs/formats.md, "Any machine"); ``twin measure --plan`` measures it on the twin.
-``pmcal --machine DIR demo`` plans, measures, identifies and compensates in one go
-(:mod:`pmcal.studies.chain_demo`).
 """
 
 from __future__ import annotations
@@ -40,11 +38,3 @@ def twin_plan(args) -> int:
           f"smaller (geometric mean) than {args.poses} random poses give")
     return 0
 
-
-def demo(args) -> int:
-    """``pmcal --machine DIR demo``: :func:`pmcal.studies.chain_demo.run_chain_demo` into ``--out``."""
-    from pathlib import Path
-
-    from pmcal.studies.chain_demo import run_chain_demo
-
-    return run_chain_demo(args.selected_machine, Path(args.out), args.seed)
