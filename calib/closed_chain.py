@@ -139,8 +139,8 @@ def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = N
     B[:, zero[dep_idx]] = 0.0
     base = [keys[i] for i in base_idx]
     dep = [keys[i] for i in dep_idx]
-    combos = {}
-    for i, k in enumerate(base):
+    combos = {k: k for k in base}
+    for i, k in enumerate(base if dep else ()):                # a base parameter regroups dependent ones
         # relative size of each term in prior units: skip negligible ones
         w = np.abs(B[i]) * scale[dep_idx] / scale[base_idx[i]]
         order = np.argsort(-w)
@@ -154,7 +154,7 @@ def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = N
         order = np.argsort(-w)
         terms = "".join(_term(-B[i, j], base[i]) for i in order if w[i] > 1e-6)
         unid.append(f"{k}{terms} (seen only through the base parameters)")
-    sv = np.linalg.svd(Jn[:, base_idx], compute_uv=False) if r else np.zeros(0)
+    sv = np.linalg.svd(R[:r, :r], compute_uv=False) if r else np.zeros(0)     # = Jn[:, base]'s (Q orthonormal)
     cond = float(sv[0] / sv[-1]) if r and sv[-1] > 0 else np.inf
     return BaseSet(keys=list(keys), base=base, dependent=dep, regroup=B, combinations=combos,
                    unidentifiable=unid, rank=r, condition_number=cond, diag_r=d)
@@ -305,18 +305,15 @@ class _Observations:
                 raise ValueError(f"covariance must be ({measured.size}, {measured.size}), got {C.shape}")
             keep = np.isfinite(measured.reshape(-1)) if self.D is not None else \
                 np.repeat(ok, measured.shape[1] * 3)
-            C = C[np.ix_(keep, keep)]
-            self.W = sigma * scipy.linalg.solve_triangular(np.linalg.cholesky(C), np.eye(len(C)), lower=True)
-            self.y_mm = self.y
+            C = C if keep.all() else C[np.ix_(keep, keep)]
+            self._L = np.linalg.cholesky(C)
+            self._sigma = sigma
+            self.W = sigma * np.linalg.inv(self._L)
             self.y = self.W @ self.y
 
-    def residual_mm(self, params, whitened: np.ndarray) -> np.ndarray:
-        """The residuals in mm (not whitened) at ``params``, given the whitened ones of the fit."""
-        if self.W is None:
-            return whitened
-        raw = self.model.targets(self.commands, params).reshape(-1) if self.D is None else \
-            self.D @ self.model.observe(self.commands, params)[:, 0]
-        return self.y_mm - raw
+    def residual_mm(self, whitened: np.ndarray) -> np.ndarray:
+        """The residuals in mm (not whitened), given the whitened ones of the fit (``W^-1 r = L r / sigma``)."""
+        return whitened if self.W is None else self._L @ whitened / self._sigma
 
     def _white(self, v: np.ndarray) -> np.ndarray:
         return v if self.W is None else self.W @ v
@@ -330,6 +327,16 @@ class _Observations:
         if self.D is None:
             return self._white(flat_jacobian(self.model, self.commands, params, keys))
         return self._white(self.D @ self.model.observation_jacobian(self.commands, params, keys)[:, 0, :])
+
+
+def _spd_inverse(M: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive-definite matrix by its Cholesky factor; the pseudo-inverse when it is
+    not numerically positive definite (a direction the data and the prior leave free)."""
+    try:
+        Li = np.linalg.inv(np.linalg.cholesky(M))
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(M)
+    return Li.T @ Li
 
 
 @blas_policy()
@@ -401,7 +408,8 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     def params_of(x: np.ndarray) -> dict[str, float]:
         return dict(zip(base, map(float, x)))
 
-    memo: dict[bytes, np.ndarray] = {}                 # the Jacobian at the last points asked (LM, result)
+    # the Jacobian at the last point asked (LM, result); the start (the nominal machine) is J0's base columns
+    memo: dict[bytes, np.ndarray] = {np.zeros(len(base)).tobytes(): -J0[:, [keys.index(k) for k in base]]}
 
     def fun(X: np.ndarray) -> np.ndarray:
         return np.stack([y - obs.predict(params_of(x)) for x in X])
@@ -422,9 +430,9 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     resid = sol.residuals if len(sol.residuals) == y.size else fun(x[None])[0]
     info_data = Jb.T @ Jb
     prec = info_data + (np.linalg.inv(prior_cov) if prior else 0.0)
-    cov = np.linalg.pinv(prec)
+    cov = _spd_inverse(prec)
     p_eff = float(np.trace(cov @ info_data))
-    fisher = np.linalg.pinv(info_data)
+    fisher = _spd_inverse(info_data) if prior else cov
     crlb_std = np.sqrt(np.clip(np.diag(fisher), 0.0, None))
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     chi2 = float(np.sum((resid / sigma) ** 2))
@@ -436,7 +444,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         crlb=dict(zip(base, map(float, crlb_std))), combinations=basis.combinations,
         unidentifiable=basis.unidentifiable, weak=[k for k, c, s in zip(base, crlb_std, sb) if c > s],
         rank=basis.rank, condition_number=basis.condition_number, chi2=chi2, dof=dof, chi2_per_dof=chi2 / dof,
-        residual_rms_mm=float(np.sqrt(np.mean(obs.residual_mm(params_of(x), resid) ** 2))), sigma_mm=sigma, n_poses=int(len(commands)),
+        residual_rms_mm=float(np.sqrt(np.mean(obs.residual_mm(resid) ** 2))), sigma_mm=sigma, n_poses=int(len(commands)),
         success=bool(sol.success), message=str(sol.message), nfev=int(sol.n_eval),
         wall_time=time.perf_counter() - t0, basis=basis, solver=sol,
         info={"effective_parameters": p_eff, "prior_std": dict(zip(base, map(float, sb)))})

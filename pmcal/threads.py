@@ -14,6 +14,7 @@ imports nothing else of pmcal.
 from __future__ import annotations
 
 from contextlib import contextmanager
+from functools import lru_cache
 
 import os
 
@@ -23,6 +24,8 @@ ENV_VAR = "PMCAL_BLAS_THREADS"
 DEFAULT_THREADS = 1
 
 _limiter = None
+#: the thread count :func:`apply_blas_policy` set for the whole process (None: none set)
+_applied = None
 
 
 def policy_threads(n: int | None = None) -> int | None:
@@ -53,7 +56,7 @@ def apply_blas_policy(n: int | None = None) -> int | None:
     Call it once at an entry point, after numpy/scipy are importable; calling it again re-applies the
     (possibly new) limit. Returns the thread count set (None: libraries left at their own setting).
     """
-    global _limiter
+    global _limiter, _applied
     count = policy_threads(n)
     import numpy  # noqa: F401  (load the libraries the limit applies to)
     import scipy.linalg  # noqa: F401
@@ -64,6 +67,7 @@ def apply_blas_policy(n: int | None = None) -> int | None:
         _limiter = None
     if count is not None:
         _limiter = threadpool_limits(limits=count, user_api="blas")
+    _applied = count
     return count
 
 
@@ -72,6 +76,18 @@ def blas_threads() -> list[int]:
     from threadpoolctl import threadpool_info
 
     return [int(i["num_threads"]) for i in threadpool_info() if i.get("user_api") == "blas"]
+
+
+@lru_cache(maxsize=1)
+def _controller():
+    """threadpoolctl's view of the BLAS libraries loaded with numpy and scipy, found once per process:
+    finding them scans the process's shared objects (~1-2 ms), which a per-call limit would repeat on
+    every identification (the planar campaign's whole fit takes about that long)."""
+    import numpy  # noqa: F401  (load the libraries the limit applies to)
+    import scipy.linalg  # noqa: F401
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 @contextmanager
@@ -83,10 +99,8 @@ def blas_policy(n: int | None = None):
     policy as the command line without a process-wide side effect.
     """
     count = policy_threads(n)
-    if count is None:
+    if count is None or (_limiter is not None and _applied == count):   # the process already holds it
         yield
         return
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=count, user_api="blas"):
+    with _controller().limit(limits=count, user_api="blas"):
         yield

@@ -57,18 +57,26 @@ def forward(geom: Geometry, theta: np.ndarray) -> np.ndarray:
     ``N y^2 + Q y + R = 0`` (eq. 7); the platform hangs below the base, so ``y`` is the lower root (eq. 8).
     NaN where the circles do not meet.
     """
-    B = elbows(geom, theta)
-    b1, b2 = B[..., 0, :], B[..., 1, :]
-    F = 2.0 * (b2[..., 0] - b1[..., 0])
-    M = 2.0 * (b2[..., 1] - b1[..., 1])
-    S = np.sum(b1 * b1, -1) - np.sum(b2 * b2, -1) - (geom.l[0] ** 2 - geom.l[1] ** 2)
-    N = 1.0 + (M / F) ** 2
-    Qc = 2.0 * M * S / F**2 + 2.0 * (b1[..., 0] * M / F - b1[..., 1])
-    R = (S / F) ** 2 + 2.0 * (S / F) * b1[..., 0] + np.sum(b1 * b1, -1) - geom.l[0] ** 2
-    with np.errstate(invalid="ignore"):
-        y = (-Qc - np.sqrt(Qc * Qc - 4.0 * N * R)) / (2.0 * N)
-    x = -(M * y + S) / F
-    return np.stack([x, y], axis=-1)
+    theta = np.asarray(theta, dtype=float)
+    # elbows B_i = e_i + L_i u_i, coordinate by coordinate (this runs inside every fit: no stacking)
+    x1 = geom.e[0, 0] + geom.L[0] * np.cos(theta[..., 0])
+    y1 = geom.e[0, 1] + geom.L[0] * np.sin(theta[..., 0])
+    x2 = geom.e[1, 0] + geom.L[1] * np.cos(theta[..., 1])
+    y2 = geom.e[1, 1] + geom.L[1] * np.sin(theta[..., 1])
+    F = 2.0 * (x2 - x1)
+    M = 2.0 * (y2 - y1)
+    n1 = x1 * x1 + y1 * y1
+    S = n1 - (x2 * x2 + y2 * y2) - (geom.l[0] ** 2 - geom.l[1] ** 2)
+    SF, MF = S / F, M / F
+    N = 1.0 + MF * MF
+    Qc = 2.0 * MF * SF + 2.0 * (x1 * MF - y1)
+    R = SF * SF + 2.0 * SF * x1 + n1 - geom.l[0] ** 2
+    disc = Qc * Qc - 4.0 * N * R
+    y = (-Qc - np.sqrt(np.where(disc >= 0.0, disc, np.nan))) / (2.0 * N)
+    out = np.empty(y.shape + (2,))
+    out[..., 1] = y
+    out[..., 0] = -(M * y + S) / F
+    return out
 
 
 def actual_position(geom: Geometry, err: Errors, theta_cmd: np.ndarray) -> np.ndarray:

@@ -133,28 +133,26 @@ def identify(args) -> int:
 
 def identify_chain_model(args, machine) -> int:
     """``identify --model chain``: the paper's 12 errors on the generic closed-chain core
-    (``mjcf/planar_2dof/chain``: exact model, IFT Jacobian, generalised least squares with the servo and
-    scale noise, Tikhonov prior): the identifiable base set is found from the data and the combinations it
-    cannot separate are written out (``unidentifiable``)."""
-    from pmcal.calib.chain_model import NamedModel
+    (``mjcf/planar_2dof/chain``: exact model, exact Jacobian, generalised least squares with the servo and
+    scale noise, Tikhonov prior) through the closed-form fast path
+    (:class:`pmcal.mechanism.planar.chain.PlanarChainModel`, the same numbers as the MuJoCo twin of the folder
+    to 1e-9, tests/test_planar_chain_model.py): the identifiable base set is found from the data and the
+    combinations it cannot separate are written out (``unidentifiable``)."""
     from pmcal.calib.closed_chain import identify_chain, reading_covariance
     from pmcal.fileio import write_json
     from pmcal.io_planar import MECHANISM, read_measurements
     from pmcal.mechanism.planar.geometry import ERROR_KEYS, interface_unit
-    from pmcal.twin.planar.twin import PlanarTwin
 
     if getattr(args, "method", None):
         raise InputError("--model chain fits by least squares on the exact model (no --method)", field="--method")
     meas = read_measurements(args.measurements, machine.geometry)
     noise = _noise(machine, getattr(args, "sigma", None))
-    twin = PlanarTwin(None, machine)
-    twin.assemble(meas.theta_cmd)                        # the measured poses on the paper's branch (warm starts)
-    named = NamedModel(twin.chain, twin.chain.spec.names)
+    model = _chain_model(machine)
     cmd = np.rad2deg(meas.theta_cmd)
     servo = [math.degrees(noise.servo)] * 2
-    cov = reading_covariance(twin.chain, cmd, servo, noise.scale, meas.segments)
+    cov = reading_covariance(model, cmd, servo, noise.scale, meas.segments)
     try:
-        res = identify_chain(named, cmd, meas.readings, noise.scale, keys=list(ERROR_KEYS), segments=meas.segments,
+        res = identify_chain(model, cmd, meas.readings, noise.scale, keys=list(ERROR_KEYS), segments=meas.segments,
                              covariance=cov)
     except ValueError as exc:
         raise InputError(str(exc), file=meas.path) from None
@@ -195,11 +193,22 @@ def rank_deficiency(geom, meas, model: str, doc: dict) -> str:
             f"apart (largest in {', '.join(dict.fromkeys(biggest))})")
 
 
+def _chain_model(machine):
+    """The generic core's model of this machine: ``mjcf/planar_2dof/chain`` through the paper's closed forms
+    (the fast path, :class:`pmcal.mechanism.planar.chain.PlanarChainModel`)."""
+    from pmcal.mechanism.machine_spec import MachineSpec
+    from pmcal.mechanism.planar.chain import PlanarChainModel
+    from pmcal.mjcf import machine_dir
+
+    return PlanarChainModel(MachineSpec.load(machine_dir("planar_2dof") / "chain"), machine.geometry)
+
+
 def compensate(args) -> int:
-    """Motor commands (deg) that bring the identified machine to target positions (mm): the controller's
-    inverse kinematics with the identified parameters, minus the zero offsets (paper section 5)."""
+    """Motor commands (deg) that bring the identified machine to target positions (mm): the generic core's
+    compensation (:func:`pmcal.calib.closed_chain.compensate_targets`: the identified machine's inverse
+    kinematics, the zero offsets taken off) on the closed-form fast path (paper section 5)."""
+    from pmcal.calib.closed_chain import compensate_targets
     from pmcal.campaign_quality import refuse_unusable
-    from pmcal.mechanism.planar.kinematics import inverse
     from pmcal.io_planar import read_params, read_targets, write_setpoints
 
     if getattr(args, "table", None) or getattr(args, "grid", None):
@@ -211,12 +220,12 @@ def compensate(args) -> int:
     refuse_unusable(doc, str(args.params), bool(getattr(args, "force", False)),
                     fix=f"measure at least {2 * len(errors.as_internal())} positions spread over the workspace "
                         "('pmcal --machine planar_2dof twin measure --poses 24')")
-    real = machine.geometry.perturbed(errors)
     r, rows, header = read_targets(args.targets, machine.geometry)
-    theta = inverse(real, r) - errors.dtheta
+    theta = np.deg2rad(compensate_targets(_chain_model(machine), errors.as_interface(), r))
     if not np.all(np.isfinite(theta)):
         row = int(np.flatnonzero(~np.all(np.isfinite(theta), axis=1))[0]) + 1
-        raise InputError("out of reach of the identified machine", file=args.targets, row=row, field="y_mm")
+        raise InputError("out of reach of the identified machine (or outside a motor's range)", file=args.targets,
+                         row=row, field="y_mm")
     write_setpoints(args.output, header, rows, theta, comments=[
         f"pmcal compensate, machine planar_2dof, parameters {args.params}", "units: mm, deg"])
     _status(f"{len(r)} setpoints -> {args.output}")
@@ -225,24 +234,23 @@ def compensate(args) -> int:
 
 def evaluate(args) -> int:
     """How well a parameter set explains a measurement file: RMS of the reading residuals (mm) with the
-    nominal machine and with the parameters (closed-form model, noise-free)."""
-    from pmcal.calib.planar.identification import difference_operator
-    from pmcal.mechanism.planar.kinematics import actual_position, mm_vector
-    from pmcal.mechanism.planar.geometry import Errors
+    nominal machine and with the parameters (the generic core's readings on the closed-form fast path,
+    noise-free)."""
+    from pmcal.calib.closed_chain import reading_operator
     from pmcal.fileio import write_json
     from pmcal.io_planar import read_measurements, read_params
 
     machine = _machine()
     errors, _ = read_params(args.params)
     meas = read_measurements(args.measurements, machine.geometry)
-    D = difference_operator(len(meas.ids), meas.segments)
+    model = _chain_model(machine)
+    D = reading_operator(len(meas.ids), model.reading_reference, meas.segments)
+    cmd = np.rad2deg(meas.theta_cmd)
 
-    def residual(err: Errors) -> np.ndarray:
-        real = machine.geometry.perturbed(err)
-        length = np.linalg.norm(mm_vector(real, actual_position(machine.geometry, err, meas.theta_cmd)), axis=-1)
-        return meas.readings - D @ length
+    def residual(params) -> np.ndarray:
+        return meas.readings - D @ model.observe(cmd, params)[:, 0]
 
-    before, after = residual(Errors()), residual(errors)
+    before, after = residual(None), residual(errors.as_interface())
     rms = lambda v: float(np.sqrt(np.mean(v * v)))  # noqa: E731
     out = {"mechanism": "planar_2dof", "unit": "mm", "n_readings": int(len(before)),
            "rms_nominal": rms(before), "rms_params": rms(after), "max_abs_params": float(np.max(np.abs(after)))}
