@@ -101,7 +101,8 @@ def run(draws: int) -> dict:
     r = boundary_positions(machine.workspace, 3)
     cmd = inverse(geom, r)
     cmd_deg = np.rad2deg(cmd)
-    cov = reading_covariance(fast, cmd_deg, [m.sigma for m in spec.motors], noise.scale)
+    motor_sigma = [m.sigma for m in spec.motors]
+    cov = reading_covariance(fast, cmd_deg, motor_sigma, noise.scale)
     paths = ("dedicated", "fast", "twin")
     stage = {k: dict.fromkeys(paths, 0.0) for k in ("campaign", *IDENTIFY, "exact LM (GLS)", "compensate",
                                                     "evaluate", "study_batch")}
@@ -126,8 +127,10 @@ def run(draws: int) -> dict:
                 ded, t = timed(identify, geom, r, readings, model="simplified", method=method, noise=noise,
                                repeat=REPEAT)
                 stage[label]["dedicated"] += t
-                gen, t = timed(identify_chain, fast, cmd_deg, readings, keys=KEYS, prior=False,
-                               covariance=cov if weighted else None, repeat=REPEAT, **options)
+                gen, t = timed(lambda: identify_chain(      # GLS: the reading covariance made per call, as
+                    fast, cmd_deg, readings, keys=KEYS, prior=False,   # the dedicated code does
+                    covariance=reading_covariance(fast, cmd_deg, motor_sigma, noise.scale) if weighted else None,
+                    **options), repeat=REPEAT)
                 stage[label]["fast"] += t
                 per[f"ded {method}"].append(np.rad2deg(ded.x[:2]) - zero)
                 per[f"gen {method}"].append(np.array([gen.params["dtheta1"], gen.params["dtheta2"]]) - zero)

@@ -103,6 +103,17 @@ def _term(coef: float, name: str) -> str:
     return f" {sign} {name}" if abs(mag - 1.0) < 1e-6 else f" {sign} {mag:.4g} {name}"
 
 
+def _pivoted_qr_r(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``R`` (min(m, n), n) and the column order ``piv`` of the pivoted QR ``A[:, piv] = Q R`` (LAPACK
+    ``geqp3``, what ``scipy.linalg.qr(A, mode="r", pivoting=True)`` calls, without its ~50 us of Python
+    around a call that takes 3 us on the small Jacobians of a campaign: identification runs it every time)."""
+    geqp3, = scipy.linalg.get_lapack_funcs(("geqp3",), (A,))
+    qr, jpvt, _, _, info = geqp3(np.array(A, order="F", dtype=float))
+    if info < 0:
+        raise ValueError(f"geqp3: illegal argument {-info}")
+    return np.triu(qr[: min(A.shape)]), jpvt - 1
+
+
 def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = None,
                     rank_tol: float = RANK_TOL) -> BaseSet:
     """Base-parameter reduction of a Jacobian by QR with column pivoting (module docstring).
@@ -128,7 +139,7 @@ def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = N
     norms = np.linalg.norm(Js, axis=0)
     zero = norms <= rank_tol * 1e-3 * max(float(norms.max(initial=0.0)), 1e-300)   # numerically no effect
     Jn = Js / np.where(zero, 1.0, norms)
-    _, R, piv = scipy.linalg.qr(Jn, mode="economic", pivoting=True)
+    R, piv = _pivoted_qr_r(Jn)
     d = np.abs(np.diag(R))
     r = int(np.sum(d > rank_tol * d[0])) if d.size and d[0] > 0 else 0
     base_idx, dep_idx = piv[:r], piv[r:]
@@ -255,17 +266,20 @@ def reading_operator(n_poses: int, reference: str = "previous", segments=None) -
     array([[-1.,  1.,  0.],
            [ 0., -1.,  1.]])
     """
+    if reference not in ("previous", "first"):
+        raise ValueError(f"unknown reading reference {reference!r} (previous or first)")
     seg = np.zeros(n_poses, int) if segments is None else np.asarray(segments)
     if len(seg) != n_poses:
         raise ValueError(f"{len(seg)} chain labels for {n_poses} poses")
-    start = np.r_[True, seg[1:] != seg[:-1]] if n_poses else np.zeros(0, bool)
-    first = np.maximum.accumulate(np.where(start, np.arange(n_poses), 0)) if n_poses else np.zeros(0, int)
+    start = np.concatenate(([n_poses > 0], seg[1:] != seg[:-1]))[:n_poses]     # a chain begins here
     rows = np.flatnonzero(~start)
+    if reference == "previous":
+        ref = rows - 1
+    else:
+        ref = np.maximum.accumulate(np.where(start, np.arange(n_poses), 0))[rows]
     D = np.zeros((rows.size, n_poses))
     D[np.arange(rows.size), rows] = 1.0
-    D[np.arange(rows.size), rows - 1 if reference == "previous" else first[rows]] = -1.0
-    if reference not in ("previous", "first"):
-        raise ValueError(f"unknown reading reference {reference!r} (previous or first)")
+    D[np.arange(rows.size), ref] = -1.0
     return D
 
 

@@ -38,7 +38,7 @@ True
 
 from __future__ import annotations
 
-from functools import lru_cache
+from dataclasses import dataclass
 from typing import Mapping
 
 import numpy as np
@@ -51,25 +51,6 @@ from pmcal.mechanism.planar.kinematics import forward, inverse, mm_vector
 ALIASES = {"m1.dzero": "dtheta1", "m2.dzero": "dtheta2"}
 #: world position (mm) of the seed frame's origin O in ``mjcf/planar_2dof/planar_2dof.xml``
 ORIGIN_MM = (0.0, 0.0, 1200.0)
-
-
-#: the term of eq. 11 each error enters through (index into the stack of :meth:`_position_jacobian`)
-_KIND = {"dtheta": 0, "dex": 1, "dey": 2, "dL": 3, "dl": 4, "drM": 5}
-
-
-@lru_cache(maxsize=64)
-def _columns(keys: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Per key: the term of eq. 11 (P,) and the limb it belongs to as a (2, P) 0/1 mask (the MAEMM: none)."""
-    kind, limb = np.zeros(len(keys), int), np.zeros((2, len(keys)))
-    for j, k in enumerate(keys):
-        k = ALIASES.get(k, k)
-        if k.startswith("drM"):
-            kind[j] = _KIND["drM"]
-        elif k.startswith("de"):                                        # de1x: limb 1, term dex
-            kind[j], limb[int(k[2]) - 1, j] = _KIND["de" + k[3]], 1.0
-        else:                                                           # dtheta1, dL2, dl1
-            kind[j], limb[int(k[-1]) - 1, j] = _KIND[k[:-1]], 1.0
-    return kind, limb
 
 
 class PlanarChainModel:
@@ -98,22 +79,24 @@ class PlanarChainModel:
 
     # ------------------------------------------------------------------ errors
     def error_units(self, keys: list[str] | None = None) -> list[str]:
-        return ["deg" if ALIASES.get(k, k) in ANGLE_KEYS else "mm" for k in self._keys(keys)]
+        return ["deg" if ERROR_KEYS[i] in ANGLE_KEYS else "mm" for i in self._columns(keys)]
 
     def prior_std(self, keys: list[str] | None = None) -> np.ndarray:
         e = self.spec.errors
         return np.array([e.zero_deg if u == "deg" else e.position_mm for u in self.error_units(keys)])
 
-    def _keys(self, keys: list[str] | None) -> list[str]:
-        keys = list(keys or self.error_keys)
-        unknown = [k for k in keys if ALIASES.get(k, k) not in ERROR_KEYS]
-        if unknown:
-            raise ValueError(f"unknown error key {unknown[0]!r} of the planar robot ({', '.join(ERROR_KEYS)})")
-        return keys
+    def _columns(self, keys: list[str] | None) -> np.ndarray:
+        """Indices into :data:`ERROR_KEYS` of ``keys`` (default every error); aliases resolved."""
+        try:
+            return _INDEX[tuple(keys or ERROR_KEYS)]
+        except ValueError:
+            unknown = [k for k in keys if ALIASES.get(k, k) not in ERROR_KEYS]
+            raise ValueError(f"unknown error key {unknown[0]!r} of the planar robot ({', '.join(ERROR_KEYS)})") \
+                from None
 
-    def _state(self, commands, params: Mapping[str, float] | None):
-        """The perturbed geometry, the zero offsets (2,) rad, the real motor angles (N, 2) rad and P (N, 2) mm
-        (the last one kept: a fit asks for the readings and their derivatives at the same errors)."""
+    def _state(self, commands, params: Mapping[str, float] | None) -> _Pose:
+        """The machine with ``params`` at ``commands`` (N, 2) deg (the last one kept: a fit asks for the
+        readings and their derivatives at the same errors)."""
         commands = np.atleast_2d(np.asarray(commands, float))
         values = {ALIASES.get(k, k): float(v) for k, v in (params or {}).items() if v}
         key = (commands.tobytes(), commands.shape, tuple(sorted(values.items())))
@@ -127,19 +110,19 @@ class PlanarChainModel:
                             d=g.d, home=g.home)                         # = g.perturbed(Errors(...))
             dtheta = np.deg2rad(v[:2])
             theta = np.deg2rad(commands) + dtheta
-            self._last = (key, (geom, dtheta, theta, forward(geom, theta)))
+            self._last = (key, _Pose(geom, dtheta, theta, forward(geom, theta)))
         return self._last[1]
 
     # ------------------------------------------------------------------ kinematics
     def forward(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
         """P (N, 2) mm in the seed frame at commands (N, 2) deg; NaN where the circles do not meet."""
-        return self._state(commands, params)[3].copy()
+        return self._state(commands, params).r.copy()
 
     def inverse(self, task, params: Mapping[str, float] | None = None) -> np.ndarray:
         """Commands (N, 2) deg that put P at ``task`` (N, 2) mm (seed frame) on the machine with ``params``
         (the paper's assembly mode); NaN rows out of reach or outside a motor's range."""
-        geom, dtheta, _, _ = self._state(np.zeros((1, 2)), params)
-        cmd = np.rad2deg(inverse(geom, np.atleast_2d(np.asarray(task, float))) - dtheta)
+        pose = self._state(np.zeros((1, 2)), params)
+        cmd = np.rad2deg(inverse(pose.geom, np.atleast_2d(np.asarray(task, float))) - pose.dtheta)
         cmd = (cmd - self._lo) % 360.0 + self._lo                          # into the range's turn
         bad = ~((cmd >= self._lo) & (cmd <= self._hi)).all(axis=1)
         cmd[bad] = np.nan
@@ -152,55 +135,96 @@ class PlanarChainModel:
 
     def targets(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
         """The scale's ends O1 (base) and O2 (platform), (N, 2, 3) mm, world frame."""
-        geom, _, _, r = self._state(commands, params)
-        o1 = np.broadcast_to(geom.c, r.shape)
-        return self._world(np.stack([o1, r - geom.d], axis=1))
+        pose = self._state(commands, params)
+        o1 = np.broadcast_to(pose.geom.c, pose.r.shape)
+        return self._world(np.stack([o1, pose.r - pose.geom.d], axis=1))
 
     def observe(self, commands, params: Mapping[str, float] | None = None) -> np.ndarray:
         """|O1 O2| (N, 1) mm: what the scale reads of each pose before its reference is taken off."""
-        geom, _, _, r = self._state(commands, params)
-        return np.linalg.norm(mm_vector(geom, r), axis=-1)[:, None]
+        return self._state(commands, params).distance()[:, None]
 
     # ------------------------------------------------------------------ exact derivatives
-    def _position_jacobian(self, commands, params, keys):
-        """dP/d errors (N, 2, P) mm per key unit and the perturbed geometry, P at the assembled poses."""
-        geom, _, theta, r = self._state(commands, params)
-        ux, uy = np.cos(theta), np.sin(theta)                             # (N, 2 limbs)
-        wx = (r[:, None, 0] - geom.e[:, 0] - geom.L * ux) / geom.l        # distal unit vectors w_i
-        wy = (r[:, None, 1] - geom.e[:, 1] - geom.L * uy) / geom.l
-        # row i of eq. 11: w_i^T dP = w_i^T de_i + dL_i w_i^T u_i + L_i w_i^T Q u_i dtheta_i + dl_i
-        terms = np.stack([geom.L * (wy * ux - wx * uy) * (np.pi / 180.0), wx, wy, wx * ux + wy * uy,
-                          np.ones(theta.shape), np.zeros(theta.shape)], axis=-1)   # (N, 2 limbs, 6 kinds)
-        kind, limb = _columns(tuple(keys))
-        rows = terms[:, :, kind] * limb                                   # (N, 2, P)
-        det = wx[:, 0] * wy[:, 1] - wy[:, 0] * wx[:, 1]                   # W = [w_1^T; w_2^T], 2 x 2 inverse
-        dPx = (wy[:, 1, None] * rows[:, 0] - wy[:, 0, None] * rows[:, 1]) / det[:, None]
-        dPy = (wx[:, 0, None] * rows[:, 1] - wx[:, 1, None] * rows[:, 0]) / det[:, None]
-        return geom, r, np.stack([dPx, dPy], axis=1)
-
     def jacobian(self, commands, params: Mapping[str, float] | None = None,
                  keys: list[str] | None = None) -> np.ndarray:
         """d targets / d errors (N, 2, 3, P), mm per key unit (world frame)."""
-        keys = self._keys(keys)
-        _, _, dP = self._position_jacobian(commands, params, keys)
-        dO = np.zeros((len(dP), 2, 2, len(keys)))
-        dO[:, 1] = dP
-        for j, k in enumerate(keys):
-            if k in ("drMx", "drMy"):
-                dO[:, 0, "xy".index(k[-1]), j] = 1.0                    # O1 = c + drM
-        out = np.zeros((len(dP), 2, 3, len(keys)))
-        out[:, :, 0], out[:, :, 2] = dO[:, :, 0], dO[:, :, 1]
+        cols = self._columns(keys)
+        pose = self._state(commands, params)
+        out = np.zeros((len(pose.r), 2, 3, len(cols)))
+        dP = pose.position_derivatives()[:, :, cols]
+        out[:, 1, 0], out[:, 1, 2] = dP[:, 0], dP[:, 1]                   # O2 = P - d
+        out[:, 0, 0], out[:, 0, 2] = _DRM[0, cols], _DRM[1, cols]         # O1 = c + drM
         return out
 
     def observation_jacobian(self, commands, params: Mapping[str, float] | None = None,
                              keys: list[str] | None = None) -> np.ndarray:
         """d |O1 O2| / d errors (N, 1, P), mm per key unit: ``lhat^T (dP - d drM)`` (eq. 21 at the real pose)."""
-        keys = self._keys(keys)
-        geom, r, dP = self._position_jacobian(commands, params, keys)
-        lam = mm_vector(geom, r)
-        lhat = lam / np.linalg.norm(lam, axis=-1, keepdims=True)
-        dlam = dP.copy()
-        for j, k in enumerate(keys):
-            if k in ("drMx", "drMy"):
-                dlam[:, "xy".index(k[-1]), j] -= 1.0
-        return np.einsum("ni,nip->np", lhat, dlam)[:, None, :]
+        return self._state(commands, params).distance_derivatives()[:, None, self._columns(keys)]
+
+
+#: columns of the MAEMM in the derivative of O1 = c + drM (seed x, y) by error, :data:`ERROR_KEYS` order
+_DRM = np.zeros((2, len(ERROR_KEYS)))
+_DRM[0, ERROR_KEYS.index("drMx")] = _DRM[1, ERROR_KEYS.index("drMy")] = 1.0
+
+
+class _IndexOf(dict):
+    """keys tuple -> indices into :data:`ERROR_KEYS` (aliases resolved), made on first use."""
+
+    def __missing__(self, keys: tuple[str, ...]) -> np.ndarray:
+        idx = np.array([ERROR_KEYS.index(ALIASES.get(k, k)) for k in keys], int)    # ValueError: unknown
+        self[keys] = idx
+        return idx
+
+
+_INDEX = _IndexOf()
+
+
+@dataclass
+class _Pose:
+    """The machine with one set of errors at N motor commands: its geometry, zero offsets (2,) rad, real
+    motor angles theta (N, 2) rad and P (N, 2) mm, and (made on first use) the derivatives of P and of
+    |O1 O2| with respect to every error of :data:`ERROR_KEYS`."""
+
+    geom: Geometry
+    dtheta: np.ndarray
+    theta: np.ndarray
+    r: np.ndarray
+    _dP: np.ndarray | None = None
+    _drho: np.ndarray | None = None
+
+    def distance(self) -> np.ndarray:
+        """|O1 O2| (N,) mm."""
+        return np.linalg.norm(mm_vector(self.geom, self.r), axis=-1)
+
+    def position_derivatives(self) -> np.ndarray:
+        """dP / d errors (N, 2, 12) mm per key unit, :data:`ERROR_KEYS` order (0 for the MAEMM)."""
+        if self._dP is None:
+            g, theta, r = self.geom, self.theta, self.r
+            ux, uy = np.cos(theta), np.sin(theta)                         # (N, 2 limbs)
+            wx = (r[:, None, 0] - g.e[:, 0] - g.L * ux) / g.l             # distal unit vectors w_i
+            wy = (r[:, None, 1] - g.e[:, 1] - g.L * uy) / g.l
+            # row i of eq. 11: w_i^T dP = w_i^T de_i + dL_i w_i^T u_i + L_i w_i^T Q u_i dtheta_i + dl_i
+            terms = np.stack([g.L * (wy * ux - wx * uy) * (np.pi / 180.0), wx, wy, wx * ux + wy * uy,
+                              np.ones(theta.shape)], axis=-1)             # (N, 2 limbs, 5 terms)
+            rows = np.zeros((len(r), 2 * len(ERROR_KEYS)))
+            rows[:, _LIMB_COLUMNS] = terms.reshape(len(r), -1)
+            rows = rows.reshape(len(r), 2, len(ERROR_KEYS))
+            det = wx[:, 0] * wy[:, 1] - wy[:, 0] * wx[:, 1]               # W = [w_1^T; w_2^T], 2 x 2 inverse
+            self._dP = np.stack([wy[:, 1, None] * rows[:, 0] - wy[:, 0, None] * rows[:, 1],
+                                 wx[:, 0, None] * rows[:, 1] - wx[:, 1, None] * rows[:, 0]], axis=1) / \
+                det[:, None, None]
+        return self._dP
+
+    def distance_derivatives(self) -> np.ndarray:
+        """d |O1 O2| / d errors (N, 12) mm per key unit, :data:`ERROR_KEYS` order."""
+        if self._drho is None:
+            lam = mm_vector(self.geom, self.r)
+            lhat = lam / np.linalg.norm(lam, axis=-1, keepdims=True)
+            self._drho = np.einsum("ni,nip->np", lhat, self.position_derivatives()) - lhat @ _DRM
+        return self._drho
+
+
+#: per limb, the columns of (dtheta_i, de_ix, de_iy, dL_i, dl_i) in :data:`ERROR_KEYS`
+#: where the five terms of eq. 11 of each limb (dtheta_i, de_ix, de_iy, dL_i, dl_i) go in the rows (2, 12) of
+#: the two limbs' loop equations, flattened
+_LIMB_COLUMNS = np.array([i * len(ERROR_KEYS) + ERROR_KEYS.index(n) for i in (1, 2)
+                          for n in (f"dtheta{i}", f"de{i}x", f"de{i}y", f"dL{i}", f"dl{i}")]) - len(ERROR_KEYS)
