@@ -357,7 +357,7 @@ def _spd_inverse(M: np.ndarray) -> np.ndarray:
 def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None = None,
                    keys: list[str] | None = None, *, prior: bool = True, rank_tol: float = RANK_TOL,
                    max_nfev: int | None = 100, method: str = "lm", seed: int | None = None,
-                   segments=None, covariance=None, **options) -> ChainIdentResult:
+                   segments=None, covariance=None, basis: BaseSet | None = None, **options) -> ChainIdentResult:
     """Identify the geometric errors of a closed-chain machine from tracker measurements.
 
     Parameters
@@ -380,6 +380,10 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     covariance : (n, n) covariance (mm^2) of the measured values (the flattened targets or the readings),
         for correlated noise, e.g. :func:`reading_covariance` (motor motion errors enter adjacent readings);
         the fit is then generalised least squares. None: independent noise of ``sigma_mm``.
+    basis : the base set to identify (e.g. the machine's :func:`structural_basis`, the same for every
+        campaign, so that two identifications estimate the same combinations); None: the campaign's own
+        (pivoted QR of its Jacobian). Used only where the campaign determines as many combinations as it has
+        (else the campaign's own, ``info["basis"]`` says which).
 
     Runs under pmcal's BLAS thread policy (:func:`pmcal.threads.blas_policy`: one thread unless
     ``PMCAL_BLAS_THREADS`` says otherwise; threads spinning on these small matrices cost 10-100x).
@@ -402,7 +406,9 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         raise ValueError(f"sigma_mm must be positive, got {sigma_mm}")
     obs = _Observations(model, commands, targets, segments, covariance, sigma)
     commands = obs.commands
-    keys = list(keys or model.error_keys)
+    keys = list(keys or (basis.keys if basis is not None else model.error_keys))
+    if basis is not None and list(basis.keys) != keys:
+        raise ValueError("the basis is a base set of other errors than keys")
     scale = model.prior_std(keys)
     J0 = obs.jacobian(None, keys)
     if not np.isfinite(J0).all():
@@ -410,7 +416,9 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
                                           J0.reshape(len(commands), -1)).all(axis=1))
         raise ValueError(f"the nominal machine cannot assemble {len(bad)} measured pose(s) (rows "
                          f"{', '.join(str(i + 1) for i in bad[:5])}): are they inside the workspace?")
-    basis = base_parameters(J0 / sigma, keys, scale, rank_tol)
+    own = base_parameters(J0 / sigma, keys, scale, rank_tol)
+    which = "given" if basis is not None and own.rank == basis.rank else "campaign"
+    basis = basis if which == "given" else own
     base = basis.base
     units = model.error_units(base)
     prior_cov = base_prior_cov(model, basis)
@@ -461,7 +469,8 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         residual_rms_mm=float(np.sqrt(np.mean(obs.residual_mm(resid) ** 2))), sigma_mm=sigma, n_poses=int(len(commands)),
         success=bool(sol.success), message=str(sol.message), nfev=int(sol.n_eval),
         wall_time=time.perf_counter() - t0, basis=basis, solver=sol,
-        info={"effective_parameters": p_eff, "prior_std": dict(zip(base, map(float, sb)))})
+        info={"effective_parameters": p_eff, "prior_std": dict(zip(base, map(float, sb))),
+              "prior_covariance": prior_cov, "basis": which})
 
 
 def reading_covariance(model: ChainModel, commands, motor_sigma, sigma: float | None = None,
@@ -482,6 +491,43 @@ def reading_covariance(model: ChainModel, commands, motor_sigma, sigma: float | 
     return sigma**2 * np.eye(D.shape[0]) + (D * motion) @ D.T
 
 
+def measured_jacobian(model: ChainModel, commands, params: Mapping[str, float] | None, keys: list[str],
+                      segments=None) -> np.ndarray:
+    """d (what the tracker measures of a campaign at ``commands`` (N, M)) / d ``keys``: (N*K*3, P) nest
+    coordinates (:func:`flat_jacobian`), or for a model measuring a distance (rows, P) scale readings
+    (:func:`reading_operator`, ``segments``); mm per key unit, NaN rows where the chain cannot assemble."""
+    commands = np.atleast_2d(commands)
+    if getattr(model, "reading_reference", None) is None:
+        return flat_jacobian(model, commands, params, list(keys))
+    return reading_operator(len(commands), model.reading_reference, segments) @ \
+        model.observation_jacobian(commands, params, list(keys))[:, 0, :]
+
+
+def structural_basis(model: ChainModel, commands, keys: list[str] | None = None, sigma: float | None = None,
+                     rank_tol: float = RANK_TOL) -> BaseSet:
+    """The base set of ``keys`` (default every error) on the nominal machine at a reference campaign
+    ``commands`` (N, M) spread over the workspace: what the machine's structure lets any rich campaign
+    identify, the same for every campaign (a campaign's own base set, :func:`identify_chain`, depends on its
+    poses through the QR's pivoting). Two identifications are compared in it (calibration history)."""
+    keys = list(keys or model.error_keys)
+    sigma = float(model.sigma_mm if sigma is None else sigma)
+    J = measured_jacobian(model, commands, None, keys)
+    J = J[np.isfinite(J).all(axis=1)] / sigma
+    # equivalent errors (a frame's offset and its child's) give equal columns; their order in the pivoted QR
+    # must not depend on the solver's last digits (warm starts, BLAS): 9 significant digits decide
+    q = 10.0 ** (np.floor(np.log10(np.abs(J).max(initial=1e-300))) - 9)
+    return base_parameters(np.round(J / q) * q, keys, model.prior_std(keys), rank_tol)
+
+
+def in_basis(result: "ChainIdentResult", basis: BaseSet) -> tuple[np.ndarray, np.ndarray]:
+    """An identification re-expressed in another base set of the same errors (:func:`structural_basis`):
+    the values (len(basis.base),) of that set's combinations on the identified machine (base values, the
+    dependent errors 0) and their covariance, ``T C T^T`` with ``T`` the linear map from the identified
+    base values. Exact when both sets span the same identifiable directions (equal ranks)."""
+    T = np.stack([basis.combination_values({k: 1.0}) for k in result.base], axis=1)
+    return basis.combination_values(result.params), T @ result.covariance @ T.T
+
+
 def crlb(model: ChainModel, commands, params: Mapping[str, float] | None, keys: list[str],
          sigma: float | None = None, segments=None) -> np.ndarray:
     """Cramér-Rao standard deviations (len(keys),) of ``keys`` (their units) from a campaign at ``commands``
@@ -489,13 +535,7 @@ def crlb(model: ChainModel, commands, params: Mapping[str, float] | None, keys: 
     ``sqrt(diag(sigma^2 (J^T J)^-1))``; inf for keys the campaign does not determine (pass a base set).
     A model measuring a distance is read as scale readings (:func:`reading_operator`, ``segments``)."""
     sigma = float(model.sigma_mm if sigma is None else sigma)
-    commands = np.atleast_2d(commands)
-    reference = getattr(model, "reading_reference", None)
-    if reference is None:
-        J = flat_jacobian(model, commands, params, list(keys))
-    else:
-        J = reading_operator(len(commands), reference, segments) @ \
-            model.observation_jacobian(commands, params, list(keys))[:, 0, :]
+    J = measured_jacobian(model, commands, params, keys, segments)
     J = J[np.isfinite(J).all(axis=1)] / sigma
     F = J.T @ J
     try:

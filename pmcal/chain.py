@@ -24,7 +24,8 @@ import numpy as np
 from pmcal import progress
 from pmcal.bridge.comptable import CONTROLLER, CORRECTION_ABS_MAX, NMOTOR_MAX, Axis, CompTable, Motor
 from pmcal.calib.chain_design import POOL_FACTOR, POOL_MIN, CampaignDesign, design_campaign
-from pmcal.calib.closed_chain import compensate_targets, identify_chain, reading_covariance, reading_operator
+from pmcal.calib.closed_chain import (compensate_targets, identify_chain, reading_covariance, reading_operator,
+                                      structural_basis)
 from pmcal.errors import InputError, RunError
 from pmcal.io_chain import UNIT_SLIPS, ChainMeasurements
 
@@ -216,12 +217,13 @@ def check_readings(machine, meas: ChainMeasurements, limit_mm: float = PLAUSIBLE
                          f"(limit {limit_mm:g} mm)", file=meas.path, row=int(rows[k]) + 1, field="reading_mm")
 
 
-def identify(machine, meas: ChainMeasurements, sigma_mm: float | None = None):
+def identify(machine, meas: ChainMeasurements, sigma_mm: float | None = None, basis=None):
     """Identify the machine's geometric errors from a measurement campaign: the base set the campaign
     determines, by Levenberg-Marquardt with the Tikhonov prior of machine.toml (a distance machine whose
     motors have a motion error ``sigma``: generalised least squares with :func:`reading_covariance`)
     (:func:`pmcal.calib.closed_chain.identify_chain`). Checks first that the file is plausible for the
-    machine (:func:`check_assembles`). Returns the :class:`~pmcal.calib.closed_chain.ChainIdentResult`."""
+    machine (:func:`check_assembles`). ``basis``: the base set to identify (:func:`reference_basis`, the same
+    for every campaign); None: the campaign's own. Returns the :class:`~pmcal.calib.closed_chain.ChainIdentResult`."""
     check_assembles(machine, meas)
     try:
         if machine.spec.measure == "distance":
@@ -229,10 +231,24 @@ def identify(machine, meas: ChainMeasurements, sigma_mm: float | None = None):
             cov = reading_covariance(machine.twin, meas.commands, motor_sigma, sigma_mm, meas.chain) \
                 if any(motor_sigma) and machine.spec.errors.motor_zero else None
             return identify_chain(machine.twin, meas.commands, meas.reading_rows(), sigma_mm, segments=meas.chain,
-                                  covariance=cov)
-        return identify_chain(machine.twin, meas.commands, meas.targets, sigma_mm)
+                                  covariance=cov, basis=basis)
+        return identify_chain(machine.twin, meas.commands, meas.targets, sigma_mm, basis=basis)
     except ValueError as exc:            # too few poses for the base set, poses the machine cannot assemble
         raise InputError(str(exc), file=meas.path) from None
+
+
+#: poses of the reference campaign of :func:`reference_basis` (at least; more for a machine with many errors)
+REFERENCE_POSES = 48
+
+
+def reference_basis(machine):
+    """The machine's structural base set (:func:`pmcal.calib.closed_chain.structural_basis`) at a reference
+    campaign that depends on the machine alone: commands drawn over its workspace from a fixed seed (0),
+    enough poses for three readings per error. Two identifications of the machine are compared in it."""
+    twin = type(machine.twin)(machine.spec)        # a fresh twin: no warm start of this session's solves
+    per_pose = 1 if machine.spec.measure == "distance" else 3 * len(machine.spec.targets)
+    poses = max(REFERENCE_POSES, -(-3 * len(twin.error_keys) // per_pose))
+    return structural_basis(twin, twin.sample_commands(poses, np.random.default_rng(0)))
 
 
 def params_document(machine, result, source: str | None = None) -> dict:

@@ -99,29 +99,60 @@ def record_document(cal, campaign_path: str | Path, machine: str = "ocpm_2dof", 
     idx = [cal.names.index(n) for n in names]
     scale = np.array([math.degrees(1.0) if unit_of(n) == "deg" else 1.0 for n in names])
     cov = np.asarray(cal.covariance)[np.ix_(idx, idx)] * np.outer(scale, scale)
-    value = np.array(values)
+    fit = cal.document.get("fit", {})
+    doc = _record(machine, cal.model, cal.method, cal.document.get("frame", "base"), campaign_path, names,
+                  np.array(values), cov, [unit_of(n) for n in names], fit, fit.get("noise_sigma_mm"), date)
+    doc.update(stiffness_ratio=cal.document.get("stiffness_ratio"), prior_std=prior_std, prior_mean=prior_mean)
+    return doc
+
+
+def chain_record_document(result, campaign_path: str | Path, machine: str, basis, prior_cov: np.ndarray,
+                          units: list[str], date: datetime | None = None) -> dict:
+    """The history record of a machine folder's identification (a
+    :class:`pmcal.calib.closed_chain.ChainIdentResult`) in the machine's structural base set ``basis``
+    (:func:`pmcal.calib.closed_chain.structural_basis`; the campaign's own base set depends on its poses, so
+    two campaigns are compared in this one, :func:`pmcal.calib.closed_chain.in_basis`): each combination's
+    value, unit and what it estimates, their covariance, and their prior ``prior_cov`` (correlated where a
+    base parameter regroups dependent errors, :func:`pmcal.calib.closed_chain.base_prior_cov`); ``units`` of the
+    base set's parameters (``"mm"`` / ``"deg"``)."""
+    from pmcal.calib.closed_chain import in_basis
+
+    names = list(basis.base)
+    value, cov = in_basis(result, basis)
+    fit = {"residual_rms_mm": float(result.residual_rms_mm), "chi2_per_dof": float(result.chi2_per_dof),
+           "n_poses": int(result.n_poses)}
+    doc = _record(machine, "closed_chain", "lm+tikhonov", "base", campaign_path, names, value, cov, list(units), fit,
+                  float(result.sigma_mm), date)
+    for n in names:
+        doc["params"][n]["estimates"] = basis.combinations[n]
+    prior_cov = np.asarray(prior_cov, float)
+    doc.update(prior_std={n: float(s) for n, s in zip(names, np.sqrt(np.diag(prior_cov)))}, prior_mean={},
+               prior_covariance={"names": names, "matrix": prior_cov.tolist()})
+    return doc
+
+
+def _record(machine: str, model: str, method: str, frame: str, campaign_path, names: list[str], value: np.ndarray,
+            cov: np.ndarray, units: list[str], fit: dict, noise_mm, date: datetime | None) -> dict:
     std = np.sqrt(np.diag(cov))
     date = date or datetime.now(timezone.utc)
-    fit = cal.document.get("fit", {})
     return {
-        "pmcal_history": RECORD_VERSION, "machine": machine, "model": cal.model, "method": cal.method,
-        "frame": cal.document.get("frame", "base"),
+        "pmcal_history": RECORD_VERSION, "machine": machine, "model": model, "method": method, "frame": frame,
         "date": date.isoformat(timespec="microseconds"),   # orders two calibrations filed in one second
         "campaign": {"file": str(campaign_path), "sha256": sha256(campaign_path), "n_poses": fit.get("n_poses")},
         "units": {"length": "mm", "angle": "deg"},
-        "params": {n: {"value": float(v), "std": float(s), "interval95": [float(v - Z95 * s), float(v + Z95 * s)]}
-                   for n, v, s in zip(names, value, std)},
+        "params": {n: {"value": float(v), "std": float(s), "interval95": [float(v - Z95 * s), float(v + Z95 * s)],
+                       "unit": u} for n, v, s, u in zip(names, value, std, units)},
         "covariance": {"names": names, "matrix": cov.tolist()},
         "fit": {k: fit[k] for k in ("residual_rms_mm", "residual_rms_sigma", "chi2_per_dof", "n_poses") if k in fit},
-        "tracker_noise_mm": fit.get("noise_sigma_mm"),
-        "stiffness_ratio": cal.document.get("stiffness_ratio"),
-        "prior_std": prior_std, "prior_mean": prior_mean,
+        "tracker_noise_mm": noise_mm,
     }
 
 
 def file_calibration(cal, campaign_path: str | Path, history_dir: str | Path, machine: str = "ocpm_2dof",
                      date: datetime | None = None) -> Path:
     """Write a calibration's record into ``history_dir`` (created if missing); never overwrites.
+    ``cal`` is a :class:`pmcal.calibration.Calibration` or a record already made
+    (:func:`chain_record_document`).
 
     The file is ``YYYYMMDDTHHMMSSZ-<first 8 hex of the campaign SHA-256>.json`` (``-2``, ``-3`` ... when
     taken). Returns its path.
@@ -132,7 +163,7 @@ def file_calibration(cal, campaign_path: str | Path, history_dir: str | Path, ma
     >>> file_calibration(cal, "m.csv", "history/cell2")                    # doctest: +SKIP
     PosixPath('history/cell2/20261125T101500Z-3fa4c2d1.json')
     """
-    doc = record_document(cal, campaign_path, machine, date)
+    doc = cal if isinstance(cal, dict) else record_document(cal, campaign_path, machine, date)
     folder = Path(history_dir)
     check_history_dir(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -234,6 +265,10 @@ class Change:
 def prior_precision(record: Record, names: list[str]) -> np.ndarray:
     """Diagonal prior precision (1/mm^2, 1/deg^2) of the parameters, from the record's prior standard
     deviations (0 where it has none)."""
+    full = record.doc.get("prior_covariance")
+    if full:                                       # a machine folder's base parameters: a correlated prior
+        idx = [full["names"].index(n) for n in names]
+        return np.linalg.pinv(np.asarray(full["matrix"], float)[np.ix_(idx, idx)], hermitian=True)
     prior = record.doc.get("prior_std") or {}
     return np.diag([1.0 / prior[n] ** 2 if prior.get(n) else 0.0 for n in names])
 
@@ -274,7 +309,7 @@ def compare(prev: Record, last: Record, alpha: float = ALPHA) -> list[Change]:
     """
     if not 0 < alpha < 1:
         raise InputError(f"alpha must be in (0, 1), got {alpha}", field="--alpha")
-    names = [n for n in last.names if n in prev.names]
+    names = [n for n in last.names if n in prev.names and same_quantity(prev, last, n)]
     ip, il = [prev.names.index(n) for n in names], [last.names.index(n) for n in names]
     d = last.value[il] - prev.value[ip]
     std = np.sqrt(np.diag(prev.cov[np.ix_(ip, ip)] + last.cov[np.ix_(il, il)]))
@@ -320,9 +355,18 @@ def compare(prev: Record, last: Record, alpha: float = ALPHA) -> list[Change]:
             for k, n in enumerate(names)]
 
 
-def unit_of(name: str) -> str:
-    """``mm``, ``deg``, or ``ln`` for the log stiffness ratio."""
-    return "ln" if name == LOG_RATIO else param_unit(name)
+def same_quantity(a: Record, b: Record, name: str) -> bool:
+    """The parameter ``name`` estimates the same quantity in both records: always for the seeded machines;
+    for a machine folder's base parameters, the same combination of errors (``params.<name>.estimates``)."""
+    est = lambda r: ((r.doc.get("params") or {}).get(name) or {}).get("estimates")  # noqa: E731
+    return est(a) == est(b)
+
+
+def unit_of(name: str, record: Record | None = None) -> str:
+    """``mm``, ``deg``, or ``ln`` for the log stiffness ratio; the record's own unit of the parameter when it
+    has one (a machine folder's)."""
+    unit = (((record.doc.get("params") or {}).get(name) or {}).get("unit") if record is not None else None)
+    return unit or ("ln" if name == LOG_RATIO else param_unit(name))
 
 
 def history_table(records: list[Record], changes: list[Change] | None) -> tuple[list[str], list[list]]:
@@ -335,7 +379,7 @@ def history_table(records: list[Record], changes: list[Change] | None) -> tuple[
     rows = []
     for k, n in enumerate(last.names):
         c = by_name.get(n)
-        rows.append([n, unit_of(n), float(last.value[k]), float(Z95 * last.std[k]),
+        rows.append([n, unit_of(n, last), float(last.value[k]), float(Z95 * last.std[k]),
                      c.change if c else math.nan, Z95 * c.std if c else math.nan,
                      ("YES" if c.flagged else "no") if c else "–",
                      c.estimate if c is not None and c.flagged else math.nan,

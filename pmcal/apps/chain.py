@@ -22,7 +22,7 @@ _NOT_HERE = {
     "twin plan": ("--for-diagnosis", "--frame", "--theta-max", "--from"),
     "demo": ("--full", "--hidden-effect"),
     "identify": ("--model", "--method", "--seed", "--allow-rank-deficient", "--frame", "--nest-tolerance",
-                 "--robust", "--history"),
+                 "--robust"),
     "targets": ("--theta-max",),
     "diagnose": ("--model", "--frame", "--nest-tolerance", "--params", "--report", "--force"),
 }
@@ -59,6 +59,9 @@ def option_help(machine) -> dict:
         ("twin measure", "--seconds-per-pose"): "time between poses, s (time_s column; default 30)",
         ("identify", "--sigma"): f"tracker noise, mm (default {sigma})",
         ("identify", "-o"): "parameters file to write (values, uncertainty, identifiable set: docs/formats.md)",
+        ("identify", "--history"): {"metavar": "DIR", "help": "also file the result into this machine history "
+                                    "folder (one JSON per calibration, never overwritten; 'pmcal history DIR' "
+                                    "says what moved since the previous one; docs/formats.md)"},
         ("targets", ""): f"write a targets CSV: {task} spread over the workspace of machine.toml",
         ("targets", "--seed"): "random seed of the sample (default 1)",
         ("compensate", ""): f"corrected motor commands for targets ({task})",

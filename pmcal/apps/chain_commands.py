@@ -13,11 +13,14 @@ import numpy as np
 from pmcal import progress
 from pmcal.apps import error_stats
 from pmcal.apps.chain import ERROR_CHOICES, command_defaults
+from pmcal.calib.closed_chain import base_prior_cov
 from pmcal.chain import (campaign, check_assembles, compensate as commands_for, compensation_table,
-                         identify as run_identification, params_document, residuals, sample_targets, table_refusal)
+                         identify as run_identification, params_document, reference_basis, residuals, sample_targets,
+                         table_refusal)
 from pmcal.csvio import LONG_POSES
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
+from pmcal.history import chain_record_document, check_history_dir, file_calibration
 from pmcal.io_chain import (read_measurements, read_params, read_plan, read_targets, write_measurements,
                             write_setpoints, write_targets)
 
@@ -84,11 +87,16 @@ def identify(args) -> int:
     sigma = _sigma(args.sigma, "--sigma")
     if sigma == 0:
         raise InputError("tracker noise must be positive", field="--sigma")
+    history = getattr(args, "history", None)
+    if history:
+        check_history_dir(history)
     meas = read_measurements(args.measurements, machine.spec)
     progress.set_long(len(meas) > LONG_POSES)
     progress.status(f"identifying {len(machine.twin.error_keys)} errors of {machine.name} from {len(meas)} poses")
     partial = [pid for pid, row in zip(meas.pose_id, meas.targets) if np.isnan(row).any()]
-    res = run_identification(machine, meas, sigma)
+    # filed into a history: in the machine's structural base set, the same for every campaign
+    basis = reference_basis(machine) if history else None
+    res = run_identification(machine, meas, sigma, basis)
     if partial:
         progress.warning(f"{len(partial)} pose(s) with a blocked target left out ({', '.join(partial[:3])}"
                          f"{', ...' if len(partial) > 3 else ''}): identification uses the poses with every "
@@ -96,6 +104,8 @@ def identify(args) -> int:
     write_json(args.output, params_document(machine, res, str(args.measurements)))
     print(f"{res.rank} of {len(res.params)} errors identifiable (base set), {len(res.weak)} weak; residual "
           f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}")
+    if history:
+        file_history(machine, res, basis, args.measurements, history)
     for line in identify_warnings(res, len(meas)):
         progress.warning(line)
     return 0
@@ -103,6 +113,20 @@ def identify(args) -> int:
 
 #: chi2 per degree of freedom above which the model does not explain the data down to the tracker noise
 CHI2_WARN = 2.0
+
+
+def file_history(machine, res, basis, campaign: str, folder: str) -> None:
+    """File an identification made in the machine's structural base set ``basis``
+    (:func:`pmcal.chain.reference_basis`) into a history folder; a campaign that determines fewer of its
+    combinations is not filed (a warning says why: its record could not be compared)."""
+    if res.info.get("basis") != "given":
+        progress.warning(f"not filed into {folder}: the campaign determines {res.rank} of the machine's "
+                         f"{basis.rank} identifiable combinations (measure more poses spread over the workspace, "
+                         f"e.g. 'pmcal --machine {machine.name} twin plan')")
+        return
+    record = chain_record_document(res, campaign, machine.name, basis, base_prior_cov(machine.twin, basis),
+                                   machine.twin.error_units(basis.base))
+    print(f"pmcal: wrote {file_calibration(record, campaign, folder)}")
 
 
 def identify_warnings(res, n_poses: int) -> list[str]:

@@ -86,7 +86,7 @@ def _history(args) -> int:
         print("  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))))
     moved = [c for c in changes or [] if c.flagged]
     if changes is not None:
-        print("moved: " + (", ".join(f"{c.name} {c.estimate:+.4g} {unit_of(c.name)}"
+        print("moved: " + (", ".join(f"{c.name} {c.estimate:+.4g} {unit_of(c.name, records[-1])}"
                                      for c in moved) if moved else "nothing") + f" (family-wise alpha {args.alpha:g})")
     if args.report:
         from pmcal.reports.history import history_report

@@ -44,7 +44,7 @@ def history_report(records: list[Record], changes: list[Change] | None, folder: 
                                                              f"{folder}'."])
     elif flagged:
         rep.card(f"{len(flagged)} parameter(s) moved since the previous calibration", [
-            f"{c.name}: {c.estimate:+.4g} {unit_of(c.name)} (+- {Z95 * c.estimate_std:.2g} at 95 %), "
+            f"{c.name}: {c.estimate:+.4g} {unit_of(c.name, records[-1])} (+- {Z95 * c.estimate_std:.2g} at 95 %), "
             f"{p_text(c.p_value)} (family-wise, alpha {alpha:g})" for c in flagged], css="bad")
     else:
         rep.card("Nothing moved since the previous calibration", [
@@ -79,7 +79,7 @@ def history_report(records: list[Record], changes: list[Change] | None, folder: 
                 ax.errorbar([xi[-1] + 0.12], [c.previous + c.estimate], yerr=[Z95 * c.estimate_std], fmt="D",
                             color="#1a202c", ms=5, capsize=3, label="previous + attributed change")
                 ax.legend(fontsize=6, loc="best")
-            ax.set_title(f"{n} ({unit_of(n)})" + ("  moved" if n in moved else ""), fontsize=9,
+            ax.set_title(f"{n} ({unit_of(n, records[-1])})" + ("  moved" if n in moved else ""), fontsize=9,
                          color=color, fontweight="bold" if n in moved else "normal")
             ax.set_xticks(x)
             ax.set_xticklabels(labels if len(records) <= 6 else [lb if i in (0, len(x) - 1) else "" for i, lb in
