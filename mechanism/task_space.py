@@ -52,3 +52,11 @@ def task_difference(a: np.ndarray, b: np.ndarray, coordinates: tuple[str, ...]) 
     ang = np.array([c in ANGLES for c in coordinates])
     d[..., ang] = (d[..., ang] + 180.0) % 360.0 - 180.0
     return d
+
+
+def position_distance(d: np.ndarray, coordinates: tuple[str, ...]) -> np.ndarray:
+    """Distance (...,) mm that task differences ``d`` (..., C) make over the position coordinates among
+    ``coordinates`` (:data:`POSITION`); 0 for a machine without any."""
+    d = np.asarray(d, float)
+    idx = [i for i, c in enumerate(coordinates) if c in POSITION]
+    return np.linalg.norm(d[..., idx], axis=-1) if idx else np.zeros(d.shape[:-1])

@@ -5,15 +5,10 @@ at held-out targets the integrator's command: the controller's nominal IK (here 
 form, tests/chain_references.py ``delta_ik``, written independently of pmcal) plus the PLC's looked-up
 correction (FB_CompTableLookup, interpreted ST), driving the *true* (error-perturbed) twin.
 
-Tolerance, per target t (mm):
-  e(t) <= e_direct(t) + |J| * e_interp(t) + 1e-6
-- e_direct: the exact identified inverse kinematics' own error on the true machine (what the identification
-  leaves: tracker noise 0.01 mm over 48 poses gives a few micrometres; asserted < 0.05 mm, 5 sigma);
-- e_interp: the trilinear interpolation bound of the *correction field* c = IK_identified - IK_nominal per
-  motor, sum over axes of h_a^2 / 8 * |d2c/dx_a^2| (h_a the node spacing, the second derivative by central
-  differences over +-h_a/2 at t, times 2 for its variation over the cell), as a vector norm over the
-  motors (deg);
-- |J|: the 2-norm of d task / d commands of the true machine at t (mm/deg, central differences).
+Tolerance, per target t (mm): e(t) <= e_direct(t) + |J| * e_interp(t) + 1e-6 (tests/table_bounds.py): the
+exact identified inverse kinematics' own error on the true machine (what the identification leaves: tracker
+noise 0.01 mm over 48 poses gives a few micrometres; asserted < 0.05 mm, 5 sigma) plus the trilinear
+interpolation bound of the correction field carried to the task by the machine's Jacobian.
 The test can fail: the nominal IK (no calibration) misses the targets by far more (asserted > 10x e_direct),
 and the same grid of absolute commands (``compensate --table --absolute``, 0.21 mm) misses them by more
 than 10x the correction table's largest error.
@@ -40,6 +35,7 @@ from pmcal.io_chain import read_params
 from pmcal.machines import Machine
 from tests.bridge_fixtures import ROOT_DIR
 from tests.chain_references import DELTA, delta_ik
+from tests.table_bounds import interpolation_bound_mm
 from tests.test_mock_plc_cli import _expect, _lines
 
 
@@ -95,28 +91,10 @@ def test_delta_measure_identify_table_push_lookup_reaches_held_out_targets(tmp_p
     direct = twin.inverse(held, params)                     # exact identified IK, no table
     e_direct = np.linalg.norm(twin.forward(direct, truth) - held, axis=1)
     e_nominal = np.linalg.norm(twin.forward(twin.inverse(held, None), truth) - held, axis=1)
-    h = (hi - lo) / (np.array(table.shape) - 1)
-
-    def correction(x):
-        return twin.inverse(x, params) - twin.inverse(x, None)
-
-    c0 = correction(held)
-    curv = np.zeros((len(held), 3))
-    for a in range(3):
-        d = np.zeros(3)
-        d[a] = h[a] / 2
-        second = (correction(held + d) - 2 * c0 + correction(held - d)) / (h[a] / 2) ** 2
-        curv += 2.0 * h[a] ** 2 / 8.0 * np.abs(second)
-    e_interp = np.linalg.norm(curv, axis=1)                 # deg
-    jac = np.zeros((len(held), 3, 3))
-    for k in range(3):
-        dm = np.zeros(3)
-        dm[k] = 1e-3
-        jac[:, :, k] = (twin.forward(plc + dm, truth) - twin.forward(plc - dm, truth)) / 2e-3
-    gain = np.linalg.norm(jac, ord=2, axis=(1, 2))          # mm / deg
-    tol = e_direct + gain * e_interp + 1e-6
+    bound = interpolation_bound_mm(twin, params, truth, table, held, plc)
+    tol = e_direct + bound + 1e-6
     print(f"\ncorrection table error max {err.max():.4g} mm, direct {e_direct.max():.4g} mm, interpolation "
-          f"bound {(gain * e_interp).max():.4g} mm; absolute table {err_absolute.max():.4g} mm; nominal IK "
+          f"bound {bound.max():.4g} mm; absolute table {err_absolute.max():.4g} mm; nominal IK "
           f"{e_nominal.min():.4g}..{e_nominal.max():.4g} mm")
     assert e_direct.max() < 0.05, e_direct
     assert np.all(err <= tol), (err, tol)

@@ -84,7 +84,7 @@ def test_help_speaks_of_the_machines_own_columns_and_defaults(capsys, tmp_path):
     with pytest.raises(SystemExit):
         main(["--machine", str(folder), "--help"])
     out = " ".join(capsys.readouterr().out.split())
-    assert "loop not available for a machine folder" in out and "the whole job on delta_3dof" in out
+    assert "loop twin in the loop: the task site's position error" in out and "the whole job on delta_3dof" in out
 
 
 def test_options_a_folder_machine_does_not_have_are_refused(capsys, delta):
@@ -376,12 +376,6 @@ def test_identify_leaves_out_poses_with_a_blocked_target_and_says_so(capsys, del
     status, out, err = run(capsys, "--machine", folder, "identify", meas, "-o", tmp_path / "p.json")
     assert status == 0 and "2 pose(s) with a blocked target left out (P2, P5)" in err
     assert json.loads((tmp_path / "p.json").read_text())["n_poses"] == 10
-
-
-def test_commands_a_folder_machine_does_not_have_say_so(capsys, delta, tmp_path):
-    folder, d = delta
-    one_line_error(capsys, "--machine", folder, "loop",
-                   says=["the twin loop exists for ocpm_2dof only"])
 
 
 def test_nominal_compensation_reaches_the_targets_on_the_nominal_twin(capsys, delta, tmp_path):

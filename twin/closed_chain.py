@@ -69,6 +69,7 @@ from scipy.spatial import cKDTree
 
 from pmcal.errors import InputError
 from pmcal.mechanism.machine_spec import MachineSpec
+from pmcal.mechanism.rigid import fit_pose
 from pmcal.mechanism.rotations import rotvec_matrix
 from pmcal.mechanism.task_space import POSITION, task_coordinates, task_difference
 from pmcal.twin.assembly import solve_stacked
@@ -712,6 +713,27 @@ class ClosedChainTwin:
         d = self.data
         R = d.site_xmat[self.task_site].reshape(3, 3)
         return (d.site_xpos[self.target_sites] - d.site_xpos[self.task_site]) @ R / MM
+
+    @property
+    def reading_fixes_task(self) -> bool:
+        """A tracker reading fixes the task site (:meth:`task_from_reading`): 3 or more nests measured in
+        position, all on the task site's body."""
+        body = self.model.site_bodyid
+        return (self.spec.measure != "distance" and self.n_targets >= 3
+                and bool(np.all(body[self.target_sites] == body[self.task_site])))
+
+    def task_from_reading(self, Y: np.ndarray) -> np.ndarray:
+        """Task coordinates (N, C) of the task site as a tracker reading ``Y`` (N, K, 3) mm of the nests gives
+        them: the rigid fit (:func:`pmcal.mechanism.rigid.fit_pose`) of the nests' coordinates in the task
+        site's frame (:meth:`targets_in_task_frame` of the nominal machine: nests and task site carry no
+        errors, they define their part) to ``Y``, written in the task frame. Needs 3 or more nests on the
+        task site's body (ValueError otherwise: the reading does not fix the task site)."""
+        if not self.reading_fixes_task:
+            raise ValueError(f"the tracker's reading of {self.spec.name} does not fix its task site: that takes 3 "
+                             "or more nests on the task site's part")
+        r, R, _ = fit_pose(Y, self.targets_in_task_frame())
+        p, R = self._in_task_frame(r * MM, R)
+        return task_coordinates(p / MM, R, self.spec.task.coordinates)
 
     def task_of(self, qpos: np.ndarray) -> np.ndarray:
         """Task coordinates (N, C) of configurations ``qpos`` (N, nq); NaN rows stay NaN."""

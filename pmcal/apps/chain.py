@@ -1,8 +1,8 @@
 """Application of a machine described by a folder (``--machine DIR``, or a built-in name of a
 ``kind = "chain"`` folder): its command-line wording and defaults from its machine.toml, and the routing of
 its commands (:data:`ROUTES`: ``twin measure``, ``identify``, ``targets``, ``compensate``, ``evaluate`` to
-:mod:`pmcal.apps.chain_commands`; ``twin render``, ``twin plan``, ``demo``, ``diagnose`` to their own
-modules), imported on first use like :mod:`pmcal.apps.ocpm`'s: building the parser (``--help``) needs only
+:mod:`pmcal.apps.chain_commands`; ``twin render``, ``twin plan``, ``demo``, ``diagnose``, ``loop`` to their
+own modules), imported on first use like :mod:`pmcal.apps.ocpm`'s: building the parser (``--help``) needs only
 this module, a command imports the twin and SciPy.
 """
 
@@ -77,8 +77,22 @@ def option_help(machine) -> dict:
                                       f"default unless [table] reference = \"none\"); docs/compensation_table.md",
         ("evaluate", ""): "position error of a parameter set against a measurement file (RMS, mm)",
     })
-    table.update({(cmd, ""): "not available for a machine folder (the seeded machines' command)"
-                  for cmd in ("loop",)})
+    table.update({
+        ("loop", ""): "twin in the loop: the task site's position error at held-out targets before and after "
+                      "the identified compensation table is pushed to a mock PLC (docs/bridge.md)",
+        ("loop", "--errors"): {
+            "metavar": "random|none|PARAMS.json",
+            "help": "error set of the virtual machine: random (default; each error drawn with the size "
+                    "machine.toml [errors] gives, from --seed, as 'demo --seed' draws them), none, or a "
+                    "parameters file"},
+        ("loop", "--targets"): "number of held-out targets, uniform inside the table's grid (default 24)",
+        ("loop", "--grid"): {"metavar": "N1,N2,..", "default": None,
+                             "help": "table nodes per [table] axis (default: machine.toml [table] nodes)"},
+        ("loop", "--seed"): "random seed of the errors, the planned campaign and its noise (as 'demo --seed'), "
+                            "and of the held-out targets and the tracker's noise on them (default 1)",
+        ("loop", "--json"): "write the summary as JSON (rms/max before/after/direct, push, grid, timings)",
+        ("loop", "--preset"): ABSENT, ("loop", "--table"): ABSENT,
+    })
     table.update({
         ("twin render", "--pose"): {
             "metavar": ",".join(spec.task.coordinates), "default": None,
@@ -105,7 +119,7 @@ def option_help(machine) -> dict:
 ROUTES = {**{name: "pmcal.apps.chain_commands"
              for name in ("twin_measure", "identify", "targets", "compensate", "evaluate")},
           "twin_render": "pmcal.apps.chain_render", "twin_plan": "pmcal.apps.chain_plan",
-          "demo": "pmcal.apps.chain_demo", "diagnose": "pmcal.apps.chain_diagnose"}
+          "demo": "pmcal.apps.chain_demo", "diagnose": "pmcal.apps.chain_diagnose", "loop": "pmcal.apps.chain_loop"}
 
 
 def __getattr__(name: str):

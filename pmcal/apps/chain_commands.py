@@ -211,14 +211,9 @@ def _table(args, machine) -> int:
     version = int(time.time()) if args.table_version is None else args.table_version
     if not 1 <= version <= 2**32 - 1:
         raise InputError(f"table version {version} outside 1..4294967295", field="--table-version")
-    nodes = None
-    if args.grid:
-        try:
-            nodes = [int(v) for v in str(args.grid).split(",")]
-        except ValueError:
-            raise InputError(f"expected node counts N1,N2,.. (integers), got '{args.grid}'", field="--grid") from None
     params, _ = read_params(args.params, machine.spec, _units(machine))
-    table = compensation_table(machine, params, version, nodes, absolute=True if args.absolute else None)
+    table = compensation_table(machine, params, version, parse_nodes(args.grid),
+                               absolute=True if args.absolute else None)
     table.save(args.table)
     shape = "x".join(map(str, table.shape))
     kind = ("corrections to add to the controller's nominal IK (nReference 2)" if table.controller_reference
@@ -226,3 +221,14 @@ def _table(args, machine) -> int:
     print(f"compensation table version {version}: {shape} nodes over {', '.join(a.column for a in table.axes)}, "
           f"{table.n_motors} motors, {kind}, CRC-32 0x{table.crc32():08X}")
     return 0
+
+
+def parse_nodes(text: str | None) -> list[int] | None:
+    """``--grid N1,N2,..``: table nodes per [table] axis, or None (machine.toml's ``[table] nodes``); the
+    counts themselves are checked by :func:`pmcal.chain.compensation_table`."""
+    if not text:
+        return None
+    try:
+        return [int(v) for v in str(text).split(",")]
+    except ValueError:
+        raise InputError(f"expected node counts N1,N2,.. (integers), got '{text}'", field="--grid") from None

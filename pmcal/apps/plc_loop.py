@@ -11,6 +11,8 @@ Units: deg for orientations, commands and pointing errors; mm inside the tracker
 
 from __future__ import annotations
 
+import logging
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -99,18 +101,28 @@ def _table(fill, grid, geom: Geometry, version: int, max_step_deg: float) -> Com
 
 def plc_commands(link: PlcLink, phi_deg: np.ndarray, theta_deg: np.ndarray) -> tuple[np.ndarray, int]:
     """Motor targets (N, 2) deg that FB_CompTableLookup gives for the orientations, and the table version."""
-    out = np.empty((len(phi_deg), 2))
-    versions = set()
-    for k, (p, t) in enumerate(zip(phi_deg, theta_deg)):
-        res = link.lookup(float(p), float(t))
+    out, version, _ = plc_lookup(link, np.stack([phi_deg, theta_deg], axis=-1), ("phi_deg", "theta_deg"))
+    return out[:, :2], version
+
+
+def plc_lookup(link: PlcLink, points: np.ndarray, labels: tuple[str, ...]) -> tuple[np.ndarray, int, bool]:
+    """What FB_CompTableLookup gives at task points ``points`` (N, A) (the table's axes, in their order and
+    units; ``labels`` their columns, for messages): values (N, M) deg / mm, the table version, and whether
+    they are corrections to the controller's own nominal IK (a table with nReference 2) or motor commands.
+    A failed lookup, or tables switched between lookups, is a :class:`BridgeError`."""
+    out, versions, kinds = [], set(), set()
+    for x in np.atleast_2d(points):
+        res = link.lookup(*(float(v) for v in x))
         if res.result != LookupResult.OK:
             what = getattr(res.result, "name", res.result)
-            raise BridgeError(f"PLC lookup of (phi {p:g}, theta {t:g}) deg failed: {what}")
-        out[k] = res.m1_deg, res.m2_deg
+            where = ", ".join(f"{c} {v:g}" for c, v in zip(labels, x))
+            raise BridgeError(f"PLC lookup of ({where}) failed: {what}")
+        out.append(res.m)
         versions.add(res.table_version)
+        kinds.add(res.correction)
     if len(versions) != 1:
         raise BridgeError(f"PLC switched tables during the lookups: versions {sorted(versions)}")
-    return out, versions.pop()
+    return np.array(out, float), versions.pop(), kinds.pop()
 
 
 def measure(twin, tracker, commands_deg: np.ndarray, phi_deg: np.ndarray, theta_deg: np.ndarray) -> Pointing:
@@ -151,7 +163,7 @@ def run_loop(mock, errors: dict | ErrorSet, table: CompTable | None = None, *, n
     tracker = LaserTracker(geom.sigma_mm if sigma_mm is None else sigma_mm, rng)
     if table is None:
         table = compensation_table(errors, grid, NOMINAL_VERSION + 1, geom)
-    link_factory = link_factory or _default_links
+    link_factory = link_factory or default_links
     mock.twin.seed(nominal_table((table.n_phi, table.n_theta), geom))
 
     with link_factory(mock, LOOKUP_WRITES) as link:
@@ -169,7 +181,9 @@ def run_loop(mock, errors: dict | ErrorSet, table: CompTable | None = None, *, n
                       extra={"plc_equals_table_interpolation": bool(np.array_equal(cmd, exact))})
 
 
-def _default_links(mock, writes):
+def default_links(mock, writes):
+    """A client link to the started ``mock`` over its own transport, allowed to write ``writes`` (None: what
+    a push writes)."""
     from pmcal.bridge.plc_types import PUSH_WRITES
 
     writes = PUSH_WRITES if writes is None else writes
@@ -182,36 +196,54 @@ def _default_links(mock, writes):
     return ModbusLink(mock.host, mock.port, rmap=mock.rmap, writes=writes)
 
 
+@contextmanager
+def loopback_mock(transport: str, lifetime_s: float = 600.0):
+    """A strict mock PLC (:class:`pmcal.bridge.ads_mock.AdsMockPlc` or
+    :class:`pmcal.bridge.modbus_mock.ModbusMockPlc`, ``transport`` ``"ads"`` or ``"modbus"``) started on
+    127.0.0.1 for the loop, stopped after it; AdsLib's and pymodbus' own logging silenced (one line per
+    failure)."""
+    from pmcal.bridge.ads import set_adslib_log_level
+
+    set_adslib_log_level(4)
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    if transport == "ads":
+        from pmcal.bridge.ads_mock import AdsMockPlc as Mock
+    else:
+        from pmcal.bridge.modbus_mock import ModbusMockPlc as Mock
+    with Mock(lifetime_s=lifetime_s) as mock:
+        yield mock
+
+
+def state_lines(summary: dict, what: str, unit: str) -> list[str]:
+    """The printed rows of a loop's summary: ``what`` (e.g. "pointing error") rms and max as the tracker
+    measures it, and the true rms, in ``unit``, before the push, after it and without a table."""
+    rows = []
+    for name, key in (("before push (nominal table)", "before"), ("after push", "after"),
+                      ("compensation without table", "direct_no_table")):
+        v = summary[key]
+        rows.append(f"  {name:30s} {what} rms {v[f'rms_{unit}']:.4f} {unit}, max {v[f'max_{unit}']:.4f} {unit} "
+                    f"(true rms {v[f'true_rms_{unit}']:.4f} {unit})")
+    return rows
+
+
 def run_loop_cli(args) -> int:
     """``pmcal loop``: start a mock PLC, run the loop, print (and optionally write) the result."""
-    import json
-
     from pmcal.apps.ocpm_twin import machine_errors
     from pmcal.apps.ocpm_calib import parse_grid
     from pmcal.errors import InputError
-    from pmcal.fileio import atomic_write
+    from pmcal.fileio import write_json
 
     if getattr(args, "machine", "ocpm_2dof") != "ocpm_2dof":
-        raise InputError(f"the twin loop exists for ocpm_2dof only, not '{args.machine}'", field="--machine")
-    if not 1 <= args.targets <= 10000:
-        raise InputError(f"targets must be 1..10000, got {args.targets}", field="--targets")
+        raise InputError(f"the twin loop exists for ocpm_2dof and machine folders, not '{args.machine}'",
+                         field="--machine")
+    check_target_count(args.targets)
     errors = machine_errors(args)
     grid = parse_grid(args.grid)
     table = None
     if args.table:
         table = CompTable.load(args.table).validate(active_version=NOMINAL_VERSION)
         grid = (table.n_phi, table.n_theta)
-    from pmcal.bridge.ads import set_adslib_log_level
-
-    set_adslib_log_level(4)
-    import logging
-
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-    if args.transport == "ads":
-        from pmcal.bridge.ads_mock import AdsMockPlc as Mock
-    else:
-        from pmcal.bridge.modbus_mock import ModbusMockPlc as Mock
-    with Mock(lifetime_s=600.0) as mock:
+    with loopback_mock(args.transport) as mock:
         try:
             res = run_loop(mock, errors, table, n_targets=args.targets, grid=grid, seed=args.seed)
         except BridgeError as exc:
@@ -220,15 +252,21 @@ def run_loop_cli(args) -> int:
     s = res.summary()
     print(f"twin in the loop over {res.transport} (mock PLC at {mock.target}), {s['targets']} orientations, "
           f"table {grid[0]}x{grid[1]} v{res.table_version}:")
-    for name, key in (("before push (nominal table)", "before"), ("after push", "after"),
-                      ("compensation without table", "direct_no_table")):
-        v = s[key]
-        print(f"  {name:30s} pointing error rms {v['rms_deg']:.4f} deg, max {v['max_deg']:.4f} deg "
-              f"(true rms {v['true_rms_deg']:.4f} deg)")
+    print("\n".join(state_lines(s, "pointing error", "deg")))
     print(f"  push: {s['push']['message']}; PLC targets equal the table's interpolation: "
           f"{s['plc_equals_table_interpolation']}")
     if args.json:
-        with atomic_write(args.json) as fh:
-            json.dump(s, fh, indent=1)
-            fh.write("\n")
+        write_json(args.json, s, indent=1)
     return 0
+
+
+#: most test targets of a loop
+TARGETS_MAX = 10000
+
+
+def check_target_count(n: int) -> None:
+    """``--targets``: 1..:data:`TARGETS_MAX` test targets, else an :class:`pmcal.errors.InputError`."""
+    from pmcal.errors import InputError
+
+    if not 1 <= n <= TARGETS_MAX:
+        raise InputError(f"targets must be 1..{TARGETS_MAX}, got {n}", field="--targets")

@@ -5,7 +5,8 @@
   stale table (nothing written), 1 for a transfer failure, 3 when the PLC rejects the table.
 - ``pmcal mock-plc --ads|--modbus`` runs a mock PLC on 127.0.0.1 for manual trials.
 - ``pmcal plc status|verify|unlock`` asks the PLC what it runs, or frees its staging area.
-- ``pmcal loop`` puts the digital twin in the loop (see :mod:`pmcal.apps.plc_loop`).
+- ``pmcal loop`` puts the digital twin in the loop (see :mod:`pmcal.apps.plc_loop`; a machine folder's:
+  :mod:`pmcal.apps.chain_loop`).
 """
 
 from __future__ import annotations
@@ -440,6 +441,11 @@ def _stop_on_sigterm() -> list:
 
 
 def cmd_loop(args) -> int:
+    """ocpm_2dof's loop (:mod:`pmcal.apps.plc_loop`), or a machine folder's (:mod:`pmcal.apps.chain_loop`)."""
+    from pmcal.machines import dispatch
+
+    if not args.selected_machine.legacy:
+        return dispatch("loop", args)
     from pmcal.apps.plc_loop import run_loop_cli
 
     return run_loop_cli(args)

@@ -19,7 +19,7 @@ from pmcal.chain import (campaign, compensate, compensation_table, identify, par
                          sample_targets, table_refusal)
 from pmcal.fileio import atomic_directory, write_json
 from pmcal.io_chain import write_measurements, write_plan, write_setpoints, write_targets
-from pmcal.mechanism.task_space import POSITION, task_difference
+from pmcal.mechanism.task_space import POSITION, position_distance, task_difference
 
 #: poses of the demo's campaign, held-out targets of its evaluation
 CAMPAIGN_POSES, HELD_OUT = 48, 60
@@ -65,8 +65,7 @@ class ChainDemo:
 
     def position_error(self, err: np.ndarray) -> np.ndarray:
         """Distance (n,) mm of the task site from its target, over the position coordinates."""
-        idx = [i for i, c in enumerate(self.coordinates) if c in POSITION]
-        return np.linalg.norm(err[:, idx], axis=1) if idx else np.zeros(len(err))
+        return position_distance(err, self.coordinates)
 
     def summary(self) -> dict:
         """The figures of the report's first card (JSON-ready)."""
