@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from pmcal import progress
-from pmcal.apps.plc_loop import NOMINAL_VERSION, default_links, plc_lookup
+from pmcal.apps.plc_loop import NOMINAL_VERSION, default_links, error_summary, plc_lookup
 from pmcal.bridge.comptable import CompTable
 from pmcal.bridge.errors import BridgeError
 from pmcal.bridge.plc_types import LOOKUP_WRITES
@@ -126,12 +126,7 @@ class PositionError:
     commands: np.ndarray
 
     def summary(self) -> dict:
-        return {"rms_mm": _rms(self.measured_mm), "max_mm": float(self.measured_mm.max()),
-                "true_rms_mm": _rms(self.true_mm), "true_max_mm": float(self.true_mm.max())}
-
-
-def _rms(x: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.square(x))))
+        return error_summary(self.measured_mm, self.true_mm, "mm")
 
 
 def measure_task(machine, truth: dict, commands: np.ndarray, task: np.ndarray,

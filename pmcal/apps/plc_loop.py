@@ -39,8 +39,7 @@ class Pointing:
     commands_deg: np.ndarray
 
     def summary(self) -> dict:
-        return {"rms_deg": _rms(self.measured_deg), "max_deg": float(self.measured_deg.max()),
-                "true_rms_deg": _rms(self.true_deg), "true_max_deg": float(self.true_deg.max())}
+        return error_summary(self.measured_deg, self.true_deg, "deg")
 
 
 @dataclass
@@ -68,6 +67,13 @@ class LoopResult:
 
 def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x))))
+
+
+def error_summary(measured: np.ndarray, true: np.ndarray, unit: str) -> dict:
+    """rms and max of errors as the tracker measures them and true ones, keys ``rms_<unit>``, ``max_<unit>``,
+    ``true_rms_<unit>``, ``true_max_<unit>`` (what :func:`state_lines` prints)."""
+    return {f"rms_{unit}": _rms(measured), f"max_{unit}": float(np.max(measured)),
+            f"true_rms_{unit}": _rms(true), f"true_max_{unit}": float(np.max(true))}
 
 
 def nominal_table(grid: tuple[int, int], geom: Geometry | None = None, version: int = NOMINAL_VERSION,
