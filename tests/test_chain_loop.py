@@ -25,7 +25,7 @@ import shutil
 import numpy as np
 import pytest
 
-from pmcal.apps.chain_loop import PUSHED_VERSION, calibrate, run_chain_loop
+from pmcal.apps.chain_loop import PUSHED_VERSION, TARGET_SEED, calibrate, grid_targets, run_chain_loop
 from pmcal.bridge.ads_mock import AdsMockPlc
 from pmcal.bridge.modbus_mock import ModbusMockPlc
 from pmcal.cli import main
@@ -84,10 +84,13 @@ def test_the_pushed_table_brings_the_true_twin_to_the_held_out_targets(mock, del
 
 
 def test_loop_command_prints_and_writes_the_summary(delta, tmp_path, capsys):
-    machine, _ = delta
-    out = tmp_path / "loop.json"
+    """``--errors P.json``: the twin has those errors (the fixture's); the targets are drawn from seed 2 + 1000
+    inside the table's box, so the nominal IK's error before the push follows from them alone."""
+    machine, cal = delta
+    out, errors = tmp_path / "loop.json", tmp_path / "truth.json"
+    errors.write_text(json.dumps({"mechanism": machine.name, "params": cal.truth}))
     assert main(["--machine", str(machine.folder), "loop", "--transport", "modbus", "--targets", "6",
-                 "--grid", "7,7,5", "--seed", "2", "--json", str(out)]) == 0
+                 "--grid", "7,7,5", "--seed", "2", "--errors", str(errors), "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "before push (nominal table)" in text and "after push" in text and "without table" in text
     doc = json.loads(out.read_text())
@@ -97,6 +100,9 @@ def test_loop_command_prints_and_writes_the_summary(delta, tmp_path, capsys):
         ("modbus", 6, [7, 7, 5], "controller", "ok")
     for key in ("before", "after", "direct_no_table"):
         assert set(doc[key]) == {"rms_mm", "max_mm", "true_rms_mm", "true_max_mm"}
+    task = grid_targets(machine, cal.table, 6, np.random.default_rng(2 + TARGET_SEED))
+    e_nominal = np.linalg.norm(machine.twin.forward(machine.twin.inverse(task, None), cal.truth) - task, axis=1)
+    assert doc["before"]["true_rms_mm"] == pytest.approx(np.sqrt(np.mean(e_nominal ** 2)), abs=1e-9)
     assert doc["before"]["true_rms_mm"] > 1.0 and doc["after"]["true_rms_mm"] < 0.05
     assert doc["plc_equals_table_lookup"]
 
