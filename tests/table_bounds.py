@@ -21,14 +21,15 @@ def interpolation_bound_mm(twin, params: dict, truth: dict, table, task: np.ndar
                            commands: np.ndarray) -> np.ndarray:
     """|J| * e_interp (n,) mm at targets ``task`` (n, A) (the task coordinates are the table's axes, in
     their order) driven by ``commands`` (n, M) deg on the machine with errors ``truth``; ``params`` the
-    identified errors the table was made of."""
+    identified errors the table was made of. A table of absolute commands (no reference) tabulates the
+    identified IK itself: its bound, with c = IK_identified."""
     lo = np.array([a.min for a in table.axes])
     hi = np.array([a.max for a in table.axes])
     h = (hi - lo) / (np.array(table.shape) - 1)
     n_axes, n_motors = table.n_axes, table.n_motors
 
     def correction(x):
-        return twin.inverse(x, params) - twin.inverse(x, None)
+        return twin.inverse(x, params) - (0.0 if table.reference is None else twin.inverse(x, None))
 
     c0 = correction(task)
     curv = np.zeros((len(task), n_motors))

@@ -25,7 +25,8 @@ import shutil
 import numpy as np
 import pytest
 
-from pmcal.apps.chain_loop import PUSHED_VERSION, TARGET_SEED, calibrate, grid_targets, run_chain_loop
+from pmcal.apps.chain_loop import (PUSHED_VERSION, TARGET_SEED, calibrate, grid_targets, nominal_table,
+                                   run_chain_loop)
 from pmcal.bridge.ads_mock import AdsMockPlc
 from pmcal.bridge.modbus_mock import ModbusMockPlc
 from pmcal.cli import main
@@ -81,6 +82,31 @@ def test_the_pushed_table_brings_the_true_twin_to_the_held_out_targets(mock, del
     assert res.after.true_mm.max() < e_nominal.min() / 50      # the table carries the calibration
     for state in (res.before, res.after, res.direct):          # the tracker sees it within its noise
         assert np.abs(state.measured_mm - state.true_mm).max() < 5 * machine.spec.sigma_mm
+
+
+@pytest.mark.slow
+def test_a_table_of_absolute_commands_starts_from_the_nominal_ik_table(tmp_path):
+    """[table] reference = "none": the nominal table holds the nominal IK's commands at the nodes, the pushed
+    one the identified IK's; after the push the error is the direct one plus the interpolation bound of the
+    identified IK itself (a few tenths of a mm on the Delta's grid, tests/table_bounds.py)."""
+    folder = _copy("delta_3dof", tmp_path)
+    toml = folder / "machine.toml"
+    toml.write_text(toml.read_text().replace('reference = "controller"', 'reference = "none"'))
+    machine = Machine.from_folder(folder)
+    cal = calibrate(machine, seed=1)
+    assert cal.table.reference is None
+    with running(AdsMockPlc(lifetime_s=120.0)) as plc:
+        res = run_chain_loop(plc, machine, cal, n_targets=8, seed=4)
+    twin, task = machine.twin, res.task
+    assert res.push.result == "ok" and res.extra["plc_equals_table_lookup"]
+    nominal = nominal_table(machine, cal.table)
+    np.testing.assert_allclose(nominal.values.reshape(-1, 3), twin.inverse(
+        nominal.nodes().reshape(-1, 3), None), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(res.before.commands, nominal.lookup(task), rtol=0, atol=1e-9)   # IK made again
+    np.testing.assert_array_equal(res.after.commands, cal.table.lookup(task))
+    bound = interpolation_bound_mm(twin, cal.result.params, cal.truth, cal.table, task, res.after.commands)
+    assert np.all(res.after.true_mm <= res.direct.true_mm + bound + 1e-6)
+    assert res.after.true_mm.max() > 10 * res.direct.true_mm.max()   # the interpolation shows: the test can fail
 
 
 def test_loop_command_prints_and_writes_the_summary(delta, tmp_path, capsys):
