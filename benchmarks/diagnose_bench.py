@@ -129,20 +129,33 @@ def motor_coverage(d, truths: dict[str, list[dict]]) -> dict[str, list[bool]]:
     return out
 
 
-def twin_mean_rates(effects, hours: float) -> tuple[float, float]:
-    """The twin's campaign-mean drift rate per motor, deg/h: its drift r t + q t^2 from the first pose to
-    the last (``hours`` after it) over the duration, r + q hours (what the diagnosis reports per motor)."""
+def twin_mean_rates(effects, span_h: tuple[float, float]) -> tuple[float, float]:
+    """The twin's campaign-mean drift rate per motor, deg/h, what the diagnosis reports per motor: its drift
+    r t + q t^2 (t hours since the campaign's first pose) from the first to the last row the diagnosis
+    fits (``span_h``, hours since the campaign's first pose; without approach columns the diagnosis leaves
+    the first row out) over that time, r + q (t0 + t1)."""
     q = effects.drift_curvature or (0.0, 0.0)
-    return tuple(float(r + c * hours) for r, c in zip(effects.zero_offset_drift, q))
+    return tuple(float(r + c * (span_h[0] + span_h[1])) for r, c in zip(effects.zero_offset_drift, q))
 
 
-def truth(twin, name: str, hours: float) -> float:
+def xsim_mean_rates(camp, fx, d) -> np.ndarray:
+    """The independent simulator's campaign-mean drift rate per motor, deg/h: its drift
+    (``tests.crosssim.campaign.drift_offsets``) from the first to the last row the diagnosis ``d`` fits over
+    that time."""
+    from tests.crosssim.campaign import drift_offsets
+
+    i = np.searchsorted(camp.time_s, d.meas.time_s[[0, -1]])
+    off = drift_offsets(camp.time_s, fx)
+    return (off[i[1]] - off[i[0]]) * 3600.0 / (camp.time_s[i[1]] - camp.time_s[i[0]])
+
+
+def truth(twin, name: str, span_h: tuple[float, float]) -> float:
     """The hidden value in the diagnosis' units (per-motor effects: the mean over the motors that carry it;
-    backlash the full dead band; drift the RMS campaign-mean rate over a campaign of ``hours``; frame
-    drift the translation rate; thermal the fastest part)."""
+    backlash the full dead band; drift the RMS campaign-mean rate over the rows the diagnosis fits,
+    ``span_h`` (:func:`twin_mean_rates`); frame drift the translation rate; thermal the fastest part)."""
     t = getattr(twin.effects, name)
     if name == "zero_offset_drift":
-        t = twin_mean_rates(twin.effects, hours)
+        t = twin_mean_rates(twin.effects, span_h)
     if name == "frame_drift":
         return float(np.linalg.norm(twin.effects.frame_params()[:3]))
     if isinstance(t, dict):
@@ -154,8 +167,8 @@ def truth(twin, name: str, hours: float) -> float:
     return float(t)
 
 
-def within_interval(d, twin, name: str, hours: float) -> bool:
-    """The hidden value lies in the diagnosis' 95 % interval (a campaign of ``hours``); for overconstraint (24 keys, several
+def within_interval(d, twin, name: str, span_h: tuple[float, float]) -> bool:
+    """The hidden value lies in the diagnosis' 95 % interval (drift over ``span_h``, :func:`truth`); for overconstraint (24 keys, several
     combinations unidentifiable) the passive-limb keys lie within the fit's covariance (Mahalanobis,
     99.9 %)."""
     from scipy.stats import chi2
@@ -171,7 +184,7 @@ def within_interval(d, twin, name: str, hours: float) -> bool:
         diff = d.final.x[idx] - true
         return bool(diff @ np.linalg.solve(cov, diff) < chi2.ppf(0.999, len(idx)))
     v = next(v for v in d.named if v.name == name)
-    t = truth(twin, name, hours)
+    t = truth(twin, name, span_h)
     lo, hi = v.interval
     return bool((lo is None or lo <= t) and (hi is None or t <= hi))
 
@@ -200,7 +213,7 @@ def run_one(job: tuple[str, int, int]) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     d = diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA))
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    span_h = float(meas.time_s[-1] - meas.time_s[0]) / 3600.0      # the poses measured (a few may be skipped)
+    span_h = tuple((d.meas.time_s[[0, -1]] - plan.time_s[0]) / 3600.0)   # the rows the diagnosis fits, h since the twin's t = 0
     inside = {v.name: within_interval(d, twin, v.name, span_h) for v in d.named if v.name in names}
     e = twin.effects
     truths = {n: per_motor_truth(n, twin_mean_rates(e, span_h) if n == "zero_offset_drift" else getattr(e, n),
@@ -260,7 +273,7 @@ def run_xsim(case: str, seed: int, n: int) -> dict:
     from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose
     from pmcal.io_ocpm import read_measurements
     from pmcal.twin.effect_model import EffectChainModel
-    from tests.crosssim.campaign import drift_offsets, hidden_campaign, write_csv
+    from tests.crosssim.campaign import hidden_campaign, write_csv
 
     camp, _, fx = hidden_campaign(XSIM_CASES[case], seed, n, forms=XSIM_FORMS.get(case))
     with tempfile.TemporaryDirectory() as tmp:
@@ -274,8 +287,7 @@ def run_xsim(case: str, seed: int, n: int) -> dict:
     truths = {"backlash": per_motor_truth("backlash", fx.backlash),
               "encoder_eccentricity": per_motor_truth("encoder_eccentricity", fx.eccentricity,
                                                       np.rad2deg(fx.ecc_phase)),
-              "zero_offset_drift": per_motor_truth("zero_offset_drift", drift_offsets(camp.time_s, fx)[-1] * 3600.0
-                                                   / (camp.time_s[-1] - camp.time_s[0]))}
+              "zero_offset_drift": per_motor_truth("zero_offset_drift", xsim_mean_rates(camp, fx, d))}
     return {**_common(d, names), "case": f"xsim {case}", "seed": seed, "poses": len(meas), "named": d.effects,
             "verdict": d.verdict, "motor_coverage": motor_coverage(d, {n: truths[n] for n in names if n in truths}),
             "gap_before": d.gap_before, "gap_after": d.gap_after, "noise_floor": d.noise_floor, "runtime_s": wall, "cpu_s": cpu,

@@ -235,8 +235,8 @@ def test_one_motor_backlash_is_reported_per_motor(tmp_path):
 
 def test_one_motor_drift_is_reported_per_motor(tmp_path):
     """Drift on one motor only, the simulator's exponential creep (tau = 2 h, seed 1013): the headline names
-    that motor, and each motor's campaign-mean rate (the drift from the first pose to the last over the
-    duration) holds the simulator's own in its 95 % interval, 0 for the other motor. The rate at the first
+    that motor, and each motor's campaign-mean rate (the drift from the first row the diagnosis fits to the
+    last over that time) holds the simulator's own in its 95 % interval, 0 for the other motor. The rate at the first
     pose, what the family's quadratic cannot pin down for a creep, is reported beside it as shape; judged
     by it, this seed put drift on both motors."""
     d, fx, camp = _diagnose(tmp_path, ["zero_offset_drift"], seed=1013, forms={"zero_offset_drift": "one motor"},
@@ -245,7 +245,9 @@ def test_one_motor_drift_is_reported_per_motor(tmp_path):
     v = d.named[0]
     carrier = 1 + int(np.argmax(np.abs(fx.drift)))
     assert v.motors == (carrier,)
-    true = drift_offsets(camp.time_s, fx)[-1] * 3600.0 / (camp.time_s[-1] - camp.time_s[0])
+    i = np.searchsorted(camp.time_s, d.meas.time_s[[0, -1]])      # the rows the diagnosis fits (not the first)
+    off = drift_offsets(camp.time_s, fx)
+    true = (off[i[1]] - off[i[0]]) * 3600.0 / (camp.time_s[i[1]] - camp.time_s[i[0]])
     for m in v.per_motor:
         lo, hi = m["interval"]
         assert lo <= true[m["motor"] - 1] <= hi, m
