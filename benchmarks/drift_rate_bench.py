@@ -6,7 +6,8 @@ columns) is diagnosed as ``benchmarks/diagnose_bench.py`` does, and each motor's
 with the simulator's own: the campaign-mean rate (drift from the first row the diagnosis fits to the last
 over that time, ``diagnose_bench.xsim_mean_rates``) against the reported value and its interval, and the family's
 rate at the first pose r (``per_motor[].rate_first_pose``, +-1.96 std) against the simulator's initial
-rate. z = (reported - truth) / std (statistical std, without the form allowance). ``--noise 1e-4`` gives
+rate. z = (reported - truth) / std (statistical std, without the form allowance), signed: times the sign
+of the true mean rate (a form's bias has the drift's sign). ``--noise 1e-4`` gives
 the near-noise-free fits (the bias of the form); ``--redraw SEED`` keeps one campaign and draws the
 tracker noise afresh ``--seeds`` times (does the interval's std hold for that campaign?).
 
@@ -78,13 +79,13 @@ def summarise(rows: list[dict]) -> list[list]:
             hit = sum(m["interval"][0] <= m["mean_true"] <= m["interval"][1] for m in ms)
             first = sum(abs(m["first"] - m["initial_true"]) <= Z95 * m["first_std"] for m in ms)
             table.append([case, "drifting" if kind else "drift-free", len(ms), f"{hit}/{len(ms)}", f"{first}/{len(ms)}",
-                          f"{sum(m['carried'] == kind for m in ms)}/{len(ms)}", float(np.mean(zs)), float(np.std(z)),
-                          float(np.max(np.abs(z)))])
+                          f"{sum(m['carried'] == kind for m in ms)}/{len(ms)}", float(np.mean(zs)), float(np.std(zs)),
+                          float(np.max(np.abs(z))), f"{sum(abs(x) <= Z95 for x in z)}/{len(ms)}"])
     return table
 
 
 HEADER = ["case", "motor", "checks", "mean rate in interval", "first-pose rate in +-1.96 std", "carried right",
-          "z mean (signed)", "z std", "max |z|"]
+          "z mean (signed)", "z std (signed)", "max |z|", "mean rate in +-1.96 std (no allowance)"]
 
 
 def main(argv=None) -> int:
@@ -96,7 +97,14 @@ def main(argv=None) -> int:
                     help="one campaign (this seed) with --seeds fresh noise draws")
     ap.add_argument("--cases", default=",".join(FORMS), help="comma-separated subset of " + ", ".join(FORMS))
     ap.add_argument("--out", default=None, help="JSON output (default benchmarks/results/drift_rate_bench.json)")
+    ap.add_argument("--summarise", metavar="JSON", default=None, help="print the table of a JSON this script wrote")
     args = ap.parse_args(argv)
+    if args.summarise:
+        import json
+
+        doc = json.loads(Path(args.summarise).read_text())
+        print_table(f"Per-motor drift ({args.summarise}, {len(doc['runs'])} runs)", HEADER, summarise(doc["runs"]))
+        return 0
     cases = [c for c in args.cases.split(",") if c in FORMS]
     if args.redraw is not None:
         jobs = [(c, args.redraw, args.noise, k) for c in cases for k in range(args.seeds)]
