@@ -100,7 +100,8 @@ def outside_effect(case: str, meas) -> None:
 
 
 def per_motor_truth(name: str, values: list, phases_deg=None) -> list[dict]:
-    """True per-motor values in the diagnosis' convention (backlash: the full dead band 2 b)."""
+    """True per-motor values in the diagnosis' convention (backlash: the full dead band 2 b; drift: the
+    campaign-mean rate, :func:`twin_mean_rates` and ``tests.crosssim.campaign.drift_offsets``)."""
     out = []
     for m, v in enumerate(values):
         item = {"value": 2.0 * v if name == "backlash" else float(v)}
@@ -128,10 +129,33 @@ def motor_coverage(d, truths: dict[str, list[dict]]) -> dict[str, list[bool]]:
     return out
 
 
-def truth(twin, name: str) -> float:
+def twin_mean_rates(effects, span_h: tuple[float, float]) -> tuple[float, float]:
+    """The twin's campaign-mean drift rate per motor, deg/h, what the diagnosis reports per motor: its drift
+    r t + q t^2 (t hours since the campaign's first pose) from the first to the last row the diagnosis
+    fits (``span_h``, hours since the campaign's first pose; without approach columns the diagnosis leaves
+    the first row out) over that time, r + q (t0 + t1)."""
+    q = effects.drift_curvature or (0.0, 0.0)
+    return tuple(float(r + c * (span_h[0] + span_h[1])) for r, c in zip(effects.zero_offset_drift, q))
+
+
+def xsim_mean_rates(camp, fx, d) -> np.ndarray:
+    """The independent simulator's campaign-mean drift rate per motor, deg/h: its drift
+    (``tests.crosssim.campaign.drift_offsets``) from the first to the last row the diagnosis ``d`` fits over
+    that time."""
+    from tests.crosssim.campaign import drift_offsets
+
+    i = np.searchsorted(camp.time_s, d.meas.time_s[[0, -1]])
+    off = drift_offsets(camp.time_s, fx)
+    return (off[i[1]] - off[i[0]]) * 3600.0 / (camp.time_s[i[1]] - camp.time_s[i[0]])
+
+
+def truth(twin, name: str, span_h: tuple[float, float]) -> float:
     """The hidden value in the diagnosis' units (per-motor effects: the mean over the motors that carry it;
-    backlash the full dead band; frame drift the translation rate; thermal the fastest part)."""
+    backlash the full dead band; drift the RMS campaign-mean rate over the rows the diagnosis fits,
+    ``span_h`` (:func:`twin_mean_rates`); frame drift the translation rate; thermal the fastest part)."""
     t = getattr(twin.effects, name)
+    if name == "zero_offset_drift":
+        t = twin_mean_rates(twin.effects, span_h)
     if name == "frame_drift":
         return float(np.linalg.norm(twin.effects.frame_params()[:3]))
     if isinstance(t, dict):
@@ -143,8 +167,8 @@ def truth(twin, name: str) -> float:
     return float(t)
 
 
-def within_interval(d, twin, name: str) -> bool:
-    """The hidden value lies in the diagnosis' 95 % interval; for overconstraint (24 keys, several
+def within_interval(d, twin, name: str, span_h: tuple[float, float]) -> bool:
+    """The hidden value lies in the diagnosis' 95 % interval (drift over ``span_h``, :func:`truth`); for overconstraint (24 keys, several
     combinations unidentifiable) the passive-limb keys lie within the fit's covariance (Mahalanobis,
     99.9 %)."""
     from scipy.stats import chi2
@@ -160,7 +184,7 @@ def within_interval(d, twin, name: str) -> bool:
         diff = d.final.x[idx] - true
         return bool(diff @ np.linalg.solve(cov, diff) < chi2.ppf(0.999, len(idx)))
     v = next(v for v in d.named if v.name == name)
-    t = truth(twin, name)
+    t = truth(twin, name, span_h)
     lo, hi = v.interval
     return bool((lo is None or lo <= t) and (hi is None or t <= hi))
 
@@ -189,15 +213,17 @@ def run_one(job: tuple[str, int, int]) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     d = diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA))
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    inside = {v.name: within_interval(d, twin, v.name) for v in d.named if v.name in names}
+    span_h = tuple((d.meas.time_s[[0, -1]] - plan.time_s[0]) / 3600.0)   # the rows the diagnosis fits, h since the twin's t = 0
+    inside = {v.name: within_interval(d, twin, v.name, span_h) for v in d.named if v.name in names}
     e = twin.effects
-    truths = {n: per_motor_truth(n, getattr(e, n), e.encoder_phase_deg if n == "encoder_eccentricity" else None)
+    truths = {n: per_motor_truth(n, twin_mean_rates(e, span_h) if n == "zero_offset_drift" else getattr(e, n),
+                                 e.encoder_phase_deg if n == "encoder_eccentricity" else None)
               for n in ("backlash", "encoder_eccentricity", "zero_offset_drift") if getattr(e, n) is not None}
     return {**_common(d, names), "case": case, "seed": seed, "poses": len(meas), "named": d.effects, "verdict": d.verdict,
             "motor_coverage": motor_coverage(d, truths),
             "gap_before": d.gap_before, "gap_after": d.gap_after, "noise_floor": d.noise_floor, "runtime_s": wall, "cpu_s": cpu,
             "gap_after_all": d.gap_after_all, "extrapolated": d.extrapolated, "truth_in_interval": inside, "values": {v.name: v.value for v in d.named},
-            "intervals": {v.name: v.interval for v in d.named}, "truth": {n: truth(twin, n) for n in names
+            "intervals": {v.name: v.interval for v in d.named}, "truth": {n: truth(twin, n, span_h) for n in names
                                                                           if n != "overconstraint"},
             "unexplained": d.unexplained}
 
@@ -261,7 +287,7 @@ def run_xsim(case: str, seed: int, n: int) -> dict:
     truths = {"backlash": per_motor_truth("backlash", fx.backlash),
               "encoder_eccentricity": per_motor_truth("encoder_eccentricity", fx.eccentricity,
                                                       np.rad2deg(fx.ecc_phase)),
-              "zero_offset_drift": per_motor_truth("zero_offset_drift", fx.drift)}
+              "zero_offset_drift": per_motor_truth("zero_offset_drift", xsim_mean_rates(camp, fx, d))}
     return {**_common(d, names), "case": f"xsim {case}", "seed": seed, "poses": len(meas), "named": d.effects,
             "verdict": d.verdict, "motor_coverage": motor_coverage(d, {n: truths[n] for n in names if n in truths}),
             "gap_before": d.gap_before, "gap_after": d.gap_after, "noise_floor": d.noise_floor, "runtime_s": wall, "cpu_s": cpu,
@@ -295,23 +321,26 @@ def summarise(rows: list[dict]) -> list[list]:
 
 
 def coverage(rows: list[dict]) -> list[list]:
-    """Per-motor 95 % interval coverage over the runs that named a per-motor effect: per effect, quantity
-    (backlash full band, drift rate, eccentricity amplitude and phase) and motor, hits / checks."""
-    what = {"backlash": ("full band",), "zero_offset_drift": ("rate",), "encoder_eccentricity": ("amplitude", "phase")}
+    """Per-motor 95 % interval coverage over the runs that named a per-motor effect: per source (twin,
+    xsim), effect, quantity (backlash full band, drift campaign-mean rate, eccentricity amplitude and
+    phase) and motor, hits / checks."""
+    what = {"backlash": ("full band",), "zero_offset_drift": ("mean rate",),
+            "encoder_eccentricity": ("amplitude", "phase")}
     count: dict[tuple, list[int]] = {}
     for r in rows:
+        source = "xsim" if r["case"].startswith("xsim ") else "twin"
         for name, hits in r.get("motor_coverage", {}).items():
             q = what[name]
             per = len(hits) // 2                  # checks per motor (the phase only where the truth has one)
             for m in range(2):
                 for k, hit in enumerate(hits[m * per:(m + 1) * per]):
-                    c = count.setdefault((name, q[k], m + 1), [0, 0])
+                    c = count.setdefault((source, name, q[k], m + 1), [0, 0])
                     c[0] += int(hit)
                     c[1] += 1
-    return [[n, q, m, f"{h}/{t}", h / t] for (n, q, m), (h, t) in sorted(count.items())]
+    return [[src, n, q, m, f"{h}/{t}", h / t] for (src, n, q, m), (h, t) in sorted(count.items())]
 
 
-COVERAGE_HEADER = ["effect", "quantity", "motor", "in 95 % interval", "coverage"]
+COVERAGE_HEADER = ["source", "effect", "quantity", "motor", "in 95 % interval", "coverage"]
 
 HEADER = ["case", "runs", "exactly its names", "named right", "other name", "runs w/ other", "unexplained",
           "unexplained w/ correlate", "gap before (med)", "gap after (med)", "max after/noise",

@@ -10,7 +10,7 @@ measured <= 0.0005 mm without and <= 0.002 mm with gravity; asserted at 0.002 / 
 import numpy as np
 import pytest
 
-from crosssim.campaign import SimEffects, hidden_campaign, plan, random_errors, simulate, write_csv
+from crosssim.campaign import SimEffects, drift_offsets, hidden_campaign, plan, random_errors, simulate, write_csv
 from crosssim.machine import H_SS, ClosedChain, Geometry, nominal_ik, tilt_torsion
 
 
@@ -231,6 +231,30 @@ def test_one_motor_backlash_is_reported_per_motor(tmp_path):
     assert v.value == pytest.approx(v.per_motor[carrier - 1]["value"])
     doc = d.to_json()["named"][0]
     assert {"name", "value", "interval", "unit"} <= set(doc) and doc["motors"] == [carrier]
+
+
+def test_one_motor_drift_is_reported_per_motor(tmp_path):
+    """Drift on one motor only, the simulator's exponential creep (tau = 2 h, seed 1013): the headline names
+    that motor, and each motor's campaign-mean rate (the drift from the first row the diagnosis fits to the
+    last over that time) holds the simulator's own in its 95 % interval, 0 for the other motor. The rate at the first
+    pose, what the family's quadratic cannot pin down for a creep, is reported beside it as shape; judged
+    by it, this seed put drift on both motors."""
+    d, fx, camp = _diagnose(tmp_path, ["zero_offset_drift"], seed=1013, forms={"zero_offset_drift": "one motor"},
+                            truth=True)
+    assert d.effects == ["zero_offset_drift"]
+    v = d.named[0]
+    carrier = 1 + int(np.argmax(np.abs(fx.drift)))
+    assert v.motors == (carrier,)
+    i = np.searchsorted(camp.time_s, d.meas.time_s[[0, -1]])      # the rows the diagnosis fits (not the first)
+    off = drift_offsets(camp.time_s, fx)
+    true = (off[i[1]] - off[i[0]]) * 3600.0 / (camp.time_s[i[1]] - camp.time_s[i[0]])
+    for m in v.per_motor:
+        lo, hi = m["interval"]
+        assert lo <= true[m["motor"] - 1] <= hi, m
+        assert {"rate_first_pose", "curvature", "form_allowance"} <= set(m)
+    assert v.value == pytest.approx(abs(v.per_motor[carrier - 1]["value"]))
+    lo, hi = v.interval
+    assert lo <= abs(true[carrier - 1]) <= hi
 
 
 def test_parts_expanding_at_their_own_rates(tmp_path):

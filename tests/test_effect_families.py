@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose
-from pmcal.calib.ocpm.effect_values import select_member
+from pmcal.calib.ocpm.effect_values import effect_value, per_motor_values, select_member
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.effects import THERMAL_GROUPS, member_maps, with_context
@@ -23,6 +23,7 @@ from pmcal.twin.tracker import LaserTracker
 
 SIGMA = 0.01
 G = default_geometry()
+KEYS_DRIFT = [f"zero_offset_drift.{k}" for k in ("r1", "r2", "q1", "q2")]
 
 
 def _campaign(n=12, theta=70.0, temp=(15.0, 25.0), seed=1):
@@ -85,6 +86,40 @@ def test_quadratic_drift_shifts_the_joints_as_defined():
     want = cmd + [0.1, 0.0] + np.outer(h, [0.05, -0.02]) + np.outer(h * h, [-0.03, 0.04])
     assert np.abs(np.rad2deg(st.joint) - want).max() < 1e-10
 
+
+def test_drift_per_motor_is_the_campaign_mean_rate():
+    """A drift fit (r1, r2, q1, q2) over a campaign of 1.05 h: each motor's value is its drift from the first
+    pose to the last over the duration, (r T + q T^2) / T (deg/h), with the std of that linear
+    combination, sqrt(g C g), g = (1, T) on (r, q); its 95 % interval adds the form allowance |q| T / 30 in
+    quadrature; the rate at the first pose and the curvature stay as shape. A motor carries drift when
+    (r, q) differ from zero (2 dof): a drift that returns to its start (mean rate 0) is carried, a motor
+    with neither is not."""
+    T = 1.05
+    s_r, s_q, rho = 0.0012, 0.0011, -0.9                     # deg/h, deg/h^2: the cross-sim fits' sizes
+    C = np.zeros((4, 4))
+    for m in range(2):
+        C[m, m], C[m + 2, m + 2], C[m, m + 2] = s_r**2, s_q**2, rho * s_r * s_q
+        C[m + 2, m] = C[m, m + 2]
+    for x_deg, carried in (([0.012, 0.0, -0.004, 0.0], (1,)), ([0.012, 0.0, -0.012 / T, 0.0], (1,))):
+        x = np.deg2rad(x_deg)
+        items, motors = per_motor_values("zero_offset_drift", x, np.deg2rad(np.deg2rad(C)), T)
+        assert motors == carried
+        for m, it in enumerate(items):
+            mean = (x_deg[m] * T + x_deg[m + 2] * T**2) / T
+            std = np.sqrt(s_r**2 + 2 * T * rho * s_r * s_q + T**2 * s_q**2)
+            half = 1.959964 * np.hypot(std, abs(x_deg[m + 2]) * T / 30.0)
+            assert it["value"] == pytest.approx(mean, abs=1e-12)
+            assert it["std"] == pytest.approx(std, rel=1e-4)
+            assert np.subtract(it["interval"], mean) == pytest.approx([-half, half], rel=1e-4)
+            assert it["rate_first_pose"] == pytest.approx(x_deg[m]) and it["curvature"] == pytest.approx(x_deg[m + 2])
+    t_rel = np.linspace(0.0, T, 128)
+    ev = effect_value("zero_offset_drift", KEYS_DRIFT, np.deg2rad([0.012, 0.0, -0.004, 0.0]), np.deg2rad(np.deg2rad(C)),
+                      t_rel=t_rel)
+    assert ev.value == pytest.approx(0.012 - 0.004 * T) and ev.motors == (1,)
+    assert np.subtract(ev.interval, ev.value) == pytest.approx(np.subtract(ev.per_motor[0]["interval"], ev.value),
+                                                               rel=1e-4)
+    with pytest.raises(ValueError, match="t_rel"):
+        effect_value("zero_offset_drift", KEYS_DRIFT, np.zeros(4), np.eye(4) * 1e-12)
 
 @pytest.mark.parametrize("name, truth, member", [
     ("thermal_expansion", dict(cranks=23e-6, couplers=23e-6, strut=23e-6, base=23e-6, platform=23e-6), "uniform"),

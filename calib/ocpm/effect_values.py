@@ -60,7 +60,7 @@ class EffectValue:
     member_params: dict[str, tuple[float, float]] = field(default_factory=dict)   # its values and stds
     per_motor: list[dict] = field(default_factory=list)   # :func:`per_motor_values`
     parts: list[dict] = field(default_factory=list)       # thermal: :func:`separable_parts`
-    motors: tuple[int, ...] = ()          # the motors that carry it (per-motor value beyond its 95 % interval)
+    motors: tuple[int, ...] = ()          # the motors that carry it (:func:`per_motor_values`)
 
 
 def _interface(key: str, v: float) -> float:
@@ -77,25 +77,62 @@ MOTOR_PARAMS = {"backlash": ((0,), (1,)), "encoder_eccentricity": ((0, 1), (2, 3
                 "zero_offset_drift": ((0, 2), (1, 3))}
 
 
-def _motor_value(name: str, x: np.ndarray, m: int) -> float:
+def _motor_value(name: str, x: np.ndarray, m: int, t_end: float = 0.0) -> float:
     """One motor's value (interface unit): backlash the full dead band 2 b (deg), eccentricity the
-    amplitude (deg), drift the rate at the first pose (deg per time unit)."""
+    amplitude (deg), drift the campaign-mean rate (deg per time unit): the drift from the first pose to
+    the last (``t_end`` after it) over ``t_end``, r + q t_end (:func:`campaign_mean_rate`)."""
     i = MOTOR_PARAMS[name][m]
     if name == "backlash":
         return float(np.rad2deg(2.0 * x[i[0]]))
     if name == "encoder_eccentricity":
         return float(np.rad2deg(np.hypot(x[i[0]], x[i[1]])))
-    return float(np.rad2deg(x[i[0]]))
+    return float(np.rad2deg(campaign_mean_rate(x, m, t_end)))
 
 
-def _summary(name: str, keys: list[str], x: np.ndarray, motors: tuple[int, ...] = (1, 2)) -> float:
+def campaign_mean_rate(x: np.ndarray, m: int, t_end: float) -> float:
+    """Motor ``m``'s (0-based) mean drift rate over a campaign that lasts ``t_end`` (time unit of the fit)
+    from the drift parameters ``x`` = (r1, r2[, q1, q2]) (rad per time unit, offset r t + q t^2): the drift
+    between the first and the last pose over the duration, r + q t_end (internal units).
+
+    Unlike the rate at the first pose r, it does not depend on the form the family gives the drift: over
+    poses spread evenly in time a quadratic's r + q t_end is the slope of the straight line through the
+    same offsets, so it is the same whether the campaign's drift is linear, quadratic or a creep that
+    levels off (an exponential's rate at the first pose is not what a quadratic fits, docs/diagnose.md)."""
+    return float(x[m] + (x[m + 2] * t_end if len(x) == 4 else 0.0))
+
+
+#: The drift's curvature 2 q may change over the campaign by this multiple of itself (a third time
+#: derivative up to ``DRIFT_CURVATURE_CHANGE * 2 |q| / t_end``): the smoothness :func:`drift_form_allowance`
+#: assumes of a drift.
+DRIFT_CURVATURE_CHANGE = 1.0
+
+
+def drift_form_allowance(x: np.ndarray, m: int, t_end: float) -> float:
+    """Model-form allowance (internal units, a std added in quadrature) on motor ``m``'s campaign-mean
+    drift rate (:func:`campaign_mean_rate`) for the drift shapes a quadratic does not hold.
+
+    Over poses spread evenly in time, a cubic term c t^3 moves the true mean rate by c t_end^2 and the
+    quadratic's r + q t_end by 9/10 of it: the error is d3 t_end^2 / 60 for a third time derivative
+    d3 = 6 c. The allowance takes d3 as large as a curvature 2 q changing by its own size over the
+    campaign (:data:`DRIFT_CURVATURE_CHANGE`): |q| t_end / 30. An exponential creep over half its time
+    constant is within it (error 0.45 % of the mean rate); a 3-h oscillation over a 64-min campaign
+    (error 9 %, about one std at 0.01 deg) is about its size; a linear drift adds its fitted curvature's
+    noise (about 1 % of the interval's width). Zero for a linear fit (``x`` of two rates)."""
+    if len(x) != 4:
+        return 0.0
+    return float(DRIFT_CURVATURE_CHANGE * abs(x[m + 2]) * t_end / 30.0)
+
+
+def _summary(name: str, keys: list[str], x: np.ndarray, motors: tuple[int, ...] = (1, 2),
+             t_end: float = 0.0) -> float:
     """The effect's one value (interface unit) from its internal parameters; a per-motor effect's is the
-    mean over the ``motors`` that carry it (backlash: the full dead band; drift: the RMS rate)."""
+    mean over the ``motors`` that carry it (backlash: the full dead band; drift: the RMS of the
+    campaign-mean rates over a campaign of ``t_end``)."""
     if name == "joint_compliance":
         return float(np.mean(x))                                     # c; inverted by the caller
     if name in MOTOR_PARAMS:
-        vals = [_motor_value(name, x, m - 1) for m in motors]
-        if name == "zero_offset_drift":                             # the rates at the first pose, RMS
+        vals = [_motor_value(name, x, m - 1, t_end) for m in motors]
+        if name == "zero_offset_drift":                             # the campaign-mean rates, RMS
             return float(np.sqrt(np.mean(np.square(vals))))
         return float(np.mean(vals))
     if name == "frame_drift":                                       # the base origin's translation rate
@@ -111,13 +148,19 @@ def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, tim
                  t_rel: np.ndarray | None = None, dtemp: np.ndarray | None = None) -> EffectValue:
     """Value, 95 % interval (delta method), plausibility and size of an effect's fitted parameters
     (internal units, covariance ``cov``). ``t_rel`` (N,): each pose's time since the first in ``time_unit``
-    and ``dtemp`` (N,) K its temperature above 20 degC (None: not recorded), for the drift's check
-    :func:`drift_reversal`."""
+    (needed by the drift: its campaign-mean rate and the check :func:`drift_reversal`) and ``dtemp`` (N,) K
+    its temperature above 20 degC (None: not recorded)."""
     info = VOCABULARY[name]
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     params = {k: (_interface(k, v), _interface(k, s)) for k, v, s in zip(keys, x, std)}
-    per_motor, motors = per_motor_values(name, x, cov) if len(keys) == len(info.keys) else ([], ())
-    f0, s_f = _delta(lambda v: _summary(name, keys, v, motors or (1, 2)), x, cov)
+    if name == "zero_offset_drift" and t_rel is None:
+        raise ValueError("zero_offset_drift: its value needs each pose's time since the first (t_rel)")
+    t_end = float(np.max(t_rel)) if t_rel is not None and np.size(t_rel) else 0.0
+    per_motor, motors = per_motor_values(name, x, cov, t_end) if len(keys) == len(info.keys) else ([], ())
+    f0, s_f = _delta(lambda v: _summary(name, keys, v, motors or (1, 2), t_end), x, cov)
+    if name == "zero_offset_drift" and per_motor and f0 > 0:    # each motor's allowance through the RMS
+        on = [per_motor[m - 1] for m in (motors or (1, 2))]
+        s_f = float(np.hypot(s_f, np.linalg.norm([p["value"] * p["form_allowance"] for p in on]) / (len(on) * f0)))
     lo_p, hi_p = info.plausible
     unit = {"zero_offset_drift": f"deg/{time_unit}", "frame_drift": f"mm/{time_unit}"}.get(name, info.unit)
     why = ""
@@ -237,21 +280,26 @@ def phase_interval(v: np.ndarray, cov: np.ndarray, level: float = 0.95) -> tuple
     return ph + float(d.min()), ph + float(d.max())
 
 
-def per_motor_values(name: str, x: np.ndarray, cov: np.ndarray) -> tuple[list[dict], tuple[int, ...]]:
+def per_motor_values(name: str, x: np.ndarray, cov: np.ndarray,
+                     t_end: float = 0.0) -> tuple[list[dict], tuple[int, ...]]:
     """Each motor's value of a per-motor effect (:data:`MOTOR_PARAMS`) with its 95 % interval (delta
     method; the eccentricity's amplitude and phase from its 2-D confidence region, :func:`amplitude_interval`,
     :func:`phase_interval`),
     interface units: backlash the full dead band 2 b (deg: the lost motion between the two
     approach directions), eccentricity the amplitude (deg) and phase (deg, ``a sin(theta + phase)``), drift
-    the rate at the first pose (and the curvature when fitted). Also the motors that carry the effect:
-    those whose own parameters differ from zero at 95 % (Wald test, 1 or 2 degrees of freedom). Empty for
+    the campaign-mean rate (deg per time unit: the drift from the first pose to the last, ``t_end`` in the
+    fit's time unit after it, over ``t_end``; :func:`campaign_mean_rate`; its interval adds the model-form
+    allowance ``form_allowance``, :func:`drift_form_allowance`, in quadrature to ``std``) with its shape
+    beside it, the rate at the first pose ``rate_first_pose`` and the curvature (each with its std). Also the motors that
+    carry the effect: those whose own parameters differ from zero at 95 % (Wald test, 1 or 2 degrees of
+    freedom: backlash b; eccentricity both components; drift r and q, a drift of any shape). Empty for
     other effects."""
     if name not in MOTOR_PARAMS:
         return [], ()
     out, carry = [], []
     for m, idx in enumerate(MOTOR_PARAMS[name]):
         idx = list(idx)
-        v, sv = _delta(lambda z: _motor_value(name, z, m), x, cov)
+        v, sv = _delta(lambda z: _motor_value(name, z, m, t_end), x, cov)
         item = {"motor": m + 1, "value": v, "std": sv, "interval": (v - Z95 * sv, v + Z95 * sv)}
         if name == "encoder_eccentricity":
             ph, sph = _delta(lambda z: float(np.rad2deg(np.arctan2(z[idx[1]], z[idx[0]]))), x, cov)
@@ -259,10 +307,17 @@ def per_motor_values(name: str, x: np.ndarray, cov: np.ndarray) -> tuple[list[di
             lo, hi = amplitude_interval(v2, c2)
             item.update(interval=(float(np.rad2deg(lo)), float(np.rad2deg(hi))), phase_deg=ph, phase_std=sph,
                         phase_interval=phase_interval(v2, c2))
-        if name == "zero_offset_drift" and len(x) == 4:
-            q, sq = float(np.rad2deg(x[idx[1]])), float(np.rad2deg(np.sqrt(max(cov[idx[1], idx[1]], 0.0))))
-            item.update(curvature=q, curvature_std=sq)
-        sub = idx if name != "zero_offset_drift" else idx[:1]
+        if name == "zero_offset_drift":
+            sub = idx[:len(x) // 2]
+            a = float(np.rad2deg(drift_form_allowance(x, m, t_end)))
+            item.update(interval=(float(v - Z95 * np.hypot(sv, a)), float(v + Z95 * np.hypot(sv, a))), form_allowance=a,
+                        duration=float(t_end), rate_first_pose=float(np.rad2deg(x[idx[0]])),
+                        rate_first_pose_std=float(np.rad2deg(np.sqrt(max(cov[idx[0], idx[0]], 0.0)))))
+            if len(x) == 4:
+                q, sq = float(np.rad2deg(x[idx[1]])), float(np.rad2deg(np.sqrt(max(cov[idx[1], idx[1]], 0.0))))
+                item.update(curvature=q, curvature_std=sq)
+        else:
+            sub = idx
         xi, ci = x[sub], cov[np.ix_(sub, sub)]
         wald = float(xi @ np.linalg.pinv(ci) @ xi) if np.any(ci) else float("inf")
         if wald > stats.chi2.ppf(0.95, len(sub)):

@@ -126,10 +126,13 @@ def verdict_cards(rep: Report, d) -> None:
 def motor_line(name: str, m: dict) -> str:
     """One motor's value of a per-motor effect with its 95 % interval (backlash: the full dead band)."""
     what = {"backlash": "dead band (full)", "encoder_eccentricity": "amplitude",
-            "zero_offset_drift": "rate at the first pose"}.get(name, "value")
+            "zero_offset_drift": "campaign-mean rate"}.get(name, "value")
     text = f"motor {m['motor']}: {what} {_f(m['value'], 4)} [{_f(m['interval'][0], 4)}, {_f(m['interval'][1], 4)}]"
     if "phase_deg" in m:
         text += f", phase {m['phase_deg']:.1f}° [{m['phase_interval'][0]:.1f}, {m['phase_interval'][1]:.1f}]"
+    if "rate_first_pose" in m:
+        text += (f" (with a form allowance ± {_f(m['form_allowance'], 2)}); shape: rate at the first pose "
+                 f"{_f(m['rate_first_pose'], 4)} ± {_f(m['rate_first_pose_std'], 2)}")
     if "curvature" in m:
         text += f", curvature {_f(m['curvature'], 3)} ± {_f(m['curvature_std'], 2)}"
     return text

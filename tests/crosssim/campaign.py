@@ -115,18 +115,26 @@ def drive_angles(c: Campaign, geom: Geometry, fx: SimEffects) -> np.ndarray:
     move = np.sign(cmd - prev)
     for i in range(1, len(move)):  # no move: the last approach stays
         move[i] = np.where(move[i] == 0, move[i - 1], move[i])
-    dt = (c.time_s - c.time_s[0])
+    drift = drift_offsets(c.time_s, fx)
+    out = cmd + [geom.limb(1)["dtheta"], geom.limb(2)["dtheta"]]
+    for m in range(2):
+        out[:, m] += np.deg2rad(drift[:, m]
+                                + fx.eccentricity[m] * np.sin(cmd[:, m] + fx.ecc_phase[m])
+                                - fx.backlash[m] * move[:, m])
+    return out
+
+
+def drift_offsets(time_s: np.ndarray, fx: SimEffects) -> np.ndarray:
+    """Zero-offset drift (n, 2) deg of each motor at the times ``time_s`` (s), zero at the first: the
+    initial rate ``fx.drift`` (deg/h) times the creep (s) of the form, exponential relaxation
+    tau (1 - exp(-t/tau)), linear t (tau = inf) or oscillating sin(w t)/w."""
+    dt = np.asarray(time_s, float) - time_s[0]
     tau = fx.drift_tau_s
     creep = dt if not np.isfinite(tau) else tau * (1 - np.exp(-dt / tau))
     if fx.drift_period_s is not None:
         w = 2 * np.pi / fx.drift_period_s
         creep = np.sin(w * dt) / w
-    out = cmd + [geom.limb(1)["dtheta"], geom.limb(2)["dtheta"]]
-    for m in range(2):
-        out[:, m] += np.deg2rad(fx.drift[m] * creep / 3600.0
-                                + fx.eccentricity[m] * np.sin(cmd[:, m] + fx.ecc_phase[m])
-                                - fx.backlash[m] * move[:, m])
-    return out
+    return np.stack([fx.drift[m] * creep / 3600.0 for m in range(2)], axis=1)
 
 
 def simulate(c: Campaign, errors: dict, fx: SimEffects, sigma_mm: float = 0.01, rng=None,
