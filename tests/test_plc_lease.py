@@ -151,9 +151,12 @@ def test_a_commit_during_the_start_up_check_is_answered_plc_starting():
         twin.cycle()
         if twin.started:
             break
-    assert twin.started and (twin.state.status, twin.state.active_version) == (Status.OK, 5)   # its verdict
+    # its verdict does not overwrite the answer still pending (read late, OK would answer the commit)
+    assert twin.started and (twin.state.status, twin.state.ack_token, twin.state.active_version) == \
+        (Status.PLC_STARTING, DEAD, 5)
     twin.write_symbol("commit", bytes(4))                  # the client withdraws, then commits again
     twin.cycle()
+    assert (twin.state.status, twin.state.ack_token) == (Status.OK, 0)                # the verdict shows now
     twin.write_symbol("commit", DEAD.to_bytes(4, "little"))
     for _ in range(5_000):
         twin.cycle()

@@ -68,3 +68,44 @@ def test_a_cut_while_the_commit_waits_for_motion_keeps_the_old_table():
     twin.motion_idle = True
     _commit_until(twin, make_table(version=1, offset_deg=0.1), lambda s: s.ack_token == TOKEN)
     assert twin.state.status == Status.STALE_VERSION
+
+
+def test_the_start_up_verdict_does_not_answer_a_commit_made_while_starting():
+    """A commit written while the PLC re-checks its persistent table after a restart is answered
+    PLC_STARTING; the start-up check finishing afterwards must not turn that pending answer into OK (a
+    client reading the acknowledgement late would take OK for its own commit: 'rejected version 4: OK',
+    the table not active). The client commits again (0, then its token) and gets the real verdict."""
+    old, new = make_table(version=3), make_table(version=4, offset_deg=0.3)
+    twin = PlcTwin()
+    twin.seed(old)
+    twin.restart()
+    assert not twin.started
+    twin.write_symbol("staging_claim", TOKEN.to_bytes(4, "little"))
+    twin.cycle()
+    rows = shadow_rows(new)
+    twin.write_symbol("shadow_header", Header.of(new).pack())
+    twin.write_symbol("shadow", rows + bytes(plc_types.SHADOW_SIZE - len(rows)))
+    twin.write_symbol("commit", TOKEN.to_bytes(4, "little"))
+    twin.cycle()
+    assert (twin.state.ack_token, twin.state.status) == (TOKEN, Status.PLC_STARTING)
+    for _ in range(SETTLE):                               # the client is slow: the start-up check ends
+        twin.cycle()
+        if twin.started:
+            break
+    assert twin.started
+    twin.cycle()
+    st = twin.state
+    assert st.ack_token == TOKEN and st.status == Status.PLC_STARTING, (st.status, st.active_version)
+    twin.write_symbol("commit", (0).to_bytes(4, "little"))
+    twin.cycle()
+    assert twin.state.ack_token == 0
+    twin.write_symbol("commit", TOKEN.to_bytes(4, "little"))
+    for _ in range(SETTLE):
+        twin.cycle()
+        if twin.state.ack_token == TOKEN:
+            break
+    assert (twin.state.status, twin.state.active_version) == (Status.OK, 4)
+
+
+#: cycles enough for a start-up check or a commit of the small test table
+SETTLE = 20_000
