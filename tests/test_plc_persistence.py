@@ -12,13 +12,18 @@ from tests.bridge_fixtures import make_table
 TOKEN = 0x5AFE0001
 
 
-def _commit_until(twin: PlcTwin, table, done) -> None:
+def _stage_and_commit(twin: PlcTwin, table) -> None:
+    """Claim the staging area, stage ``table`` and write the commit token (no cycle after it)."""
     twin.write_symbol("staging_claim", TOKEN.to_bytes(4, "little"))
     twin.cycle()
     rows = shadow_rows(table)
     twin.write_symbol("shadow_header", Header.of(table).pack())
     twin.write_symbol("shadow", rows + bytes(plc_types.SHADOW_SIZE - len(rows)))
     twin.write_symbol("commit", TOKEN.to_bytes(4, "little"))
+
+
+def _commit_until(twin: PlcTwin, table, done) -> None:
+    _stage_and_commit(twin, table)
     for _ in range(20_000):
         assert twin.cycle(), twin.fault
         if done(twin.state):
@@ -80,12 +85,7 @@ def test_the_start_up_verdict_does_not_answer_a_commit_made_while_starting():
     twin.seed(old)
     twin.restart()
     assert not twin.started
-    twin.write_symbol("staging_claim", TOKEN.to_bytes(4, "little"))
-    twin.cycle()
-    rows = shadow_rows(new)
-    twin.write_symbol("shadow_header", Header.of(new).pack())
-    twin.write_symbol("shadow", rows + bytes(plc_types.SHADOW_SIZE - len(rows)))
-    twin.write_symbol("commit", TOKEN.to_bytes(4, "little"))
+    _stage_and_commit(twin, new)
     twin.cycle()
     assert (twin.state.ack_token, twin.state.status) == (TOKEN, Status.PLC_STARTING)
     for _ in range(SETTLE):                               # the client is slow: the start-up check ends
