@@ -355,6 +355,13 @@ def compare(prev: Record, last: Record, alpha: float = ALPHA) -> list[Change]:
             for k, n in enumerate(names)]
 
 
+def estimates(record: Record, name: str) -> str | None:
+    """What the parameter ``name`` of a machine folder's record estimates when that is a combination of
+    errors (``"platform_1b.dz + 5.236 base.dry - arm1.dz ..."``); None for a plain parameter."""
+    text = ((record.doc.get("params") or {}).get(name) or {}).get("estimates")
+    return text if text and text != name else None
+
+
 def same_quantity(a: Record, b: Record, name: str) -> bool:
     """The parameter ``name`` estimates the same quantity in both records: always for the seeded machines;
     for a machine folder's base parameters, the same combination of errors (``params.<name>.estimates``)."""

@@ -69,7 +69,7 @@ def _export_model(args) -> int:
 
 
 def _history(args) -> int:
-    from pmcal.history import compare, history_table, read_history, unit_of
+    from pmcal.history import compare, estimates, history_table, read_history, unit_of
 
     if not 0 < args.alpha < 1:
         raise InputError(f"alpha must be in (0, 1), got {args.alpha}", field="--alpha")
@@ -88,6 +88,9 @@ def _history(args) -> int:
     if changes is not None:
         print("moved: " + (", ".join(f"{c.name} {c.estimate:+.4g} {unit_of(c.name, records[-1])}"
                                      for c in moved) if moved else "nothing") + f" (family-wise alpha {args.alpha:g})")
+        for c in moved:                           # a machine folder's base parameter: what it stands for
+            if estimates(records[-1], c.name):
+                print(f"  {c.name} estimates {estimates(records[-1], c.name)}")
     if args.report:
         from pmcal.reports.history import history_report
 

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from pmcal.history import Z95, Change, Record, determined, history_table, unit_of
+from pmcal.history import Z95, Change, Record, determined, estimates, history_table, unit_of
 from pmcal.reports.html import Report, matplotlib_agg
 
 BLUE, RED, GREY = "#2b6cb0", "#c53030", "#718096"
@@ -45,7 +45,9 @@ def history_report(records: list[Record], changes: list[Change] | None, folder: 
     elif flagged:
         rep.card(f"{len(flagged)} parameter(s) moved since the previous calibration", [
             f"{c.name}: {c.estimate:+.4g} {unit_of(c.name, records[-1])} (+- {Z95 * c.estimate_std:.2g} at 95 %), "
-            f"{p_text(c.p_value)} (family-wise, alpha {alpha:g})" for c in flagged], css="bad")
+            f"{p_text(c.p_value)} (family-wise, alpha {alpha:g})"
+            + (f"; it estimates {estimates(last, c.name)}" if estimates(last, c.name) else "") for c in flagged],
+            css="bad")
     else:
         rep.card("Nothing moved since the previous calibration", [
             f"No parameter changed beyond the noise of the two calibrations (family-wise false-flag rate {alpha:g})."],
