@@ -107,8 +107,7 @@ def _pivoted_qr_r(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``R`` (min(m, n), n) and the column order ``piv`` of the pivoted QR ``A[:, piv] = Q R`` (LAPACK
     ``geqp3``, what ``scipy.linalg.qr(A, mode="r", pivoting=True)`` calls, without its ~50 us of Python
     around a call that takes 3 us on the small Jacobians of a campaign: identification runs it every time)."""
-    geqp3, = scipy.linalg.get_lapack_funcs(("geqp3",), (A,))
-    qr, jpvt, _, _, info = geqp3(np.array(A, order="F", dtype=float))
+    qr, jpvt, _, _, info = scipy.linalg.lapack.dgeqp3(np.asfortranarray(A, dtype=float))
     if info < 0:
         raise ValueError(f"geqp3: illegal argument {-info}")
     return np.triu(qr[: min(A.shape)]), jpvt - 1
