@@ -518,15 +518,6 @@ def structural_basis(model: ChainModel, commands, keys: list[str] | None = None,
     return base_parameters(np.round(J / q) * q, keys, model.prior_std(keys), rank_tol)
 
 
-def in_basis(result: "ChainIdentResult", basis: BaseSet) -> tuple[np.ndarray, np.ndarray]:
-    """An identification re-expressed in another base set of the same errors (:func:`structural_basis`):
-    the values (len(basis.base),) of that set's combinations on the identified machine (base values, the
-    dependent errors 0) and their covariance, ``T C T^T`` with ``T`` the linear map from the identified
-    base values. Exact when both sets span the same identifiable directions (equal ranks)."""
-    T = np.stack([basis.combination_values({k: 1.0}) for k in result.base], axis=1)
-    return basis.combination_values(result.params), T @ result.covariance @ T.T
-
-
 def crlb(model: ChainModel, commands, params: Mapping[str, float] | None, keys: list[str],
          sigma: float | None = None, segments=None) -> np.ndarray:
     """Cramér-Rao standard deviations (len(keys),) of ``keys`` (their units) from a campaign at ``commands``

@@ -106,26 +106,21 @@ def record_document(cal, campaign_path: str | Path, machine: str = "ocpm_2dof", 
     return doc
 
 
-def chain_record_document(result, campaign_path: str | Path, machine: str, basis, prior_cov: np.ndarray,
-                          units: list[str], date: datetime | None = None) -> dict:
+def chain_record_document(result, campaign_path: str | Path, machine: str, date: datetime | None = None) -> dict:
     """The history record of a machine folder's identification (a
-    :class:`pmcal.calib.closed_chain.ChainIdentResult`) in the machine's structural base set ``basis``
-    (:func:`pmcal.calib.closed_chain.structural_basis`; the campaign's own base set depends on its poses, so
-    two campaigns are compared in this one, :func:`pmcal.calib.closed_chain.in_basis`): each combination's
-    value, unit and what it estimates, their covariance, and their prior ``prior_cov`` (correlated where a
-    base parameter regroups dependent errors, :func:`pmcal.calib.closed_chain.base_prior_cov`); ``units`` of the
-    base set's parameters (``"mm"`` / ``"deg"``)."""
-    from pmcal.calib.closed_chain import in_basis
-
-    names = list(basis.base)
-    value, cov = in_basis(result, basis)
+    :class:`pmcal.calib.closed_chain.ChainIdentResult` made in the machine's structural base set,
+    :func:`pmcal.chain.reference_basis`: the campaign's own base set depends on its poses, so two campaigns
+    are compared in this one): each base parameter's value, unit and the combination of errors it estimates,
+    their covariance, and their prior (``info["prior_covariance"]``: correlated where a base parameter
+    regroups dependent errors, :func:`pmcal.calib.closed_chain.base_prior_cov`)."""
+    names = list(result.base)
     fit = {"residual_rms_mm": float(result.residual_rms_mm), "chi2_per_dof": float(result.chi2_per_dof),
            "n_poses": int(result.n_poses)}
-    doc = _record(machine, "closed_chain", "lm+tikhonov", "base", campaign_path, names, value, cov, list(units), fit,
-                  float(result.sigma_mm), date)
+    doc = _record(machine, "closed_chain", "lm+tikhonov", "base", campaign_path, names, np.asarray(result.x, float),
+                  np.asarray(result.covariance, float), list(result.units), fit, float(result.sigma_mm), date)
     for n in names:
-        doc["params"][n]["estimates"] = basis.combinations[n]
-    prior_cov = np.asarray(prior_cov, float)
+        doc["params"][n]["estimates"] = result.combinations[n]
+    prior_cov = np.asarray(result.info["prior_covariance"], float)
     doc.update(prior_std={n: float(s) for n, s in zip(names, np.sqrt(np.diag(prior_cov)))}, prior_mean={},
                prior_covariance={"names": names, "matrix": prior_cov.tolist()})
     return doc
@@ -355,24 +350,29 @@ def compare(prev: Record, last: Record, alpha: float = ALPHA) -> list[Change]:
             for k, n in enumerate(names)]
 
 
+def _param_field(record: Record, name: str, field: str):
+    """``params.<name>.<field>`` of a record, None where absent (the seeded machines' records have no
+    ``unit`` or ``estimates``)."""
+    return ((record.doc.get("params") or {}).get(name) or {}).get(field)
+
+
 def estimates(record: Record, name: str) -> str | None:
     """What the parameter ``name`` of a machine folder's record estimates when that is a combination of
     errors (``"platform_1b.dz + 5.236 base.dry - arm1.dz ..."``); None for a plain parameter."""
-    text = ((record.doc.get("params") or {}).get(name) or {}).get("estimates")
+    text = _param_field(record, name, "estimates")
     return text if text and text != name else None
 
 
 def same_quantity(a: Record, b: Record, name: str) -> bool:
     """The parameter ``name`` estimates the same quantity in both records: always for the seeded machines;
     for a machine folder's base parameters, the same combination of errors (``params.<name>.estimates``)."""
-    est = lambda r: ((r.doc.get("params") or {}).get(name) or {}).get("estimates")  # noqa: E731
-    return est(a) == est(b)
+    return _param_field(a, name, "estimates") == _param_field(b, name, "estimates")
 
 
 def unit_of(name: str, record: Record | None = None) -> str:
     """``mm``, ``deg``, or ``ln`` for the log stiffness ratio; the record's own unit of the parameter when it
     has one (a machine folder's)."""
-    unit = (((record.doc.get("params") or {}).get(name) or {}).get("unit") if record is not None else None)
+    unit = _param_field(record, name, "unit") if record is not None else None
     return unit or ("ln" if name == LOG_RATIO else param_unit(name))
 
 

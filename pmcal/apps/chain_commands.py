@@ -13,7 +13,6 @@ import numpy as np
 from pmcal import progress
 from pmcal.apps import error_stats
 from pmcal.apps.chain import ERROR_CHOICES, command_defaults
-from pmcal.calib.closed_chain import base_prior_cov
 from pmcal.chain import (campaign, check_assembles, compensate as commands_for, compensation_table,
                          identify as run_identification, params_document, reference_basis, residuals, sample_targets,
                          table_refusal)
@@ -124,8 +123,7 @@ def file_history(machine, res, basis, campaign: str, folder: str) -> None:
                          f"{basis.rank} identifiable combinations (measure more poses spread over the workspace, "
                          f"e.g. 'pmcal --machine {machine.name} twin plan')")
         return
-    record = chain_record_document(res, campaign, machine.name, basis, base_prior_cov(machine.twin, basis),
-                                   machine.twin.error_units(basis.base))
+    record = chain_record_document(res, campaign, machine.name)
     print(f"pmcal: wrote {file_calibration(record, campaign, folder)}")
 
 
