@@ -22,6 +22,7 @@ import numpy as np
 from pmcal.mechanism.planar.geometry import FULL_KEYS, SIMPLIFIED_KEYS, Geometry, internal_unit
 from pmcal.mechanism.planar.kinematics import jacobian, mm_vector
 from pmcal.mechanism.planar.noise import Noise
+from pmcal.calib.closed_chain import reading_operator
 from pmcal.calib.solvers.linear import tsvd_solve
 from pmcal.calib.solvers.result import IdentResult
 
@@ -33,18 +34,14 @@ DEFAULT_RTOL = 1e-9
 
 
 def difference_operator(n_positions: int, segments: np.ndarray | None = None) -> np.ndarray:
-    """(rows, n_positions) matrix of adjacent differences ``x_{k+1} - x_k`` within each segment.
+    """(rows, n_positions) matrix of adjacent differences ``x_{k+1} - x_k`` within each segment: the scale
+    read relative to the previous position (eq. 23), the generic core's
+    :func:`pmcal.calib.closed_chain.reading_operator` with reference ``"previous"``.
 
     ``segments`` labels the positions of separate chains of readings (a campaign each, the scale reset
     at its start); ``None`` is one chain. Rows follow the order of the positions.
     """
-    seg = np.zeros(n_positions, int) if segments is None else np.asarray(segments)
-    same = seg[1:] == seg[:-1]
-    rows = np.flatnonzero(same)
-    D = np.zeros((rows.size, n_positions))
-    D[np.arange(rows.size), rows] = -1.0
-    D[np.arange(rows.size), rows + 1] = 1.0
-    return D
+    return reading_operator(n_positions, "previous", segments)
 
 
 def observation_rows(geom: Geometry, r: np.ndarray, model: str = "simplified",

@@ -44,8 +44,8 @@ from typing import Mapping
 import numpy as np
 
 from pmcal.mechanism.machine_spec import MachineSpec
-from pmcal.mechanism.planar.geometry import ANGLE_KEYS, ERROR_KEYS, Geometry
-from pmcal.mechanism.planar.kinematics import forward, inverse, mm_vector
+from pmcal.mechanism.planar.geometry import ANGLE_KEYS, ERROR_KEYS, Errors, Geometry
+from pmcal.mechanism.planar.kinematics import directions, forward, inverse, mm_vector
 
 #: frame-error aliases of the zero offsets (the generic core's ``mK.dzero``)
 ALIASES = {"m1.dzero": "dtheta1", "m2.dzero": "dtheta2"}
@@ -104,13 +104,10 @@ class PlanarChainModel:
             unknown = set(values) - set(ERROR_KEYS)
             if unknown:
                 raise ValueError(f"unknown error key {sorted(unknown)[0]!r} of the planar robot")
-            v = np.array([values.get(k, 0.0) for k in ERROR_KEYS])      # Table 2 order, mm and deg
-            g = self.geometry
-            geom = Geometry(e=g.e + v[2:6].reshape(2, 2), L=g.L + v[6:8], l=g.l + v[8:10], c=g.c + v[10:12],
-                            d=g.d, home=g.home)                         # = g.perturbed(Errors(...))
-            dtheta = np.deg2rad(v[:2])
-            theta = np.deg2rad(commands) + dtheta
-            self._last = (key, _Pose(geom, dtheta, theta, forward(geom, theta)))
+            err = Errors.from_interface(values)
+            geom = self.geometry.perturbed(err)
+            theta = np.deg2rad(commands) + err.dtheta
+            self._last = (key, _Pose(geom, err.dtheta, theta, forward(geom, theta)))
         return self._last[1]
 
     # ------------------------------------------------------------------ kinematics
@@ -199,9 +196,8 @@ class _Pose:
         """dP / d errors (N, 2, 12) mm per key unit, :data:`ERROR_KEYS` order (0 for the MAEMM)."""
         if self._dP is None:
             g, theta, r = self.geom, self.theta, self.r
-            ux, uy = np.cos(theta), np.sin(theta)                         # (N, 2 limbs)
-            wx = (r[:, None, 0] - g.e[:, 0] - g.L * ux) / g.l             # distal unit vectors w_i
-            wy = (r[:, None, 1] - g.e[:, 1] - g.L * uy) / g.l
+            u, w = directions(g, r, theta)                                # (N, 2 limbs, 2)
+            ux, uy, wx, wy = u[..., 0], u[..., 1], w[..., 0], w[..., 1]
             # row i of eq. 11: w_i^T dP = w_i^T de_i + dL_i w_i^T u_i + L_i w_i^T Q u_i dtheta_i + dl_i
             terms = np.stack([g.L * (wy * ux - wx * uy) * (np.pi / 180.0), wx, wy, wx * ux + wy * uy,
                               np.ones(theta.shape)], axis=-1)             # (N, 2 limbs, 5 terms)
@@ -223,8 +219,7 @@ class _Pose:
         return self._drho
 
 
-#: per limb, the columns of (dtheta_i, de_ix, de_iy, dL_i, dl_i) in :data:`ERROR_KEYS`
 #: where the five terms of eq. 11 of each limb (dtheta_i, de_ix, de_iy, dL_i, dl_i) go in the rows (2, 12) of
 #: the two limbs' loop equations, flattened
-_LIMB_COLUMNS = np.array([i * len(ERROR_KEYS) + ERROR_KEYS.index(n) for i in (1, 2)
-                          for n in (f"dtheta{i}", f"de{i}x", f"de{i}y", f"dL{i}", f"dl{i}")]) - len(ERROR_KEYS)
+_LIMB_COLUMNS = np.array([(i - 1) * len(ERROR_KEYS) + ERROR_KEYS.index(n) for i in (1, 2)
+                          for n in (f"dtheta{i}", f"de{i}x", f"de{i}y", f"dL{i}", f"dl{i}")])

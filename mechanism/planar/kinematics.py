@@ -45,11 +45,6 @@ def inverse(geom: Geometry, r: np.ndarray) -> np.ndarray:
         return np.arctan2(C, D) + _IK_BRANCH * np.arccos(-E / np.hypot(C, D))
 
 
-def elbows(geom: Geometry, theta: np.ndarray) -> np.ndarray:
-    """Elbow points ``B_i = e_i + L_i u_i``, (..., 2, 2) mm (rows = limbs)."""
-    return geom.e + geom.L[:, None] * unit(theta)
-
-
 def forward(geom: Geometry, theta: np.ndarray) -> np.ndarray:
     """Position (..., 2) mm of P for motor angles ``theta`` (..., 2) rad (eq. 5-8).
 
