@@ -8,12 +8,16 @@ Jacobian ``d targets / d errors`` is all this module needs.
 tracker noise and with each column scaled by the error's prior size (so mm and deg compare), is reduced as
 figaroh does for serial robots (D. V. T. Nguyen, V. Bonnet et al., FIGAROH, 2023; github.com/thanhndv212/figaroh,
 ``tools/qrdecomposition.py``: ``get_baseIndex`` / ``get_baseParams``): a QR decomposition with column
-pivoting ``J P = Q R`` gives the rank ``r`` (the diagonal ``|R_ii|`` above ``rank_tol * |R_00|``) and the
-base parameters (the first ``r`` pivots); the others are linear combinations of them,
-``J_dep = J_base B`` with ``B = R11^-1 R12`` (rescaled to the parameters' units). A base parameter's
-identified value therefore estimates the *combination* ``p_i + sum_j B_ij p_j`` (written out in words,
-e.g. ``"rod1a.dz + 1 rod1a_tip.dz"``), and each dependent parameter ``j`` spans a direction
-``e_j - sum_i B_ij e_i`` the data cannot see (listed in ``unidentifiable``).
+pivoting ``J P = Q R`` gives the rank ``r`` (the columns that keep more than ``rank_tol`` of their length
+beyond the pivots before them) and the base parameters (the first ``r`` pivots); the others are linear
+combinations of them, ``J_dep = J_base B`` with ``B = R^-1 Q^T J_dep`` (rescaled to the parameters'
+units). Equivalent errors (a frame's offset and its child's) tie exactly for a pivot; LAPACK's ``geqp3``
+breaks such a tie by the last bits of the norms, which differ between BLAS kernels (another base set,
+prior and predicted uncertainty on an AMD EPYC than on an Intel CPU), so the pivoting is done here with
+ties (:data:`TIE_TOL`) going to the first key. A base parameter's identified value estimates the
+*combination* ``p_i + sum_j B_ij p_j`` (written out in words, e.g. ``"rod1a.dz + 1 rod1a_tip.dz"``), and each
+dependent parameter ``j`` spans a direction ``e_j - sum_i B_ij e_i`` the data cannot see (listed in
+``unidentifiable``).
 
 **Estimation** (:func:`identify_chain`): the base parameters by Levenberg-Marquardt
 (:func:`pmcal.calib.solvers.local.lm`, MINPACK through scipy) on the whitened target residuals with the
@@ -97,25 +101,92 @@ class BaseSet:
         return pb + (self.regroup @ pd if len(pd) else 0.0)
 
 
+def _by_size(w: np.ndarray) -> np.ndarray:
+    """Indices of ``w`` largest first; sizes equal to 9 decimals in index order (not by their last bits)."""
+    return np.lexsort((np.arange(len(w)), -np.round(w, 9)))
+
+
 def _term(coef: float, name: str) -> str:
     sign = "-" if coef < 0 else "+"
     mag = abs(coef)
     return f" {sign} {name}" if abs(mag - 1.0) < 1e-6 else f" {sign} {mag:.4g} {name}"
 
 
-def _pivoted_qr_r(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``R`` (min(m, n), n) and the column order ``piv`` of the pivoted QR ``A[:, piv] = Q R`` (LAPACK
-    ``geqp3``, what ``scipy.linalg.qr(A, mode="r", pivoting=True)`` calls, without its ~50 us of Python
-    around a call that takes 3 us on the small Jacobians of a campaign: identification runs it every time)."""
-    qr, jpvt, _, _, info = scipy.linalg.lapack.dgeqp3(np.asfortranarray(A, dtype=float))
+#: Two remaining lengths closer than this (relative to the larger, and absolute in unit-normalised columns)
+#: are a tie, decided by key order: equivalent errors (a frame's offset and its child's) tie exactly, and the
+#: last bits of their norms differ between BLAS kernels (OpenBLAS Haswell vs SkylakeX).
+TIE_TOL = 1e-9
+
+
+def _geqp3(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``R`` (min(m, n), n) and the column order ``piv`` of LAPACK's pivoted QR ``A[:, piv] = Q R``
+    (``geqp3``, what ``scipy.linalg.qr(A, mode="r", pivoting=True)`` calls, without its ~50 us of Python
+    around a call that takes 3 us on the small Jacobians of a campaign)."""
+    qr, piv, _, _, info = scipy.linalg.lapack.dgeqp3(np.asfortranarray(A, dtype=float))
     if info < 0:
         raise ValueError(f"geqp3: illegal argument {-info}")
-    return np.triu(qr[: min(A.shape)]), jpvt - 1
+    return np.triu(qr[: min(A.shape)]), piv - 1
+
+
+def _ties_to_first(R: np.ndarray, piv: np.ndarray, rank: int) -> bool:
+    """Whether each of the first ``rank`` pivots of a pivoted QR (``R``, ``piv``) is the canonical one: of the
+    columns whose remaining length ``||R[i:, j]||`` is the largest within :data:`TIE_TOL`, the lowest index."""
+    n = R.shape[1]
+    tail = np.sqrt(np.cumsum((R * R)[::-1], axis=0)[::-1])[:rank]       # tail[i, j] = ||R[i:, j]||
+    later = np.arange(n)[None, :] >= np.arange(rank)[:, None]
+    norms = np.where(later, tail, -np.inf)
+    best = norms.max(axis=1, initial=-np.inf)
+    tied = norms >= best[:, None] - TIE_TOL * (1.0 + best[:, None])
+    return bool(np.all(np.argmin(np.where(tied, piv[None, :], n), axis=1) == np.arange(rank)))
+
+
+def _gram_schmidt_pivots(A: np.ndarray, stop: float) -> np.ndarray:
+    """The pivot order of ``A``'s columns by Gram-Schmidt with column pivoting: repeatedly the column that
+    keeps the most of its length beyond the ones taken, ties within :data:`TIE_TOL` to the lowest index,
+    while it keeps more than ``stop``; the columns not taken follow in index order. (Modified Gram-Schmidt,
+    each new direction removed twice: the lengths compared are accurate to ~1e-15.)"""
+    V = np.array(A, float)
+    rest = list(range(A.shape[1]))
+    taken: list[int] = []
+    while rest and len(taken) < A.shape[0]:
+        norms = np.linalg.norm(V[:, rest], axis=0)
+        best = norms.max()
+        if best <= stop:
+            break
+        k = int(np.flatnonzero(norms >= best - TIE_TOL * (1.0 + best))[0])      # rest is in index order
+        j = rest.pop(k)
+        q = V[:, j] / norms[k]
+        taken.append(j)
+        for _ in range(2):
+            V[:, rest] -= np.outer(q, q @ V[:, rest])
+    return np.r_[np.asarray(taken, int), np.asarray(rest, int)]
+
+
+def _rank(R: np.ndarray, rank_tol: float) -> int:
+    d = np.abs(np.diag(R))
+    return int(np.sum(d > rank_tol * d[0])) if d.size and d[0] > 0 else 0
+
+
+def _pivoted_qr_r(A: np.ndarray, rank_tol: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """``R`` (min(m, n), n), the column order ``piv`` (``A[:, piv] = Q R``) and the rank (``|R_ii|`` above
+    ``rank_tol |R_00|``) of a QR with column pivoting in which every tie between columns of equal remaining
+    length (:data:`TIE_TOL`) goes to the lowest index. LAPACK's ``geqp3`` breaks such ties by the last bits
+    of the norms, which differ between BLAS kernels: its result is kept where it broke none otherwise
+    (no equivalent errors), else the pivots come from :func:`_gram_schmidt_pivots` and the columns are
+    factored in that order."""
+    R, piv = _geqp3(A)
+    rank = _rank(R, rank_tol)
+    if _ties_to_first(R, piv, rank):
+        return R, piv, rank
+    C = R[:, np.argsort(piv)]                   # A = Q C: same lengths and angles, min(m, n) rows only
+    piv = _gram_schmidt_pivots(C, rank_tol * abs(R[0, 0]))
+    R = np.linalg.qr(C[:, piv], mode="r")
+    return R, piv, _rank(R, rank_tol)
 
 
 def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = None,
                     rank_tol: float = RANK_TOL) -> BaseSet:
-    """Base-parameter reduction of a Jacobian by QR with column pivoting (module docstring).
+    """Base-parameter reduction of a Jacobian by QR with column pivoting, ties to key order (module docstring).
 
     Parameters
     ----------
@@ -138,11 +209,12 @@ def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = N
     norms = np.linalg.norm(Js, axis=0)
     zero = norms <= rank_tol * 1e-3 * max(float(norms.max(initial=0.0)), 1e-300)   # numerically no effect
     Jn = Js / np.where(zero, 1.0, norms)
-    R, piv = _pivoted_qr_r(Jn)
+    R, piv, r = _pivoted_qr_r(np.where(zero, 0.0, Jn), rank_tol)
     d = np.abs(np.diag(R))
-    r = int(np.sum(d > rank_tol * d[0])) if d.size and d[0] > 0 else 0
-    base_idx, dep_idx = piv[:r], piv[r:]
-    beta = scipy.linalg.solve_triangular(R[:r, :r], R[:r, r:]) if r and len(dep_idx) else np.zeros((r, len(dep_idx)))
+    dep_order = np.argsort(piv[r:], kind="stable")          # the dependent ones in key order, not LAPACK's
+    base_idx, dep_idx = piv[:r], piv[r:][dep_order]
+    beta = scipy.linalg.solve_triangular(R[:r, :r], R[:r, r:][:, dep_order]) if r and len(dep_idx) \
+        else np.zeros((r, len(dep_idx)))
     # Back to parameter units: Jn_dep = Jn_base beta  ->  J_dep = J_base B,  B_ij = beta_ij (n_j / s_j) (s_i / n_i)
     nb = np.where(zero, 1.0, norms)
     B = beta * (scale[base_idx] / nb[base_idx])[:, None] * (nb[dep_idx] / scale[dep_idx])[None, :]
@@ -153,7 +225,7 @@ def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = N
     for i, k in enumerate(base if dep else ()):                # a base parameter regroups dependent ones
         # relative size of each term in prior units: skip negligible ones
         w = np.abs(B[i]) * scale[dep_idx] / scale[base_idx[i]]
-        order = np.argsort(-w)
+        order = _by_size(w)
         combos[k] = k + "".join(_term(B[i, j], dep[j]) for j in order if w[j] > 1e-6)
     unid = []
     for j, k in enumerate(dep):
@@ -161,7 +233,7 @@ def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = N
             unid.append(f"{k} (no effect on the targets)")
             continue
         w = np.abs(B[:, j]) * scale[base_idx] / scale[dep_idx[j]]
-        order = np.argsort(-w)
+        order = _by_size(w)
         terms = "".join(_term(-B[i, j], base[i]) for i in order if w[i] > 1e-6)
         unid.append(f"{k}{terms} (seen only through the base parameters)")
     sv = np.linalg.svd(R[:r, :r], compute_uv=False) if r else np.zeros(0)     # = Jn[:, base]'s (Q orthonormal)
@@ -507,15 +579,12 @@ def structural_basis(model: ChainModel, commands, keys: list[str] | None = None,
     """The base set of ``keys`` (default every error) on the nominal machine at a reference campaign
     ``commands`` (N, M) spread over the workspace: what the machine's structure lets any rich campaign
     identify, the same for every campaign (a campaign's own base set, :func:`identify_chain`, depends on its
-    poses through the QR's pivoting). Two identifications are compared in it (calibration history)."""
+    poses where it sees a direction weakly). Two identifications are compared in it (calibration history)."""
     keys = list(keys or model.error_keys)
     sigma = float(model.sigma_mm if sigma is None else sigma)
     J = measured_jacobian(model, commands, None, keys)
     J = J[np.isfinite(J).all(axis=1)] / sigma
-    # equivalent errors (a frame's offset and its child's) give equal columns; their order in the pivoted QR
-    # must not depend on the solver's last digits (warm starts, BLAS): 9 significant digits decide
-    q = 10.0 ** (np.floor(np.log10(np.abs(J).max(initial=1e-300))) - 9)
-    return base_parameters(np.round(J / q) * q, keys, model.prior_std(keys), rank_tol)
+    return base_parameters(J, keys, model.prior_std(keys), rank_tol)
 
 
 def crlb(model: ChainModel, commands, params: Mapping[str, float] | None, keys: list[str],

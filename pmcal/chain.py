@@ -255,7 +255,8 @@ def params_document(machine, result, source: str | None = None) -> dict:
     """The parameters JSON of an identification (docs/formats.md, "Any machine"): ``params`` every error
     considered (mm / deg; the base parameters' values, 0 for those absorbed into them), ``units``, the base
     parameters (``identifiable``), their ``uncertainty`` (1 sigma, posterior), ``covariance`` (posterior, in
-    the order of ``identifiable``) and ``crlb`` (data alone), what each base value
+    the order of ``identifiable``), ``prior_covariance`` (the ``[errors]`` prior carried onto the base
+    parameters, same order) and ``crlb`` (data alone), what each base value
     estimates (``combinations``), what the data cannot see (``unidentifiable``), ``weak`` ones, fit
     quality."""
     units = dict(zip(machine.twin.error_keys, machine.twin.error_units()))
@@ -265,6 +266,7 @@ def params_document(machine, result, source: str | None = None) -> dict:
         "params": {k: float(v) for k, v in result.params.items()},
         "identifiable": list(result.base), "uncertainty": dict(result.std),
         "covariance": np.asarray(result.covariance, float).tolist(), "crlb": dict(result.crlb),
+        "prior_covariance": np.asarray(result.info["prior_covariance"], float).tolist(),
         "combinations": dict(result.combinations), "unidentifiable": list(result.unidentifiable),
         "weak": list(result.weak), "rank": int(result.rank), "n_errors": len(result.params),
         "condition_number": float(result.condition_number), "chi2_per_dof": float(result.chi2_per_dof),

@@ -84,7 +84,9 @@ def test_a_moved_error_shows_in_its_combinations(filed, capsys):
     assert holds <= flagged, (holds, flagged)
     for n in holds:                                                # within the noise + 2nd order (0.01 mm)
         assert abs(changes[n].estimate - expected[n]) < 4 * changes[n].estimate_std + 0.01, n
-    assert len(flagged - holds) <= 1                               # at most one incidental flag (alpha 5 %)
+    # other flags are the dent's second-order effects on the other combinations (the regrouping of each
+    # is exact at the nominal machine only): a few, each far below the dent
+    assert all(abs(changes[n].estimate) < 0.01 for n in flagged - holds), flagged - holds
     capsys.readouterr()
     assert main(["history", str(tmp / "H")]) == 0
     moved = [line for line in capsys.readouterr().out.splitlines() if line.startswith("moved:")]

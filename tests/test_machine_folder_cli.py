@@ -496,17 +496,27 @@ def test_plan_is_measured_and_its_predicted_uncertainty_is_what_identify_reports
     doc = json.loads((d / "pp.json").read_text())
     design = plan(mach, 24, seed=2)
     assert np.abs(design.commands - commands).max() < 1e-6
-    # the two base sets may name other representatives of the same combinations (pivoted QR per pose set):
-    # compared by the uncertainty each gives the nests at fresh poses, sqrt(diag(J C J^T))
+    # the two base sets may name other representatives of the weakly seen combinations (the plan's is chosen
+    # on its pool of candidates, identify's on the 24 poses): compared by the uncertainty each gives the nests
+    # at fresh poses, sqrt(diag(J C J^T)), which does not depend on the representatives at one machine
     held = mach.twin.sample_commands(20, np.random.default_rng(8))
 
-    def nest_std(keys, cov):
-        J = mach.twin.jacobian(held, None, keys).reshape(-1, len(keys))
+    def nest_std(keys, cov, params=None):
+        J = mach.twin.jacobian(held, params, keys).reshape(-1, len(keys))
         return np.sqrt(np.einsum("ij,jk,ik->i", J, np.asarray(cov), J))
 
-    identified = nest_std(doc["identifiable"], doc["covariance"])
     planned = nest_std(design.base, design.covariance)
-    assert np.all(np.abs(identified / planned - 1.0) < 0.10), np.max(np.abs(identified / planned - 1.0))
+    # identify's information on the measured poses at the nominal machine is the plan's, to rounding
+    base = doc["identifiable"]
+    Jb = mach.twin.jacobian(meas.commands, None, base).reshape(-1, len(base)) / doc["sigma_mm"]
+    prior = np.asarray(doc["prior_covariance"])
+    at_nominal = np.linalg.inv(Jb.T @ Jb + np.linalg.inv(prior))
+    assert np.abs(nest_std(base, at_nominal) / planned - 1.0).max() < 1e-6
+    # identify reports the posterior at the identified machine: errors of up to 2 mm move its Jacobian, and
+    # through them the representatives of the base combinations matter to second order (measured here: 4 %
+    # median, 40 % on the worst nest; the same on every CPU, the base set having no ties left to the BLAS)
+    ratio = nest_std(base, doc["covariance"]) / planned - 1.0
+    assert np.median(np.abs(ratio)) < 0.10 and np.abs(ratio).max() < 0.5, ratio
     one_line_error(capsys, "--machine", folder, "twin", "plan", "--poses", "3", "-o", d / "p3.csv",
                    says="3 poses give 27 coordinates for 42 base errors: plan at least 5 poses")
 
