@@ -28,6 +28,7 @@ from pmcal.calib.closed_chain import (compensate_targets, identify_chain, readin
                                       structural_basis)
 from pmcal.errors import InputError, RunError
 from pmcal.io_chain import UNIT_SLIPS, ChainMeasurements
+from pmcal.twin.overconstraint import loop_summary
 
 #: poses measured per step of the progress bar
 _CHUNK = 8
@@ -272,6 +273,7 @@ def params_document(machine, result, source: str | None = None) -> dict:
         "condition_number": float(result.condition_number), "chi2_per_dof": float(result.chi2_per_dof),
         "residual_rms_mm": float(result.residual_rms_mm), "sigma_mm": float(result.sigma_mm),
         "n_poses": int(result.n_poses), "source": source, "success": bool(result.success),
+        "loops": loop_summary(machine.twin),
         "message": result.message,
     }
 

@@ -75,6 +75,7 @@ from pmcal.mechanism.task_space import POSITION, task_coordinates, task_differen
 from pmcal.twin.assembly import solve_stacked
 from pmcal.twin.closures import compile_with_site_closures
 from pmcal.twin.frame_errors import DEG, MM, FrameErrors
+from pmcal.twin.overconstraint import redundant_directions
 
 _OBJ = mujoco.mjtObj
 _EQ = mujoco.mjtEq
@@ -145,6 +146,7 @@ class ClosedChainTwin:
         m = self.model
         self.data = mujoco.MjData(m)
         self._file = str(spec.model_path)
+        self._keep = None              # projection of the closure rows off their redundant directions, or None
         self._read_motors()
         self._read_closures()
         self._read_sites()
@@ -161,7 +163,19 @@ class ClosedChainTwin:
         self._warm_cmd = np.zeros((0, self.n_motors))
         self._warm_qpos = np.zeros((0, m.nq))
         self.home_commands = self._commands_of(self.home_qpos[None])[0]
+        self._read_redundancy()
         self._read_task_frame()
+
+    def _read_redundancy(self) -> None:
+        """The closure equations' redundant directions at ``home`` (:mod:`pmcal.twin.overconstraint`), and
+        without ``[closures]`` compliance the projection that closes the loops along the others only."""
+        jp, jr = self._kin(self.home_qpos, closure_only=True)
+        C = self._closure(jp, jr)[1][: self.n_equations]
+        rank, D = redundant_directions(C[:, self.passive])
+        #: (n_redundant, n_equations) unit rows: equation combinations no joint motion changes at home
+        self.redundant_directions = D
+        if len(D) and not self.spec.closures:
+            self._keep = np.eye(self.n_equations) - D.T @ D
 
     def _read_task_frame(self) -> None:
         """World pose (m, rotation matrix) of the frame task coordinates are written in: ``[task] frame``, a
@@ -331,15 +345,13 @@ class ClosedChainTwin:
         only), point Jacobians ``jp``, ``jr`` (A, npoints, 3, nv) and ``qpos`` (A, nq): rows
         ``sqrt(k) gap`` (unit weights without ``[closures]``) and ``sqrt(k_j) (q_j - ref_j)``."""
         A, nv = len(sp), self.model.nv
-        r = [(sp[:, self._c1] - sp[:, self._c2]).reshape(A, -1)]
+        r = self._gaps(sp, sm)
         J = [(jp[:, self._c1] - jp[:, self._c2]).reshape(A, -1, nv)] if with_jac else []
-        if self._weld.any():
+        if with_jac and self._weld.any():
             w1, w2 = self._c1[self._weld], self._c2[self._weld]
-            r.append(_rotation_error(sm[:, w1].reshape(-1, 3, 3), sm[:, w2].reshape(-1, 3, 3)).reshape(A, -1))
-            if with_jac:
-                J.append((jr[:, w1] - jr[:, w2]).reshape(A, -1, nv))
-        r = np.concatenate(r, axis=1) * self._sqrt_w
-        J = np.concatenate(J, axis=1) * self._sqrt_w[:, None] if with_jac else None
+            J.append((jr[:, w1] - jr[:, w2]).reshape(A, -1, nv))
+        r = self._project(r * self._sqrt_w)
+        J = self._project(np.concatenate(J, axis=1) * self._sqrt_w[:, None]) if with_jac else None
         if len(self._spring_dof):
             ns = len(self._spring_dof)
             r = np.concatenate([r, self._spring_sqrt_k * (qpos[:, self._spring_qadr] - self._spring_ref)], axis=1)
@@ -348,6 +360,19 @@ class ClosedChainTwin:
                 Js[:, np.arange(ns), self._spring_dof] = self._spring_sqrt_k
                 J = np.concatenate([J, Js], axis=1)
         return r, J
+
+    def _gaps(self, sp: np.ndarray, sm: np.ndarray | None) -> np.ndarray:
+        """Closure gaps (A, n_eq), m and rad, unweighted: site1 - site2 positions of every closure, then the
+        rotation errors of the welds, from point positions ``sp`` (A, npoints, 3) and orientations ``sm``."""
+        r = [(sp[:, self._c1] - sp[:, self._c2]).reshape(len(sp), -1)]
+        if self._weld.any():
+            w1, w2 = self._c1[self._weld], self._c2[self._weld]
+            r.append(_rotation_error(sm[:, w1].reshape(-1, 3, 3), sm[:, w2].reshape(-1, 3, 3)).reshape(len(sp), -1))
+        return np.concatenate(r, axis=1)
+
+    def _project(self, rows: np.ndarray) -> np.ndarray:
+        """Weighted closure rows (A, n_eq, ...) without their redundant directions (:meth:`_read_redundancy`)."""
+        return rows if self._keep is None else np.einsum("ij,aj...->ai...", self._keep, rows)
 
     def _newton_batch(self, Q: np.ndarray, tol: np.ndarray, goals: np.ndarray | None = None) -> np.ndarray:
         """Assemble the configurations ``Q`` (A, nq) in place with the motor joints held (or, with task
@@ -687,7 +712,7 @@ class ClosedChainTwin:
         Ce = np.concatenate([dP[:, self._c1] - dP[:, self._c2],
                              dW[:, self._c1[self._weld]] - dW[:, self._c2[self._weld]]],
                             axis=1).reshape(N, -1, len(keys))
-        C, Ce = C * self._sqrt_w[:, None], Ce * self._sqrt_w[:, None]      # compliance weights
+        C, Ce = self._project(C * self._sqrt_w[:, None]), self._project(Ce * self._sqrt_w[:, None])   # weights
         if len(self._spring_dof):                                          # passive joint springs
             ns = len(self._spring_dof)
             Cs = np.zeros((N, ns, nv))

@@ -20,6 +20,7 @@ from pmcal.csvio import LONG_POSES
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
 from pmcal.history import chain_record_document, check_history_dir, file_calibration
+from pmcal.twin.overconstraint import loop_summary
 from pmcal.io_chain import (read_measurements, read_params, read_plan, read_targets, write_measurements,
                             write_setpoints, write_targets)
 
@@ -103,6 +104,10 @@ def identify(args) -> int:
     write_json(args.output, params_document(machine, res, str(args.measurements)))
     print(f"{res.rank} of {len(res.params)} errors identifiable (base set), {len(res.weak)} weak; residual "
           f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}")
+    loops = loop_summary(machine.twin)
+    if loops["redundant"]:
+        print(f"loops: {loops['closure_equations']} closure equations, {loops['independent']} independent; "
+              f"redundant ({', '.join(loops['redundant'])}) left to the joints' play")
     if history:
         file_history(machine, res, basis, args.measurements, history)
     for line in identify_warnings(res, len(meas)):
