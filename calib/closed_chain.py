@@ -56,6 +56,7 @@ from typing import Mapping
 
 import numpy as np
 import scipy.linalg
+from scipy import stats
 
 from pmcal.calib.chain_model import ChainModel
 from pmcal.calib.solvers import METHODS, SOLVERS
@@ -66,6 +67,15 @@ from pmcal.threads import blas_policy
 
 #: Relative threshold on the pivoted QR diagonal below which a direction counts as unseen (structural rank).
 RANK_TOL = 1e-7
+
+#: Folds of the held-out self-check (:func:`held_out_check`): poses ``i % HELD_OUT_FOLDS`` left out in turn.
+HELD_OUT_FOLDS = 5
+#: The self-check fails when its held-out chi-square exceeds what noise gives with this probability...
+HELD_OUT_P = 1e-3
+#: ...and the held-out error is more than this factor above what the fit predicts for it (RMS).
+HELD_OUT_RATIO = 1.5
+#: An identified base value beyond this many prior sigmas is flagged (``beyond_prior``).
+PRIOR_SIGMAS = 5.0
 
 
 @dataclass
@@ -396,6 +406,13 @@ class _Observations:
             self.W = sigma * np.linalg.inv(self._L)
             self.y = self.W @ self.y
 
+    def row_poses(self) -> np.ndarray:
+        """(rows,) the pose (or, for readings, the reading) each fitted row belongs to: the held-out check's
+        folds keep a pose's coordinates together."""
+        if self.D is None:
+            return np.repeat(np.arange(self.n_poses), self.y.size // max(self.n_poses, 1))
+        return np.arange(self.y.size)
+
     def residual_mm(self, whitened: np.ndarray) -> np.ndarray:
         """The residuals in mm (not whitened), given the whitened ones of the fit (``W^-1 r = L r / sigma``)."""
         return whitened if self.W is None else self._L @ whitened / self._sigma
@@ -412,6 +429,59 @@ class _Observations:
         if self.D is None:
             return self._white(flat_jacobian(self.model, self.commands, params, keys))
         return self._white(self.D @ self.model.observation_jacobian(self.commands, params, keys)[:, 0, :])
+
+
+def held_out_check(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior_precision: np.ndarray | float,
+                   sigma: float, folds: int = HELD_OUT_FOLDS) -> dict:
+    """Does the fit predict what it did not see? Linearised k-fold cross-validation at the solution.
+
+    Each fold (the rows of poses ``i % folds``) is left out in turn: the fit without it is one Gauss-Newton
+    step from the solution, ``x' = x - H_f^-1 J_f^T r_f`` (``H_f`` the information of the other rows plus the
+    prior), and its residual on the fold is ``r_f + J_f H_f^-1 J_f^T r_f``. If the model is right these are
+    noise plus the prediction's own error, covariance ``I + J_f H_f^-1 J_f^T`` (whitened), so their
+    Mahalanobis sum over all folds is chi-square with as many degrees of freedom as rows. A model that
+    fits its campaign to the noise with knobs that mean nothing (chi2/dof 1 in sample) fails here.
+
+    Parameters
+    ----------
+    J : (n, p) whitened Jacobian of the residuals by the base parameters at the solution.
+    r : (n,) whitened residuals at the solution (measured minus predicted, noise sigmas).
+    groups : (n,) pose index of each row (folds are made of whole poses).
+    prior_precision : (p, p) inverse prior covariance of the base parameters (0: no prior).
+    sigma : noise, mm (to state the errors in mm).
+    folds : number of folds (fewer when there are fewer poses; none below 2 poses per fold).
+
+    Returns
+    -------
+    dict
+        ``rms_mm`` the held-out residual RMS (mm), ``predicted_rms_mm`` what noise and the fit's own
+        uncertainty predict for it, ``chi2_per_dof`` of the held-out residuals, ``p_value``, ``folds``, and
+        ``passed`` (False when the chi-square is beyond :data:`HELD_OUT_P` and the RMS more than
+        :data:`HELD_OUT_RATIO` above its prediction); ``folds`` 0 and ``passed`` None when too few poses.
+    """
+    poses = np.unique(groups)
+    k = min(folds, len(poses) // 2)
+    if k < 2:
+        return {"folds": 0, "passed": None, "rms_mm": None, "predicted_rms_mm": None, "chi2_per_dof": None,
+                "p_value": None}
+    fold_of = {p: i % k for i, p in enumerate(poses)}
+    fold = np.array([fold_of[g] for g in groups])
+    H = J.T @ J + prior_precision
+    chi2, sq, var, n = 0.0, 0.0, 0.0, 0
+    for f in range(k):
+        rows = fold == f
+        Jf, rf = J[rows], r[rows]
+        G = Jf @ np.linalg.solve(H - Jf.T @ Jf, Jf.T)                # J_f H_f^-1 J_f^T
+        held = rf + G @ rf
+        C = np.eye(len(rf)) + G
+        chi2 += float(held @ np.linalg.solve(C, held))
+        sq += float(held @ held)
+        var += float(np.trace(C))
+        n += len(rf)
+    rms, predicted = sigma * np.sqrt(sq / n), sigma * np.sqrt(var / n)
+    p = float(stats.chi2.sf(chi2, n))
+    return {"folds": k, "rms_mm": float(rms), "predicted_rms_mm": float(predicted), "chi2_per_dof": chi2 / n,
+            "p_value": p, "passed": not (p < HELD_OUT_P and rms > HELD_OUT_RATIO * predicted)}
 
 
 def _spd_inverse(M: np.ndarray) -> np.ndarray:
@@ -532,6 +602,8 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     dof = max(y.size - p_eff, 1.0)
     params = {k: 0.0 for k in keys}
     params.update(params_of(x))
+    held_out = held_out_check(Jb, resid / sigma, obs.row_poses(), np.linalg.inv(prior_cov) if prior else 0.0,
+                              sigma)
     return ChainIdentResult(
         params=params, base=list(base), units=units, x=x, covariance=cov, std=dict(zip(base, map(float, std))),
         crlb=dict(zip(base, map(float, crlb_std))), combinations=basis.combinations,
@@ -541,7 +613,8 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         success=bool(sol.success), message=str(sol.message), nfev=int(sol.n_eval),
         wall_time=time.perf_counter() - t0, basis=basis, solver=sol,
         info={"effective_parameters": p_eff, "prior_std": dict(zip(base, map(float, sb))),
-              "prior_covariance": prior_cov, "basis": which})
+              "prior_covariance": prior_cov, "basis": which, "held_out": held_out,
+              "beyond_prior": [k for k, v, s in zip(base, x, sb) if abs(v) > PRIOR_SIGMAS * s]})
 
 
 def reading_covariance(model: ChainModel, commands, motor_sigma, sigma: float | None = None,
