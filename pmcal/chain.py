@@ -273,7 +273,8 @@ def params_document(machine, result, source: str | None = None) -> dict:
         "condition_number": float(result.condition_number), "chi2_per_dof": float(result.chi2_per_dof),
         "residual_rms_mm": float(result.residual_rms_mm), "sigma_mm": float(result.sigma_mm),
         "n_poses": int(result.n_poses), "source": source, "success": bool(result.success),
-        "loops": loop_summary(machine.twin),
+        "loops": loop_summary(machine.twin), "held_out": dict(result.info["held_out"]),
+        "beyond_prior": list(result.info["beyond_prior"]),
         "message": result.message,
     }
 
