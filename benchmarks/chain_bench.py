@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
-from pmcal.calib.closed_chain import compensate_targets, crlb, identify_chain  # noqa: E402
+from pmcal.calib.closed_chain import compensate_targets, identify_chain  # noqa: E402
 from pmcal.mechanism.machine_spec import MachineSpec  # noqa: E402
 from pmcal.mjcf import machine_dir  # noqa: E402
 from pmcal.threads import apply_blas_policy  # noqa: E402
@@ -60,7 +60,7 @@ def one_seed(twin: ClosedChainTwin, seed: int, poses: int) -> dict:
     res = identify_chain(twin, cmd, y)
     t_ident = time.perf_counter() - t0
     truth = res.basis.combination_values(true)
-    bound = crlb(twin, cmd, res.params, res.base)
+    bound = np.array([res.crlb[k] for k in res.base])
     z = (res.x - truth) / bound
     # held-out targets the real machine reaches (sampled in its commands, so they are reachable)
     held = twin.forward(twin.sample_commands(HELD_OUT, rng, true), true)
@@ -72,8 +72,9 @@ def one_seed(twin: ClosedChainTwin, seed: int, poses: int) -> dict:
     coords = twin.spec.task.coordinates
     pos = [i for i, c in enumerate(coords) if c.endswith("_mm")]
     ang = [i for i, c in enumerate(coords) if c.endswith("_deg")]
-    Jt = twin.task_jacobian(comp, res.params, res.base)                    # (n, C, P)
-    cov = np.linalg.inv((lambda J: J.T @ J)(twin.jacobian(cmd, res.params, res.base).reshape(-1, len(res.base))
+    keys = list(res.params)
+    Jt = res.base_derivative(twin.task_jacobian(comp, res.params, keys))    # (n, C, P)
+    cov = np.linalg.inv((lambda J: J.T @ J)(res.base_derivative(twin.jacobian(cmd, res.params, keys).reshape(-1, len(keys)))
                                              / twin.sigma_mm))
     var = np.einsum("ncp,pq,ncq->nc", Jt, cov, Jt)                          # (n, C) predicted variances
     ok = np.isfinite(reached).all(axis=1)

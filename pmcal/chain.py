@@ -254,8 +254,9 @@ def reference_basis(machine):
 
 def params_document(machine, result, source: str | None = None) -> dict:
     """The parameters JSON of an identification (docs/formats.md, "Any machine"): ``params`` every error
-    considered (mm / deg; the base parameters' values, 0 for those absorbed into them), ``units``, the base
-    parameters (``identifiable``), their ``uncertainty`` (1 sigma, posterior), ``covariance`` (posterior, in
+    considered (mm / deg; the identified machine: each base value spread over the errors it regroups,
+    :func:`pmcal.calib.closed_chain.spread_map`), ``units``, the base parameters (``identifiable``), their
+    identified ``values``, their ``uncertainty`` (1 sigma, posterior), ``covariance`` (posterior, in
     the order of ``identifiable``), ``prior_covariance`` (the ``[errors]`` prior carried onto the base
     parameters, same order) and ``crlb`` (data alone), what each base value
     estimates (``combinations``), what the data cannot see (``unidentifiable``), ``weak`` ones, fit
@@ -265,7 +266,8 @@ def params_document(machine, result, source: str | None = None) -> dict:
         "mechanism": machine.name, "model": "closed_chain", "method": "lm+tikhonov",
         "units": {k: units[k] for k in result.params},
         "params": {k: float(v) for k, v in result.params.items()},
-        "identifiable": list(result.base), "uncertainty": dict(result.std),
+        "identifiable": list(result.base), "values": {k: float(v) for k, v in zip(result.base, result.x)},
+        "uncertainty": dict(result.std),
         "covariance": np.asarray(result.covariance, float).tolist(), "crlb": dict(result.crlb),
         "prior_covariance": np.asarray(result.info["prior_covariance"], float).tolist(),
         "combinations": dict(result.combinations), "unidentifiable": list(result.unidentifiable),

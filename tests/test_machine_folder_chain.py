@@ -23,6 +23,7 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.stats import chi2
 
+from pmcal.calib.closed_chain import base_parameters, spread_map
 from pmcal.cli import main
 from pmcal.io_chain import read_measurements, read_targets
 from pmcal.machines import Machine
@@ -79,17 +80,24 @@ def test_outputs_have_the_machines_columns(chain):
 
 
 def _truth_of_base(machine, commands, truth, base) -> np.ndarray:
-    """The values of the base parameters that reproduce the true machine's noise-free targets."""
+    """The values of the base parameters whose machine (each value spread over the errors it regroups, as
+    identify realises them: :func:`pmcal.calib.closed_chain.spread_map` of the campaign's base set)
+    reproduces the true machine's noise-free targets."""
     twin = machine.twin
+    keys = list(twin.error_keys)
+    basis = base_parameters(twin.jacobian(commands, None, keys).reshape(-1, len(keys)) / twin.sigma_mm, keys,
+                            twin.prior_std(keys))
+    assert basis.base == list(base)
+    M = spread_map(twin, basis)
     y = twin.targets(commands, truth).reshape(-1)
 
     def resid(x):
-        return twin.targets(commands, dict(zip(base, x))).reshape(-1) - y
+        return twin.targets(commands, dict(zip(keys, M @ x))).reshape(-1) - y
 
     def jac(x):
-        return twin.jacobian(commands, dict(zip(base, x)), base).reshape(len(y), -1)
+        return twin.jacobian(commands, dict(zip(keys, M @ x)), keys).reshape(len(y), -1) @ M
 
-    x0 = np.array([truth.get(k, 0.0) for k in base])
+    x0 = basis.combination_values(truth)
     return least_squares(resid, x0, jac=jac, xtol=1e-12, ftol=1e-12, gtol=1e-12).x
 
 
@@ -103,7 +111,7 @@ def test_identified_errors_match_the_truth_within_the_reported_uncertainty(chain
     base = doc["identifiable"]
     meas = read_measurements(d / "m.csv", machine.spec)
     expected = _truth_of_base(machine, meas.commands, _truth(d / "m.csv"), base)
-    got = np.array([doc["params"][k] for k in base])
+    got = np.array([doc["values"][k] for k in base])
     std = np.array([doc["uncertainty"][k] for k in base])
     z = (got - expected) / std
     # Gaussian noise and prior: each z ~ N(0, 1), and the errors' Mahalanobis distance under the reported
@@ -130,10 +138,11 @@ def test_setpoints_bring_the_true_machine_to_the_targets(chain):
     # from the identification's posterior (covariance of the base parameters), 16 draws
     rng = np.random.default_rng(0)
     base = doc["identifiable"]
-    x = np.array([doc["params"][k] for k in base])
+    x = np.array([doc["values"][k] for k in base])
     draws = []
     for sample in rng.multivariate_normal(x, np.array(doc["covariance"]), size=16):
-        draws.append(twin.forward(commands, {**doc["params"], **dict(zip(base, sample))})[:, :n_pos])
+        moved = {k: doc["params"][k] + d for k, d in zip(base, sample - x)}     # to first order, on the base keys
+        draws.append(twin.forward(commands, {**doc["params"], **moved})[:, :n_pos])
     predicted = np.sqrt(np.mean(np.sum(np.var(draws, axis=0), axis=1)))
     assert np.sqrt(np.mean(after**2)) < 3.0 * predicted + 1e-4, (after, predicted)
     assert np.sqrt(np.mean(after**2)) < 0.1 * np.sqrt(np.mean(before**2))

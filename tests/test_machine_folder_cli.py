@@ -512,11 +512,11 @@ def test_plan_is_measured_and_its_predicted_uncertainty_is_what_identify_reports
     prior = np.asarray(doc["prior_covariance"])
     at_nominal = np.linalg.inv(Jb.T @ Jb + np.linalg.inv(prior))
     assert np.abs(nest_std(base, at_nominal) / planned - 1.0).max() < 1e-6
-    # identify reports the posterior at the identified machine: errors of up to 2 mm move its Jacobian, and
-    # through them the representatives of the base combinations matter to second order (measured here: 4 %
-    # median, 40 % on the worst nest; the same on every CPU, the base set having no ties left to the BLAS)
+    # identify reports the posterior at the identified machine (errors of up to 2 mm move its Jacobian): the
+    # same within 10 % on every nest (measured: 0.8 % median, 7 % at most; identify realises its base values
+    # spread over the errors they regroup, so the representatives named do not matter)
     ratio = nest_std(base, doc["covariance"]) / planned - 1.0
-    assert np.median(np.abs(ratio)) < 0.10 and np.abs(ratio).max() < 0.5, ratio
+    assert np.abs(ratio).max() < 0.10, ratio
     one_line_error(capsys, "--machine", folder, "twin", "plan", "--poses", "3", "-o", d / "p3.csv",
                    says="3 poses give 27 coordinates for 42 base errors: plan at least 5 poses")
 
