@@ -149,6 +149,7 @@ class ClosedChainTwin:
         self._read_closures()
         self._read_sites()
         self.home_qpos = self._read_home()
+        self._check_mobility()
         # Under frames = "all" the closure sites carry errors; the tracker nests do not (they define the
         # moving frames they sit on: their coordinates there come from a CMM or the drawing), nor does the
         # task site unless it closes a loop (it is not measured).
@@ -182,6 +183,40 @@ class ClosedChainTwin:
                              f"loops (gap {gap * 1e3:.3g} mm): add an assembled <key name=\"home\" qpos=...> "
                              f"(docs/machine_toml.md)", file=self._file, field="keyframe")
         return q
+
+    #: Relative size (of the largest singular value) below which a direction of the passive dofs counts as
+    #: free of the closures, and motion (m per unit, of the nests or the task site) above which it matters.
+    FREE_RTOL, FREE_MOVES_M = 1e-9, 1e-9
+
+    def _check_mobility(self) -> None:
+        """InputError naming the joints when, at ``home``, the closures leave a direction of the passive dofs
+        free that moves the tracker nests or the task site: an actuated joint missing from ``[[motors]]``.
+        Free directions that move neither (a ball-ball rod's spin about its axis, an unactuated side chain
+        such as an antenna or a gripper finger) are allowed: every solve leaves them where they are."""
+        jp, jr = self._kin(self.home_qpos)
+        _, C = self._closure(jp, jr)
+        Cp = C[:, self.passive]
+        _, sv, vt = np.linalg.svd(Cp, full_matrices=True)
+        rank = int(np.sum(sv > self.FREE_RTOL * max(sv.max(initial=0.0), 1e-30)))
+        free = vt[rank:].T                                              # (npassive, nfree)
+        if not free.size:
+            return
+        seen = np.concatenate([np.arange(self._n_closure_points, len(self.points))])
+        moves = np.concatenate([jp[seen][..., self.passive], jr[seen][..., self.passive]]).reshape(-1, len(self.passive))
+        motion = moves @ free                                            # (rows, nfree)
+        if np.max(np.abs(motion), initial=0.0) <= self.FREE_MOVES_M:
+            return
+        u, _, _ = np.linalg.svd(motion.T @ motion)
+        direction = free @ u[:, 0]                                       # the free direction that moves most
+        dof = self.passive[np.argsort(-np.abs(direction))]
+        jnt = self.model.dof_jntid[dof]
+        names = list(dict.fromkeys(mujoco.mj_id2name(self.model, _OBJ.mjOBJ_JOINT, int(j)) or f"joint {j}"
+                                   for j in jnt[:3]))
+        raise InputError(f"the loops leave joint {names[0]} free and it moves the tracker nests or the task site "
+                         f"(with {', '.join(names[1:]) or 'no other joint'}): list it under [[motors]] if it is "
+                         f"actuated, or close the loop that should hold it", file=str(self.spec.folder /
+                                                                                        "machine.toml"),
+                         field="motors")
 
     def _read_task_frame(self) -> None:
         """World pose (m, rotation matrix) of the frame task coordinates are written in: ``[task] frame``, a
