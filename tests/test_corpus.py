@@ -89,3 +89,25 @@ def test_corpus_model_calibrates_on_its_own_twin(name, tmp_path, capsys):
     assert rms < 4 * sigma
     assert rms < rms_nominal / 5
     assert len(read_measurements(str(m_csv), machine.spec).commands) == 48
+
+
+def test_body_based_closure_sites_can_be_named_in_errors(tmp_path):
+    """The Robotiq model closes its four-bars with unnamed body-based connects: the two sites each becomes on
+    load are names the machine.toml may list in ``[errors] frames`` (read without MuJoCo), and they are the
+    sites the compiled model holds."""
+    import shutil
+
+    import mujoco
+
+    from pmcal.mechanism.machine_spec import MachineSpec
+    from pmcal.twin.closures import compile_with_site_closures
+
+    folder = tmp_path / "gripper"
+    shutil.copytree(CORPUS / "robotiq_2f85", folder)
+    toml = folder / "machine.toml"
+    toml.write_text(toml.read_text().replace('frames = "all"', 'frames = ["right_driver", "closure0_site1"]'))
+    spec = MachineSpec.load(folder)
+    assert spec.errors.frames == ("right_driver", "closure0_site1")
+    m = compile_with_site_closures(spec.model_path)
+    compiled = {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SITE, i) for i in range(m.nsite)}
+    assert {"closure0_site1", "closure0_site2", "closure1_site1", "closure1_site2"} <= compiled
