@@ -111,3 +111,22 @@ def test_body_based_closure_sites_can_be_named_in_errors(tmp_path):
     m = compile_with_site_closures(spec.model_path)
     compiled = {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SITE, i) for i in range(m.nsite)}
     assert {"closure0_site1", "closure0_site2", "closure1_site1", "closure1_site2"} <= compiled
+
+
+def test_a_free_joint_that_moves_the_nests_is_refused_naming_it(tmp_path):
+    """Reachy Mini's Stewart platform sits on a turning body (joint yaw_body, actuated). A machine.toml
+    without it as a motor leaves the head free to turn: refused at load naming the joint (before the fix its
+    own campaign's truth left 1.6 mm rms). The rods' free spin and the antennas, which move no nest, are
+    not refused (the corpus machine.toml loads)."""
+    import shutil
+
+    folder = tmp_path / "head"
+    shutil.copytree(CORPUS / "reachy_mini", folder)
+    toml = folder / "machine.toml"
+    text = toml.read_text()
+    yaw = '[[motors]]\njoint = "yaw_body"\nrange = [-10.0, 10.0]\n\n'
+    assert yaw in text
+    toml.write_text(text.replace(yaw, ""))
+    with pytest.raises(InputError) as exc:
+        Machine.from_folder(folder).twin
+    assert "yaw_body" in str(exc.value) and "machine.toml" in str(exc.value)
