@@ -154,6 +154,11 @@ class TableSpec:
     reference: str = "controller"
     max_correction: float = TABLE_MAX_CORRECTION_DEFAULT
     max_correction_step: float = TABLE_MAX_CORRECTION_STEP_DEFAULT
+    #: the axes whose span machine.toml leaves to the default (the largest box inside the workspace the
+    #: nominal machine reaches, ``pmcal.chain.table_box``), and whether ``max_correction`` is left to its
+    #: default (from the error sizes and the machine's sensitivity, ``pmcal.chain.correction_bound``)
+    box_default: tuple[str, ...] = ()
+    max_correction_default: bool = False
 
 
 @dataclass(frozen=True)
@@ -528,7 +533,9 @@ class _Loader:
         corr = self.number(tab, "max_correction", "table", default=TABLE_MAX_CORRECTION_DEFAULT, positive=True)
         corr_step = self.number(tab, "max_correction_step", "table", default=TABLE_MAX_CORRECTION_STEP_DEFAULT,
                                 positive=True)
-        return TableSpec(tuple(nodes), MappingProxyType(box), step, reference, corr, corr_step)
+        return TableSpec(tuple(nodes), MappingProxyType(box), step, reference, corr, corr_step,
+                         box_default=tuple(a for a in axes if a not in tab),
+                         max_correction_default="max_correction" not in tab)
 
     def table_axes(self, task: TaskSpec) -> tuple[str, ...]:
         tab = self.table("table", required=False)
