@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from pmcal import progress
-from pmcal.chain import (campaign, compensate, compensation_table, identify, params_document, plan, random_errors,
+from pmcal.calib.closed_chain import compensate_targets
+from pmcal.chain import (campaign, compensation_table, identify, params_document, plan, random_errors,
                          sample_targets, table_refusal)
 from pmcal.fileio import atomic_directory, write_json
 from pmcal.io_chain import write_measurements, write_plan, write_setpoints, write_targets
@@ -121,8 +122,8 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
         done("identify")
         step("compensate")
         task = sample_targets(machine, HELD_OUT, seed=seed + 1000)
+        task, compensated = reachable_targets(machine, res.params, task)
         nominal = twin.inverse(task, None)
-        compensated = compensate(machine, res.params, task)
         done("compensate")
         step("table")
         coords = machine.spec.task.coordinates
@@ -161,6 +162,22 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
         if table is not None:
             table.save(out / "table.json")
     return demo
+
+
+def reachable_targets(machine, params, task: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The held-out targets (n, C) the machine with the identified errors ``params`` reaches, and its commands
+    there (n, M); each one it does not reach (near the reach boundary, where the nominal machine still
+    does) is left out with a warning line naming it and why."""
+    commands = compensate_targets(machine.twin, dict(params), task)
+    bad = np.flatnonzero(~np.isfinite(commands).all(axis=1))
+    coords = machine.spec.task.coordinates
+    for i in bad:
+        _, why = machine.twin.inverse_report(task[i:i + 1], dict(params))
+        where = ", ".join(f"{c}={v:.6g}" for c, v in zip(coords, task[i]))
+        progress.warning(f"held-out target {i + 1} ({where}) left out: not reachable by the identified machine "
+                         f"({why[0]})")
+    keep = np.isfinite(commands).all(axis=1)
+    return task[keep], commands[keep]
 
 
 def run_chain_demo(machine, out: Path, seed: int) -> int:
