@@ -68,21 +68,24 @@ def main(argv: list[str] | None = None) -> int:
                 run = {"model": name, "seed": seed, "exit": rc, "wall_s": wall}
                 if rc == 0:
                     s = json.loads((out / "summary.json").read_text())
-                    run.update(before_mm=s["position_rms_before_mm"], after_mm=s["position_rms_after_mm"],
-                               predicted_mm=s["position_rms_predicted_mm"], chi2_per_dof=s["chi2_per_dof"],
+                    fam, unit = ("position", "mm") if "position_rms_after_mm" in s else ("orientation", "deg")
+                    run.update(family=fam, unit=unit, before=s[f"{fam}_rms_before_{unit}"],
+                               after=s[f"{fam}_rms_after_{unit}"], predicted=s[f"{fam}_rms_predicted_{unit}"],
+                               chi2_per_dof=s["chi2_per_dof"],
+                               figures={k: v for k, v in s.items() if "_rms_" in k or "_max_" in k},
                                per_coordinate_rms_after=s.get("per_coordinate_rms_after"),
                                headline=stdout.strip().splitlines()[0] if stdout.strip() else "")
-                    run["ratio"] = run["after_mm"] / run["predicted_mm"]
+                    run["ratio"] = run["after"] / run["predicted"]
                 else:
                     run["failure"] = (stderr.strip().splitlines() or ["(no message)"])[-1]
                 runs.append(run)
-                rows.append([name, seed, rc, run.get("before_mm", ""), run.get("after_mm", ""),
-                             run.get("predicted_mm", ""), run.get("ratio", ""), run.get("chi2_per_dof", ""),
+                rows.append([name, seed, rc, run.get("unit", ""), run.get("before", ""), run.get("after", ""),
+                             run.get("predicted", ""), run.get("ratio", ""), run.get("chi2_per_dof", ""),
                              wall, run.get("failure", "")])
-    header = ["model", "seed", "exit", "before rms mm", "after rms mm", "predicted mm", "after/predicted",
+    header = ["model", "seed", "exit", "unit", "before rms", "after rms", "predicted", "after/predicted",
               "chi2/dof", "wall s", "failure"]
-    print_table("corpus: pmcal --machine DIR demo on each model (task position error at held-out targets)",
-                header, rows)
+    print_table("corpus: pmcal --machine DIR demo on each model (task error at held-out targets: position in mm, "
+                "or orientation in deg for an orientation task)", header, rows)
     write_json("corpus_bench", {"seeds": args.seeds, "runs": runs, "not_licensed": NOT_LICENSED},
                args.json)
     return 0
