@@ -49,39 +49,51 @@ def run_demo(folder: Path, seed: int, out: Path) -> tuple[int, str, str]:
     return rc, o.getvalue(), e.getvalue()
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def corpus_arguments(argv: list[str] | None, doc: str, name: str, seeds: int):
+    """The corpus benchmarks' command line (``--models``, ``--seeds``, ``--json``): (args, model names)."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("--models", default=None, help="comma-separated corpus names (default: all)")
-    ap.add_argument("--seeds", type=int, default=3, help="seeds 1..N of the demo")
-    ap.add_argument("--json", default=None, help="output JSON (default benchmarks/results/corpus_bench.json)")
+    ap.add_argument("--seeds", type=int, default=seeds, help="seeds 1..N")
+    ap.add_argument("--json", default=None, help=f"output JSON (default benchmarks/results/{name}.json)")
     args = ap.parse_args(argv)
     names = args.models.split(",") if args.models else sorted(
         p.name for p in CORPUS.iterdir() if (p / "machine.toml").is_file())
-    rows, runs = [], []
+    return args, names
+
+
+def corpus_cases(names: list[str], seeds: int):
+    """(model name, seed, a scratch folder) for every model and seed 1..``seeds``."""
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
-            for seed in range(1, args.seeds + 1):
-                out = Path(tmp) / f"{name}-{seed}"
-                t0 = time.perf_counter()
-                rc, stdout, stderr = run_demo(CORPUS / name, seed, out)
-                wall = time.perf_counter() - t0
-                run = {"model": name, "seed": seed, "exit": rc, "wall_s": wall}
-                if rc == 0:
-                    s = json.loads((out / "summary.json").read_text())
-                    fam, unit = ("position", "mm") if "position_rms_after_mm" in s else ("orientation", "deg")
-                    run.update(family=fam, unit=unit, before=s[f"{fam}_rms_before_{unit}"],
-                               after=s[f"{fam}_rms_after_{unit}"], predicted=s[f"{fam}_rms_predicted_{unit}"],
-                               chi2_per_dof=s["chi2_per_dof"],
-                               figures={k: v for k, v in s.items() if "_rms_" in k or "_max_" in k},
-                               per_coordinate_rms_after=s.get("per_coordinate_rms_after"),
-                               headline=stdout.strip().splitlines()[0] if stdout.strip() else "")
-                    run["ratio"] = run["after"] / run["predicted"]
-                else:
-                    run["failure"] = (stderr.strip().splitlines() or ["(no message)"])[-1]
-                runs.append(run)
-                rows.append([name, seed, rc, run.get("unit", ""), run.get("before", ""), run.get("after", ""),
-                             run.get("predicted", ""), run.get("ratio", ""), run.get("chi2_per_dof", ""),
-                             wall, run.get("failure", "")])
+            for seed in range(1, seeds + 1):
+                yield name, seed, Path(tmp)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, names = corpus_arguments(argv, __doc__, "corpus_bench", 3)
+    rows, runs = [], []
+    for name, seed, tmp in corpus_cases(names, args.seeds):
+        out = tmp / f"{name}-{seed}"
+        t0 = time.perf_counter()
+        rc, stdout, stderr = run_demo(CORPUS / name, seed, out)
+        wall = time.perf_counter() - t0
+        run = {"model": name, "seed": seed, "exit": rc, "wall_s": wall}
+        if rc == 0:
+            s = json.loads((out / "summary.json").read_text())
+            fam, unit = ("position", "mm") if "position_rms_after_mm" in s else ("orientation", "deg")
+            run.update(family=fam, unit=unit, before=s[f"{fam}_rms_before_{unit}"],
+                       after=s[f"{fam}_rms_after_{unit}"], predicted=s[f"{fam}_rms_predicted_{unit}"],
+                       chi2_per_dof=s["chi2_per_dof"],
+                       figures={k: v for k, v in s.items() if "_rms_" in k or "_max_" in k},
+                       per_coordinate_rms_after=s.get("per_coordinate_rms_after"),
+                       headline=stdout.strip().splitlines()[0] if stdout.strip() else "")
+            run["ratio"] = run["after"] / run["predicted"]
+        else:
+            run["failure"] = (stderr.strip().splitlines() or ["(no message)"])[-1]
+        runs.append(run)
+        rows.append([name, seed, rc, run.get("unit", ""), run.get("before", ""), run.get("after", ""),
+                     run.get("predicted", ""), run.get("ratio", ""), run.get("chi2_per_dof", ""),
+                     wall, run.get("failure", "")])
     header = ["model", "seed", "exit", "unit", "before rms", "after rms", "predicted", "after/predicted",
               "chi2/dof", "wall s", "failure"]
     print_table("corpus: pmcal --machine DIR demo on each model (task error at held-out targets: position in mm, "

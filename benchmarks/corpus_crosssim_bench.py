@@ -17,12 +17,10 @@ Run: python benchmarks/corpus_crosssim_bench.py [--models reachy_mini] [--seeds 
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import io
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -31,6 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
+from benchmarks.corpus_bench import CORPUS, corpus_arguments, corpus_cases  # noqa: E402
 from pmcal.chain import compensate, plan, sample_targets  # noqa: E402
 from pmcal.cli import main as pmcal_main  # noqa: E402
 from pmcal.errors import InputError  # noqa: E402
@@ -39,7 +38,6 @@ from pmcal.machines import Machine  # noqa: E402
 from pmcal.mechanism.task_space import error_families, rms, task_difference  # noqa: E402
 from tests.crosssim_chain.machine import SimMachine  # noqa: E402
 
-CORPUS = Path(__file__).resolve().parent.parent / "tests" / "corpus"
 POSES, HELD_OUT = 48, 24
 
 
@@ -98,24 +96,16 @@ def run(folder: Path, seed: int, tmp: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--models", default=None, help="comma-separated corpus names (default: all)")
-    ap.add_argument("--seeds", type=int, default=5, help="seeds 1..N")
-    ap.add_argument("--json", default=None, help="output JSON (default benchmarks/results/corpus_crosssim_bench.json)")
-    args = ap.parse_args(argv)
-    names = args.models.split(",") if args.models else sorted(
-        p.name for p in CORPUS.iterdir() if (p / "machine.toml").is_file())
+    args, names = corpus_arguments(argv, __doc__, "corpus_crosssim_bench", 5)
     runs, rows = [], []
-    with tempfile.TemporaryDirectory() as tmp:
-        for name in names:
-            for seed in range(1, args.seeds + 1):
-                r = {"model": name, "seed": seed, **run(CORPUS / name, seed, Path(tmp))}
-                runs.append(r)
-                fam = "position_%s_mm" if "position_after_mm" in r else "orientation_%s_deg"
-                rows.append([name, seed, r["stage"], r.get(fam % "before", ""), r.get(fam % "after", ""),
-                             r.get(fam % "predicted", ""), r.get("orientation_after_deg", ""),
-                             r.get("orientation_predicted_deg", ""), r.get("chi2_per_dof", ""),
-                             len(r.get("warnings", [])), r.get("failure", "")[:90]])
+    for name, seed, tmp in corpus_cases(names, args.seeds):
+        r = {"model": name, "seed": seed, **run(CORPUS / name, seed, tmp)}
+        runs.append(r)
+        fam = "position_%s_mm" if "position_after_mm" in r else "orientation_%s_deg"
+        rows.append([name, seed, r["stage"], r.get(fam % "before", ""), r.get(fam % "after", ""),
+                     r.get(fam % "predicted", ""), r.get("orientation_after_deg", ""),
+                     r.get("orientation_predicted_deg", ""), r.get("chi2_per_dof", ""),
+                     len(r.get("warnings", [])), r.get("failure", "")[:90]])
     print_table("corpus on the second simulator (tests/crosssim_chain): task error at held-out targets, "
                 "position mm (orientation deg where the task has angles)",
                 ["model", "seed", "stage", "before", "after", "predicted", "after deg", "predicted deg",
