@@ -9,16 +9,14 @@ parameterisation and loop solver, nothing of pmcal).
   ``benchmarks/corpus_crosssim_bench.py`` runs 5 seeds.
 """
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from pmcal.machines import Machine
 from tests.crosssim_chain.machine import SimMachine
+from tests.test_corpus import CORPUS, MODELS, REFUSED
 
-CORPUS = Path(__file__).parent / "corpus"
-CALIBRATED = ["reachy_mini"]                  # the corpus models pmcal accepts (tests/test_corpus.py REFUSED)
+CALIBRATED = [n for n in MODELS if n not in REFUSED]         # the corpus models pmcal accepts
 
 
 @pytest.mark.parametrize("name", CALIBRATED)
