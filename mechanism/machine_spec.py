@@ -154,6 +154,11 @@ class TableSpec:
     reference: str = "controller"
     max_correction: float = TABLE_MAX_CORRECTION_DEFAULT
     max_correction_step: float = TABLE_MAX_CORRECTION_STEP_DEFAULT
+    #: the axes whose span machine.toml leaves to the default (the largest box inside the workspace the
+    #: nominal machine reaches, ``pmcal.chain.table_box``), and whether ``max_correction`` is left to its
+    #: default (from the error sizes and the machine's sensitivity, ``pmcal.chain.correction_bound``)
+    box_default: tuple[str, ...] = ()
+    max_correction_default: bool = False
 
 
 @dataclass(frozen=True)
@@ -179,7 +184,9 @@ class MachineSpec:
     sigma_mm : tracker noise, 1 sigma per coordinate, mm.
     table_axes : up to 3 task coordinates spanning a compensation table; empty: offline compensation of
         target lists only.
-    home : name of the MJCF keyframe of an assembled configuration (the branch every solve stays on).
+    home : name of the MJCF keyframe of an assembled configuration (the branch every solve stays on), or
+        None: the model's default configuration (``qpos0``, assembled by the twin), when ``[machine] home``
+        is not given and the model has no keyframe ``home``.
     closures : :class:`ClosureSpec` of an over-constrained machine, or None: closures solved exactly (a
         least-squares compromise with equal weights if they conflict).
     legacy : True for the seeded machines' TOML (only ``name``, ``folder``, ``model_path``, ``title``, ``kind``
@@ -202,7 +209,7 @@ class MachineSpec:
     sigma_mm: float = 0.01
     table_axes: tuple[str, ...] = ()
     table: "TableSpec | None" = None
-    home: str = "home"
+    home: str | None = "home"
     closures: ClosureSpec | None = None
     legacy: bool = False
     kind: str = "chain"
@@ -368,7 +375,9 @@ class _Loader:
                                   "closures", "names") + RECORD_SECTIONS)
         self.known(mach, "machine", ("kind", "name", "title", "model", "home"))
         home = self.text(mach, "home", "machine", default="home")
-        if home not in self.names.keyframes:
+        if "home" not in mach and home not in self.names.keyframes:
+            home = None                      # the default configuration (the twin checks that it closes)
+        elif home not in self.names.keyframes:
             raise self.err("machine.home", f"{self.model.name} has no keyframe {home!r} (keyframes: "
                                            f"{', '.join(self.names.keyframes) or 'none'}): add an assembled "
                                            f"<key name=\"{home}\" qpos=...>")
@@ -524,7 +533,9 @@ class _Loader:
         corr = self.number(tab, "max_correction", "table", default=TABLE_MAX_CORRECTION_DEFAULT, positive=True)
         corr_step = self.number(tab, "max_correction_step", "table", default=TABLE_MAX_CORRECTION_STEP_DEFAULT,
                                 positive=True)
-        return TableSpec(tuple(nodes), MappingProxyType(box), step, reference, corr, corr_step)
+        return TableSpec(tuple(nodes), MappingProxyType(box), step, reference, corr, corr_step,
+                         box_default=tuple(a for a in axes if a not in tab),
+                         max_correction_default="max_correction" not in tab)
 
     def table_axes(self, task: TaskSpec) -> tuple[str, ...]:
         tab = self.table("table", required=False)

@@ -25,7 +25,8 @@ class MjcfNames:
     """Names declared by a model file.
 
     joints : joint name -> type (``"hinge"``, ``"slide"``, ``"ball"``, ``"free"``).
-    bodies, sites, keyframes, equalities : declared names, in file order.
+    bodies, sites, keyframes, equalities : declared names, in file order (sites: with the two sites each
+        active body-based closure is converted to, :func:`closure_site_names`).
     """
 
     joints: dict[str, str] = field(default_factory=dict)
@@ -74,6 +75,15 @@ def _default_types(root: ET.Element) -> tuple[dict[str, str | None], dict[str, s
     return types, parent
 
 
+def closure_site_names(equality: str | None, index: int) -> tuple[str, str]:
+    """Names of the two sites that stand for a body-based connect/weld (``pmcal.twin.closures`` adds them
+    on load): ``<equality name>_site1``/``_site2``, or ``closure<index>_site1``/``_site2`` for an unnamed
+    equality, ``index`` its position among the model's equalities (from 0). A user lists them in
+    ``[errors] frames`` like any site."""
+    stem = equality or f"closure{index}"
+    return f"{stem}_site1", f"{stem}_site2"
+
+
 def read_names(path: Path) -> MjcfNames:
     """Joints (with type), bodies, sites and keyframes of the MJCF file ``path`` (see module docstring).
 
@@ -109,8 +119,16 @@ def read_names(path: Path) -> MjcfNames:
 
     for world in root.findall("worldbody"):
         walk(world, "main")
+    index = 0
     for eq in root.findall("equality"):
-        out.equalities += [e.get("name") for e in eq if e.get("name")]
+        for e in eq:
+            if not isinstance(e.tag, str):
+                continue
+            if e.get("name"):
+                out.equalities.append(e.get("name"))
+            if e.tag in ("connect", "weld") and e.get("body1") and e.get("active", "true") != "false":
+                out.sites += list(closure_site_names(e.get("name"), index))      # converted on load
+            index += 1
     for kf in root.findall("keyframe"):
         out.keyframes += [k.get("name") for k in kf.findall("key") if k.get("name")]
     return out

@@ -60,3 +60,29 @@ def position_distance(d: np.ndarray, coordinates: tuple[str, ...]) -> np.ndarray
     d = np.asarray(d, float)
     idx = [i for i, c in enumerate(coordinates) if c in POSITION]
     return np.linalg.norm(d[..., idx], axis=-1) if idx else np.zeros(d.shape[:-1])
+
+
+
+def rms(x) -> float:
+    """Root mean square of errors ``x`` (any shape), in their unit."""
+    return float(np.sqrt(np.mean(np.square(np.asarray(x, float)))))
+
+
+def angle_distance(d: np.ndarray, coordinates: tuple[str, ...]) -> np.ndarray:
+    """Size (...,) deg of task differences ``d`` (..., C) over the angle coordinates among ``coordinates``
+    (:data:`ANGLES`): the Euclidean norm of their differences (for small rotations about x, y, z, the angle
+    of the rotation); 0 for a machine without any."""
+    d = np.asarray(d, float)
+    idx = [i for i, c in enumerate(coordinates) if c in ANGLES]
+    return np.linalg.norm(d[..., idx], axis=-1) if idx else np.zeros(d.shape[:-1])
+
+
+#: the families of task error: name, unit, the coordinates it covers, and the size of a task difference
+FAMILIES = (("position", "mm", POSITION, position_distance), ("orientation", "deg", ANGLES, angle_distance))
+
+
+def error_families(coordinates: tuple[str, ...]) -> list[tuple]:
+    """The entries of :data:`FAMILIES` a machine's task coordinates hold: position (mm) if it has any of
+    :data:`POSITION`, orientation (deg) if any of :data:`ANGLES`; both for a mixed task. Figures of a task's
+    error are given in each (an orientation machine's in deg)."""
+    return [f for f in FAMILIES if any(c in f[2] for c in coordinates)]

@@ -336,6 +336,84 @@ def table_refusal(machine) -> str | None:
             f"of target lists: compensate PARAMS.json --targets TARGETS.csv -o SETPOINTS.csv")
 
 
+#: a default table box keeps the nominal commands at its nodes this fraction of each motor's range away from
+#: the range's ends (room for the calibration's corrections)
+TABLE_RANGE_MARGIN = 0.02
+#: the default correction bound: this many standard deviations of the largest correction that random errors of
+#: machine.toml's sizes call for (linearised at the table's nodes), and at least the fixed default
+CORRECTION_SIGMAS = 5.0
+#: nodes at most at which the default correction bound is evaluated (evenly spread through the grid)
+CORRECTION_NODES = 125
+
+
+def _grid_points(box: Mapping[str, tuple[float, float]], axes, nodes) -> np.ndarray:
+    """The nodes (N, axes) of a grid over ``box`` (axis -> (lo, hi)), ``nodes`` per axis, first axis slowest."""
+    lines = [np.linspace(*box[a], n) for a, n in zip(axes, nodes)]
+    return np.stack([g.ravel() for g in np.meshgrid(*lines, indexing="ij")], axis=1)
+
+
+def table_box(machine, nodes) -> dict[str, tuple[float, float]]:
+    """The span of each ``[table]`` axis: machine.toml's where it gives one; for the others (the default) the
+    workspace box shrunk about its centre by the largest factor (bisection, to 1 %) at which the nominal
+    machine reaches every node of the grid with its commands inside the motor ranges less
+    :data:`TABLE_RANGE_MARGIN` (a real machine does not reach the workspace box's corners). InputError naming
+    machine.toml when not even a small box about the centre is reachable."""
+    spec = machine.spec
+    grid = spec.table
+    box = {a: tuple(grid.box[a]) for a in spec.table_axes}
+    if not grid.box_default:
+        return box
+    order = [spec.table_axes.index(c) for c in spec.task.coordinates]
+    rng = np.array([m.range for m in spec.motors], float)
+    lo, hi = rng[:, 0] + TABLE_RANGE_MARGIN * np.ptp(rng, axis=1), rng[:, 1] - TABLE_RANGE_MARGIN * np.ptp(rng, axis=1)
+
+    def scaled(f: float) -> dict[str, tuple[float, float]]:
+        out = dict(box)
+        for a in grid.box_default:
+            c, h = (box[a][0] + box[a][1]) / 2, (box[a][1] - box[a][0]) / 2
+            out[a] = (c - f * h, c + f * h)
+        return out
+
+    def reached(f: float) -> bool:
+        task = _grid_points(scaled(f), spec.table_axes, nodes)[:, order]
+        cmd = machine.twin.inverse(task, None)
+        return bool(np.all(np.isfinite(cmd)) and np.all((cmd >= lo) & (cmd <= hi)))
+
+    if reached(1.0):
+        return box
+    progress.status("compensation table: the workspace box's corners are out of reach; finding the largest "
+                    "reachable box about its centre")
+    good, bad = 0.0, 1.0
+    while bad - good > 0.01:
+        mid = (good + bad) / 2
+        good, bad = (mid, bad) if reached(mid) else (good, mid)
+    if good == 0.0:
+        raise InputError(f"no table box about the workspace's centre is reachable by the nominal machine with its "
+                         f"commands inside the motor ranges; give the table's span ({', '.join(grid.box_default)}"
+                         f" = [lo, hi]) in [table]", file=str(spec.folder / "machine.toml"), field="table")
+    return scaled(good)
+
+
+def correction_bound(machine, nominal_commands: np.ndarray) -> float:
+    """The largest correction a table accepts (deg or mm, every motor): ``[table] max_correction`` when
+    machine.toml gives it; by default :data:`CORRECTION_SIGMAS` standard deviations of the correction that
+    random errors of the ``[errors]`` sizes call for, at most :data:`CORRECTION_NODES` of the nodes
+    (commands ``nominal_commands`` (N, M)), linearised: ``dm = -(dy/dm)^+ dy/dp p`` with ``dy/dm`` the task's
+    derivative by the motor zero offsets (which move a joint as its command does); at least the fixed default
+    and at most the PLC's ``CORRECTION_ABS_MAX``. Without motor zero offsets among the errors: the fixed
+    default."""
+    grid, twin = machine.spec.table, machine.twin
+    zeros = [f"{m.name}.dzero" for m in machine.spec.motors]
+    if not grid.max_correction_default or not set(zeros) <= set(twin.error_keys):
+        return grid.max_correction
+    pick = np.unique(np.linspace(0, len(nominal_commands) - 1, CORRECTION_NODES).astype(int))
+    cmd = nominal_commands[pick]
+    Jm = twin.task_jacobian(cmd, None, zeros)                               # (n, C, M) per motor unit
+    Jp = twin.task_jacobian(cmd, None) * twin.prior_std()                   # (n, C, P) per prior sigma
+    sigma = np.sqrt(np.sum((np.linalg.pinv(Jm) @ Jp) ** 2, axis=-1))        # (n, M)
+    return float(min(CORRECTION_ABS_MAX, max(grid.max_correction, CORRECTION_SIGMAS * np.nanmax(sigma))))
+
+
 def compensation_table(machine, params: Mapping[str, float], version: int, nodes=None, absolute: bool | None = None):
     """The compensation table (format 4) of a machine folder: a grid over its ``[table]`` axes (``[table]
     nodes`` per axis, or ``nodes``; the box of ``[table]`` or the workspace).
@@ -357,11 +435,13 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
         raise InputError(why, field="--table")
     spec = machine.spec
     grid = spec.table
+    toml = str(spec.folder / "machine.toml")
     nodes = tuple(int(n) for n in (nodes or grid.nodes))
     if len(nodes) != len(spec.table_axes) or min(nodes) < 2:
         raise InputError(f"expected {len(spec.table_axes)} node counts >= 2 (one per table axis "
                          f"{', '.join(spec.table_axes)}), got {','.join(map(str, nodes))}", field="--grid")
-    axes = [Axis.of_column(a, *grid.box[a], n) for a, n in zip(spec.table_axes, nodes)]
+    box = table_box(machine, nodes)
+    axes = [Axis.of_column(a, *box[a], n) for a, n in zip(spec.table_axes, nodes)]
     motors = [Motor(m.name, m.unit, m.range[0], m.range[1], grid.max_step) for m in spec.motors]
     order = [spec.table_axes.index(c) for c in spec.task.coordinates]
     coords = spec.task.coordinates
@@ -375,8 +455,8 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
         ok = np.isfinite(commands).all(axis=1) & np.all((commands >= lo) & (commands <= hi), axis=1)
         for i in np.flatnonzero(~ok)[:1]:
             where = ", ".join(f"{c}={v:g}" for c, v in zip(coords, task[i]))
-            raise InputError(f"table node {where} is not reachable by the identified machine within its motor "
-                             "ranges; shrink the table box ([table] in machine.toml)", row=int(i) + 1, field="grid")
+            raise InputError(f"table node {int(i) + 1} ({where}) is not reachable by the identified machine within "
+                             "its motor ranges; shrink the table box", file=toml, field="table")
         return commands
 
     table = CompTable.from_grid(fill, machine=spec.name, version=int(version), axes=axes, motors=motors)
@@ -396,19 +476,20 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
         commands = machine.twin.inverse(task, None)
         for i in np.flatnonzero(~np.isfinite(commands).all(axis=1))[:1]:
             where = ", ".join(f"{c}={v:g}" for c, v in zip(coords, task[i]))
-            raise InputError(f"table node {where} is not reachable by the nominal machine (the controller's "
-                             "inverse kinematics): no correction to it; shrink the table box ([table] in "
-                             "machine.toml)", row=int(i) + 1, field="grid")
+            raise InputError(f"table node {int(i) + 1} ({where}) is not reachable by the nominal machine (the "
+                             "controller's inverse kinematics): no correction to it; shrink the table box",
+                             file=toml, field="table")
         return commands
 
-    c, step = grid.max_correction, grid.max_correction_step
+    m_nominal = nominal(table.nodes().reshape(-1, len(axes)))
+    c, step = correction_bound(machine, m_nominal), grid.max_correction_step
     bounds = [Motor(m.name, m.unit, -c, c, step) for m in motors]
     corrections = CompTable(machine=spec.name, version=int(version), axes=table.axes, motors=bounds,
-                            values=table.values - nominal(table.nodes().reshape(-1, len(axes))).reshape(
-                                table.values.shape), reference=CONTROLLER)
+                            values=table.values - m_nominal.reshape(table.values.shape), reference=CONTROLLER)
     try:
         return corrections.validate()
     except InputError as exc:
-        raise InputError(f"{exc.message}; the calibration moves this node further than [table] max_correction "
-                         f"{c:g} / max_correction_step {step:g} allow: check the calibration, or raise them in "
-                         "machine.toml", row=exc.row, field=exc.field) from None
+        raise InputError(f"{exc.message}{'' if exc.row is None else f' (table node {exc.row})'}; the calibration "
+                         f"moves this node further than [table] max_correction {c:g} / max_correction_step "
+                         f"{step:g} allow: check the calibration, or raise them", file=toml,
+                         field="table") from None

@@ -150,8 +150,10 @@ def _frames(twin, spec, params: dict):
     m = twin.model
     shift = twin.errors.zero_offset * twin.motor_unit                  # SI, per motor
     qpos[twin.motor_qadr] -= shift
-    key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, spec.home)
     refs = {mot.joint: float(m.qpos0[a] - d) for mot, a, d in zip(spec.motors, twin.motor_qadr, shift) if d}
+    if spec.home is None:                       # the default configuration: written as a 'home' keyframe
+        return m, dict(joint_ref=refs, keyframe=("home", qpos, np.zeros(m.nu)))
+    key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, spec.home)
     return m, dict(joint_ref=refs, keyframe=(spec.home, qpos, m.key_ctrl[key].copy()))
 
 
@@ -198,10 +200,12 @@ def export_model(params_path: str | Path, output: str | Path, machine="ocpm_2dof
         Parameters JSON of ``pmcal identify`` (or ``params.json`` of ``diagnose --report``, which adds the
         named effects), of ``machine``.
     output : path
-        MJCF file to write (self-contained: the machines' models include no other file).
+        MJCF file to write. Mesh and texture files stay where they are: their paths are rewritten relative to
+        the output's folder (``compiler meshdir``/``texturedir``/``assetdir`` honoured); a missing asset or
+        an ``<include>`` is an InputError (exit 2).
     machine : {"ocpm_2dof", "planar_2dof"} or :class:`pmcal.machines.Machine`
         The seeded machines by name; any machine folder as its ``Machine`` (its MJCF must include no
-        other file).
+        other MJCF file).
 
     Returns
     -------
@@ -244,9 +248,9 @@ def export_model(params_path: str | Path, output: str | Path, machine="ocpm_2dof
     header += [f" Effect {n} = {effects[n]['value']} {effects[n]['unit']}: not representable in MJCF; listed in "
                f"{Path(output).with_suffix('.toml').name}." for n in not_in]
     try:
-        text = calibrated_xml(template, model, header=header, **edits)
+        text = calibrated_xml(template, model, header=header, output=output, **edits)
     except ValueError as exc:
-        raise RunError(str(exc)) from None
+        raise InputError(str(exc)) from None
     nominal = _retarget_model(toml_path.read_text(encoding="utf-8"), Path(output).name)
     extra = {"calibration": {"source": params_path, "written": stamp, "mjcf": Path(output).name,
                              **{k: v for k, v in facts.items() if k != "machine"}},

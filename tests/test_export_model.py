@@ -7,6 +7,7 @@ the closed-form forward kinematics of the perturbed geometry, eq. 5-8 of the pap
 """
 
 import json
+from pathlib import Path
 import tomllib
 
 import mujoco
@@ -152,7 +153,17 @@ def test_export_refuses_the_paper_model(tmp_path, capsys):
 
 
 # ---------------------------------------------------------------- a machine folder's calibrated model
-@pytest.mark.parametrize("name", ["delta_3dof", "hexapod_6dof"])
+CORPUS = Path(__file__).parent / "corpus"
+
+
+def _source(name: str) -> Path:
+    """The folder of a built-in machine or of a corpus model (tests/corpus)."""
+    from pmcal.mjcf import machine_dir
+
+    return CORPUS / name if (CORPUS / name).is_dir() else machine_dir(name)
+
+
+@pytest.mark.parametrize("name", ["delta_3dof", "hexapod_6dof", "reachy_mini"])
 def test_folder_machine_export_is_the_identified_machine(name, tmp_path, capsys):
     """``pmcal --machine DIR export-model`` on a copy of a folder machine (its MJCF places bodies and sites
     in ``<frame>`` elements; the hexapod's motors are prismatic): with random errors on every frame and
@@ -164,10 +175,9 @@ def test_folder_machine_export_is_the_identified_machine(name, tmp_path, capsys)
 
     from pmcal.chain import random_errors
     from pmcal.machines import Machine
-    from pmcal.mjcf import machine_dir
 
     folder = tmp_path / f"my_{name}"
-    shutil.copytree(machine_dir(name), folder)
+    shutil.copytree(_source(name), folder)
     mach = Machine.from_folder(folder)
     rng = np.random.default_rng(11)
     truth = random_errors(mach, rng)
@@ -195,3 +205,46 @@ def test_folder_machine_export_is_the_identified_machine(name, tmp_path, capsys)
     again = Machine.from_folder(out.parent)
     fresh = twin.sample_commands(12, rng)
     assert np.abs(again.twin.targets(fresh, None) - twin.targets(fresh, truth)).max() < 1e-6    # mm
+
+
+def _tetrahedron_stl(path: Path, size_m: float = 0.01) -> None:
+    """A binary STL file of a tetrahedron (4 facets), written without pmcal."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32) * size_m
+    faces = [(0, 2, 1), (0, 1, 3), (0, 3, 2), (1, 2, 3)]
+    rec = np.zeros(4, dtype=[("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+    for i, f in enumerate(faces):
+        rec["v"][i] = v[list(f)]
+    path.write_bytes(b"\0" * 80 + np.uint32(4).tobytes() + rec.tobytes())
+
+
+def test_export_keeps_mesh_files_of_a_cad_model(tmp_path, capsys):
+    """A CAD export's meshes (``compiler meshdir``, a mesh geom on the moving platform): the calibrated MJCF
+    written into another folder loads in MuJoCo and draws the same mesh files (paths rewritten relative to
+    the output); a missing mesh file is one error line naming it, exit 2, and nothing written."""
+    import shutil
+
+    folder = tmp_path / "cad"
+    shutil.copytree(CORPUS / "reachy_mini", folder)
+    (folder / "assets").mkdir()
+    _tetrahedron_stl(folder / "assets" / "plate.stl")
+    xml = folder / "reachy_mini.xml"
+    text = xml.read_text()
+    assert 'meshdir="assets"' in text
+    text = text.replace("<asset>", '<asset>\n    <mesh name="plate" file="plate.stl"/>', 1)
+    text = text.replace('<site name="nest1"', '<geom type="mesh" mesh="plate" contype="0" conaffinity="0" '
+                                              'mass="0"/>\n              <site name="nest1"', 1)
+    xml.write_text(text)
+    (tmp_path / "p.json").write_text(json.dumps({"mechanism": "reachy_mini", "params": {"xl_330.dx": 0.05}}))
+    out = tmp_path / "elsewhere" / "calibrated.xml"
+    out.parent.mkdir()
+    assert main(["--quiet", "--machine", str(folder), "export-model", str(tmp_path / "p.json"), "-o", str(out)]) == 0
+    m = mujoco.MjModel.from_xml_path(str(out))
+    assert m.nmesh == 1 and m.mesh_vertnum[0] == 4
+    assert "meshdir" not in out.read_text() and "../cad/assets/plate.stl" in out.read_text()
+
+    (folder / "assets" / "plate.stl").unlink()
+    out2 = tmp_path / "elsewhere" / "again.xml"
+    assert main(["--machine", str(folder), "export-model", str(tmp_path / "p.json"), "-o", str(out2)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "plate.stl" in err[0] and "reachy_mini.xml" in err[0]
+    assert not out2.exists() and not out2.with_suffix(".toml").exists()

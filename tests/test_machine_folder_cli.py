@@ -330,7 +330,7 @@ def test_a_delta_table_holds_corrections_to_the_controllers_ik(capsys, delta, tm
     try:
         table_key("max_correction", "0.1")
         line = one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table",
-                              tmp_path / "x.json", *grid, says=["row 1", "dm1_deg", "max_correction 0.1"])
+                              tmp_path / "x.json", *grid, says=["table node 1", "dm1_deg", "max_correction 0.1", "machine.toml"])
         assert "correction bounds" in line and not (tmp_path / "x.json").exists()
         table_key("max_correction", "6")
         one_line_error(capsys, "--machine", folder, "compensate", tmp_path / "p.json", "--table", tmp_path / "x.json",

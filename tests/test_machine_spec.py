@@ -3,6 +3,7 @@
 import re
 import shutil
 
+import numpy as np
 import pytest
 
 from pmcal.errors import InputError
@@ -127,3 +128,24 @@ def test_seeded_machine_described_as_data():
     spec = MachineSpec.load(machine_dir("ocpm_2dof") / "chain")
     assert not spec.legacy and spec.name == "ocpm_2dof" and spec.model_path.name == "ocpm_2dof.xml"
     assert spec.task.coordinates == ("phi_deg", "theta_deg") and spec.closures.joint_springs
+
+
+def test_home_defaults_to_the_default_configuration_without_a_home_keyframe(folder):
+    """No ``[machine] home`` and no ``home`` keyframe: the default configuration (``spec.home`` None; the twin
+    closes it, tests/test_corpus.py). Naming a keyframe that does not exist stays an error; so does a default
+    configuration that does not close (the Delta's platform body moved 50 mm below where its rods end)."""
+    xml = folder / "delta_3dof.xml"
+    xml.write_text(re.sub(r"<keyframe>.*?</keyframe>", "", xml.read_text(), flags=re.S))
+    with pytest.raises(InputError, match="no keyframe 'home'"):
+        MachineSpec.load(folder)                            # machine.toml names it
+    toml = folder / "machine.toml"
+    toml.write_text(re.sub(r"^home = .*\n", "", toml.read_text(), flags=re.M))
+    spec = MachineSpec.load(folder)
+    assert spec.home is None
+    from pmcal.twin.closed_chain import ClosedChainTwin
+
+    assert np.isfinite(ClosedChainTwin(spec).home_qpos).all()             # the Delta's qpos0 is assembled
+    xml.write_text(xml.read_text().replace('<body name="platform" childclass="delta_3dof" pos="0 0 -0.6323765">',
+                                           '<body name="platform" childclass="delta_3dof" pos="0 0 -0.6823765">'))
+    with pytest.raises(InputError, match=r"default configuration does not close its loops \(gap 50"):
+        ClosedChainTwin(MachineSpec.load(folder))

@@ -150,8 +150,8 @@ class ClosedChainTwin:
         self._read_motors()
         self._read_closures()
         self._read_sites()
-        key = mujoco.mj_name2id(m, _OBJ.mjOBJ_KEY, spec.home)
-        self.home_qpos = m.key_qpos[key].copy()
+        self.home_qpos = self._read_home()
+        self._check_mobility()
         # Under frames = "all" the closure sites carry errors; the tracker nests do not (they define the
         # moving frames they sit on: their coordinates there come from a CMM or the drawing), nor does the
         # task site unless it closes a loop (it is not measured).
@@ -176,6 +176,61 @@ class ClosedChainTwin:
         self.redundant_directions = D
         if len(D) and not self.spec.closures:
             self._keep = np.eye(self.n_equations) - D.T @ D
+
+    #: Closure residual (m) up to which the model's default configuration counts as closed when there is no
+    #: ``home`` keyframe (a CAD export's rounding: 1e-7 m on Reachy Mini); it is then assembled exactly.
+    HOME_TOL_M = 1e-5
+
+    def _read_home(self) -> np.ndarray:
+        """The configuration every solve starts from (nq,): the ``home`` keyframe, or without one the model's
+        default configuration ``qpos0`` (a CAD export's assembled pose) closed by Newton with the motors held;
+        InputError naming the model when it is not within :data:`HOME_TOL_M` of closing."""
+        m = self.model
+        if self.spec.home is not None:
+            return m.key_qpos[mujoco.mj_name2id(m, _OBJ.mjOBJ_KEY, self.spec.home)].copy()
+        q0 = m.qpos0.copy()
+        jp, jr = self._kin(q0, closure_only=True)
+        gap = float(np.max(np.abs(self._closure(jp, jr, with_jac=False)[0][:self.n_equations] / self._sqrt_w)))
+        q, ok = self._newton(q0)
+        if gap > self.HOME_TOL_M or not ok:
+            raise InputError(f"no 'home' keyframe and the model's default configuration does not close its "
+                             f"loops (gap {gap * 1e3:.3g} mm): add an assembled <key name=\"home\" qpos=...> "
+                             f"(docs/machine_toml.md)", file=self._file, field="keyframe")
+        return q
+
+    #: Relative size (of the largest singular value) below which a direction of the passive dofs counts as
+    #: free of the closures, and motion (m per unit, of the nests or the task site) above which it matters.
+    FREE_RTOL, FREE_MOVES_M = 1e-9, 1e-9
+
+    def _check_mobility(self) -> None:
+        """InputError naming the joints when, at ``home``, the closures leave a direction of the passive dofs
+        free that moves the tracker nests or the task site: an actuated joint missing from ``[[motors]]``.
+        Free directions that move neither (a ball-ball rod's spin about its axis, an unactuated side chain
+        such as an antenna or a gripper finger) are allowed: every solve leaves them where they are."""
+        jp, jr = self._kin(self.home_qpos)
+        _, C = self._closure(jp, jr)
+        Cp = C[:, self.passive]
+        _, sv, vt = np.linalg.svd(Cp, full_matrices=True)
+        rank = int(np.sum(sv > self.FREE_RTOL * max(sv.max(initial=0.0), 1e-30)))
+        free = vt[rank:].T                                              # (npassive, nfree)
+        if not free.size:
+            return
+        seen = np.concatenate([np.arange(self._n_closure_points, len(self.points))])
+        moves = np.concatenate([jp[seen][..., self.passive], jr[seen][..., self.passive]]).reshape(-1, len(self.passive))
+        motion = moves @ free                                            # (rows, nfree)
+        if np.max(np.abs(motion), initial=0.0) <= self.FREE_MOVES_M:
+            return
+        u, _, _ = np.linalg.svd(motion.T @ motion)
+        direction = free @ u[:, 0]                                       # the free direction that moves most
+        dof = self.passive[np.argsort(-np.abs(direction))]
+        jnt = self.model.dof_jntid[dof]
+        names = list(dict.fromkeys(mujoco.mj_id2name(self.model, _OBJ.mjOBJ_JOINT, int(j)) or f"joint {j}"
+                                   for j in jnt[:3]))
+        raise InputError(f"the loops leave joint {names[0]} free and it moves the tracker nests or the task site "
+                         f"(with {', '.join(names[1:]) or 'no other joint'}): list it under [[motors]] if it is "
+                         f"actuated, or close the loop that should hold it", file=str(self.spec.folder /
+                                                                                        "machine.toml"),
+                         field="motors")
 
     def _read_task_frame(self) -> None:
         """World pose (m, rotation matrix) of the frame task coordinates are written in: ``[task] frame``, a
@@ -219,15 +274,18 @@ class ClosedChainTwin:
 
     def _read_closures(self) -> None:
         m = self.model
-        out = []
+        out, couplings = [], []
         for e in range(m.neq):
             name = mujoco.mj_id2name(m, _OBJ.mjOBJ_EQUALITY, e) or f"equality {e}"
             if not m.eq_active0[e]:
                 continue
             kind = int(m.eq_type[e])
+            if kind == _EQ.mjEQ_JOINT:
+                couplings.append(e)
+                continue
             if kind not in (_EQ.mjEQ_CONNECT, _EQ.mjEQ_WELD):
-                raise InputError("only connect and weld equalities can close loops (make other equalities "
-                                 "inactive, active=\"false\")", file=self._file, field=name)
+                raise InputError("only connect, weld and joint equalities can close loops (make other "
+                                 "equalities inactive, active=\"false\")", file=self._file, field=name)
             if int(m.eq_objtype[e]) != _OBJ.mjOBJ_SITE:      # body-based ones are converted on load
                 raise InputError("a loop closure must join two sites or two bodies", file=self._file, field=name)
             out.append(Closure(name, int(m.eq_obj1id[e]), int(m.eq_obj2id[e]), kind == _EQ.mjEQ_WELD))
@@ -237,6 +295,42 @@ class ClosedChainTwin:
         self.closures = tuple(out)
         self.n_equations = sum(6 if c.weld else 3 for c in out)
         self._read_compliance()
+        self._read_couplings(couplings)
+
+    def _read_couplings(self, eqs: list[int]) -> None:
+        """Joint equalities ``eqs`` (a gripper's two drivers moved as one): rows ``q1 - q1_0 - poly(q2 - q2_0)``
+        (rad or m; MuJoCo's ``polycoef``, ``q_0`` the model's ``qpos0``), with the passive joint springs in
+        :meth:`_joint_rows`."""
+        m = self.model
+        j1 = m.eq_obj1id[eqs].astype(int)
+        j2 = m.eq_obj2id[eqs].astype(int)
+        self._cpl_q1, self._cpl_d1 = m.jnt_qposadr[j1].astype(int), m.jnt_dofadr[j1].astype(int)
+        has2 = j2 >= 0
+        j2 = np.where(has2, j2, j1)
+        self._cpl_q2, self._cpl_d2 = m.jnt_qposadr[j2].astype(int), m.jnt_dofadr[j2].astype(int)
+        self._cpl_has2 = has2
+        self._cpl_ref1, self._cpl_ref2 = m.qpos0[self._cpl_q1].copy(), m.qpos0[self._cpl_q2].copy()
+        self._cpl_poly = m.eq_data[eqs, :5].copy()
+
+    def _joint_rows(self, qpos: np.ndarray, with_jac: bool = True):
+        """Rows on joint coordinates of A configurations ``qpos`` (A, nq): the passive joint springs
+        ``sqrt(k_j) (q_j - ref_j)`` and the joint equalities (:meth:`_read_couplings`), with their Jacobians
+        (A, rows, nv) (None without ``with_jac``). They do not depend on the frame errors."""
+        A, nv = len(qpos), self.model.nv
+        ns, nc = len(self._spring_dof), len(self._cpl_q1)
+        r = np.zeros((A, ns + nc))
+        J = np.zeros((A, ns + nc, nv)) if with_jac else None
+        r[:, :ns] = self._spring_sqrt_k * (qpos[:, self._spring_qadr] - self._spring_ref)
+        x = np.where(self._cpl_has2, qpos[:, self._cpl_q2] - self._cpl_ref2, 0.0)          # (A, nc)
+        powers = x[..., None] ** np.arange(5)                                              # (A, nc, 5)
+        r[:, ns:] = qpos[:, self._cpl_q1] - self._cpl_ref1 - np.einsum("ack,ck->ac", powers, self._cpl_poly)
+        if with_jac:
+            J[:, np.arange(ns), self._spring_dof] = self._spring_sqrt_k
+            rows = ns + np.arange(nc)
+            J[:, rows, self._cpl_d1] = 1.0
+            slope = np.einsum("ack,ck->ac", powers[..., :4], self._cpl_poly[:, 1:] * np.arange(1, 5))
+            J[:, rows, self._cpl_d2] -= np.where(self._cpl_has2, slope, 0.0)
+        return r, J
 
     def _read_compliance(self) -> None:
         """Row weights of the closure equations (sqrt of the stiffness, N/m) and the passive joint springs
@@ -352,13 +446,11 @@ class ClosedChainTwin:
             J.append((jr[:, w1] - jr[:, w2]).reshape(A, -1, nv))
         r = self._project(r * self._sqrt_w)
         J = self._project(np.concatenate(J, axis=1) * self._sqrt_w[:, None]) if with_jac else None
-        if len(self._spring_dof):
-            ns = len(self._spring_dof)
-            r = np.concatenate([r, self._spring_sqrt_k * (qpos[:, self._spring_qadr] - self._spring_ref)], axis=1)
+        if len(self._spring_dof) or len(self._cpl_q1):
+            rj, Jj = self._joint_rows(qpos, with_jac)
+            r = np.concatenate([r, rj], axis=1)
             if with_jac:
-                Js = np.zeros((A, ns, nv))
-                Js[:, np.arange(ns), self._spring_dof] = self._spring_sqrt_k
-                J = np.concatenate([J, Js], axis=1)
+                J = np.concatenate([J, Jj], axis=1)
         return r, J
 
     def _gaps(self, sp: np.ndarray, sm: np.ndarray | None) -> np.ndarray:
@@ -713,11 +805,12 @@ class ClosedChainTwin:
                              dW[:, self._c1[self._weld]] - dW[:, self._c2[self._weld]]],
                             axis=1).reshape(N, -1, len(keys))
         C, Ce = self._project(C * self._sqrt_w[:, None]), self._project(Ce * self._sqrt_w[:, None])   # weights
-        if len(self._spring_dof):                                          # passive joint springs
-            ns = len(self._spring_dof)
-            Cs = np.zeros((N, ns, nv))
-            Cs[:, np.arange(ns), self._spring_dof] = self._spring_sqrt_k
-            C, Ce = np.concatenate([C, Cs], axis=1), np.concatenate([Ce, np.zeros((N, ns, len(keys)))], axis=1)
+        if len(self._spring_dof) or len(self._cpl_q1):                    # joint springs and equalities
+            Cs = np.zeros((N, len(self._spring_dof) + len(self._cpl_q1), nv))
+            ok = np.isfinite(kin.qpos).all(axis=1)
+            Cs[ok] = self._joint_rows(kin.qpos[ok])[1]
+            C, Ce = np.concatenate([C, Cs], axis=1), np.concatenate([Ce, np.zeros(Cs.shape[:2] + (len(keys),))],
+                                                                    axis=1)
         dpos = np.full(dP.shape, np.nan)
         drot = np.full(dW.shape, np.nan)
         ok = np.isfinite(kin.qpos).all(axis=1)

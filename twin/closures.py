@@ -26,15 +26,17 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from pmcal.mechanism.mjcf_names import closure_site_names as site_names
+
 _OBJ = mujoco.mjtObj
 _EQ = mujoco.mjtEq
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 
 
 def closure_site_names(model: mujoco.MjModel, e: int) -> tuple[str, str]:
-    """Names of the two sites that stand for the body-based closure ``e``."""
-    stem = mujoco.mj_id2name(model, _OBJ.mjOBJ_EQUALITY, e) or f"closure{e}"
-    return f"{stem}_site1", f"{stem}_site2"
+    """Names of the two sites that stand for the body-based closure ``e``
+    (:func:`pmcal.mechanism.mjcf_names.closure_site_names`)."""
+    return site_names(mujoco.mj_id2name(model, _OBJ.mjOBJ_EQUALITY, e), e)
 
 
 def body_closures(model: mujoco.MjModel) -> list[int]:

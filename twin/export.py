@@ -18,6 +18,7 @@ lengths; ``ref`` converted to the template's ``compiler angle``). Visual geoms k
 from __future__ import annotations
 
 import math
+import os
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -40,12 +41,48 @@ def _parse(path: Path) -> ET.ElementTree:
     return ET.parse(str(path), parser)
 
 
-def check_self_contained(root: ET.Element, path: Path) -> None:
-    """The exported file stands alone: the template must not include files or load file assets."""
+#: asset elements whose ``file`` MuJoCo resolves against ``compiler meshdir`` (else ``assetdir``), and
+#: those it resolves against ``texturedir`` (else ``assetdir``)
+MESH_ASSETS, TEXTURE_ASSETS = ("mesh", "hfield", "skin"), ("texture",)
+#: ``compiler`` attributes that locate asset files; the exported file writes each path in full instead
+ASSET_DIRS = ("meshdir", "texturedir", "assetdir")
+#: texture attributes that name files besides ``file`` (cube and skybox faces)
+TEXTURE_FILES = ("fileright", "fileleft", "fileup", "filedown", "filefront", "fileback")
+
+
+def relocate_assets(root: ET.Element, path: Path, output: Path) -> None:
+    """Rewrite, in the MJCF document ``root`` read from ``path``, every asset file path (meshes, textures,
+    height fields, skins; ``compiler meshdir``/``texturedir``/``assetdir`` honoured, as MuJoCo resolves
+    them) relative to the folder of ``output``, where the document will be written, and drop those compiler
+    directories: the exported model loads the machine's own mesh files wherever it is written. ValueError
+    naming the element and the file when an asset is missing or the template includes other MJCF files
+    (their bodies would not carry the calibration)."""
+    comp = root.find("compiler")
+    dirs = {k: (comp.get(k) if comp is not None else None) for k in ASSET_DIRS}
+    here = path.resolve().parent
+    target = output.resolve().parent
+
+    def base(kind: str) -> Path:
+        d = dirs["texturedir" if kind in TEXTURE_ASSETS else "meshdir"] or dirs["assetdir"] or ""
+        return here / d
+
     for el in root.iter():
-        if el.tag == "include" or "file" in el.attrib or any(k.startswith("file") for k in el.attrib):
-            raise ValueError(f"{path}: <{el.tag}> refers to a file; the exporter writes self-contained models "
-                             "only (copy the included files beside the output)")
+        if el.tag == "include":
+            raise ValueError(f"{path}: <include file={el.get('file')!r}> : the exporter writes the calibrated "
+                             "frames into one file; merge the included MJCF into the model first")
+        names = [a for a in ("file",) + TEXTURE_FILES if a in el.attrib]
+        if not names:
+            continue
+        if el.tag not in MESH_ASSETS + TEXTURE_ASSETS:
+            raise ValueError(f"{path}: <{el.tag} file=...> is not an asset the exporter can relocate")
+        for a in names:
+            src = base(el.tag) / el.get(a)
+            if not src.is_file():
+                raise ValueError(f"{path}: <{el.tag} {a}={el.get(a)!r}>: file not found: {src}")
+            el.set(a, Path(os.path.relpath(src.resolve(), target)).as_posix())
+    if comp is not None:
+        for k in ASSET_DIRS:
+            comp.attrib.pop(k, None)
 
 
 def _angle_scale(root: ET.Element) -> float:
@@ -59,7 +96,7 @@ def calibrated_xml(template: str | Path, model: mujoco.MjModel, *, header: list[
                    joint_ref: dict[str, float] | None = None, actuator_kp: dict[str, float] | None = None,
                    joint_stiffness: dict[str, float] | None = None, keyframe: tuple[str, np.ndarray, np.ndarray] | None = None,
                    custom: dict[str, list[float]] | None = None, option: dict[str, str] | None = None,
-                   equality_active: dict[str, bool] | None = None) -> str:
+                   equality_active: dict[str, bool] | None = None, output: str | Path | None = None) -> str:
     """MJCF text of ``template`` with ``model``'s body, site and joint frames written in.
 
     Parameters
@@ -84,6 +121,9 @@ def calibrated_xml(template: str | Path, model: mujoco.MjModel, *, header: list[
         Attributes of ``<option>`` (e.g. ``integrator``, ``timestep``).
     equality_active : dict, optional
         Equality constraint name -> active.
+    output : path, optional
+        Where the document will be written: asset file paths (meshes, textures) are rewritten relative to its
+        folder (:func:`relocate_assets`). Default: the template's folder.
 
     Returns
     -------
@@ -98,7 +138,7 @@ def calibrated_xml(template: str | Path, model: mujoco.MjModel, *, header: list[
     path = Path(template)
     tree = _parse(path)
     root = tree.getroot()
-    check_self_contained(root, path)
+    relocate_assets(root, path, Path(output) if output is not None else path)
     obj = mujoco.mjtObj
 
     def ident(kind, name):

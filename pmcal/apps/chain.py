@@ -96,8 +96,8 @@ def option_help(machine) -> dict:
     table.update({
         ("twin render", "--pose"): {
             "metavar": ",".join(spec.task.coordinates), "default": None,
-            "help": f"task pose ({task}; mm, deg) the twin reaches by inverse kinematics (default: the "
-                    f"'{spec.home}' keyframe)"},
+            "help": f"task pose ({task}; mm, deg) the twin reaches by inverse kinematics (default: "
+                    + (f"the '{spec.home}' keyframe)" if spec.home else "the model's default configuration)")},
         ("twin render", "--errors"): "error set of the real machine: a parameters file (default none)",
         ("diagnose", ""): "what the geometric model leaves in a campaign: backlash, zero drift, frame drift, "
                           "thermal expansion named only when they hold on held-out rows, else unexplained",

@@ -1,5 +1,5 @@
-"""Twin in the loop for a machine folder (``pmcal --machine DIR loop``): the task site's position error
-before and after a compensation table is pushed to a mock PLC, as :mod:`pmcal.apps.plc_loop` does for
+"""Twin in the loop for a machine folder (``pmcal --machine DIR loop``): the task site's error (position
+in mm, orientation in deg, both for a mixed task) before and after a compensation table is pushed to a mock PLC, as :mod:`pmcal.apps.plc_loop` does for
 ocpm_2dof's pointing error.
 
 1. The folder's twin with geometric errors plays the real machine: each error drawn normal with the size
@@ -18,7 +18,8 @@ ocpm_2dof's pointing error.
 5. The identified table is pushed through the bridge (:func:`pmcal.bridge.transfer.push`), the same targets
    measured again; and the identified machine's own inverse kinematics (no table) for comparison.
 
-Units: mm and degrees; errors are distances of the task site from its target over the position coordinates.
+Units: mm and degrees; errors are, per family of the task's coordinates, the distance of the task site from its
+target over the position coordinates (mm) and the norm of its angle differences (deg).
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from pmcal.bridge.plc_types import LOOKUP_WRITES
 from pmcal.bridge.transfer import PushReport, push
 from pmcal.chain import campaign, compensate, compensation_table, identify, plan, random_errors, table_refusal
 from pmcal.errors import InputError, RunError
-from pmcal.mechanism.task_space import position_distance, task_difference
+from pmcal.mechanism.task_space import error_families, task_difference
 from pmcal.studies.chain_demo import CAMPAIGN_POSES
 
 #: version of the identified table pushed over the nominal one
@@ -117,31 +118,49 @@ def grid_targets(machine, table: CompTable, count: int, rng: np.random.Generator
 
 
 @dataclass
-class PositionError:
-    """Distances (n,) mm of the task site from its targets: as the tracker measures them (the twin's true
-    ones for a machine whose tracker reading does not fix the task site), and true; the commands driven."""
+class TaskError:
+    """Sizes (n,) of the task site's errors from its targets, per error family of the task (unit -> array:
+    ``"mm"`` position, ``"deg"`` orientation, :func:`pmcal.mechanism.task_space.error_families`): as the
+    tracker measures them (the twin's true ones for a machine whose tracker reading does not fix the task
+    site), and true; the commands driven."""
 
-    measured_mm: np.ndarray
-    true_mm: np.ndarray
+    measured: dict
+    true: dict
     commands: np.ndarray
 
+    @property
+    def measured_mm(self) -> np.ndarray:
+        return self.measured["mm"]
+
+    @property
+    def true_mm(self) -> np.ndarray:
+        return self.true["mm"]
+
     def summary(self) -> dict:
-        return error_summary(self.measured_mm, self.true_mm, "mm")
+        out = {}
+        for unit in self.measured:
+            out.update(error_summary(self.measured[unit], self.true[unit], unit))
+        return out
 
 
 def measure_task(machine, truth: dict, commands: np.ndarray, task: np.ndarray,
-                 rng: np.random.Generator) -> PositionError:
+                 rng: np.random.Generator) -> TaskError:
     """Drive the true twin (errors ``truth``) to ``commands`` (n, M), read the nests with the tracker
-    (noise of machine.toml, from ``rng``) and take the task site from them: its distance from ``task``."""
+    (noise of machine.toml, from ``rng``) and take the task site from them: its error from ``task`` in each
+    of the task's error families (mm, deg)."""
     twin, coords = machine.twin, machine.spec.task.coordinates
     reached = twin.forward(commands, truth)
     if not np.isfinite(reached).all():
         raise RunError(f"the twin of {machine.name} did not assemble at every commanded pose")
-    true = position_distance(task_difference(reached, task, coords), coords)
+
+    def sizes(where: np.ndarray) -> dict:
+        d = task_difference(where, task, coords)
+        return {unit: size(d, coords) for _, unit, _, size in error_families(coords)}
+
+    true = sizes(reached)
     if not twin.reading_fixes_task:
-        return PositionError(true, true, commands)
-    seen = twin.task_from_reading(twin.measure(commands, truth, rng))
-    return PositionError(position_distance(task_difference(seen, task, coords), coords), true, commands)
+        return TaskError(true, true, commands)
+    return TaskError(sizes(twin.task_from_reading(twin.measure(commands, truth, rng))), true, commands)
 
 
 @dataclass
@@ -151,9 +170,9 @@ class ChainLoopResult:
     machine: str
     transport: str
     task: np.ndarray
-    before: PositionError
-    after: PositionError
-    direct: PositionError
+    before: TaskError
+    after: TaskError
+    direct: TaskError
     push: PushReport
     table: CompTable
     table_version: int
@@ -243,7 +262,8 @@ def loop(args) -> int:
           f"{s['targets']} targets inside the table {'x'.join(map(str, s['grid']))} v{res.table_version} "
           f"({kind}); errors identified from {ident['campaign_poses']} planned poses ({ident['base_errors']} of "
           f"{ident['errors']} in the base set, residual {ident['residual_rms_mm']:.4f} mm rms):")
-    print("\n".join(state_lines(s, "position error" if res.by_tracker else "true position error", "mm")))
+    for name, unit, _, _ in error_families(machine.spec.task.coordinates):
+        print("\n".join(state_lines(s, f"{name} error" if res.by_tracker else f"true {name} error", unit)))
     print(f"  push: {s['push']['message']}; PLC values equal the table's lookup: "
           f"{s['plc_equals_table_lookup']}; {s['timings_s']['total']:.1f} s")
     if args.json:

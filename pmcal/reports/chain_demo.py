@@ -6,16 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from pmcal.mechanism.task_space import POSITION
+from pmcal.mechanism.task_space import POSITION, error_families, rms
 from pmcal.reports.html import Report, matplotlib_agg
 from pmcal.twin.render import RenderUnavailable, render_machine_png
 
 #: base errors listed in the report's table (largest identified first)
 TABLE_ROWS = 20
-
-
-def _rms(a: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.asarray(a) ** 2)))
 
 
 def chain_demo_report(demo) -> Report:
@@ -27,7 +23,8 @@ def chain_demo_report(demo) -> Report:
     m, r = demo.machine, demo.result
     rep = Report(f"pmcal demo: {m.name}",
                  f"{m.spec.title or m.name}: the whole job on the machine folder's digital twin (seed {demo.seed})")
-    ok = s["position_rms_after_mm"] < s["position_rms_before_mm"]
+    fam = error_families(demo.coordinates)
+    ok = all(s[f"{n}_rms_after_{u}"] < s[f"{n}_rms_before_{u}"] for n, u, _, _ in fam)
     rep.card("What the demo did", [
         f"A virtual machine with random geometric errors of the sizes machine.toml gives ({len(r.params)} errors), "
         f"measured at {s['campaign_poses']} poses planned D-optimally (uncertainties {s['plan_gain']:.2f}x smaller "
@@ -35,10 +32,10 @@ def chain_demo_report(demo) -> Report:
         f"{r.sigma_mm:g} mm.",
         f"Identification: {s['base_errors']} identifiable combinations (base set); residual {r.residual_rms_mm:.4f} mm "
         f"RMS, chi2/dof {r.chi2_per_dof:.2f} (1 = the model explains the data down to the tracker noise).",
-        f"Compensation at {s['held_out_targets']} held-out targets: position error of the true machine "
-        f"{s['position_rms_before_mm']:.4f} mm RMS (max {s['position_max_before_mm']:.4f}) with the nominal inverse "
-        f"kinematics, {s['position_rms_after_mm']:.4f} mm RMS (max {s['position_max_after_mm']:.4f}) compensated; "
-        f"the identification's covariance predicts {s['position_rms_predicted_mm']:.4f} mm RMS."],
+        *(f"Compensation at {s['held_out_targets']} held-out targets: {n} error of the true machine "
+          f"{s[f'{n}_rms_before_{u}']:.4f} {u} RMS (max {s[f'{n}_max_before_{u}']:.4f}) with the nominal inverse "
+          f"kinematics, {s[f'{n}_rms_after_{u}']:.4f} {u} RMS (max {s[f'{n}_max_after_{u}']:.4f}) compensated; "
+          f"the identification's covariance predicts {s[f'{n}_rms_predicted_{u}']:.4f} {u} RMS." for n, u, _, _ in fam)],
         css="ok" if ok else "bad")
     try:
         png = render_machine_png(m.spec, m.twin.solve(m.twin.home_commands[None])[0], 800, 500)
@@ -48,30 +45,31 @@ def chain_demo_report(demo) -> Report:
 
     rep.heading("Compensation on held-out targets")
     coords = demo.coordinates
-    rows = [[c, _rms(demo.error_nominal[:, i]), _rms(demo.error_compensated[:, i]), _rms(demo.predicted[:, i])]
+    rows = [[c, rms(demo.error_nominal[:, i]), rms(demo.error_compensated[:, i]), rms(demo.predicted[:, i])]
             for i, c in enumerate(coords)]
     rep.table(["task coordinate", "RMS nominal IK", "RMS compensated", "RMS predicted"], rows,
               caption="error of the true machine per task coordinate (mm or deg)")
-    before, after = demo.position_error(demo.error_nominal), demo.position_error(demo.error_compensated)
+    name, unit, _, size = fam[0]                 # position (mm) if the task has any, else orientation (deg)
+    before, after = size(demo.error_nominal, coords), size(demo.error_compensated, coords)
     pos = [i for i, c in enumerate(coords) if c in POSITION]
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
     bins = np.linspace(0.0, max(before.max(), after.max()) * 1.05 + 1e-12, 30)
     ax[0].hist(before, bins=bins, alpha=0.6, label="nominal IK")
     ax[0].hist(after, bins=bins, alpha=0.8, label="compensated")
-    ax[0].set_xlabel("position error of the task site, mm")
+    ax[0].set_xlabel(f"{name} error of the task site, {unit}")
     ax[0].set_ylabel("targets")
     ax[0].legend()
     if len(pos) >= 2:
         sc = ax[1].scatter(demo.task[:, pos[0]], demo.task[:, pos[1]], c=after, cmap="viridis", s=28)
-        fig.colorbar(sc, ax=ax[1], label="compensated error, mm")
+        fig.colorbar(sc, ax=ax[1], label=f"compensated {name} error, {unit}")
         ax[1].set_xlabel(coords[pos[0]])
         ax[1].set_ylabel(coords[pos[1]])
         ax[1].set_title("held-out targets")
     else:
         ax[1].plot(after, "o", ms=3)
         ax[1].set_xlabel("target")
-        ax[1].set_ylabel("compensated error, mm")
-    rep.figure(fig, "Left: the task site's distance from each held-out target, driven by the nominal inverse "
+        ax[1].set_ylabel(f"compensated {name} error, {unit}")
+    rep.figure(fig, f"Left: the task site's {name} error at each held-out target, driven by the nominal inverse "
                     "kinematics and by the compensated commands. Right: where the compensated error lies.")
 
     rep.heading("Compensation table for the PLC")
@@ -83,9 +81,11 @@ def chain_demo_report(demo) -> Report:
                 else "absolute motor commands")
         rep.paragraph(f"table.json: {', '.join(t['axes'])}, {kind}. On the {t['targets_inside']} held-out targets "
                       f"inside its grid, the controller's nominal IK plus the PLC's interpolated correction puts the "
-                      f"true machine {t['position_rms_mm']:.4f} mm RMS (max {t['position_max_mm']:.4f}) from the "
-                      f"target; the identified machine's exact IK {s['position_rms_after_mm']:.4f} mm RMS over all "
-                      "targets. Push it with pmcal push table.json --ads|--modbus ADDR.")
+                      "true machine " + ", ".join(f"{t[f'{n}_rms_{u}']:.4f} {u} RMS (max {t[f'{n}_max_{u}']:.4f})"
+                                                  for n, u, _, _ in fam)
+                      + " from the target; the identified machine's exact IK "
+                      + ", ".join(f"{s[f'{n}_rms_after_{u}']:.4f} {u} RMS" for n, u, _, _ in fam)
+                      + " over all targets. Push it with pmcal push table.json --ads|--modbus ADDR.")
     rep.heading("Identification")
     res = np.linalg.norm(demo.meas.targets - m.twin.targets(demo.meas.commands, r.params), axis=2)
     fig, ax = plt.subplots(figsize=(10, 3.0))

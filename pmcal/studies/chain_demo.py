@@ -15,11 +15,12 @@ from pathlib import Path
 import numpy as np
 
 from pmcal import progress
-from pmcal.chain import (campaign, compensate, compensation_table, identify, params_document, plan, random_errors,
+from pmcal.calib.closed_chain import compensate_targets
+from pmcal.chain import (campaign, compensation_table, identify, params_document, plan, random_errors,
                          sample_targets, table_refusal)
 from pmcal.fileio import atomic_directory, write_json
 from pmcal.io_chain import write_measurements, write_plan, write_setpoints, write_targets
-from pmcal.mechanism.task_space import POSITION, position_distance, task_difference
+from pmcal.mechanism.task_space import error_families, position_distance, rms, task_difference
 
 #: poses of the demo's campaign, held-out targets of its evaluation
 CAMPAIGN_POSES, HELD_OUT = 48, 60
@@ -68,29 +69,44 @@ class ChainDemo:
         return position_distance(err, self.coordinates)
 
     def summary(self) -> dict:
-        """The figures of the report's first card (JSON-ready)."""
-        before, after = self.position_error(self.error_nominal), self.position_error(self.error_compensated)
-        idx = [i for i, c in enumerate(self.coordinates) if c in POSITION]
-        predicted = np.sqrt(np.mean(np.sum(self.predicted[:, idx] ** 2, axis=1))) if idx else float("nan")
-        r = self.result
-        return {"machine": self.machine.name, "seed": self.seed, "campaign_poses": len(self.meas),
-                "held_out_targets": len(self.task), "errors": len(r.params), "base_errors": len(r.base),
-                "plan_gain": self.design.gain, "chi2_per_dof": r.chi2_per_dof, "residual_rms_mm": r.residual_rms_mm,
-                "position_rms_before_mm": float(np.sqrt(np.mean(before ** 2))),
-                "position_max_before_mm": float(before.max()),
-                "position_rms_after_mm": float(np.sqrt(np.mean(after ** 2))),
-                "position_max_after_mm": float(after.max()),
-                "position_rms_predicted_mm": float(predicted),
-                "per_coordinate_rms_after": {c: float(np.sqrt(np.mean(self.error_compensated[:, i] ** 2)))
-                                             for i, c in enumerate(self.coordinates)},
-                "table": None if self.table is None else {
-                    "axes": [f"{a.column} {a.min:g}..{a.max:g} ({a.n} nodes)" for a in self.table.axes],
-                    "reference": "controller" if self.table.reference is not None else "none",
-                    "targets_inside": int(self.inside.sum()),
-                    "position_rms_mm": float(np.sqrt(np.mean(self.position_error(self.error_table) ** 2))),
-                    "position_max_mm": float(self.position_error(self.error_table).max())},
-                "table_note": self.table_note,
-                "timings_s": self.timings}
+        """The figures of the report's first card (JSON-ready), in the task's own units: for each error family
+        the task holds (:func:`pmcal.mechanism.task_space.error_families`) ``<family>_rms_before_<unit>``,
+        ``_max_before_``, ``_rms_after_``, ``_max_after_``, ``_rms_predicted_`` (position in mm, orientation
+        in deg; a mixed task has both), and the same through the table (``<family>_rms_<unit>``)."""
+        r, coords = self.result, self.coordinates
+        out = {"machine": self.machine.name, "seed": self.seed, "campaign_poses": len(self.meas),
+               "held_out_targets": len(self.task), "errors": len(r.params), "base_errors": len(r.base),
+               "plan_gain": self.design.gain, "chi2_per_dof": r.chi2_per_dof, "residual_rms_mm": r.residual_rms_mm}
+        table = None if self.table is None else {
+            "axes": [f"{a.column} {a.min:g}..{a.max:g} ({a.n} nodes)" for a in self.table.axes],
+            "reference": "controller" if self.table.reference is not None else "none",
+            "targets_inside": int(self.inside.sum())}
+        for name, unit, members, size in error_families(coords):
+            before, after = size(self.error_nominal, coords), size(self.error_compensated, coords)
+            idx = [i for i, c in enumerate(coords) if c in members]
+            out.update({f"{name}_rms_before_{unit}": rms(before), f"{name}_max_before_{unit}": float(before.max()),
+                        f"{name}_rms_after_{unit}": rms(after), f"{name}_max_after_{unit}": float(after.max()),
+                        f"{name}_rms_predicted_{unit}": rms(np.sqrt(np.sum(self.predicted[:, idx] ** 2, axis=1)))})
+            if table is not None:
+                through = size(self.error_table, coords)
+                table.update({f"{name}_rms_{unit}": rms(through), f"{name}_max_{unit}": float(through.max())})
+        out.update({"per_coordinate_rms_after": {c: rms(self.error_compensated[:, i]) for i, c in enumerate(coords)},
+                    "table": table, "table_note": self.table_note, "timings_s": self.timings})
+        return out
+
+    def headline(self, summary: dict | None = None) -> str:
+        """The demo's figures in one line, in the task's units: ``position error ... mm RMS (predicted ...)``
+        and/or ``orientation error ... deg RMS (predicted ...)``, and through the PLC table."""
+        s = summary or self.summary()
+        fam = error_families(self.coordinates)
+        parts = [f"{name} error on {s['held_out_targets']} held-out targets {s[f'{name}_rms_before_{u}']:.4f} -> "
+                 f"{s[f'{name}_rms_after_{u}']:.4f} {u} RMS (predicted {s[f'{name}_rms_predicted_{u}']:.4f})"
+                 for name, u, _, _ in fam]
+        if s["table"]:
+            parts.append("through the PLC table " + ", ".join(f"{s['table'][f'{name}_rms_{u}']:.4f} {u}"
+                                                              for name, u, _, _ in fam)
+                         + f" RMS on the {s['table']['targets_inside']} inside its grid")
+        return "; ".join(parts)
 
 
 def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
@@ -121,8 +137,8 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
         done("identify")
         step("compensate")
         task = sample_targets(machine, HELD_OUT, seed=seed + 1000)
+        task, compensated = reachable_targets(machine, res.params, task)
         nominal = twin.inverse(task, None)
-        compensated = compensate(machine, res.params, task)
         done("compensate")
         step("table")
         coords = machine.spec.task.coordinates
@@ -163,6 +179,22 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
     return demo
 
 
+def reachable_targets(machine, params, task: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The held-out targets (n, C) the machine with the identified errors ``params`` reaches, and its commands
+    there (n, M); each one it does not reach (near the reach boundary, where the nominal machine still
+    does) is left out with a warning line naming it and why."""
+    commands = compensate_targets(machine.twin, dict(params), task)
+    bad = np.flatnonzero(~np.isfinite(commands).all(axis=1))
+    coords = machine.spec.task.coordinates
+    for i in bad:
+        _, why = machine.twin.inverse_report(task[i:i + 1], dict(params))
+        where = ", ".join(f"{c}={v:.6g}" for c, v in zip(coords, task[i]))
+        progress.warning(f"held-out target {i + 1} ({where}) left out: not reachable by the identified machine "
+                         f"({why[0]})")
+    keep = np.isfinite(commands).all(axis=1)
+    return task[keep], commands[keep]
+
+
 def run_chain_demo(machine, out: Path, seed: int) -> int:
     """``pmcal --machine DIR demo``: :func:`chain_demo` into the folder ``out`` (replaced as a whole), with
     the HTML report and ``summary.json``; one line of figures on stdout."""
@@ -175,9 +207,6 @@ def run_chain_demo(machine, out: Path, seed: int) -> int:
         summary = demo.summary()
         chain_demo_report(demo).write(tmp / "report.html")
         write_json(tmp / "summary.json", summary)
-    print(f"pmcal demo: {out}/report.html in {time.perf_counter() - t0:.0f} s; {machine.name}: position error on "
-          f"{summary['held_out_targets']} held-out targets {summary['position_rms_before_mm']:.4f} -> "
-          f"{summary['position_rms_after_mm']:.4f} mm RMS (predicted {summary['position_rms_predicted_mm']:.4f})"
-          + (f"; through the PLC table {summary['table']['position_rms_mm']:.4f} mm RMS on the "
-             f"{summary['table']['targets_inside']} inside its grid" if summary["table"] else ""), flush=True)
+    print(f"pmcal demo: {out}/report.html in {time.perf_counter() - t0:.0f} s; {machine.name}: "
+          f"{demo.headline(summary)}", flush=True)
     return 0

@@ -1,0 +1,38 @@
+"""The corpus on a second simulator (tests/crosssim_chain: plain MuJoCo and scipy, its own error
+parameterisation and loop solver, nothing of pmcal).
+
+- Without errors both simulators put the nests at the same place at random poses (1e-6 mm): two loop solvers
+  written apart agree on the nominal machine.
+- With random errors of the toml's sizes in the simulator's own parameters (slow): pmcal identifies from the
+  simulator's 48-pose campaign (pmcal's plan, 0.01 mm noise) and the compensated commands, driven on the
+  simulator, bring the task site within 2x the error pmcal predicts and 50x closer than the nominal IK does.
+  ``benchmarks/corpus_crosssim_bench.py`` runs 5 seeds.
+"""
+
+import numpy as np
+import pytest
+
+from pmcal.machines import Machine
+from tests.crosssim_chain.machine import SimMachine
+from tests.test_corpus import CORPUS, MODELS, REFUSED
+
+CALIBRATED = [n for n in MODELS if n not in REFUSED]         # the corpus models pmcal accepts
+
+
+@pytest.mark.parametrize("name", CALIBRATED)
+def test_second_simulator_agrees_on_the_nominal_machine(name):
+    machine = Machine.from_folder(CORPUS / name)
+    commands = machine.twin.sample_commands(4, np.random.default_rng(2))
+    sim = SimMachine(CORPUS / name)
+    np.testing.assert_allclose(sim.nests(commands), machine.twin.targets(commands, None), rtol=0, atol=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", CALIBRATED)
+def test_calibration_on_the_second_simulators_data(name, tmp_path):
+    from benchmarks.corpus_crosssim_bench import run
+
+    r = run(CORPUS / name, 1, tmp_path)
+    assert r["stage"] == "done" and r["identify_exit"] == 0
+    assert r["position_after_mm"] < 2.0 * r["position_predicted_mm"]
+    assert r["position_after_mm"] < r["position_before_mm"] / 50
