@@ -546,3 +546,23 @@ def test_demo_of_a_folder_machine(delta, capsys):
     assert t["reference"] == "controller" and t["targets_inside"] >= 5
     assert t["position_rms_mm"] < s["position_rms_after_mm"] + 0.01
     assert (out / "table.json").is_file()
+
+
+def test_demo_warns_when_compensation_is_worse_than_predicted():
+    """The demo's warning lines: an error family compensated to more than 3x the identification's prediction,
+    and a failed held-out check, each in one line; nothing when the figures hold."""
+    from types import SimpleNamespace
+
+    from pmcal.studies.chain_demo import ChainDemo
+
+    def demo(after, passed):
+        return SimpleNamespace(coordinates=("x_mm", "y_mm", "rz_deg"), WORSE_THAN_PREDICTED=3.0,
+                               result=SimpleNamespace(info={"held_out": {"passed": passed, "rms_mm": 0.03,
+                                                                          "predicted_rms_mm": 0.01}}))
+
+    good = {"position_rms_after_mm": 0.005, "position_rms_predicted_mm": 0.004,
+            "orientation_rms_after_deg": 0.002, "orientation_rms_predicted_deg": 0.002}
+    assert ChainDemo.warnings(demo(0.005, True), good) == []
+    bad = dict(good, position_rms_after_mm=0.037)
+    lines = ChainDemo.warnings(demo(0.037, False), bad)
+    assert len(lines) == 2 and "9.2 times" in lines[0] and "0.0300 mm RMS where 0.0100 mm" in lines[1]

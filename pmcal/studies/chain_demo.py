@@ -94,6 +94,27 @@ class ChainDemo:
                     "table": table, "table_note": self.table_note, "timings_s": self.timings})
         return out
 
+    #: compensated error above this multiple of the identification's prediction is warned about
+    WORSE_THAN_PREDICTED = 3.0
+
+    def warnings(self, summary: dict | None = None) -> list[str]:
+        """What the demo must say besides its figures: an error family compensated to more than
+        :data:`WORSE_THAN_PREDICTED` times what the identification predicted (the model misses something
+        the twin has: the calibration would not hold on the machine either), a failed held-out check."""
+        s = summary or self.summary()
+        out = []
+        for name, u, _, _ in error_families(self.coordinates):
+            after, predicted = s[f"{name}_rms_after_{u}"], s[f"{name}_rms_predicted_{u}"]
+            if np.isfinite(predicted) and after > self.WORSE_THAN_PREDICTED * predicted:
+                out.append(f"the compensated {name} error, {after:.4f} {u} RMS, is {after / predicted:.1f} times "
+                           f"what the identification predicts ({predicted:.4f} {u}): the model misses something "
+                           "the machine has (see the report's residuals)")
+        held = self.result.info.get("held_out") or {}
+        if held.get("passed") is False:
+            out.append(f"the identification does not predict poses it did not fit: {held['rms_mm']:.4f} mm RMS "
+                       f"where {held['predicted_rms_mm']:.4f} mm is predicted")
+        return out
+
     def headline(self, summary: dict | None = None) -> str:
         """The demo's figures in one line, in the task's units: ``position error ... mm RMS (predicted ...)``
         and/or ``orientation error ... deg RMS (predicted ...)``, and through the PLC table."""
@@ -209,4 +230,6 @@ def run_chain_demo(machine, out: Path, seed: int) -> int:
         write_json(tmp / "summary.json", summary)
     print(f"pmcal demo: {out}/report.html in {time.perf_counter() - t0:.0f} s; {machine.name}: "
           f"{demo.headline(summary)}", flush=True)
+    for line in demo.warnings(summary):
+        progress.warning(line)
     return 0
