@@ -33,11 +33,14 @@ order a representative alone carries an offset or tilt the real machine spreads 
 fit, the reported covariance and the compensation then depend on which representative the base set named
 (the predicted nest uncertainty by up to 40 %). Spread, they do not (1 % median, 7 % at most). The base
 set's regrouping holds at the nominal machine only: at the identified one the errors it regroups act
-slightly apart (a tilt makes a length visible), so the fit ends with the MAP over every error under the
-same prior, from the base solution (:func:`_map_over_every_error`; where the base set regroups anything).
-On the Delta at 3x its error sizes the held-out error is then 0.88-1.17x a plain least-squares fit's of
-all 99 errors (5 seeds; 0.96-1.32x without that last fit; ``benchmarks/large_errors_bench.py``). The
-reported covariance stays that of the base values (realised spread at the identified machine).
+slightly apart (a tilt makes a length visible: on the Delta a prior-sized move of a regrouped error
+changes the fit by 7-18 noise sigmas at the identified machine, 21-54 at 3x the sizes). So with LM and the
+prior, where the base set regroups anything, the estimate is the MAP over every error under the same
+(diagonal) prior (:func:`_map_over_every_error`), and the base set says what it determines: ``x = A p``.
+On the Delta at 3x its error sizes the held-out error is then 0.88-1.17x a plain least-squares fit's of all
+99 errors (5 seeds; 0.96-1.32x for a fit of the base values alone; ``benchmarks/large_errors_bench.py``). The
+reported covariance is that of the base values (realised spread at the identified machine); it equals the
+MAP's carried onto them to first order, and keeps the CRLB and a plan's prediction comparable.
 
 **Uncertainty**: ``covariance`` is the posterior covariance ``(J^T J / sigma^2 + C_b^-1)^-1`` of the
 base parameters at the solution; ``crlb`` the Cramér-Rao bound ``sqrt(diag(sigma^2 (J^T J)^-1))`` without
@@ -620,34 +623,15 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         raise ValueError(f"{len(commands)} poses give {y.size} coordinates for {len(base)} base parameters")
 
     M = spread_map(model, basis)
-
-    def params_of(x: np.ndarray) -> dict[str, float]:
-        return dict(zip(keys, map(float, M @ x)))
-
-    # the Jacobian at the last point asked (LM, result); the start (the nominal machine) is J0 M
-    memo: dict[bytes, np.ndarray] = {np.zeros(len(base)).tobytes(): -J0 @ M}
-
-    def fun(X: np.ndarray) -> np.ndarray:
-        return np.stack([y - obs.predict(params_of(x)) for x in X])
-
-    def jac(x: np.ndarray) -> np.ndarray:
-        key = np.asarray(x, float).tobytes()
-        if key not in memo:
-            memo.clear()
-            memo[key] = -obs.jacobian(params_of(x), keys) @ M
-        return memo[key]
-
-    problem = box_problem(fun, base, units, half_width=50.0 * sb, sigma=sigma, jac=jac, scale=sb,
-                          info={"residual_unit": "mm"})
-    work = problem.with_prior(cov=prior_cov) if prior else problem
-    sol = lm(work, max_nfev=max_nfev) if method == "lm" else SOLVERS[method](work, seed=seed, **options)
-    x = np.array([dict(zip(sol.names, sol.x))[k] for k in base])
-    p = M @ x
-    polished = prior and method == "lm" and bool(basis.dependent)
-    if polished:                     # the MAP over every error, from the base solution (module docstring)
-        p, sol = _map_over_every_error(model, obs, keys, sigma, p, max_nfev)
+    if prior and method == "lm" and basis.dependent:
+        # the MAP over every error under the same prior (module docstring); the base set names what it shows
+        p, sol, Jp = _map_over_every_error(model, obs, keys, sigma, J0, max_nfev)
         x = combination_matrix(basis) @ p
-    Jf = obs.jacobian(dict(zip(keys, map(float, p))), keys) / sigma
+    else:
+        x, sol, Jp = _solve_base_values(model, obs, basis, M, J0, sigma, prior_cov if prior else None, method,
+                                        max_nfev, seed, options)
+        p = M @ x
+    Jf = Jp / sigma
     Jb = Jf @ M
     resid = y - obs.predict(dict(zip(keys, map(float, p))))
     info_data = Jb.T @ Jb            # by the base values, realised spread at the identified machine
@@ -674,33 +658,63 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
               "beyond_prior": [k for k, v, s in zip(base, x, sb) if abs(v) > PRIOR_SIGMAS * s]})
 
 
+def _solve_base_values(model: ChainModel, obs: "_Observations", basis: BaseSet, M: np.ndarray, J0: np.ndarray,
+                       sigma: float, prior_cov: np.ndarray | None, method: str, max_nfev: int | None,
+                       seed: int | None, options: dict):
+    """The base values (len(base),) by ``method`` on the base-set problem (the machine ``M b``, with the
+    correlated prior ``prior_cov`` unless None), the solver's result, and every key's (unwhitened) Jacobian
+    at the solution (model units: mm per key unit)."""
+    keys, base = list(basis.keys), basis.base
+    full = {np.zeros(len(base)).tobytes(): J0}
+
+    def params_of(x: np.ndarray) -> dict[str, float]:
+        return dict(zip(keys, map(float, M @ x)))
+
+    def fun(X: np.ndarray) -> np.ndarray:
+        return np.stack([obs.y - obs.predict(params_of(x)) for x in X])
+
+    def full_jacobian(x: np.ndarray) -> np.ndarray:
+        key = np.asarray(x, float).tobytes()
+        if key not in full:
+            full.clear()
+            full[key] = obs.jacobian(params_of(x), keys)
+        return full[key]
+
+    sb = np.sqrt(np.diag(prior_cov if prior_cov is not None else base_prior_cov(model, basis)))
+    problem = box_problem(fun, base, model.error_units(base), half_width=50.0 * sb, sigma=sigma,
+                          jac=lambda x: -full_jacobian(x) @ M, scale=sb, info={"residual_unit": "mm"})
+    work = problem.with_prior(cov=prior_cov) if prior_cov is not None else problem
+    sol = lm(work, max_nfev=max_nfev) if method == "lm" else SOLVERS[method](work, seed=seed, **options)
+    x = np.array([dict(zip(sol.names, sol.x))[k] for k in base])
+    return x, sol, full_jacobian(x)
+
+
 def _map_over_every_error(model: ChainModel, obs: "_Observations", keys: list[str], sigma: float,
-                          start: np.ndarray, max_nfev: int | None):
+                          J0: np.ndarray, max_nfev: int | None):
     """The maximum a-posteriori errors (len(keys),) over every error (not only the base set) under the
-    diagonal prior of their sizes, by LM from ``start`` (the base solution's machine), and the solver's
-    result. The base set's regrouping holds at the nominal machine; at the identified one the errors it
-    regroups act slightly apart (a tilt makes a length visible), and only a fit over every error can follow:
-    on the Delta at 3x its error sizes this takes the held-out error from 1.26x to 1.10x a plain
-    least-squares fit's (median of 5 seeds)."""
+    diagonal prior of their sizes, by LM from the nominal machine (whose Jacobian is ``J0``), the solver's
+    result, and every key's Jacobian at the solution. The base set's regrouping holds at the nominal machine
+    only; at the identified one the errors it regroups act slightly apart (a tilt makes a length visible),
+    and only a fit over every error can follow: on the Delta at 3x its error sizes the held-out error is
+    1.10x a plain least-squares fit's where a fit of the base values alone gives 1.26x (median of 5 seeds)."""
     S = model.prior_std(keys)
-    units = model.error_units(keys)
-    last: dict[bytes, np.ndarray] = {}
+    last: dict[bytes, np.ndarray] = {np.zeros(len(keys)).tobytes(): J0}
 
     def fun(P: np.ndarray) -> np.ndarray:
         return np.stack([obs.y - obs.predict(dict(zip(keys, map(float, q)))) for q in P])
 
-    def jac(q: np.ndarray) -> np.ndarray:
+    def jacobian(q: np.ndarray) -> np.ndarray:
         key = np.asarray(q, float).tobytes()
         if key not in last:
             last.clear()
-            last[key] = -obs.jacobian(dict(zip(keys, map(float, q))), keys)
+            last[key] = obs.jacobian(dict(zip(keys, map(float, q))), keys)
         return last[key]
 
-    problem = box_problem(fun, keys, units, half_width=50.0 * S, sigma=sigma, jac=jac, scale=S,
-                          info={"residual_unit": "mm"}).with_prior(S)
-    sol = lm(problem, x_start=start, max_nfev=max_nfev)
+    problem = box_problem(fun, keys, model.error_units(keys), half_width=50.0 * S, sigma=sigma,
+                          jac=lambda q: -jacobian(q), scale=S, info={"residual_unit": "mm"}).with_prior(S)
+    sol = lm(problem, max_nfev=max_nfev)
     p = np.array([dict(zip(sol.names, sol.x))[k] for k in keys])
-    return p, sol
+    return p, sol, jacobian(p)
 
 
 def reading_covariance(model: ChainModel, commands, motor_sigma, sigma: float | None = None,
