@@ -33,7 +33,7 @@ from pathlib import Path
 from pmcal import __version__, machines, progress, threads
 from pmcal.commands.options import CommandSet
 from pmcal.errors import InputError, RunError
-from pmcal.fileio import check_not_input, check_output
+from pmcal.fileio import check_output
 
 DEFAULT_MACHINE = machines.DEFAULT_MACHINE
 
@@ -63,8 +63,11 @@ OUTPUT_SUFFIXES: dict[tuple[str, str], tuple[str, ...]] = {
     ("push", "json"): (".json",), ("loop", "json"): (".json",), ("import", "output"): (".csv",),
     ("export-model", "output"): (".xml",), ("history", "report"): (".html",),
 }
-#: (command, attribute) of a file output that brings a second file beside it: suffix of that file
-COMPANIONS: dict[tuple[str, str], str] = {("compensate", "table"): ".csv", ("export-model", "output"): ".toml"}
+#: (command, attribute) of a file output that brings a second file beside it: (suffix of that file, module
+#: whose ``SIDE_FILE_START`` is the text such a file of pmcal's starts with: an existing file beside the
+#: output is replaced only if it is one; imported when needed, so ``--help`` does not import MuJoCo)
+COMPANIONS: dict[tuple[str, str], tuple[str, str]] = {
+    ("compensate", "table"): (".csv", "pmcal.bridge.comptable_files"), ("export-model", "output"): (".toml", "pmcal.export_model")}
 
 EPILOG = ("File formats (measurement, targets, setpoints, parameters, diagnosis JSON, compensation table): "
           "docs/formats.md. Units at every interface: mm and degrees.")
@@ -148,7 +151,8 @@ def _command_name(args) -> str:
 
 def output_paths(args, suffixes: bool = False) -> list:
     """(option, path, is_folder) of every output the parsed command will write; with ``suffixes``,
-    (option, path, is_folder, the suffixes its format may have or ())."""
+    (option, path, is_folder, the suffixes its format may have or (), the start of a side file of pmcal's
+    or None)."""
     name = _command_name(args)
     out = []
     for attrs, folder in ((FILE_OUTPUTS.get(name, ()), False), (FOLDER_OUTPUTS.get(name, ()), True)):
@@ -156,10 +160,12 @@ def output_paths(args, suffixes: bool = False) -> list:
             value = getattr(args, attr, None)
             if value:
                 option = _option(attr)
-                out.append((option, str(value), folder, OUTPUT_SUFFIXES.get((name, attr), ())))
-                suffix = COMPANIONS.get((name, attr))
-                if suffix and not folder:
-                    out.append((option, str(Path(str(value)).with_suffix(suffix)), False, ()))
+                out.append((option, str(value), folder, OUTPUT_SUFFIXES.get((name, attr), ()), None))
+                companion = COMPANIONS.get((name, attr))
+                if companion and not folder:
+                    suffix, module = companion
+                    start = importlib.import_module(module).SIDE_FILE_START if suffixes else None
+                    out.append((option, str(Path(str(value)).with_suffix(suffix)), False, (), start))
     return out if suffixes else [o[:3] for o in out]
 
 
@@ -175,17 +181,18 @@ def input_paths(args) -> list[tuple[str, str]]:
 
 def check_outputs(args) -> None:
     """The one output check, before any work starts."""
-    force = bool(getattr(args, "force", False))
     seen = set()
     inputs = input_paths(args)
-    for option, path, folder, suffixes in output_paths(args, suffixes=True):
+    machine = getattr(args, "selected_machine", None)
+    machine_folder = getattr(machine, "folder", None)
+    for option, path, folder, suffixes, own in output_paths(args, suffixes=True):
         key = os.path.abspath(path)
         if key in seen:
             raise InputError(f"{path} is given as two outputs", field=option)
         seen.add(key)
         try:
-            check_not_input(path, inputs, field=option)
-            check_output(path, folder=folder, force=force, field=option, suffixes=suffixes)
+            check_output(path, folder=folder, field=option, suffixes=suffixes, inputs=inputs,
+                         machine_folder=machine_folder, own=own)
         except InputError as exc:       # checked before any work: say so
             raise InputError(f"{exc.message}; nothing was sent or written", field=exc.field) from None
 

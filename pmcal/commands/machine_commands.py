@@ -15,7 +15,7 @@ def _demo_defaults(args) -> None:
     """The demo's folder: ``pmcal-demo``, or ``pmcal-demo-hidden`` for the hidden-effect demo, so one
     never replaces the other's report."""
     if args.out is None:
-        args.out = "pmcal-demo-hidden" if args.hidden_effect else "pmcal-demo"
+        args.out = "pmcal-demo-hidden" if getattr(args, "hidden_effect", None) else "pmcal-demo"
 
 
 def register(sub: CommandSet) -> None:
