@@ -10,6 +10,8 @@ nominal geometry: errors of a fraction of a millimetre do not show at this scale
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from pmcal.apps.chain_commands import error_set
@@ -55,8 +57,19 @@ def twin_render(args) -> int:
         png = render_machine_png(machine.spec, qpos, args.width, args.height)
     except RenderUnavailable as exc:
         raise RunError(str(exc)) from None
-    except ValueError as exc:                  # the scene adds joints
-        raise InputError(str(exc), file=str(machine.spec.folder / "scene.xml")) from None
+    except ValueError as exc:                  # the scene adds joints, or includes a file that is not there
+        raise InputError(_scene_problem(str(exc), machine.spec.model_path.name),
+                         file=str(machine.spec.folder / "scene.xml")) from None
     with atomic_write(args.output, "wb") as fh:
         fh.write(png)
     return 0
+
+
+def _scene_problem(message: str, model_name: str) -> str:
+    """One line for MuJoCo's (multi-line) complaint about a folder's ``scene.xml``; an include of a file that
+    is not there (a copied machine whose model was renamed) names the fix."""
+    missing = re.search(r"Error opening file '([^']*)'", message)
+    if missing:
+        return (f"includes {missing.group(1)}, which is not in the machine folder: include the model, "
+                f'<include file="{model_name}"/>')
+    return " ".join(message.split())
