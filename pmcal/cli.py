@@ -15,7 +15,7 @@ status). This module owns what every command shares:
   ``push``, the demos, ...), also when piped;
 - ``--quiet`` prints nothing but errors: no result lines, no wrote-lines, no progress (stdout is empty);
 - no traceback reaches the user: bad input -> exit 2, failures -> exit 1 with one line (``--verbose``
-  adds the traceback), Ctrl-C -> exit 130 with one line.
+  adds the traceback), Ctrl-C -> exit 130 with one line, SIGTERM the same clean-up and exit 143.
 
 File formats: ``docs/formats.md``.
 """
@@ -27,13 +27,16 @@ import contextlib
 import importlib
 import os
 import pkgutil
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from pmcal import __version__, machines, progress, threads
 from pmcal.commands.options import CommandSet
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import check_output
+from pmcal.option_ranges import check_ranges
 
 DEFAULT_MACHINE = machines.DEFAULT_MACHINE
 
@@ -88,6 +91,14 @@ def _named_subparsers(parser: argparse.ArgumentParser):
         yield name, cmd.parser
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse's parser whose usage error is one line (the command, what is wrong, where the help is)
+    instead of the usage block and the error: every bad input gets one line."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} ('{self.prog} --help' lists the options)\n")
+
+
 def _common_options(p, top: bool) -> None:
     """``--quiet``/``--verbose`` on the top parser and, defaults suppressed, on every subcommand."""
     kw = {} if top else {"default": argparse.SUPPRESS}
@@ -112,7 +123,7 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
     :class:`pmcal.commands.options.Command`; ``selected_machine`` in the parsed namespace is the
     :class:`pmcal.machines.Machine`."""
     selected = machines.resolve(machine)
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="pmcal",
         description="Calibrate parallel mechanisms against a MuJoCo digital twin and push the "
                     "compensation to the PLC. Units at every interface: mm and degrees.",
@@ -211,12 +222,34 @@ def _mtime(path: str) -> float | None:
         return None
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is, like Ctrl-C's KeyboardInterrupt: every clean-up that Ctrl-C
+    runs (staging folders, temporary files, worker processes) runs for it too."""
+
+
+#: exit status after SIGTERM: what a shell reports for a command the signal ended
+TERMINATED_STATUS = 128 + signal.SIGTERM
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one pmcal command line; returns the exit status. The display settings (``--quiet``,
-    ``--verbose``, a long job) last for this call only."""
+    ``--verbose``, a long job) last for this call only; SIGTERM is handled as Ctrl-C is during it (exit
+    143 instead of 130)."""
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return _main(argv)
+    except Terminated:                  # between the command's own handlers
+        print("pmcal: terminated; nothing half-written", file=sys.stderr)
+        return TERMINATED_STATUS
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         progress.set_quiet(False)
         progress.set_verbose(False)
         progress.set_long(False)
@@ -244,6 +277,8 @@ def _main(argv: list[str] | None = None) -> int:
         return 2
     try:
         args = parser.parse_args(argv)
+    except Terminated:
+        raise
     except KeyboardInterrupt:
         print("pmcal: interrupted", file=sys.stderr)
         return 130
@@ -261,6 +296,7 @@ def _main(argv: list[str] | None = None) -> int:
         print(f"pmcal: error: {exc}", file=sys.stderr)
         return 2
     try:
+        check_ranges(args)
         prepare = getattr(args, "prepare", None)
         if prepare is not None:
             prepare(args)
@@ -278,6 +314,9 @@ def _main(argv: list[str] | None = None) -> int:
     except RunError as exc:
         print(f"pmcal: failed: {exc}", file=sys.stderr)
         return 1
+    except Terminated:
+        print("pmcal: terminated; nothing half-written", file=sys.stderr)
+        return TERMINATED_STATUS
     except KeyboardInterrupt:
         print("pmcal: interrupted; nothing half-written", file=sys.stderr)
         return 130
@@ -319,6 +358,9 @@ def run() -> None:
     try:
         status = main()
         sys.stdout.flush()
+    except Terminated:
+        print("pmcal: terminated", file=sys.stderr)
+        status = TERMINATED_STATUS
     except KeyboardInterrupt:
         print("pmcal: interrupted", file=sys.stderr)
         status = 130

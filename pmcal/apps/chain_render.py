@@ -17,20 +17,7 @@ import numpy as np
 from pmcal.apps.chain_commands import error_set
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write
-
-
-def parse_task_pose(text: str | None, coordinates: tuple[str, ...]) -> np.ndarray | None:
-    """``--pose C1,C2,...`` as task coordinates (mm / deg, the order of machine.toml [task]); None: home."""
-    if text is None:
-        return None
-    try:
-        values = np.array([float(v) for v in text.split(",")])
-    except ValueError:
-        values = np.array([])
-    if len(values) != len(coordinates) or not np.isfinite(values).all():
-        raise InputError(f"expected {len(coordinates)} comma-separated numbers ({','.join(coordinates)}), "
-                         f"got '{text}'", field="--pose")
-    return values
+from pmcal.option_ranges import parse_task_pose
 
 
 def twin_render(args) -> int:

@@ -11,6 +11,7 @@ from pmcal.apps.ocpm import DEFAULTS
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write
 from pmcal.io_ocpm import MAX_POSES, read_campaign_context, read_params, read_targets, write_measurements
+from pmcal.option_ranges import parse_task_pose
 
 PRESETS: dict[str, dict[str, float]] = {"paper-table2": PAPER_TABLE2, "nominal": {}}
 
@@ -270,11 +271,11 @@ def geom_name() -> str:
 
 
 def parse_pose(text: str) -> tuple[float, float]:
-    try:
-        phi, theta = (float(v) for v in text.split(","))
-    except ValueError:
-        raise InputError(f"expected PHI,THETA in degrees, got '{text}'", field="--pose") from None
-    return phi, theta
+    """``--pose PHI,THETA`` in degrees: two finite numbers, the azimuth within -360..360 deg."""
+    phi, theta = parse_task_pose(text, ("PHI", "THETA"))
+    if abs(phi) > 360:
+        raise InputError(f"azimuth {phi:g} deg is outside -360..360 deg", field="--pose")
+    return float(phi), float(theta)
 
 
 def twin_render(args) -> int:

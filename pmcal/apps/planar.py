@@ -14,6 +14,7 @@ import numpy as np
 
 from pmcal.commands.options import ABSENT, HIDDEN
 from pmcal.errors import InputError, RunError
+from pmcal.option_ranges import parse_task_pose
 
 #: this machine's wording of the commands' options (:mod:`pmcal.commands.options`)
 OPTION_HELP = {
@@ -341,10 +342,7 @@ def twin_render(args) -> int:
     machine = _machine()
     errors, _ = _errors_from_args(args, machine)
     text = getattr(args, "pose", None) or "0,0"
-    try:
-        x, y = (float(v) for v in text.split(","))
-    except ValueError:
-        raise InputError(f"expected X,Y in mm, got '{text}'", field="--pose") from None
+    x, y = (float(v) for v in parse_task_pose(text, ("X", "Y")))
     motor = machine.geometry.home if (x, y) == (0.0, 0.0) else inverse(machine.geometry, np.array([x, y]))
     if not np.all(np.isfinite(motor)) or y > 0:
         raise InputError(f"position ({x:g}, {y:g}) mm is out of the robot's reach (y < 0 below the base)",
