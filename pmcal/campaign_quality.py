@@ -112,6 +112,50 @@ def judge(determined: int, n_params: int, rms: float | None = None, most: float 
                      f"of them; no {what} uncertainty predicted for this model (docs/formats.md)")}
 
 
+#: A folder machine's campaign needs at least this many readings (3 per measured target, 1 per distance
+#: reading) per combination of its structural base set, on distinct poses: fewer determine the errors no
+#: better than the prior, whatever the rank says
+MIN_READINGS_PER_COMBINATION = 2
+
+
+def chain_quality(rank: int, reference_rank: int, n_poses: int, distinct_poses: int, readings_per_pose: int,
+                  outliers: list[str]) -> dict:
+    """The ``quality`` object of a folder machine's identification (docs/formats.md, "Campaign quality").
+
+    Parameters
+    ----------
+    rank : combinations of errors the campaign determines (its base set).
+    reference_rank : combinations a campaign spread over the workspace determines (the machine's structural
+        base set, :func:`pmcal.chain.reference_basis`).
+    n_poses, distinct_poses : rows of the campaign, and how many of them are different poses (a pose measured
+        twice counts once).
+    readings_per_pose : readings one pose gives (3 per target, or 1 distance).
+    outliers : one text per gross outlier found (row, pose, target, how far), empty if none.
+
+    Not usable when the campaign determines fewer combinations than the reference, when it has fewer
+    distinct poses than ``MIN_READINGS_PER_COMBINATION x reference_rank / readings_per_pose``, or when it
+    holds gross outliers.
+    """
+    needed = -(-MIN_READINGS_PER_COMBINATION * reference_rank // readings_per_pose)
+    why = []
+    if rank < reference_rank:
+        why.append(f"the campaign determines {rank} of the {reference_rank} error combinations a campaign spread "
+                   "over the workspace determines")
+    if distinct_poses < needed:
+        repeated = f" ({n_poses - distinct_poses} rows repeat a pose)" if distinct_poses < n_poses else ""
+        why.append(f"{distinct_poses} distinct poses{repeated}, fewer than the {needed} the machine's "
+                   f"{reference_rank} combinations need")
+    if outliers:
+        why.append("gross outlier" + ("s" if len(outliers) > 1 else "") + ": " + "; ".join(outliers)
+                   + " (remeasure or delete the row)")
+    return {"determined_directions": rank, "parameters": reference_rank, "poses": n_poses,
+            "distinct_poses": distinct_poses, "poses_needed": needed, "outliers": list(outliers),
+            "usable": not why, "why": "; ".join(why) if why else None,
+            "note": ("determined directions: the rank of the campaign's base set, of the machine's structural base "
+                     f"set; not usable below it, below {MIN_READINGS_PER_COMBINATION} readings per combination on "
+                     "distinct poses, or with gross outliers (docs/formats.md)")}
+
+
 def quality_line(q: dict) -> str:
     """The one-line summary ``identify`` prints, e.g. ``42 of 55 parameter directions determined; predicted
     pointing uncertainty 0.0021 deg RMS, 0.0050 deg max (uncalibrated 0.52 deg)``."""

@@ -13,7 +13,8 @@ import numpy as np
 from pmcal import progress
 from pmcal.apps import error_stats
 from pmcal.apps.chain import ERROR_CHOICES, command_defaults
-from pmcal.chain import (campaign, check_assembles, compensate as commands_for, compensation_table,
+from pmcal.campaign_quality import refuse_unusable, save_table
+from pmcal.chain import (campaign, campaign_quality, check_assembles, compensate as commands_for, compensation_table,
                          identify as run_identification, params_document, reference_basis, residuals, sample_targets,
                          table_refusal)
 from pmcal.csvio import LONG_POSES
@@ -100,13 +101,18 @@ def identify(args) -> int:
         progress.warning(f"{len(partial)} pose(s) with a blocked target left out ({', '.join(partial[:3])}"
                          f"{', ...' if len(partial) > 3 else ''}): identification uses the poses with every "
                          "target measured")
-    write_json(args.output, params_document(machine, res, str(args.measurements)))
+    quality = campaign_quality(machine, meas, res, sigma)
+    write_json(args.output, dict(params_document(machine, res, str(args.measurements)), quality=quality))
     print(f"{res.rank} of {len(res.params)} errors identifiable (base set), {len(res.weak)} weak; residual "
-          f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}")
+          f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}; "
+          f"{'usable' if quality['usable'] else 'NOT usable'}")
     if history:
         file_history(machine, res, basis, args.measurements, history)
-    for line in identify_warnings(res, len(meas)):
+    for line in identify_warnings(res, len(meas), outliers=bool(quality["outliers"])):
         progress.warning(line)
+    if not quality["usable"]:
+        progress.warning(f"calibration not usable: {quality['why']}; compensate and push refuse it without --force "
+                         f"('pmcal --machine {machine.name} twin plan' plans a campaign)")
     return 0
 
 
@@ -127,9 +133,10 @@ def file_history(machine, res, basis, campaign: str, folder: str) -> None:
     print(f"pmcal: wrote {file_calibration(record, campaign, folder)}")
 
 
-def identify_warnings(res, n_poses: int) -> list[str]:
+def identify_warnings(res, n_poses: int, outliers: bool = False) -> list[str]:
     """What a user must know about an identification that still succeeded (docs/ADDING_A_MACHINE.md,
-    "When fewer errors are identifiable than expected")."""
+    "When fewer errors are identifiable than expected"); with ``outliers`` (gross outliers found, named
+    by the quality verdict) the high chi2 is theirs and not reported again."""
     out = []
     if not res.success:
         out.append(f"the fit did not converge: {res.message}")
@@ -137,7 +144,7 @@ def identify_warnings(res, n_poses: int) -> list[str]:
         out.append(f"{len(res.weak)} of the {res.rank} identifiable errors are set by the prior, not by the "
                    f"{n_poses} poses ({', '.join(res.weak[:3])}{', ...' if len(res.weak) > 3 else ''}): measure "
                    "more poses spread over the workspace")
-    if res.chi2_per_dof > CHI2_WARN:
+    if res.chi2_per_dof > CHI2_WARN and not outliers:
         out.append(f"the model leaves {res.residual_rms_mm:.4f} mm rms (chi2/dof {res.chi2_per_dof:.1f}, "
                    f"{res.sigma_mm:g} mm tracker noise): an error frame missing from [errors], a wrong "
                    "sigma_mm, or an effect the geometry does not hold")
@@ -167,7 +174,8 @@ def compensate(args) -> int:
     if not args.targets or not args.output:
         raise InputError(f"machine {machine.name} needs --targets TARGETS.csv and -o SETPOINTS.csv",
                          field="--targets" if not args.targets else "-o")
-    params, _ = read_params(args.params, machine.spec, _units(machine))
+    params, doc = read_params(args.params, machine.spec, _units(machine))
+    refuse_unusable(doc, str(args.params), bool(getattr(args, "force", False)), _campaign_fix(machine))
     task = read_targets(args.targets, machine.spec)
     progress.status(f"compensating {len(task)} targets")
     commands = commands_for(machine, params, task, args.targets)
@@ -209,16 +217,22 @@ def _table(args, machine) -> int:
     version = int(time.time()) if args.table_version is None else args.table_version
     if not 1 <= version <= 2**32 - 1:
         raise InputError(f"table version {version} outside 1..4294967295", field="--table-version")
-    params, _ = read_params(args.params, machine.spec, _units(machine))
+    params, doc = read_params(args.params, machine.spec, _units(machine))
+    refuse_unusable(doc, str(args.params), bool(getattr(args, "force", False)), _campaign_fix(machine))
     table = compensation_table(machine, params, version, parse_nodes(args.grid),
                                absolute=True if args.absolute else None)
-    table.save(args.table)
+    save_table(table, args.table, doc.get("quality"))
     shape = "x".join(map(str, table.shape))
     kind = ("corrections to add to the controller's nominal IK (nReference 2)" if table.controller_reference
             else "absolute motor commands")
     print(f"compensation table version {version}: {shape} nodes over {', '.join(a.column for a in table.axes)}, "
           f"{table.n_motors} motors, {kind}, CRC-32 0x{table.crc32():08X}")
     return 0
+
+
+def _campaign_fix(machine) -> str:
+    return (f"measure poses spread over the workspace ('pmcal --machine {machine.name} twin plan' plans them) and "
+            "remeasure or delete outlier rows")
 
 
 def parse_nodes(text: str | None) -> list[int] | None:
