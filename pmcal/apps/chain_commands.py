@@ -77,6 +77,8 @@ def twin_measure(args) -> int:
     if truth:
         comments.append("true errors (mm, deg): " + ", ".join(f"{k}={v:.6g}" for k, v in truth.items()))
     write_measurements(args.output, machine.spec, meas, comments)
+    print(f"measured {len(meas)} poses on the twin of {machine.name} (errors: {what}, tracker sigma "
+          f"{machine.twin.sigma_mm if sigma is None else sigma:g} mm, seed {args.seed})")
     return 0
 
 
@@ -157,9 +159,9 @@ def targets(args) -> int:
     if not 1 <= args.count <= 100_000:
         raise InputError(f"count must be 1..100000, got {args.count}", field="--count")
     task = sample_targets(machine, args.count, args.seed)
-    write_targets(args.output, machine.spec, task,
-                  [f"pmcal targets: machine {machine.name}, {args.count} targets over the workspace of "
-                   f"machine.toml, seed {args.seed}"])
+    what = f"machine {machine.name}, {args.count} targets over the workspace of machine.toml, seed {args.seed}"
+    write_targets(args.output, machine.spec, task, [f"pmcal targets: {what}"])
+    print(f"targets: {what}")
     return 0
 
 
@@ -181,6 +183,7 @@ def compensate(args) -> int:
     commands = commands_for(machine, params, task, args.targets)
     write_setpoints(args.output, machine.spec, task, commands,
                     [f"pmcal compensate: machine {machine.name}, parameters {args.params}"])
+    print(f"{len(task)} setpoints for the targets of {args.targets} (machine {machine.name}, parameters {args.params})")
     return 0
 
 

@@ -52,9 +52,10 @@ def targets(args) -> int:
     if not 0 < theta_max <= THETA_LIMIT_DEG:
         raise InputError(f"tilt limit {theta_max:g} deg is outside 0..{THETA_LIMIT_DEG:g} deg", field="--theta-max")
     phi, theta = plan_orientations(args.count, theta_max, np.random.default_rng(args.seed))
+    what = f"machine ocpm_2dof, {args.count} orientations up to {theta_max:g} deg tilt, seed {args.seed}"
     write_csv(args.output, ["phi_deg", "theta_deg"], ([f"{p:.4f}", f"{t:.4f}"] for p, t in zip(phi, theta)),
-              [f"pmcal targets: machine ocpm_2dof, {args.count} orientations up to {theta_max:g} deg tilt, "
-               f"seed {args.seed}", "units: deg; phi = azimuth of the tilt axis, theta = tilt (docs/formats.md)"])
+              [f"pmcal targets: {what}", "units: deg; phi = azimuth of the tilt axis, theta = tilt (docs/formats.md)"])
+    print(f"targets: {what}")
     return 0
 
 
@@ -106,6 +107,8 @@ def twin_measure(args) -> int:
         f"tracker sigma {sigma:g} mm, seed {args.seed}",
         "units: mm, deg; targets in the " + ("tracker frame" if tracker_pose is not None else "base frame O-xyz")]
         + truth_comments(tracker_pose, meas))
+    print(f"measured {len(meas)} poses on the twin of {geom_name()} (errors: {source}, tracker sigma {sigma:g} mm, "
+          f"seed {args.seed})")
     return 0
 
 
@@ -263,6 +266,8 @@ def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max
         f"{sigma:g} mm, seed {args.seed}, gravity on, effects: {active}",
         "units: mm, deg, degC, kg, s; targets in the "
         + ("tracker frame" if tracker_pose is not None else "base frame O-xyz")] + truth_comments(tracker_pose, meas))
+    print(f"measured {len(meas)} poses on the twin of {geom_name()} (errors: {source}, tracker sigma {sigma:g} mm, "
+          f"seed {args.seed}, effects: {active})")
     return 0
 
 

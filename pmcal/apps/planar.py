@@ -229,7 +229,7 @@ def compensate(args) -> int:
                          row=row, field="y_mm")
     write_setpoints(args.output, header, rows, theta, comments=[
         f"pmcal compensate, machine planar_2dof, parameters {args.params}", "units: mm, deg"])
-    _status(f"{len(r)} setpoints -> {args.output}")
+    print(f"{len(r)} setpoints for the targets of {args.targets} (machine planar_2dof, parameters {args.params})")
     return 0
 
 
@@ -285,6 +285,7 @@ def targets(args) -> int:
     write_csv(args.output, ["x_mm", "y_mm"], ([f"{x:.4f}", f"{y:.4f}"] for x, y in r),
               [f"pmcal targets: machine planar_2dof, {len(r)} positions on the workspace boundary",
                "units: mm; seed frame O-xy, y up, the platform below the base (y < 0); docs/formats.md"])
+    print(f"targets: machine planar_2dof, {len(r)} positions on the workspace boundary")
     return 0
 
 
@@ -328,7 +329,8 @@ def twin_measure(args) -> int:
         f"scale sigma {noise.scale:.4g} mm, servo sigma {math.degrees(noise.servo):.4g} deg, "
         f"seed {getattr(args, 'seed', 1)}",
         "units: mm, deg; seed frame O-xy (y up); scale_change_mm = change since the previous row"])
-    _status(f"{len(r)} positions -> {args.output}")
+    print(f"measured {len(r)} positions on the twin of planar_2dof (errors: {source}, scale sigma "
+          f"{noise.scale:.4g} mm, seed {getattr(args, 'seed', 1)})")
     return 0
 
 

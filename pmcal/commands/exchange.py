@@ -50,7 +50,7 @@ def _import(args) -> int:
         progress.warning(f"{args.tracker}: the points are not in the machine's base frame ({res.frame_reason}): "
                          f"{advice}")
     write()
-    progress.status(f"imported {len(res.meas)} poses ({res.join}, {res.frame} frame)")
+    print(f"imported {len(res.meas)} poses ({res.join}, {res.frame} frame)")
     return 0
 
 
@@ -65,6 +65,9 @@ def _export_model(args) -> int:
         progress.status(f"{name}: in the MJCF ({where})")
     for name in out["comment_only"] + out["not_in_mjcf"]:
         progress.warning(f"{name} cannot be held by MJCF: written to {out['toml']} (and the file's comment)")
+    held = len(out["comment_only"]) + len(out["not_in_mjcf"])
+    print(f"calibrated model of {machine.name} from {args.params}: {len(out['in_mjcf'])} effect(s) in the MJCF"
+          + (f", {held} only in {out['toml']}" if held else ""))
     return 0
 
 
