@@ -106,8 +106,11 @@ def load_cases(path: Path = CASES) -> list[Case]:
         for machine in g.get("machines", ["ocpm"]):
             margs, stem = MACHINES[machine]
             for k, v in enumerate(values):
-                subst = {"v": str(v), "m": " ".join(margs), "meas": f"{stem}m.csv", "params": f"{stem}p.json",
+                if g.get("other_machines") and _same_machine(str(v), stem):
+                    continue                                      # the machine's own file: not a bad input
+                subst = {"m": " ".join(margs), "meas": f"{stem}m.csv", "params": f"{stem}p.json",
                          "targets": f"{stem}tg.csv", "table": f"{stem}table.json", "s": stem}
+                subst["v"] = _fill(str(v), subst)
                 fill = lambda text: _fill(text, subst)            # noqa: E731
                 cid = f"{g['id']}/{machine}" + (f"/{k}" if len(values) > 1 else "")
                 out.append(Case(id=cid, machine=machine, argv=shlex.split(fill(g["command"])), expect=g["expect"],
@@ -118,6 +121,14 @@ def load_cases(path: Path = CASES) -> list[Case]:
     if dup:
         raise ValueError(f"{path}: case ids given twice: {sorted(dup)}")
     return out
+
+
+def _same_machine(value: str, stem: str) -> bool:
+    """Whether a file named in ``value`` is of the machine whose fixture files start with ``stem`` (the
+    Delta's copy and the Delta share their geometry)."""
+    owner = re.match(r"[a-z]+?(?=(m\.csv|p\.json|tg\.csv|table\.json))", value)
+    same = {"d": {"d", "c"}, "c": {"d", "c"}}.get(stem, {stem})
+    return bool(owner) and owner.group(0) in same
 
 
 def _fill(text: str, subst: dict[str, str]) -> str:
@@ -163,7 +174,9 @@ def digest(root: Path) -> dict[str, str]:
 
 
 def hidden(root: Path) -> set[str]:
-    return {str(p.relative_to(root)) for p in root.rglob(".*")}
+    """Hidden files and folders under ``root`` (staging, temporary files), pmcal's output markers aside."""
+    from pmcal.fileio import MARKER
+    return {str(p.relative_to(root)) for p in root.rglob(".*") if p.name != MARKER}
 
 
 def _limit(memory_bytes: int):

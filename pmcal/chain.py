@@ -23,7 +23,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from pmcal import progress
-from pmcal.bridge.comptable import CONTROLLER, CORRECTION_ABS_MAX, NMOTOR_MAX, Axis, CompTable, Motor
+from pmcal.bridge.comptable import (CONTROLLER, CORRECTION_ABS_MAX, NMOTOR_MAX, NVALUES_MAX, Axis, CompTable,
+                                    Motor)
 from pmcal.calib.chain_design import POOL_FACTOR, POOL_MIN, CampaignDesign, design_campaign
 from pmcal.campaign_quality import chain_quality
 from pmcal.calib.closed_chain import (compensate_targets, identify_chain, reading_covariance, reading_operator,
@@ -437,6 +438,10 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
     if len(nodes) != len(spec.table_axes) or min(nodes) < 2:
         raise InputError(f"expected {len(spec.table_axes)} node counts >= 2 (one per table axis "
                          f"{', '.join(spec.table_axes)}), got {','.join(map(str, nodes))}", field="--grid")
+    values = int(np.prod(nodes, dtype=object)) * len(spec.motors)        # before anything is built
+    if values > NVALUES_MAX:
+        raise InputError(f"grid {'x'.join(map(str, nodes))} x {len(spec.motors)} motors = {values} values, more than "
+                         f"the PLC's {NVALUES_MAX}: fewer nodes per axis", field="--grid")
     axes = [Axis.of_column(a, *grid.box[a], n) for a, n in zip(spec.table_axes, nodes)]
     motors = [Motor(m.name, m.unit, m.range[0], m.range[1], grid.max_step) for m in spec.motors]
     order = [spec.table_axes.index(c) for c in spec.task.coordinates]

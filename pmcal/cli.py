@@ -169,7 +169,7 @@ def output_paths(args, suffixes: bool = False) -> list:
     for attrs, folder in ((FILE_OUTPUTS.get(name, ()), False), (FOLDER_OUTPUTS.get(name, ()), True)):
         for attr in attrs:
             value = getattr(args, attr, None)
-            if value:
+            if value is not None:            # also "": refused by the guard, not taken for "no output"
                 option = _option(attr)
                 out.append((option, str(value), folder, OUTPUT_SUFFIXES.get((name, attr), ()), None))
                 companion = COMPANIONS.get((name, attr))
@@ -309,7 +309,7 @@ def _main(argv: list[str] | None = None) -> int:
             _report_written(args, before)
         return status
     except InputError as exc:
-        print(f"pmcal: error: {exc}", file=sys.stderr)
+        print(f"pmcal: error: {_name_other_machine(exc, args)}", file=sys.stderr)
         return 2
     except RunError as exc:
         print(f"pmcal: failed: {exc}", file=sys.stderr)
@@ -337,6 +337,18 @@ def _main(argv: list[str] | None = None) -> int:
         print(f"pmcal: failed: {type(exc).__name__}: {exc} (a bug: please report it with --verbose output)",
               file=sys.stderr)
         return 1
+
+
+def _name_other_machine(exc: InputError, args) -> InputError:
+    """A file that does not fit the selected machine and says it is another machine's
+    (:func:`pmcal.machines.file_machine`): the real cause, named, instead of the first check it failed."""
+    machine = getattr(args, "selected_machine", None)
+    other = machines.file_machine(exc.file) if exc.file and machine is not None else None
+    if other is None or other == machine.name:
+        return exc
+    return InputError(f"this is a file of machine {other} (it says so), not of {machine.name}: give --machine "
+                      f"{other} or a file of {machine.name} (what did not fit: {exc.message})", file=exc.file,
+                      field=exc.field)
 
 
 #: exit status when stdout's reader closed the pipe: what a shell reports for a command SIGPIPE ended

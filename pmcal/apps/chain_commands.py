@@ -18,8 +18,8 @@ from pmcal.chain import (campaign, campaign_quality, check_assembles, compensate
                          identify as run_identification, params_document, reference_basis, residuals, sample_targets,
                          table_refusal)
 from pmcal.csvio import LONG_POSES
-from pmcal.errors import InputError
-from pmcal.fileio import write_json
+from pmcal.errors import InputError, for_option
+from pmcal.fileio import read_json, write_json
 from pmcal.history import chain_record_document, check_history_dir, file_calibration
 from pmcal.io_chain import (read_measurements, read_params, read_plan, read_targets, write_measurements,
                             write_setpoints, write_targets)
@@ -42,7 +42,8 @@ def error_set(machine, text: str | None):
     if not Path(text).is_file():
         raise InputError(f"'{text}' is neither {' nor '.join(ERROR_CHOICES)} nor a parameters file",
                          field="--errors")
-    params, _ = read_params(text, machine.spec, _units(machine))
+    with for_option("--errors"):
+        params, _ = read_params(text, machine.spec, _units(machine))
     return params
 
 
@@ -176,8 +177,7 @@ def compensate(args) -> int:
     if not args.targets or not args.output:
         raise InputError(f"machine {machine.name} needs --targets TARGETS.csv and -o SETPOINTS.csv",
                          field="--targets" if not args.targets else "-o")
-    params, doc = read_params(args.params, machine.spec, _units(machine))
-    refuse_unusable(doc, str(args.params), bool(getattr(args, "force", False)), _campaign_fix(machine))
+    params = _usable_params(args, machine)
     task = read_targets(args.targets, machine.spec)
     progress.status(f"compensating {len(task)} targets")
     commands = commands_for(machine, params, task, args.targets)
@@ -220,11 +220,10 @@ def _table(args, machine) -> int:
     version = int(time.time()) if args.table_version is None else args.table_version
     if not 1 <= version <= 2**32 - 1:
         raise InputError(f"table version {version} outside 1..4294967295", field="--table-version")
-    params, doc = read_params(args.params, machine.spec, _units(machine))
-    refuse_unusable(doc, str(args.params), bool(getattr(args, "force", False)), _campaign_fix(machine))
+    params = _usable_params(args, machine)
     table = compensation_table(machine, params, version, parse_nodes(args.grid),
                                absolute=True if args.absolute else None)
-    save_table(table, args.table, doc.get("quality"))
+    save_table(table, args.table, read_json(args.params).get("quality"))
     shape = "x".join(map(str, table.shape))
     kind = ("corrections to add to the controller's nominal IK (nReference 2)" if table.controller_reference
             else "absolute motor commands")
@@ -233,9 +232,16 @@ def _table(args, machine) -> int:
     return 0
 
 
-def _campaign_fix(machine) -> str:
-    return (f"measure poses spread over the workspace ('pmcal --machine {machine.name} twin plan' plans them) and "
-            "remeasure or delete outlier rows")
+def _usable_params(args, machine) -> dict[str, float]:
+    """The parameters of ``args.params``, refused (unless ``--force``) when identify flagged them not usable:
+    the verdict is read first, so a fit spoiled by an outlier is refused for its outlier, not for a value."""
+    doc = read_json(args.params)
+    if isinstance(doc, dict) and doc.get("mechanism") == machine.name:
+        fix = (f"measure poses spread over the workspace ('pmcal --machine {machine.name} twin plan' plans them) "
+               "and remeasure or delete outlier rows")
+        refuse_unusable(doc, str(args.params), bool(getattr(args, "force", False)), fix)
+    params, _ = read_params(args.params, machine.spec, _units(machine))
+    return params
 
 
 def parse_nodes(text: str | None) -> list[int] | None:

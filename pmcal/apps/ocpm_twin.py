@@ -8,7 +8,7 @@ from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 from pmcal import progress
 from pmcal.apps.ocpm import DEFAULTS
-from pmcal.errors import InputError, RunError
+from pmcal.errors import InputError, RunError, for_option
 from pmcal.fileio import atomic_write
 from pmcal.io_ocpm import MAX_POSES, read_campaign_context, read_params, read_targets, write_measurements
 from pmcal.option_ranges import parse_task_pose
@@ -19,7 +19,8 @@ PRESETS: dict[str, dict[str, float]] = {"paper-table2": PAPER_TABLE2, "nominal":
 def machine_errors(args) -> dict[str, float]:
     """The error set selected by ``--preset`` / ``--errors`` (default: nominal)."""
     if getattr(args, "errors", None):
-        params, _ = read_params(args.errors)
+        with for_option("--errors"):
+            params, _ = read_params(args.errors)
         return params
     name = getattr(args, "preset", None) or "nominal"
     if name not in PRESETS:

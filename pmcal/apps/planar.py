@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from pmcal.commands.options import ABSENT, HIDDEN
-from pmcal.errors import InputError, RunError
+from pmcal.errors import InputError, RunError, for_option
 from pmcal.option_ranges import parse_task_pose
 
 #: this machine's wording of the commands' options (:mod:`pmcal.commands.options`)
@@ -264,7 +264,8 @@ def evaluate(args) -> int:
 def _errors_from_args(args, machine):
     from pmcal.io_planar import read_params
     if getattr(args, "errors", None):
-        errors, _ = read_params(args.errors, require_mechanism=False)
+        with for_option("--errors"):
+            errors, _ = read_params(args.errors, require_mechanism=False)
         return errors, str(args.errors)
     name = getattr(args, "preset", None) or "nominal"
     return machine.preset(name), f"preset {name}"
@@ -315,7 +316,8 @@ def twin_measure(args) -> int:
         if len(r) < 2:
             raise InputError("a campaign needs at least two positions", file=args.targets, field="x_mm")
     else:
-        K = int(getattr(args, "poses", None) or DEFAULTS["poses"])
+        poses = getattr(args, "poses", None)
+        K = int(DEFAULTS["poses"] if poses is None else poses)
         if K < 6 or K % 2 or K > MAX_POSITIONS:
             raise InputError(f"number of poses must be even and 6..{MAX_POSITIONS} (K = 2n > 5; the most identify "
                              f"reads), got {K}", field="--poses")
