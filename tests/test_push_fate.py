@@ -46,3 +46,18 @@ def test_a_terminated_push_names_its_fate_and_status_says_it_in_words(tmp_path, 
     # the push stopped before its commit: v5 still runs, v6 did not land
     assert words.startswith("The PLC runs table v5 "), words
     assert "a push of that version landed; any other did not" in words, words
+
+
+def test_a_busy_port_for_the_mock_plc_is_one_line(capsys):
+    import socket
+
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        for transport in ("--modbus", "--ads"):
+            capsys.readouterr()
+            assert main(["mock-plc", transport, "--port", str(port), "--seconds", "1"]) == 2
+            err = capsys.readouterr().err.strip()
+            assert err == (f"pmcal: error: field '--port': cannot listen on 127.0.0.1:{port}: Address already in use "
+                           "(another program, or another mock PLC, uses it: choose another port or 0 for a free one)")

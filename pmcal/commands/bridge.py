@@ -393,6 +393,22 @@ def _write_json(path, report) -> None:
             fh.write("\n")
 
 
+def _check_port_free(port: int) -> None:
+    """A busy ``--port``: one line before the mock starts (the Modbus server would only say that it
+    could not listen). 0 (a free port) is always free."""
+    import socket
+
+    if port == 0:
+        return
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)     # as the servers do: TIME_WAIT is no owner
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError as exc:
+            raise InputError(f"cannot listen on 127.0.0.1:{port}: {exc.strerror} (another program, or another mock "
+                             "PLC, uses it: choose another port or 0 for a free one)", field="--port") from None
+
+
 def cmd_mock_plc(args) -> int:
     from pmcal.bridge.comptable import CompTable
     from pmcal.bridge.faults import Fault
@@ -403,6 +419,7 @@ def cmd_mock_plc(args) -> int:
         raise InputError("cycle must be 0.1 .. 1000 ms", field="--cycle-ms")
     if not 0 <= args.port < 65536:
         raise InputError(f"port {args.port} outside 0..65535", field="--port")
+    _check_port_free(args.port)
     for flag, value in (("--restart-after", args.restart_after), ("--power-cut-after", args.power_cut_after)):
         if value is not None and not 0 < value < args.seconds:
             raise InputError(f"must be in (0, {args.seconds:g}) s, got {value:g}", field=flag)
