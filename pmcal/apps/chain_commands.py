@@ -115,7 +115,7 @@ def identify(args) -> int:
         progress.warning(line)
     if not quality["usable"]:
         progress.warning(f"calibration not usable: {quality['why']}; compensate and push refuse it without --force "
-                         f"('pmcal --machine {machine.name} twin plan' plans a campaign)")
+                         "('pmcal twin plan' with this --machine plans a campaign)")
     return 0
 
 
@@ -237,8 +237,8 @@ def _usable_params(args, machine) -> dict[str, float]:
     the verdict is read first, so a fit spoiled by an outlier is refused for its outlier, not for a value."""
     doc = read_json(args.params)
     if isinstance(doc, dict) and doc.get("mechanism") == machine.name:
-        fix = (f"measure poses spread over the workspace ('pmcal --machine {machine.name} twin plan' plans them) "
-               "and remeasure or delete outlier rows")
+        fix = ("measure poses spread over the workspace ('pmcal twin plan' with this --machine plans them) and "
+               "remeasure or delete outlier rows")
         refuse_unusable(doc, str(args.params), bool(getattr(args, "force", False)), fix)
     params, _ = read_params(args.params, machine.spec, _units(machine))
     return params
