@@ -201,3 +201,15 @@ def test_sigterm_cleans_up_as_ctrl_c_does(tmp_path):
     assert proc.returncode == 143, err
     assert err.strip() == "pmcal: terminated; nothing half-written"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_identify_history_into_a_read_only_folder_writes_nothing(user, capsys):
+    hist = user / "work" / "hist"
+    hist.mkdir()
+    hist.chmod(0o555)
+    try:
+        refused_in(user, capsys, "identify", "m.csv", "-o", "new.json", "--history", "hist",
+                   says="field '--history': cannot write hist/record.json: the folder hist is not writable")
+    finally:
+        hist.chmod(0o755)
+        hist.rmdir()
