@@ -18,6 +18,7 @@ Example
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from collections.abc import Mapping
 
 import numpy as np
@@ -413,6 +414,24 @@ def table_refusal(machine) -> str | None:
             f"of target lists: compensate PARAMS.json --targets TARGETS.csv -o SETPOINTS.csv")
 
 
+def _probe_box(machine, params: Mapping[str, float], axes, order: list[int], motors) -> None:
+    """Before the grid: the table box's corners and centre (2**d + 1 points) reachable by the identified
+    machine within its motor ranges, else an :class:`InputError` naming the corner at once (a box beyond the
+    reach otherwise costs the inverse kinematics of every node first)."""
+    corners = np.array(list(itertools.product(*[(a.min, a.max) for a in axes])), float)
+    probe = np.vstack([corners, corners.mean(axis=0)])[:, order]
+    commands = compensate_targets(machine.twin, dict(params), probe)
+    lo = np.array([m.min for m in motors])
+    hi = np.array([m.max for m in motors])
+    ok = np.isfinite(commands).all(axis=1) & np.all((commands >= lo) & (commands <= hi), axis=1)
+    for i in np.flatnonzero(~ok)[:1]:
+        where = ", ".join(f"{c}={v:g}" for c, v in zip(machine.spec.task.coordinates, probe[i]))
+        what = "centre" if i == len(probe) - 1 else "corner"
+        raise InputError(f"the table box's {what} {where} is not reachable by the identified machine within its "
+                         "motor ranges: shrink the table box ([table] box, else [workspace])",
+                         file=str(machine.spec.folder / "machine.toml"), field="table")
+
+
 def compensation_table(machine, params: Mapping[str, float], version: int, nodes=None, absolute: bool | None = None):
     """The compensation table (format 4) of a machine folder: a grid over its ``[table]`` axes (``[table]
     nodes`` per axis, or ``nodes``; the box of ``[table]`` or the workspace).
@@ -460,6 +479,7 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
                              "ranges; shrink the table box ([table] in machine.toml)", row=int(i) + 1, field="grid")
         return commands
 
+    _probe_box(machine, params, axes, order, motors)
     table = CompTable.from_grid(fill, machine=spec.name, version=int(version), axes=axes, motors=motors)
     absolute = bool(absolute) or (absolute is None and grid.reference == "none")
     defect = table.defect()

@@ -161,8 +161,8 @@ def dispatch(command: str, args) -> int:
 
 
 def file_machine(path: str | Path) -> str | None:
-    """The machine a file says it is of, or None: a CSV's ``# ... machine NAME`` comment line (pmcal writes
-    one in every file), a JSON's ``mechanism`` or ``machine`` (parameters, tables). Used to say "another
+    """The machine a file says it is of, or None: a CSV's ``# pmcal COMMAND: machine NAME`` (or a table's
+    ``# machine=NAME``) comment line (pmcal writes one in every file), a JSON's ``mechanism`` or ``machine`` (parameters, tables). Used to say "another
     machine's file" when a file does not fit the selected machine."""
     try:
         with open(path, encoding="utf-8-sig", errors="replace") as fh:
@@ -176,10 +176,12 @@ def file_machine(path: str | Path) -> str | None:
             return None
         name = doc.get("mechanism") or doc.get("machine") if isinstance(doc, dict) else None
         return name if isinstance(name, str) else None
+    if Path(path).suffix.lower() != ".csv":
+        return None
     for line in head.splitlines():
         if not line.startswith("#"):
             break
-        found = re.search(r"\bmachine[ =:]+([A-Za-z0-9_.-]+)", line)
+        found = re.match(r"#\s*(?:pmcal\b[^:]*:\s*machine |machine=)([A-Za-z0-9_.-]+)", line)
         if found:
             return found.group(1).rstrip(",.")
     return None
