@@ -86,3 +86,24 @@ def test_a_near_miss_column_of_ocpm_2dof_is_refused(work, capsys):
     (work / "tc.csv").write_text("\n".join(out) + "\n")
     err = one_line(capsys, work, "identify", "tc.csv", "-o", "x.json")
     assert "field 'temp_C': unknown column; did you mean temp_c?" in err
+
+
+def test_an_import_in_metres_is_refused_before_anything_is_written(tmp_path, capsys):
+    """Nest distances are frame-free: points in metres are named as such, not blamed on the frame."""
+    data = Path(__file__).parent / "data"
+    lines = []
+    for line in (data / "sa_export_handwritten.txt").read_text().splitlines():
+        f = line.split()
+        if not line.startswith("//") and len(f) >= 6:
+            try:
+                f[3:6] = [repr(float(v) / 1000.0) for v in f[3:6]]
+            except ValueError:
+                pass
+            line = " ".join(f)
+        lines.append(line)
+    (tmp_path / "metres.txt").write_text("\n".join(lines) + "\n")
+    err = one_line(capsys, tmp_path, "import", "metres.txt", "--log", data / "controller_log_handwritten.csv",
+                   "-o", "m.csv")
+    assert "pose 1: targets t1 and t2 are 0.1732 mm apart, the platform has them 173.2 mm apart (values look like " \
+           "metres" in err, err
+    assert not (tmp_path / "m.csv").exists()
