@@ -105,8 +105,9 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
     and only then the old one removed; the marker lists the files written, so the next run knows them.
     """
     target = Path(path)
-    check_output(target, folder=True)
+    _check_not_protected(target, (), None, None)
     target.parent.mkdir(parents=True, exist_ok=True)
+    check_output(target, folder=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     old = None
     try:
@@ -121,14 +122,17 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
             os.replace(target, old / "previous")
         os.replace(tmp, target)
     except BaseException:
-        if old is not None and not target.exists():  # put the previous folder back
+        if old is not None and (old / "previous").exists() and not target.exists():   # put the previous one back
             os.replace(old / "previous", target)
         shutil.rmtree(tmp, ignore_errors=True)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
         raise
     if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+        try:
+            shutil.rmtree(old, ignore_errors=True)
+        finally:                                     # a signal during the removal: finish it, then stop
+            shutil.rmtree(old, ignore_errors=True)
 
 
 def read_text(path: str | os.PathLike, field: str | None = None) -> str:
