@@ -1,6 +1,6 @@
 """Every machine gets the new user's first commands (issue 33): docs/ADDING_A_MACHINE.md's copy recipe,
 run as written, gives a folder whose picture renders, and ``pmcal --machine NAME demo`` with no options
-runs for the copy (default suite) and for every built-in machine (slow: up to minutes each).
+runs for the copy and for every built-in machine (the two that take 20 s or more in the slow suite).
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def _demo_runs(cwd: Path, machine: str) -> None:
     out = pmcal(cwd, "--machine", machine, "demo")
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
-    assert lines[-1] == "pmcal: wrote pmcal-demo/" and lines[0].startswith("pmcal demo: pmcal-demo/report.html")
+    assert lines[-1] == "pmcal: wrote pmcal-demo/" and "pmcal-demo/report.html" in lines[0], lines
     assert (cwd / "pmcal-demo" / "report.html").is_file() and (cwd / "pmcal-demo" / MARKER).is_file()
     assert not [p.name for p in cwd.iterdir() if p.name.startswith(".")]
 
@@ -86,7 +86,12 @@ def test_the_demo_needs_no_option_on_a_copied_folder(copied):
     _demo_runs(copied, "../machines/my_delta")
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", machines.builtin_names())
+#: built-in machines whose demo takes 20 s or more (ocpm_2dof 21 s, planar_2dof 25 s on 2 shared cores; the
+#: hexapod 11 s, the Delta 4 s): in the slow suite; ocpm_2dof's demo also runs in test_cli_ocpm_calib
+SLOW_DEMOS = {"ocpm_2dof", "planar_2dof"}
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW_DEMOS else n
+                                  for n in machines.builtin_names()])
 def test_the_demo_needs_no_option_on_every_built_in_machine(name, tmp_path):
     _demo_runs(tmp_path, name)
