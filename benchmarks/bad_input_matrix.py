@@ -98,7 +98,7 @@ class Result:
 def load_cases(path: Path = CASES) -> list[Case]:
     """The cases of ``path``: every ``[[group]]`` expanded over its ``machines`` and ``values`` ({v} in
     ``command``, ``setup``, ``says``; {m} the machine's --machine arguments; {meas}, {params}, {targets},
-    {table} its fixture files)."""
+    {table} its fixture files; {data} the repository's tests/data)."""
     doc = tomllib.loads(path.read_text(encoding="utf-8"))
     out: list[Case] = []
     for g in doc["group"]:
@@ -109,7 +109,8 @@ def load_cases(path: Path = CASES) -> list[Case]:
                 if g.get("other_machines") and _same_machine(str(v), stem):
                     continue                                      # the machine's own file: not a bad input
                 subst = {"m": " ".join(margs), "meas": f"{stem}m.csv", "params": f"{stem}p.json",
-                         "targets": f"{stem}tg.csv", "table": f"{stem}table.json", "s": stem}
+                         "targets": f"{stem}tg.csv", "table": f"{stem}table.json", "s": stem,
+                         "data": str(ROOT / "tests" / "data")}
                 subst["v"] = _fill(str(v), subst)
                 fill = lambda text: _fill(text, subst)            # noqa: E731
                 cid = f"{g['id']}/{machine}" + (f"/{k}" if len(values) > 1 else "")
