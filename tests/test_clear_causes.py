@@ -107,3 +107,52 @@ def test_an_import_in_metres_is_refused_before_anything_is_written(tmp_path, cap
     assert "pose 1: targets t1 and t2 are 0.1732 mm apart, the platform has them 173.2 mm apart (values look like " \
            "metres" in err, err
     assert not (tmp_path / "m.csv").exists()
+
+
+def _campaign(src: Path, dst: Path, rows) -> Path:
+    lines = src.read_text().splitlines()
+    head = [line for line in lines if line.startswith(("#", "pose_id"))]
+    data = [line for line in lines if not line.startswith(("#", "pose_id"))]
+    dst.write_text("\n".join(head + rows(data)) + "\n")
+    return dst
+
+
+def _shifted(data: list[str], row: int, mm: float) -> list[str]:
+    cells = data[row - 1].split(",")
+    cells[4] = repr(float(cells[4]) + mm)                   # t1_x of the Delta (pose_id, m1..m3, t1_x)
+    return data[: row - 1] + [",".join(cells)] + data[row:]
+
+
+@pytest.mark.parametrize("name, rows, why", [
+    ("two", lambda d: d[:2], "the campaign determines 12 of the 42 error combinations"),
+    ("same", lambda d: [f"S{i}," + d[0].split(",", 1)[1] for i in range(48)], "1 distinct poses (47 rows repeat a pose)"),
+    ("outlier", lambda d: _shifted(d, 5, 3.0), "gross outlier: row 5 (P5): target t1 is 3"),
+])
+def test_a_weak_campaign_of_a_folder_machine_is_flagged_and_refused(work, capsys, name, rows, why):
+    """The Delta: identify says NOT usable and why; compensate (targets, table) refuses without --force; a
+    table forced out of it carries the verdict, and push refuses it before any link."""
+    _campaign(work / "d.csv", work / f"{name}.csv", rows)
+    cwd = os.getcwd()
+    os.chdir(work)
+    try:
+        capsys.readouterr()
+        assert main(["--machine", "delta_3dof", "identify", f"{name}.csv", "-o", f"{name}.json"]) == 0
+        cap = capsys.readouterr()
+        assert "; NOT usable" in cap.out.splitlines()[0] and why in cap.err, cap
+        assert main(["--machine", "delta_3dof", "targets", "-o", "tg.csv", "--quiet"]) == 0
+    finally:
+        os.chdir(cwd)
+    err = one_line(capsys, work, "--machine", "delta_3dof", "compensate", f"{name}.json", "--targets", "tg.csv",
+                   "-o", "s.csv")
+    assert "calibration flagged not usable" in err and why in err and "--force" in err
+    one_line(capsys, work, "--machine", "delta_3dof", "compensate", f"{name}.json", "--table", f"{name}_t.json")
+    if name == "two":                                        # forced: the table carries the verdict to push
+        os.chdir(work)
+        try:
+            assert main(["--quiet", "--machine", "delta_3dof", "compensate", "two.json", "--table", "two_t.json",
+                         "--force"]) == 0
+        finally:
+            os.chdir(cwd)
+        err = one_line(capsys, work, "--machine", "delta_3dof", "push", "two_t.json", "--modbus", "127.0.0.1:1",
+                       "--dry-run")
+        assert "field 'quality'" in err and "--force" in err
