@@ -582,9 +582,16 @@ class CompTable:
         write_csv(self, path)
 
     def save(self, json_path: str | Path) -> tuple[Path, Path]:
-        """Write ``json_path`` and the CSV beside it (same stem, ``.csv``); returns both paths."""
+        """Write ``json_path`` and the CSV beside it (same stem, ``.csv``); returns both paths.
+
+        Both are checked first (:func:`pmcal.fileio.check_output`): the CSV beside replaces only a table
+        CSV, never another file of that name (a campaign ``t.csv`` beside ``t.json``)."""
+        from pmcal.bridge.comptable_files import SIDE_FILE_START
+        from pmcal.fileio import check_output
         jp = Path(json_path)
         cp = jp.with_suffix(".csv")
+        check_output(jp, suffixes=(".json",))
+        check_output(cp, own=SIDE_FILE_START)
         self.to_json(jp)
         self.to_csv(cp)
         return jp, cp

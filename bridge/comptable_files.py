@@ -26,6 +26,8 @@ from pmcal.fileio import atomic_write
 
 #: ST_CompTableHeader of format 3 (104 bytes), for the CRC of format-3 files
 _HEADER_V3 = struct.Struct("<7dI4H2I28s")
+#: What a table CSV starts with: a file beside a table's JSON is replaced only if it is one
+SIDE_FILE_START = f"# {FORMAT} "
 _AXIS_KEYS = ("name", "unit", "min", "max", "n")
 _MOTOR_KEYS = ("name", "unit", "min", "max", "max_step")
 

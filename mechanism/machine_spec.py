@@ -273,7 +273,7 @@ class _Loader:
             raise InputError("machine folder not found (give a folder holding machine.toml and the MJCF)",
                              file=str(folder))
         try:
-            self.doc = tomllib.loads(self.path.read_text(encoding="utf-8"))
+            self.doc = tomllib.loads(self.path.read_text(encoding="utf-8-sig"))     # a BOM (Windows editors) dropped
         except FileNotFoundError:
             raise InputError("file not found: a machine folder needs a machine.toml (docs/machine_toml.md)",
                              file=self.file) from None

@@ -27,6 +27,7 @@ from pmcal.calib.solvers import METHODS
 from pmcal.compensators import (DEFAULT_GRID, Compensator, FullCompensation, PaperCompensation, build_table,
                                 checked_commands)
 from pmcal.errors import InputError
+from pmcal.fileio import check_output
 from pmcal.threads import blas_policy
 from pmcal.io_ocpm import PARAM_MODELS, paper_keys_only, read_params, write_params
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
@@ -137,7 +138,9 @@ class Calibration:
         return build_table(self.compensator, self.geometry, grid, version)
 
     def save(self, path: str | Path) -> Path:
-        """Write the parameters file (JSON, ``docs/formats.md``), atomically; returns the path."""
+        """Write the parameters file (JSON, ``docs/formats.md``), atomically, after the output guard
+        (:func:`pmcal.fileio.check_output`); returns the path."""
+        check_output(path, suffixes=(".json",))
         extra = dict(self.document, model=self.model, method=self.method)
         if self.covariance is not None:
             extra["covariance"] = {"names": list(self.names), "unit": "mm, rad (log for the stiffness ratio)",

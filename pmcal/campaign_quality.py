@@ -37,6 +37,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from scipy import stats
 
 from pmcal.calib.ocpm.fullchain import platform_normals
 from pmcal.errors import InputError
@@ -110,6 +111,78 @@ def judge(determined: int, n_params: int, rms: float | None = None, most: float 
                      "(RMS over the grid)") if rms is not None else
                     ("determined directions: numerical rank of the identification Jacobian; not usable below half "
                      f"of them; no {what} uncertainty predicted for this model (docs/formats.md)")}
+
+
+#: A folder machine's campaign needs at least this many readings (3 per measured target, 1 per distance
+#: reading) per combination of its structural base set, on distinct poses: fewer determine the errors no
+#: better than the prior, whatever the rank says
+MIN_READINGS_PER_COMBINATION = 2
+
+
+#: a folder machine's fit "stops above the noise floor" when its chi-square is beyond what the declared noise
+#: gives with this probability and its chi2/dof above :data:`FIT_CHI2_PER_DOF`
+FIT_P = 1e-6
+FIT_CHI2_PER_DOF = 1.5
+
+
+def chain_quality(rank: int, reference_rank: int, n_poses: int, distinct_poses: int, readings_per_pose: int,
+                  outliers: list[str], fit: dict | None = None) -> dict:
+    """The ``quality`` object of a folder machine's identification (docs/formats.md, "Campaign quality").
+
+    Parameters
+    ----------
+    rank : combinations of errors the campaign determines (its base set).
+    reference_rank : combinations a campaign spread over the workspace determines (the machine's structural
+        base set, :func:`pmcal.chain.reference_basis`).
+    n_poses, distinct_poses : rows of the campaign, and how many of them are different poses (a pose measured
+        twice counts once).
+    readings_per_pose : readings one pose gives (3 per target, or 1 distance).
+    outliers : one text per gross outlier found (row, pose, target, how far), empty if none.
+    fit : the fit's ``chi2``, ``dof``, ``residual_rms_mm``, ``sigma_mm`` and ``held_out``
+        (:func:`pmcal.calib.closed_chain.held_out_check`); None: not judged.
+
+    Not usable when the campaign determines fewer combinations than the reference, when it has fewer
+    distinct poses than ``MIN_READINGS_PER_COMBINATION x reference_rank / readings_per_pose``, when it
+    holds gross outliers, when the fit stops above the noise floor (chi-square beyond :data:`FIT_P` and
+    chi2/dof above :data:`FIT_CHI2_PER_DOF`), or when it does not predict the poses it did not fit.
+    """
+    needed = -(-MIN_READINGS_PER_COMBINATION * reference_rank // readings_per_pose)
+    why = []
+    if rank < reference_rank:
+        why.append(f"the campaign determines {rank} of the {reference_rank} error combinations a campaign spread "
+                   "over the workspace determines")
+    if distinct_poses < needed:
+        repeated = f" ({n_poses - distinct_poses} rows repeat a pose)" if distinct_poses < n_poses else ""
+        why.append(f"{distinct_poses} distinct poses{repeated}, fewer than the {needed} the machine's "
+                   f"{reference_rank} combinations need")
+    if outliers:
+        why.append("gross outlier" + ("s" if len(outliers) > 1 else "") + ": " + "; ".join(outliers)
+                   + " (remeasure or delete the row)")
+    if fit is not None and not outliers:
+        why += _fit_reasons(fit)
+    return {"determined_directions": rank, "parameters": reference_rank, "poses": n_poses,
+            "distinct_poses": distinct_poses, "poses_needed": needed, "outliers": list(outliers),
+            "usable": not why, "why": "; ".join(why) if why else None,
+            "note": ("determined directions: the rank of the campaign's base set, of the machine's structural base "
+                     f"set; not usable below it, below {MIN_READINGS_PER_COMBINATION} readings per combination on "
+                     "distinct poses, or with gross outliers (docs/formats.md)")}
+
+
+def _fit_reasons(fit: dict) -> list[str]:
+    """Why a folder machine's fit is not usable although its campaign is: it stops above the noise floor, or it
+    does not predict poses it did not fit (:func:`chain_quality`)."""
+    out = []
+    per_dof = fit["chi2"] / fit["dof"]
+    if per_dof > FIT_CHI2_PER_DOF and stats.chi2.sf(fit["chi2"], fit["dof"]) < FIT_P:
+        out.append(f"the fit stops above the noise floor: {fit['residual_rms_mm']:.4f} mm rms left, chi2/dof "
+                   f"{per_dof:.2f} for the tracker noise of {fit['sigma_mm']:g} mm (a wrong sigma_mm, an error "
+                   "frame missing from [errors], or an effect the geometry does not hold)")
+    held = fit.get("held_out") or {}
+    if held.get("passed") is False:
+        out.append(f"it does not predict poses it did not fit: {held['rms_mm']:.4f} mm rms on held-out poses "
+                   f"where {held['predicted_rms_mm']:.4f} mm is predicted (errors fitted as knobs the machine "
+                   "does not have)")
+    return out
 
 
 def quality_line(q: dict) -> str:

@@ -17,13 +17,17 @@ Example
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 from collections.abc import Mapping
 
 import numpy as np
 
 from pmcal import progress
-from pmcal.bridge.comptable import CONTROLLER, CORRECTION_ABS_MAX, NMOTOR_MAX, Axis, CompTable, Motor
+from pmcal.bridge.comptable import (CONTROLLER, CORRECTION_ABS_MAX, NMOTOR_MAX, NVALUES_MAX, Axis, CompTable,
+                                    Motor)
 from pmcal.calib.chain_design import POOL_FACTOR, POOL_MIN, CampaignDesign, design_campaign
+from pmcal.campaign_quality import chain_quality
 from pmcal.calib.closed_chain import (compensate_targets, identify_chain, reading_covariance, reading_operator,
                                       structural_basis)
 from pmcal.errors import InputError, RunError
@@ -236,6 +240,91 @@ def identify(machine, meas: ChainMeasurements, sigma_mm: float | None = None, ba
         return identify_chain(machine.twin, meas.commands, meas.targets, sigma_mm, basis=basis)
     except ValueError as exc:            # too few poses for the base set, poses the machine cannot assemble
         raise InputError(str(exc), file=meas.path) from None
+    except np.linalg.LinAlgError:        # the fit blew up: name the row farthest from the nominal machine
+        raise InputError(_blow_up(machine, meas), file=meas.path) from None
+
+
+def _blow_up(machine, meas: ChainMeasurements) -> str:
+    """What to say when the fit itself failed: the row whose targets are farthest from the nominal machine,
+    if it stands out of the others (a gross outlier), else that the data do not fit the machine."""
+    if machine.spec.measure != "distance":
+        d = np.nanmax(np.where(np.isfinite(d := distance_from_nominal(machine, meas.commands, meas.targets)), d, -1),
+                      axis=1)
+        i = int(np.argmax(d))
+        rest = np.delete(d, i)
+        if rest.size and d[i] > 3 * max(float(np.max(rest)), 0.1):
+            return (f"the fit failed; row {i + 1} ({meas.pose_id[i]}) is {d[i]:.3g} mm from where the nominal machine "
+                    f"puts its targets, the other rows at most {np.max(rest):.3g} mm: a gross outlier (remeasure or "
+                    "delete the row)")
+    return ("the fit failed (the linear algebra did not converge): the measurements do not fit this machine; check "
+            "the rows, the units and --machine")
+
+
+#: A target (or reading) this many sigma off the fit of the other poses is a gross outlier
+OUTLIER_SIGMA = 10.0
+#: Rows :func:`gross_outliers` takes out at most: more are not a few bad rows but a model that does not fit
+OUTLIER_ROWS_MAX = 3
+
+
+def distinct_poses(meas: ChainMeasurements, resolution: float = 1e-6) -> int:
+    """How many different command rows ``meas`` holds (deg / mm, equal to ``resolution``)."""
+    return len(np.unique(np.round(np.asarray(meas.commands, float) / resolution), axis=0))
+
+
+def subset(meas: ChainMeasurements, keep: np.ndarray) -> ChainMeasurements:
+    """The rows ``keep`` (boolean mask) of a measurement set of targets (not of distance readings)."""
+    pick = lambda a: None if a is None else np.asarray(a)[keep]           # noqa: E731
+    return dataclasses.replace(meas, pose_id=[p for p, k in zip(meas.pose_id, keep) if k], commands=meas.commands[keep],
+                               targets=meas.targets[keep], time_s=pick(meas.time_s), temp_c=pick(meas.temp_c))
+
+
+def gross_outliers(machine, meas: ChainMeasurements, res, sigma_mm: float | None = None, basis=None,
+                   chi2_limit: float = 2.0) -> list[str]:
+    """Rows of a campaign that are gross outliers: when the fit ``res`` leaves chi2/dof above ``chi2_limit``,
+    the row whose target is farthest off is taken out and the rest identified again, at most
+    :data:`OUTLIER_ROWS_MAX` times; if the others then fit (chi2/dof at most ``chi2_limit``), each row taken
+    out whose target is more than :data:`OUTLIER_SIGMA` sigma off that fit is named (row counted from 1,
+    pose id, target, mm and sigma). Empty otherwise, and for a machine measuring a distance (its readings
+    are differences of neighbouring rows)."""
+    if machine.spec.measure == "distance" or res.chi2_per_dof <= chi2_limit or len(meas) < 3:
+        return []
+    sigma = float(res.sigma_mm if sigma_mm is None else sigma_mm)
+    keep = np.ones(len(meas), bool)
+    fit = res
+    for _ in range(OUTLIER_ROWS_MAX):
+        d = residuals(machine, fit.params, meas)
+        worst = np.where(keep, np.nanmax(np.where(np.isfinite(d), d, -np.inf), axis=1), -np.inf)
+        keep[int(np.argmax(worst))] = False
+        try:
+            fit = identify(machine, subset(meas, keep), sigma_mm, basis)
+        except InputError:                       # the rest no longer determine the base set
+            return []
+        if fit.chi2_per_dof <= chi2_limit:
+            break
+    else:
+        return []
+    d = residuals(machine, fit.params, meas)
+    out = []
+    for i in np.flatnonzero(~keep):
+        k = int(np.nanargmax(d[i]))
+        if d[i, k] > OUTLIER_SIGMA * sigma:
+            out.append(f"row {i + 1} ({meas.pose_id[i]}): target t{k + 1} is {d[i, k]:.3g} mm "
+                       f"({d[i, k] / sigma:.0f} sigma) off the fit of the other poses")
+    return out
+
+
+def campaign_quality(machine, meas: ChainMeasurements, res, sigma_mm: float | None = None) -> dict:
+    """The ``quality`` object of an identification (:func:`pmcal.campaign_quality.chain_quality`): the
+    campaign's rank against the machine's structural base set (:func:`reference_basis`), its distinct
+    poses, its gross outliers (:func:`gross_outliers`), whether the fit reaches the noise floor and predicts
+    the poses it did not fit (``res.info["held_out"]``)."""
+    reference = reference_basis(machine)
+    per_pose = 1 if machine.spec.measure == "distance" else 3 * len(machine.spec.targets)
+    outliers = gross_outliers(machine, meas, res, sigma_mm, basis=None)
+    fit = {"chi2": float(res.chi2), "dof": float(res.dof), "residual_rms_mm": float(res.residual_rms_mm),
+           "sigma_mm": float(res.sigma_mm), "held_out": res.info.get("held_out")}
+    return chain_quality(int(res.rank), int(reference.rank), len(meas), distinct_poses(meas), per_pose, outliers,
+                         fit)
 
 
 #: poses of the reference campaign of :func:`reference_basis` (at least; more for a machine with many errors)
@@ -414,6 +503,24 @@ def correction_bound(machine, nominal_commands: np.ndarray) -> float:
     return float(min(CORRECTION_ABS_MAX, max(grid.max_correction, CORRECTION_SIGMAS * np.nanmax(sigma))))
 
 
+def _probe_box(machine, params: Mapping[str, float], axes, order: list[int], motors) -> None:
+    """Before the grid: the table box's corners and centre (2**d + 1 points) reachable by the identified
+    machine within its motor ranges, else an :class:`InputError` naming the corner at once (a box beyond the
+    reach otherwise costs the inverse kinematics of every node first)."""
+    corners = np.array(list(itertools.product(*[(a.min, a.max) for a in axes])), float)
+    probe = np.vstack([corners, corners.mean(axis=0)])[:, order]
+    commands = compensate_targets(machine.twin, dict(params), probe)
+    lo = np.array([m.min for m in motors])
+    hi = np.array([m.max for m in motors])
+    ok = np.isfinite(commands).all(axis=1) & np.all((commands >= lo) & (commands <= hi), axis=1)
+    for i in np.flatnonzero(~ok)[:1]:
+        where = ", ".join(f"{c}={v:g}" for c, v in zip(machine.spec.task.coordinates, probe[i]))
+        what = "centre" if i == len(probe) - 1 else "corner"
+        raise InputError(f"the table box's {what} {where} is not reachable by the identified machine within its "
+                         "motor ranges: shrink the table box ([table] box, else [workspace])",
+                         file=str(machine.spec.folder / "machine.toml"), field="table")
+
+
 def compensation_table(machine, params: Mapping[str, float], version: int, nodes=None, absolute: bool | None = None):
     """The compensation table (format 4) of a machine folder: a grid over its ``[table]`` axes (``[table]
     nodes`` per axis, or ``nodes``; the box of ``[table]`` or the workspace).
@@ -440,6 +547,10 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
     if len(nodes) != len(spec.table_axes) or min(nodes) < 2:
         raise InputError(f"expected {len(spec.table_axes)} node counts >= 2 (one per table axis "
                          f"{', '.join(spec.table_axes)}), got {','.join(map(str, nodes))}", field="--grid")
+    values = int(np.prod(nodes, dtype=object)) * len(spec.motors)        # before anything is built
+    if values > NVALUES_MAX:
+        raise InputError(f"grid {'x'.join(map(str, nodes))} x {len(spec.motors)} motors = {values} values, more than "
+                         f"the PLC's {NVALUES_MAX}: fewer nodes per axis", field="--grid")
     box = table_box(machine, nodes)
     axes = [Axis.of_column(a, *box[a], n) for a, n in zip(spec.table_axes, nodes)]
     motors = [Motor(m.name, m.unit, m.range[0], m.range[1], grid.max_step) for m in spec.motors]
@@ -459,6 +570,7 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
                              "its motor ranges; shrink the table box", file=toml, field="table")
         return commands
 
+    _probe_box(machine, params, axes, order, motors)
     table = CompTable.from_grid(fill, machine=spec.name, version=int(version), axes=axes, motors=motors)
     absolute = bool(absolute) or (absolute is None and grid.reference == "none")
     defect = table.defect()

@@ -15,7 +15,7 @@ status). This module owns what every command shares:
   ``push``, the demos, ...), also when piped;
 - ``--quiet`` prints nothing but errors: no result lines, no wrote-lines, no progress (stdout is empty);
 - no traceback reaches the user: bad input -> exit 2, failures -> exit 1 with one line (``--verbose``
-  adds the traceback), Ctrl-C -> exit 130 with one line.
+  adds the traceback), Ctrl-C -> exit 130 with one line, SIGTERM the same clean-up and exit 143.
 
 File formats: ``docs/formats.md``.
 """
@@ -27,13 +27,16 @@ import contextlib
 import importlib
 import os
 import pkgutil
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from pmcal import __version__, machines, progress, threads
 from pmcal.commands.options import CommandSet
 from pmcal.errors import InputError, RunError
-from pmcal.fileio import check_not_input, check_output
+from pmcal.fileio import check_output
+from pmcal.option_ranges import check_ranges
 
 DEFAULT_MACHINE = machines.DEFAULT_MACHINE
 
@@ -63,8 +66,11 @@ OUTPUT_SUFFIXES: dict[tuple[str, str], tuple[str, ...]] = {
     ("push", "json"): (".json",), ("loop", "json"): (".json",), ("import", "output"): (".csv",),
     ("export-model", "output"): (".xml",), ("history", "report"): (".html",),
 }
-#: (command, attribute) of a file output that brings a second file beside it: suffix of that file
-COMPANIONS: dict[tuple[str, str], str] = {("compensate", "table"): ".csv", ("export-model", "output"): ".toml"}
+#: (command, attribute) of a file output that brings a second file beside it: (suffix of that file, module
+#: whose ``SIDE_FILE_START`` is the text such a file of pmcal's starts with: an existing file beside the
+#: output is replaced only if it is one; imported when needed, so ``--help`` does not import MuJoCo)
+COMPANIONS: dict[tuple[str, str], tuple[str, str]] = {
+    ("compensate", "table"): (".csv", "pmcal.bridge.comptable_files"), ("export-model", "output"): (".toml", "pmcal.export_model")}
 
 EPILOG = ("File formats (measurement, targets, setpoints, parameters, diagnosis JSON, compensation table): "
           "docs/formats.md. Units at every interface: mm and degrees.")
@@ -83,6 +89,14 @@ def _named_subparsers(parser: argparse.ArgumentParser):
     """(full command name, parser) of every (sub)command of a parser made by :func:`build_parser`."""
     for name, cmd in parser.pmcal_commands.items():
         yield name, cmd.parser
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse's parser whose usage error is one line (the command, what is wrong, where the help is)
+    instead of the usage block and the error: every bad input gets one line."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} ('{self.prog} --help' lists the options)\n")
 
 
 def _common_options(p, top: bool) -> None:
@@ -109,7 +123,7 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
     :class:`pmcal.commands.options.Command`; ``selected_machine`` in the parsed namespace is the
     :class:`pmcal.machines.Machine`."""
     selected = machines.resolve(machine)
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="pmcal",
         description="Calibrate parallel mechanisms against a MuJoCo digital twin and push the "
                     "compensation to the PLC. Units at every interface: mm and degrees.",
@@ -148,18 +162,21 @@ def _command_name(args) -> str:
 
 def output_paths(args, suffixes: bool = False) -> list:
     """(option, path, is_folder) of every output the parsed command will write; with ``suffixes``,
-    (option, path, is_folder, the suffixes its format may have or ())."""
+    (option, path, is_folder, the suffixes its format may have or (), the start of a side file of pmcal's
+    or None)."""
     name = _command_name(args)
     out = []
     for attrs, folder in ((FILE_OUTPUTS.get(name, ()), False), (FOLDER_OUTPUTS.get(name, ()), True)):
         for attr in attrs:
             value = getattr(args, attr, None)
-            if value:
+            if value is not None:            # also "": refused by the guard, not taken for "no output"
                 option = _option(attr)
-                out.append((option, str(value), folder, OUTPUT_SUFFIXES.get((name, attr), ())))
-                suffix = COMPANIONS.get((name, attr))
-                if suffix and not folder:
-                    out.append((option, str(Path(str(value)).with_suffix(suffix)), False, ()))
+                out.append((option, str(value), folder, OUTPUT_SUFFIXES.get((name, attr), ()), None))
+                companion = COMPANIONS.get((name, attr))
+                if companion and not folder:
+                    suffix, module = companion
+                    start = importlib.import_module(module).SIDE_FILE_START if suffixes else None
+                    out.append((option, str(Path(str(value)).with_suffix(suffix)), False, (), start))
     return out if suffixes else [o[:3] for o in out]
 
 
@@ -175,17 +192,18 @@ def input_paths(args) -> list[tuple[str, str]]:
 
 def check_outputs(args) -> None:
     """The one output check, before any work starts."""
-    force = bool(getattr(args, "force", False))
     seen = set()
     inputs = input_paths(args)
-    for option, path, folder, suffixes in output_paths(args, suffixes=True):
+    machine = getattr(args, "selected_machine", None)
+    machine_folder = getattr(machine, "folder", None)
+    for option, path, folder, suffixes, own in output_paths(args, suffixes=True):
         key = os.path.abspath(path)
         if key in seen:
             raise InputError(f"{path} is given as two outputs", field=option)
         seen.add(key)
         try:
-            check_not_input(path, inputs, field=option)
-            check_output(path, folder=folder, force=force, field=option, suffixes=suffixes)
+            check_output(path, folder=folder, field=option, suffixes=suffixes, inputs=inputs,
+                         machine_folder=machine_folder, own=own)
         except InputError as exc:       # checked before any work: say so
             raise InputError(f"{exc.message}; nothing was sent or written", field=exc.field) from None
 
@@ -204,12 +222,34 @@ def _mtime(path: str) -> float | None:
         return None
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is, like Ctrl-C's KeyboardInterrupt: every clean-up that Ctrl-C
+    runs (staging folders, temporary files, worker processes) runs for it too."""
+
+
+#: exit status after SIGTERM: what a shell reports for a command the signal ended
+TERMINATED_STATUS = 128 + signal.SIGTERM
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one pmcal command line; returns the exit status. The display settings (``--quiet``,
-    ``--verbose``, a long job) last for this call only."""
+    ``--verbose``, a long job) last for this call only; SIGTERM is handled as Ctrl-C is during it (exit
+    143 instead of 130)."""
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return _main(argv)
+    except Terminated:                  # between the command's own handlers
+        print("pmcal: terminated; nothing half-written", file=sys.stderr)
+        return TERMINATED_STATUS
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         progress.set_quiet(False)
         progress.set_verbose(False)
         progress.set_long(False)
@@ -237,6 +277,8 @@ def _main(argv: list[str] | None = None) -> int:
         return 2
     try:
         args = parser.parse_args(argv)
+    except Terminated:
+        raise
     except KeyboardInterrupt:
         print("pmcal: interrupted", file=sys.stderr)
         return 130
@@ -254,6 +296,7 @@ def _main(argv: list[str] | None = None) -> int:
         print(f"pmcal: error: {exc}", file=sys.stderr)
         return 2
     try:
+        check_ranges(args)
         prepare = getattr(args, "prepare", None)
         if prepare is not None:
             prepare(args)
@@ -266,11 +309,14 @@ def _main(argv: list[str] | None = None) -> int:
             _report_written(args, before)
         return status
     except InputError as exc:
-        print(f"pmcal: error: {exc}", file=sys.stderr)
+        print(f"pmcal: error: {_name_other_machine(exc, args)}", file=sys.stderr)
         return 2
     except RunError as exc:
         print(f"pmcal: failed: {exc}", file=sys.stderr)
         return 1
+    except Terminated:
+        print("pmcal: terminated; nothing half-written", file=sys.stderr)
+        return TERMINATED_STATUS
     except KeyboardInterrupt:
         print("pmcal: interrupted; nothing half-written", file=sys.stderr)
         return 130
@@ -293,6 +339,18 @@ def _main(argv: list[str] | None = None) -> int:
         return 1
 
 
+def _name_other_machine(exc: InputError, args) -> InputError:
+    """A file that does not fit the selected machine and says it is another machine's
+    (:func:`pmcal.machines.file_machine`): the real cause, named, instead of the first check it failed."""
+    machine = getattr(args, "selected_machine", None)
+    other = machines.file_machine(exc.file) if exc.file and machine is not None else None
+    if other is None or other == machine.name:
+        return exc
+    return InputError(f"this is a file of machine {other} (it says so), not of {machine.name}: give --machine "
+                      f"{other} or a file of {machine.name} (what did not fit: {exc.message})", file=exc.file,
+                      field=exc.field)
+
+
 #: exit status when stdout's reader closed the pipe: what a shell reports for a command SIGPIPE ended
 BROKEN_PIPE_STATUS = 128 + 13
 
@@ -312,6 +370,9 @@ def run() -> None:
     try:
         status = main()
         sys.stdout.flush()
+    except Terminated:
+        print("pmcal: terminated", file=sys.stderr)
+        status = TERMINATED_STATUS
     except KeyboardInterrupt:
         print("pmcal: interrupted", file=sys.stderr)
         status = 130

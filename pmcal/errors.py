@@ -6,6 +6,8 @@ CLI can print one clear line and exit with status 2.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 
@@ -34,6 +36,17 @@ class InputError(Exception):
 
     def __post_init__(self) -> None:
         Exception.__init__(self, str(self))
+
+
+@contextlib.contextmanager
+def for_option(option: str) -> Iterator[None]:
+    """Inside, an :class:`InputError` that names no field is about the file given to ``option``: name it."""
+    try:
+        yield
+    except InputError as exc:
+        if exc.field is None:
+            raise InputError(exc.message, file=exc.file, row=exc.row, field=option) from None
+        raise
 
 
 class RunError(Exception):

@@ -32,7 +32,7 @@ import numpy as np
 
 from pmcal.calibration import Calibration
 from pmcal.errors import InputError, RunError
-from pmcal.fileio import atomic_write
+from pmcal.fileio import atomic_write, check_output
 from pmcal.io_planar import read_params as read_planar_params
 from pmcal.mechanism.ocpm.config import MACHINE_DIR, default_geometry
 from pmcal.mechanism.ocpm.params import ErrorSet
@@ -41,6 +41,10 @@ from pmcal.twin.machine import Twin
 from pmcal.twin.model import MM, MODEL_XML, build_model, load_model
 from pmcal.twin.planar.config import MODEL_XML as PLANAR_XML, default_machine
 from pmcal.twin.planar.twin import PlanarTwin
+
+#: What the machine.toml written beside a calibrated MJCF starts with: an existing file of that name is
+#: replaced only if it is one
+SIDE_FILE_START = "# Calibrated "
 
 #: Simulation settings of the exported ocpm_2dof model, those of the dynamic twin (:mod:`pmcal.twin.dynamics`):
 #: the template's implicitfast at 1 ms diverges with stiff servos and hard closures; Euler at 0.2 ms with
@@ -218,6 +222,7 @@ def export_model(params_path: str | Path, output: str | Path, machine="ocpm_2dof
     >>> import mujoco; mujoco.MjModel.from_xml_path("calibrated.xml")           # doctest: +SKIP
     """
     params_path = str(params_path)
+    keep = None if isinstance(machine, str) else machine.folder     # the machine folder: never written into
     if not isinstance(machine, str) and machine.legacy:
         machine = machine.name
     if not isinstance(machine, str):
@@ -260,10 +265,12 @@ def export_model(params_path: str | Path, output: str | Path, machine="ocpm_2dof
         extra[f"effects.{n}"] = {"value": e["value"], "unit": e["unit"], "in_mjcf": where,
                                  **({"interval": e["interval"]} if e.get("interval") else {})}
     toml_out = Path(output).with_suffix(".toml")
+    check_output(output, suffixes=(".xml",), machine_folder=keep)
+    check_output(toml_out, machine_folder=keep, own=SIDE_FILE_START)
     with atomic_write(output) as fh:
         fh.write(text)
     with atomic_write(toml_out) as fh:
-        fh.write(f"# Calibrated {facts['machine']} (pmcal export-model, {stamp}): the nominal machine.toml and the\n"
+        fh.write(f"{SIDE_FILE_START}{facts['machine']} (pmcal export-model, {stamp}): the nominal machine.toml and the\n"
                  "# calibration below it. Units: mm, degrees (the MJCF itself is SI).\n" + nominal.rstrip() + "\n\n"
                  + toml_text(extra))
     return {"in_mjcf": in_mjcf, "comment_only": comment_only, "not_in_mjcf": not_in, "toml": str(toml_out)}

@@ -36,10 +36,10 @@ import numpy as np
 from scipy import stats
 
 from pmcal.calibration import UNDETERMINED_FRACTION
-from pmcal.errors import InputError
+from pmcal.errors import InputError, for_option
+from pmcal.fileio import check_output, write_json
 from pmcal.io_ocpm import param_unit
 from pmcal.mechanism.ocpm.params import LOG_RATIO
-from pmcal.fileio import write_json
 
 #: two-sided 95 % interval half-width in standard deviations
 Z95 = float(stats.norm.ppf(0.975))
@@ -172,10 +172,17 @@ def file_calibration(cal, campaign_path: str | Path, history_dir: str | Path, ma
 
 
 def check_history_dir(folder: str | Path) -> None:
-    """A history folder is a folder (or not there yet)."""
+    """A history folder is a folder (or not there yet) that can be written: checked before any work, so a
+    read-only folder does not fail after the parameters file was written (:func:`pmcal.fileio.check_output`:
+    its records go inside it, or it is made in a writable folder)."""
     p = Path(folder)
     if p.exists() and not p.is_dir():
         raise InputError("is a file, not a history folder", file=str(p), field="--history")
+    with for_option("--history"):
+        if p.is_dir():
+            check_output(p / "record.json")
+        else:
+            check_output(p, folder=True)
 
 
 def read_record(path: str | Path) -> Record:

@@ -5,11 +5,14 @@ Validation happens here, at the edge: one :class:`InputError` naming file, row a
 
 from __future__ import annotations
 
+import difflib
 import math
+import re
 from pathlib import Path
 
 import numpy as np
 
+from pmcal import progress
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_fk
@@ -52,6 +55,7 @@ def read_measurements(path: str | Path, geom: Geometry | None = None, check_unit
         raise InputError(f"target t{k} has no platform coordinates in the machine configuration",
                          file=t.path, field=f"t{k}_x")
     t.require(["pose_id", "m1_cmd_deg", "m2_cmd_deg"] + target_columns(k))
+    _check_other_columns(t, ["pose_id", "m1_cmd_deg", "m2_cmd_deg"] + target_columns(k) + list(OPTIONAL_COLUMNS))
     ids = t.unique_ids("pose_id")
     m = np.stack([t.numbers("m1_cmd_deg"), t.numbers("m2_cmd_deg")], axis=1)
     flat = np.stack([t.numbers(c, allow_empty=True) for c in target_columns(k)], axis=1)
@@ -70,6 +74,27 @@ def read_measurements(path: str | Path, geom: Geometry | None = None, check_unit
     if check_units:
         check_plausible(meas, geom, t.path, frame)
     return meas
+
+
+#: optional columns of a measurement file (docs/formats.md)
+OPTIONAL_COLUMNS = ("temp_c", "time_s", "payload_kg", "m1_approach", "m2_approach")
+
+
+def _check_other_columns(t, known: list[str]) -> None:
+    """A column the machine does not read: a motor beyond m2 or a target beyond the platform's means another
+    machine's file; a near-miss of a known column (``temp_C``, ``time_sec``) is refused naming the column
+    meant (it would be ignored and its data lost); any other column is ignored with a warning."""
+    for c in t.header:
+        if c in known:
+            continue
+        if re.fullmatch(r"m\d+_cmd_(deg|mm)", c):
+            raise InputError("ocpm_2dof has 2 motors (m1_cmd_deg, m2_cmd_deg): this is another machine's file "
+                             "(give its --machine)", file=t.path, field=c)
+        close = difflib.get_close_matches(c.lower(), known, n=1, cutoff=0.75)
+        if close:
+            raise InputError(f"unknown column; did you mean {close[0]}? (column names are case-sensitive; this one "
+                             "would be ignored)", file=t.path, field=c)
+        progress.warning(f"{t.path}: column {c} is not read by ocpm_2dof (ignored)")
 
 
 def read_campaign_context(path: str | Path) -> dict[str, np.ndarray]:
@@ -128,10 +153,27 @@ def check_plausible(meas: Measurements, geom: Geometry, path: str, frame: str = 
     ok = np.isfinite(R_meas).all(axis=(1, 2))
     err = np.zeros(len(meas))
     err[ok] = np.rad2deg(pointing_error(tilt_torsion(phi[ok], theta[ok]), R_meas[ok]))
-    for i in np.flatnonzero(err > PLAUSIBLE_POINTING_DEG):
+    off = np.flatnonzero(err > PLAUSIBLE_POINTING_DEG)
+    if off.size > 0.5 * ok.sum() and not _fits_as_radians(meas, R_meas, ok, geom):
+        # most rows off, the targets consistent with the platform, the commands not radians: a frame
+        raise InputError(f"the measured platform points {np.median(err[off]):.3g} deg (median of {off.size} of "
+                         f"{len(meas)} rows) away from where the commands put a nominal machine, its targets "
+                         "consistent: the targets look like they are in the tracker's own frame: identify with "
+                         "--frame tracker (docs/tracker_frame.md)", file=path, row=int(off[0]) + 1, field="t1_x")
+    for i in off:
         raise InputError(f"the measured platform points {err[i]:.3g} deg away from where the commands put a "
                          f"nominal machine (limit {PLAUSIBLE_POINTING_DEG} deg): wrong units (radians?) or a "
                          "mislabelled row", file=path, row=int(i) + 1, field="m1_cmd_deg")
+
+
+def _fits_as_radians(meas: Measurements, R_meas: np.ndarray, ok: np.ndarray, geom: Geometry) -> bool:
+    """Whether the commands, read as radians, point the nominal machine where the platform was measured."""
+    phi, theta = nominal_fk(np.asarray(meas.m_cmd_deg, float)[ok], geom)
+    good = np.isfinite(theta)
+    if not good.any():
+        return False
+    err = np.rad2deg(pointing_error(tilt_torsion(phi[good], theta[good]), R_meas[ok][good]))
+    return bool(np.median(err) <= PLAUSIBLE_POINTING_DEG)
 
 
 def write_measurements(path: str | Path, meas: Measurements, comments=()) -> None:

@@ -10,6 +10,8 @@ the parsed ``argparse`` namespace and returning an exit status (``identify``, ``
 from __future__ import annotations
 
 import importlib
+import json
+import re
 from pathlib import Path
 from types import ModuleType
 
@@ -156,3 +158,30 @@ def dispatch(command: str, args) -> int:
         raise InputError(f"'{command.replace('_', ' ')}' is not available for machine '{machine.name}'",
                          field="--machine")
     return int(func(args) or 0)
+
+
+def file_machine(path: str | Path) -> str | None:
+    """The machine a file says it is of, or None: a CSV's ``# pmcal COMMAND: machine NAME`` (or a table's
+    ``# machine=NAME``) comment line (pmcal writes one in every file), a JSON's ``mechanism`` or ``machine`` (parameters, tables). Used to say "another
+    machine's file" when a file does not fit the selected machine."""
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
+            head = fh.read(64 * 1024)
+    except OSError:
+        return None
+    if head.lstrip().startswith("{"):
+        try:
+            doc = json.loads(head if len(head) < 64 * 1024 else Path(path).read_text(encoding="utf-8-sig"))
+        except (ValueError, OSError):
+            return None
+        name = doc.get("mechanism") or doc.get("machine") if isinstance(doc, dict) else None
+        return name if isinstance(name, str) else None
+    if Path(path).suffix.lower() != ".csv":
+        return None
+    for line in head.splitlines():
+        if not line.startswith("#"):
+            break
+        found = re.match(r"#\s*(?:pmcal\b[^:]*:\s*machine |machine=)([A-Za-z0-9_.-]+)", line)
+        if found:
+            return found.group(1).rstrip(",.")
+    return None

@@ -222,7 +222,10 @@ def test_compensate_bad_input(files, tmp_path, capsys):
     assert "field 'model'" in capsys.readouterr().err and not out.exists()
     assert main(["compensate", str(files / "params.json"), "--targets", str(files / "targets.csv")]) == 2
     assert "-o" in capsys.readouterr().err
-    table = tmp_path / "t.json"
+    # t.csv beside t.json is the user's targets file: the table's CSV would replace it (issue 33)
+    assert main(["compensate", str(files / "params.json"), "--table", str(tmp_path / "t.json")]) == 2
+    assert "t.csv would be written beside" in capsys.readouterr().err and bad_t.exists()
+    table = tmp_path / "table.json"
     for grid in ("10", "1,5", "a,b"):
         assert main(["compensate", str(files / "params.json"), "--table", str(table), "--grid", grid]) == 2
         assert "--grid" in capsys.readouterr().err and not table.exists()

@@ -13,12 +13,13 @@ import numpy as np
 from pmcal import progress
 from pmcal.apps import error_stats
 from pmcal.apps.chain import ERROR_CHOICES, command_defaults
-from pmcal.chain import (campaign, check_assembles, compensate as commands_for, compensation_table,
+from pmcal.campaign_quality import refuse_unusable, save_table
+from pmcal.chain import (campaign, campaign_quality, check_assembles, compensate as commands_for, compensation_table,
                          identify as run_identification, params_document, reference_basis, residuals, sample_targets,
                          table_refusal)
 from pmcal.csvio import LONG_POSES
-from pmcal.errors import InputError
-from pmcal.fileio import write_json
+from pmcal.errors import InputError, for_option
+from pmcal.fileio import read_json, write_json
 from pmcal.history import chain_record_document, check_history_dir, file_calibration
 from pmcal.twin.overconstraint import loop_summary
 from pmcal.io_chain import (read_measurements, read_params, read_plan, read_targets, write_measurements,
@@ -42,7 +43,8 @@ def error_set(machine, text: str | None):
     if not Path(text).is_file():
         raise InputError(f"'{text}' is neither {' nor '.join(ERROR_CHOICES)} nor a parameters file",
                          field="--errors")
-    params, _ = read_params(text, machine.spec, _units(machine))
+    with for_option("--errors"):
+        params, _ = read_params(text, machine.spec, _units(machine))
     return params
 
 
@@ -77,6 +79,8 @@ def twin_measure(args) -> int:
     if truth:
         comments.append("true errors (mm, deg): " + ", ".join(f"{k}={v:.6g}" for k, v in truth.items()))
     write_measurements(args.output, machine.spec, meas, comments)
+    print(f"measured {len(meas)} poses on the twin of {machine.name} (errors: {what}, tracker sigma "
+          f"{machine.twin.sigma_mm if sigma is None else sigma:g} mm, seed {args.seed})")
     return 0
 
 
@@ -101,17 +105,22 @@ def identify(args) -> int:
         progress.warning(f"{len(partial)} pose(s) with a blocked target left out ({', '.join(partial[:3])}"
                          f"{', ...' if len(partial) > 3 else ''}): identification uses the poses with every "
                          "target measured")
-    write_json(args.output, params_document(machine, res, str(args.measurements)))
+    quality = campaign_quality(machine, meas, res, sigma)
+    write_json(args.output, dict(params_document(machine, res, str(args.measurements)), quality=quality))
     print(f"{res.rank} of {len(res.params)} errors identifiable (base set), {len(res.weak)} weak; residual "
-          f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}")
+          f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}; "
+          f"{'usable' if quality['usable'] else 'NOT usable'}")
     loops = loop_summary(machine.twin)
     if loops["redundant"]:
         print(f"loops: {loops['closure_equations']} closure equations, {loops['independent']} independent; "
               f"redundant ({', '.join(loops['redundant'])}) left to the joints' play")
     if history:
         file_history(machine, res, basis, args.measurements, history)
-    for line in identify_warnings(res, len(meas)):
+    for line in identify_warnings(res, len(meas), outliers=bool(quality["outliers"])):
         progress.warning(line)
+    if not quality["usable"]:
+        progress.warning(f"calibration not usable: {quality['why']}; compensate and push refuse it without --force "
+                         "('pmcal twin plan' with this --machine plans a campaign)")
     return 0
 
 
@@ -132,9 +141,10 @@ def file_history(machine, res, basis, campaign: str, folder: str) -> None:
     print(f"pmcal: wrote {file_calibration(record, campaign, folder)}")
 
 
-def identify_warnings(res, n_poses: int) -> list[str]:
+def identify_warnings(res, n_poses: int, outliers: bool = False) -> list[str]:
     """What a user must know about an identification that still succeeded (docs/ADDING_A_MACHINE.md,
-    "When fewer errors are identifiable than expected")."""
+    "When fewer errors are identifiable than expected"); with ``outliers`` (gross outliers found, named
+    by the quality verdict) the high chi2 is theirs and not reported again."""
     out = []
     if not res.success:
         out.append(f"the fit did not converge: {res.message}")
@@ -142,10 +152,15 @@ def identify_warnings(res, n_poses: int) -> list[str]:
         out.append(f"{len(res.weak)} of the {res.rank} identifiable errors are set by the prior, not by the "
                    f"{n_poses} poses ({', '.join(res.weak[:3])}{', ...' if len(res.weak) > 3 else ''}): measure "
                    "more poses spread over the workspace")
-    if res.chi2_per_dof > CHI2_WARN:
+    if res.chi2_per_dof > CHI2_WARN and not outliers:
         out.append(f"the model leaves {res.residual_rms_mm:.4f} mm rms (chi2/dof {res.chi2_per_dof:.1f}, "
                    f"{res.sigma_mm:g} mm tracker noise): an error frame missing from [errors], a wrong "
                    "sigma_mm, or an effect the geometry does not hold")
+    far = res.info.get("beyond_prior") or []
+    if far:
+        out.append(f"{len(far)} base value(s) identified beyond 5 sigma of their [errors] prior "
+                   f"({', '.join(far[:3])}{', ...' if len(far) > 3 else ''}): an error far larger than the drawing's "
+                   "tolerance, or an effect the geometry does not hold absorbed into it")
     return out
 
 
@@ -155,9 +170,9 @@ def targets(args) -> int:
     if not 1 <= args.count <= 100_000:
         raise InputError(f"count must be 1..100000, got {args.count}", field="--count")
     task = sample_targets(machine, args.count, args.seed)
-    write_targets(args.output, machine.spec, task,
-                  [f"pmcal targets: machine {machine.name}, {args.count} targets over the workspace of "
-                   f"machine.toml, seed {args.seed}"])
+    what = f"machine {machine.name}, {args.count} targets over the workspace of machine.toml, seed {args.seed}"
+    write_targets(args.output, machine.spec, task, [f"pmcal targets: {what}"])
+    print(f"targets: {what}")
     return 0
 
 
@@ -172,12 +187,13 @@ def compensate(args) -> int:
     if not args.targets or not args.output:
         raise InputError(f"machine {machine.name} needs --targets TARGETS.csv and -o SETPOINTS.csv",
                          field="--targets" if not args.targets else "-o")
-    params, _ = read_params(args.params, machine.spec, _units(machine))
+    params = _usable_params(args, machine)
     task = read_targets(args.targets, machine.spec)
     progress.status(f"compensating {len(task)} targets")
     commands = commands_for(machine, params, task, args.targets)
     write_setpoints(args.output, machine.spec, task, commands,
                     [f"pmcal compensate: machine {machine.name}, parameters {args.params}"])
+    print(f"{len(task)} setpoints for the targets of {args.targets} (machine {machine.name}, parameters {args.params})")
     return 0
 
 
@@ -214,16 +230,28 @@ def _table(args, machine) -> int:
     version = int(time.time()) if args.table_version is None else args.table_version
     if not 1 <= version <= 2**32 - 1:
         raise InputError(f"table version {version} outside 1..4294967295", field="--table-version")
-    params, _ = read_params(args.params, machine.spec, _units(machine))
+    params = _usable_params(args, machine)
     table = compensation_table(machine, params, version, parse_nodes(args.grid),
                                absolute=True if args.absolute else None)
-    table.save(args.table)
+    save_table(table, args.table, read_json(args.params).get("quality"))
     shape = "x".join(map(str, table.shape))
     kind = ("corrections to add to the controller's nominal IK (nReference 2)" if table.controller_reference
             else "absolute motor commands")
     print(f"compensation table version {version}: {shape} nodes over {', '.join(a.column for a in table.axes)}, "
           f"{table.n_motors} motors, {kind}, CRC-32 0x{table.crc32():08X}")
     return 0
+
+
+def _usable_params(args, machine) -> dict[str, float]:
+    """The parameters of ``args.params``, refused (unless ``--force``) when identify flagged them not usable:
+    the verdict is read first, so a fit spoiled by an outlier is refused for its outlier, not for a value."""
+    doc = read_json(args.params)
+    if isinstance(doc, dict) and doc.get("mechanism") == machine.name:
+        fix = ("measure poses spread over the workspace ('pmcal twin plan' with this --machine plans them) and "
+               "remeasure or delete outlier rows")
+        refuse_unusable(doc, str(args.params), bool(getattr(args, "force", False)), fix)
+    params, _ = read_params(args.params, machine.spec, _units(machine))
+    return params
 
 
 def parse_nodes(text: str | None) -> list[int] | None:

@@ -10,25 +10,14 @@ nominal geometry: errors of a fraction of a millimetre do not show at this scale
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from pmcal.apps.chain_commands import error_set
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write
-
-
-def parse_task_pose(text: str | None, coordinates: tuple[str, ...]) -> np.ndarray | None:
-    """``--pose C1,C2,...`` as task coordinates (mm / deg, the order of machine.toml [task]); None: home."""
-    if text is None:
-        return None
-    try:
-        values = np.array([float(v) for v in text.split(",")])
-    except ValueError:
-        values = np.array([])
-    if len(values) != len(coordinates) or not np.isfinite(values).all():
-        raise InputError(f"expected {len(coordinates)} comma-separated numbers ({','.join(coordinates)}), "
-                         f"got '{text}'", field="--pose")
-    return values
+from pmcal.option_ranges import parse_task_pose
 
 
 def twin_render(args) -> int:
@@ -55,8 +44,19 @@ def twin_render(args) -> int:
         png = render_machine_png(machine.spec, qpos, args.width, args.height)
     except RenderUnavailable as exc:
         raise RunError(str(exc)) from None
-    except ValueError as exc:                  # the scene adds joints
-        raise InputError(str(exc), file=str(machine.spec.folder / "scene.xml")) from None
+    except ValueError as exc:                  # the scene adds joints, or includes a file that is not there
+        raise InputError(_scene_problem(str(exc), machine.spec.model_path.name),
+                         file=str(machine.spec.folder / "scene.xml")) from None
     with atomic_write(args.output, "wb") as fh:
         fh.write(png)
     return 0
+
+
+def _scene_problem(message: str, model_name: str) -> str:
+    """One line for MuJoCo's (multi-line) complaint about a folder's ``scene.xml``; an include of a file that
+    is not there (a copied machine whose model was renamed) names the fix."""
+    missing = re.search(r"Error opening file '([^']*)'", message)
+    if missing:
+        return (f"includes {missing.group(1)}, which is not in the machine folder: include the model, "
+                f'<include file="{model_name}"/>')
+    return " ".join(message.split())

@@ -68,14 +68,14 @@ def identify(args) -> int:
         else:
             progress.status(line)
     cal.save(args.output)
-    if history:
-        print(f"pmcal: wrote {file_calibration(cal, args.measurements, history)}")
     fit = cal.document["fit"]
     quality = (f"chi2/dof {fit['chi2_per_dof']:.3g}" if cal.model == "full" else
                f"residual {fit['residual_rms_sigma']:.3g} sigma")
     q = cal.document["quality"]
     print(f"identified {len(cal.params)} parameters ({'whole chain' if cal.model == 'full' else cal.method}); "
           f"{quality}; {quality_line(q)}", flush=True)
+    if history:
+        print(f"pmcal: wrote {file_calibration(cal, args.measurements, history)}")
     if not q["usable"]:
         progress.warning(f"this calibration is not usable: {q['why']}; {CAMPAIGN_FIX} (compensate and push "
                          "refuse it without --force)")
@@ -104,6 +104,7 @@ def compensate(args) -> int:
         m = checked_commands(cal.compensator, phi, theta, cal.geometry, args.targets)
         note = f"pmcal compensate: {args.params}, {cal.compensator.description}"
         work.append(lambda: write_setpoints(args.output, phi, theta, m, comments=[note]))
+        print(f"{len(phi)} setpoints for the targets of {args.targets} ({cal.compensator.description})")
     if args.table:
         progress.status(f"computing the compensation table: {grid[0]} x {grid[1]} orientations")
         table = build_table(cal.compensator, cal.geometry, grid, version)

@@ -8,9 +8,10 @@ from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 from pmcal import progress
 from pmcal.apps.ocpm import DEFAULTS
-from pmcal.errors import InputError, RunError
+from pmcal.errors import InputError, RunError, for_option
 from pmcal.fileio import atomic_write
 from pmcal.io_ocpm import MAX_POSES, read_campaign_context, read_params, read_targets, write_measurements
+from pmcal.option_ranges import parse_task_pose
 
 PRESETS: dict[str, dict[str, float]] = {"paper-table2": PAPER_TABLE2, "nominal": {}}
 
@@ -18,7 +19,8 @@ PRESETS: dict[str, dict[str, float]] = {"paper-table2": PAPER_TABLE2, "nominal":
 def machine_errors(args) -> dict[str, float]:
     """The error set selected by ``--preset`` / ``--errors`` (default: nominal)."""
     if getattr(args, "errors", None):
-        params, _ = read_params(args.errors)
+        with for_option("--errors"):
+            params, _ = read_params(args.errors)
         return params
     name = getattr(args, "preset", None) or "nominal"
     if name not in PRESETS:
@@ -51,9 +53,10 @@ def targets(args) -> int:
     if not 0 < theta_max <= THETA_LIMIT_DEG:
         raise InputError(f"tilt limit {theta_max:g} deg is outside 0..{THETA_LIMIT_DEG:g} deg", field="--theta-max")
     phi, theta = plan_orientations(args.count, theta_max, np.random.default_rng(args.seed))
+    what = f"machine ocpm_2dof, {args.count} orientations up to {theta_max:g} deg tilt, seed {args.seed}"
     write_csv(args.output, ["phi_deg", "theta_deg"], ([f"{p:.4f}", f"{t:.4f}"] for p, t in zip(phi, theta)),
-              [f"pmcal targets: machine ocpm_2dof, {args.count} orientations up to {theta_max:g} deg tilt, "
-               f"seed {args.seed}", "units: deg; phi = azimuth of the tilt axis, theta = tilt (docs/formats.md)"])
+              [f"pmcal targets: {what}", "units: deg; phi = azimuth of the tilt axis, theta = tilt (docs/formats.md)"])
+    print(f"targets: {what}")
     return 0
 
 
@@ -105,6 +108,8 @@ def twin_measure(args) -> int:
         f"tracker sigma {sigma:g} mm, seed {args.seed}",
         "units: mm, deg; targets in the " + ("tracker frame" if tracker_pose is not None else "base frame O-xyz")]
         + truth_comments(tracker_pose, meas))
+    print(f"measured {len(meas)} poses on the twin of {geom_name()} (errors: {source}, tracker sigma {sigma:g} mm, "
+          f"seed {args.seed})")
     return 0
 
 
@@ -262,6 +267,8 @@ def measure_with_effects(args, errors: dict[str, float], sigma: float, theta_max
         f"{sigma:g} mm, seed {args.seed}, gravity on, effects: {active}",
         "units: mm, deg, degC, kg, s; targets in the "
         + ("tracker frame" if tracker_pose is not None else "base frame O-xyz")] + truth_comments(tracker_pose, meas))
+    print(f"measured {len(meas)} poses on the twin of {geom_name()} (errors: {source}, tracker sigma {sigma:g} mm, "
+          f"seed {args.seed}, effects: {active})")
     return 0
 
 
@@ -270,11 +277,11 @@ def geom_name() -> str:
 
 
 def parse_pose(text: str) -> tuple[float, float]:
-    try:
-        phi, theta = (float(v) for v in text.split(","))
-    except ValueError:
-        raise InputError(f"expected PHI,THETA in degrees, got '{text}'", field="--pose") from None
-    return phi, theta
+    """``--pose PHI,THETA`` in degrees: two finite numbers, the azimuth within -360..360 deg."""
+    phi, theta = parse_task_pose(text, ("PHI", "THETA"))
+    if abs(phi) > 360:
+        raise InputError(f"azimuth {phi:g} deg is outside -360..360 deg", field="--pose")
+    return float(phi), float(theta)
 
 
 def twin_render(args) -> int:

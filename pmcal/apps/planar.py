@@ -13,7 +13,8 @@ import math
 import numpy as np
 
 from pmcal.commands.options import ABSENT, HIDDEN
-from pmcal.errors import InputError, RunError
+from pmcal.errors import InputError, RunError, for_option
+from pmcal.option_ranges import parse_task_pose
 
 #: this machine's wording of the commands' options (:mod:`pmcal.commands.options`)
 OPTION_HELP = {
@@ -228,7 +229,7 @@ def compensate(args) -> int:
                          row=row, field="y_mm")
     write_setpoints(args.output, header, rows, theta, comments=[
         f"pmcal compensate, machine planar_2dof, parameters {args.params}", "units: mm, deg"])
-    _status(f"{len(r)} setpoints -> {args.output}")
+    print(f"{len(r)} setpoints for the targets of {args.targets} (machine planar_2dof, parameters {args.params})")
     return 0
 
 
@@ -263,7 +264,8 @@ def evaluate(args) -> int:
 def _errors_from_args(args, machine):
     from pmcal.io_planar import read_params
     if getattr(args, "errors", None):
-        errors, _ = read_params(args.errors, require_mechanism=False)
+        with for_option("--errors"):
+            errors, _ = read_params(args.errors, require_mechanism=False)
         return errors, str(args.errors)
     name = getattr(args, "preset", None) or "nominal"
     return machine.preset(name), f"preset {name}"
@@ -284,6 +286,7 @@ def targets(args) -> int:
     write_csv(args.output, ["x_mm", "y_mm"], ([f"{x:.4f}", f"{y:.4f}"] for x, y in r),
               [f"pmcal targets: machine planar_2dof, {len(r)} positions on the workspace boundary",
                "units: mm; seed frame O-xy, y up, the platform below the base (y < 0); docs/formats.md"])
+    print(f"targets: machine planar_2dof, {len(r)} positions on the workspace boundary")
     return 0
 
 
@@ -313,7 +316,8 @@ def twin_measure(args) -> int:
         if len(r) < 2:
             raise InputError("a campaign needs at least two positions", file=args.targets, field="x_mm")
     else:
-        K = int(getattr(args, "poses", None) or DEFAULTS["poses"])
+        poses = getattr(args, "poses", None)
+        K = int(DEFAULTS["poses"] if poses is None else poses)
         if K < 6 or K % 2 or K > MAX_POSITIONS:
             raise InputError(f"number of poses must be even and 6..{MAX_POSITIONS} (K = 2n > 5; the most identify "
                              f"reads), got {K}", field="--poses")
@@ -327,7 +331,8 @@ def twin_measure(args) -> int:
         f"scale sigma {noise.scale:.4g} mm, servo sigma {math.degrees(noise.servo):.4g} deg, "
         f"seed {getattr(args, 'seed', 1)}",
         "units: mm, deg; seed frame O-xy (y up); scale_change_mm = change since the previous row"])
-    _status(f"{len(r)} positions -> {args.output}")
+    print(f"measured {len(r)} positions on the twin of planar_2dof (errors: {source}, scale sigma "
+          f"{noise.scale:.4g} mm, seed {getattr(args, 'seed', 1)})")
     return 0
 
 
@@ -341,10 +346,7 @@ def twin_render(args) -> int:
     machine = _machine()
     errors, _ = _errors_from_args(args, machine)
     text = getattr(args, "pose", None) or "0,0"
-    try:
-        x, y = (float(v) for v in text.split(","))
-    except ValueError:
-        raise InputError(f"expected X,Y in mm, got '{text}'", field="--pose") from None
+    x, y = (float(v) for v in parse_task_pose(text, ("X", "Y")))
     motor = machine.geometry.home if (x, y) == (0.0, 0.0) else inverse(machine.geometry, np.array([x, y]))
     if not np.all(np.isfinite(motor)) or y > 0:
         raise InputError(f"position ({x:g}, {y:g}) mm is out of the robot's reach (y < 0 below the base)",

@@ -170,6 +170,13 @@ def cmd_push(args) -> int:
                           wait_motion_s=args.wait_motion)
     try:
         rep = push(link, table, options, audit_path=audit)
+    except KeyboardInterrupt as exc:        # Ctrl-C, or SIGTERM (pmcal.cli.Terminated): the PLC decides the fate
+        how = "terminated" if type(exc).__name__ == "Terminated" else "interrupted"
+        flag = f"--{link.transport} {link.target}"
+        print(f"pmcal: push of {args.table} v{table.version} {how}: the PLC activates only whole, checked tables, "
+              f"so either v{table.version} is active or the previous table still runs; 'pmcal plc status {flag}' "
+              f"says which, in words", file=sys.stderr)
+        return 143 if how == "terminated" else 130
     except BridgeError as exc:
         print(f"pmcal: failed: push of {args.table} to {link.transport} {link.target}: {exc}", file=sys.stderr)
         _write_json(args.json, getattr(exc, "report", None))
@@ -244,13 +251,47 @@ def cmd_plc_status(args) -> int:
         print(f"pmcal: failed: status of {link.transport} {link.target}: {exc}", file=sys.stderr)
         return exc.exit_status
     if args.json:
-        print(json.dumps(s))
+        print(json.dumps(dict(s, summary=status_words(s))))
     else:
         print(f"{s['transport']} {s['target']}: runtime {s['runtime']}, interface v{s['interface_version']}, "
               f"active table v{s['active_version']} crc {s['active_crc32']} machine {s['machine']} "
               f"(reference {s['reference']}, grid {s['grid']}), last status {s['last_status']}, "
               f"manager {s['state']}, at {s['time']}")
+        print(status_words(s))
     return 0
+
+
+#: the PLC's last status (ST_CompTableState.eStatus) in a user's words: what became of the last commit
+_LAST_COMMIT = {
+    "NONE": "no commit since the PLC started",
+    "OK": "the last commit was checked, activated and saved",
+    "OK_NOT_PERSISTED": "the last commit was activated but not saved: a power cut without UPS would bring back "
+                        "the previous table (push it again)",
+    "BUSY": "a commit is being checked right now (ask again in a second)",
+    "PLC_STARTING": "the PLC is re-checking its saved table after a restart (ask again in a few seconds)",
+    "WITHDRAWN": "the last commit was withdrawn before the swap (its push stopped, or its lease ended): the table "
+                 "it carried is NOT active; push it again",
+    "SWAP_TIMEOUT": "the last commit timed out waiting for the machine to stand still: its table is NOT active",
+}
+
+
+def status_words(s: dict) -> str:
+    """What :func:`plc_status` found, as sentences a user acts on: which table runs, what became of the last
+    commit (a push that was killed: did it land?), whether a client still holds the staging area."""
+    if s["active_version"]:
+        runs = (f"The PLC runs table v{s['active_version']} (CRC-32 {s['active_crc32']}, machine {s['machine']}): "
+                "a push of that version landed; any other did not.")
+    else:
+        runs = "The PLC runs no table (no compensation applied)."
+    last = _LAST_COMMIT.get(s["last_status"], f"the last commit was refused by the PLC's checks ({s['last_status']}): "
+                                              "its table is NOT active")
+    if s["staging_owner"]:
+        held = (f" The staging area is held by client {s['staging_owner']}: a push in progress, or one that was "
+                "killed and commits nothing more; the PLC frees it when its lease ends (seconds), 'pmcal plc unlock' "
+                "at once.")
+    else:
+        held = " No push holds the staging area."
+    return f"{runs} {last[0].upper()}{last[1:]}.{held}"
 
 
 def cmd_plc_verify(args) -> int:
@@ -352,6 +393,22 @@ def _write_json(path, report) -> None:
             fh.write("\n")
 
 
+def _check_port_free(port: int) -> None:
+    """A busy ``--port``: one line before the mock starts (the Modbus server would only say that it
+    could not listen). 0 (a free port) is always free."""
+    import socket
+
+    if port == 0:
+        return
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)     # as the servers do: TIME_WAIT is no owner
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError as exc:
+            raise InputError(f"cannot listen on 127.0.0.1:{port}: {exc.strerror} (another program, or another mock "
+                             "PLC, uses it: choose another port or 0 for a free one)", field="--port") from None
+
+
 def cmd_mock_plc(args) -> int:
     from pmcal.bridge.comptable import CompTable
     from pmcal.bridge.faults import Fault
@@ -362,6 +419,7 @@ def cmd_mock_plc(args) -> int:
         raise InputError("cycle must be 0.1 .. 1000 ms", field="--cycle-ms")
     if not 0 <= args.port < 65536:
         raise InputError(f"port {args.port} outside 0..65535", field="--port")
+    _check_port_free(args.port)
     for flag, value in (("--restart-after", args.restart_after), ("--power-cut-after", args.power_cut_after)):
         if value is not None and not 0 < value < args.seconds:
             raise InputError(f"must be in (0, {args.seconds:g}) s, got {value:g}", field=flag)

@@ -32,6 +32,7 @@ def _import(args) -> int:
         from pmcal.io_ocpm import write_measurements
 
         res = join(export, read_controller_log(args.log), names=args.names, time_tolerance_s=args.time_tolerance)
+        _check_nest_distances(res.meas, args.tracker, args.units)
         advice = f"identify with 'pmcal identify {args.output} --frame tracker' (recorded in its header)"
         write = lambda: write_measurements(args.output, res.meas, comments=res.comments)  # noqa: E731
     else:
@@ -50,8 +51,23 @@ def _import(args) -> int:
         progress.warning(f"{args.tracker}: the points are not in the machine's base frame ({res.frame_reason}): "
                          f"{advice}")
     write()
-    progress.status(f"imported {len(res.meas)} poses ({res.join}, {res.frame} frame)")
+    print(f"imported {len(res.meas)} poses ({res.join}, {res.frame} frame)")
     return 0
+
+
+def _check_nest_distances(meas, path: str, units: str) -> None:
+    """ocpm_2dof: the distances between the nests of each pose against the platform's (frame-free), before
+    anything is written: points in metres (or in another unit than ``--units``) are refused here, not
+    written and then blamed on the frame."""
+    from pmcal.io_ocpm import check_plausible
+    from pmcal.mechanism.ocpm.config import default_geometry
+
+    try:
+        check_plausible(meas, default_geometry(), path, "tracker")
+    except InputError as exc:
+        pose = meas.pose_id[exc.row - 1] if exc.row else None
+        unit = f"--units {units}" if units else "the unit its header names (else --units)"
+        raise InputError(f"pose {pose}: {exc.message}; check the export's unit ({unit})", file=path) from None
 
 
 def _export_model(args) -> int:
@@ -65,6 +81,9 @@ def _export_model(args) -> int:
         progress.status(f"{name}: in the MJCF ({where})")
     for name in out["comment_only"] + out["not_in_mjcf"]:
         progress.warning(f"{name} cannot be held by MJCF: written to {out['toml']} (and the file's comment)")
+    held = len(out["comment_only"]) + len(out["not_in_mjcf"])
+    print(f"calibrated model of {machine.name} from {args.params}: {len(out['in_mjcf'])} effect(s) in the MJCF"
+          + (f", {held} only in {out['toml']}" if held else ""))
     return 0
 
 

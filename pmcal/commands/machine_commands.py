@@ -22,9 +22,10 @@ def register(sub: CommandSet) -> None:
     p = sub.add_parser("demo", help="the whole job on the built-in machine, no arguments needed")
     p.add_argument("--out", default=None, metavar="DIR",
                    help="output folder (report, tables), replaced as a whole; default pmcal-demo, "
-                        "pmcal-demo-hidden with --hidden-effect. A folder pmcal did not write is refused")
+                        "pmcal-demo-hidden with --hidden-effect. A folder holding files pmcal did not write is refused")
     p.add_argument("--force", action="store_true",
-                   help="replace the output folder even if pmcal did not write it (its content is lost)")
+                   help="accepted for old scripts; changes nothing: a folder holding files pmcal did not write "
+                        "(the working folder, a machine folder, yours) is never replaced")
     p.add_argument("--seed", type=int, default=1, help="random seed of the virtual campaign (default 1)")
     p.add_argument("--full", action="store_true",
                    help="run the population methods (ga, pso, sa) to their own stopping rules instead of the "
@@ -98,10 +99,11 @@ def register(sub: CommandSet) -> None:
     p.add_argument("--model", default="full", choices=["full", "paper"],
                    help="baseline model: whole closed chain (full, default) or the paper's (paper)")
     p.add_argument("--report", default=None, metavar="DIR",
-                   help="also write an HTML report into this folder (replaced as a whole; a folder pmcal "
-                        "did not write is refused without --force)")
+                   help="also write an HTML report into this folder (replaced as a whole; a folder holding "
+                        "files pmcal did not write is refused)")
     p.add_argument("--force", action="store_true",
-                   help="replace the --report folder even if pmcal did not write it")
+                   help="accepted for old scripts; changes nothing: a --report folder holding files pmcal did not "
+                        "write (an input, yours) is never replaced")
     p.add_argument("--sigma", type=float, default=None, help="tracker noise, mm (else estimated)")
     p.add_argument("--frame", default="base", metavar="base|tracker|tracker:T.json",
                    help="frame of the measured targets (as for identify): tracker: registration, nest offsets "

@@ -66,7 +66,7 @@ class Command:
 
     def add_subparsers(self, **kwargs) -> CommandSet:
         """Sub-commands of this command (``twin measure``): a :class:`CommandSet` named after it."""
-        kwargs.setdefault("parser_class", argparse.ArgumentParser)
+        kwargs.setdefault("parser_class", type(self.parser))
         o = self.owner
         return CommandSet(self.parser.add_subparsers(**kwargs), o.table, o.record, o.finish,
                           prefix=f"{self.name} ", describe=o.describe)
