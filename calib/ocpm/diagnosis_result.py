@@ -17,6 +17,11 @@ from pmcal.mechanism.ocpm.params import is_angular
 from pmcal.calib.solvers.result import IdentResult
 
 
+#: scoreboard verdicts of a candidate that is significant but not named (the verdict sentence says so)
+UNNAMED_SIGNIFICANT = ("explains only part of the structure", "not confirmed on held-out poses",
+                       "implausible value", "too small")
+
+
 @dataclass
 class Candidate:
     """One row of the scoreboard (the state when the diagnosis ended, or when the effect was named)."""
@@ -87,6 +92,14 @@ class Diagnosis:
     def noise_floor(self) -> float:
         return self.noise.sigma_mm
 
+    @property
+    def found_unnamed(self) -> list[Candidate]:
+        """Candidates significant at their threshold but not named (rejected for a reason the scoreboard
+        gives), most significant first: what a verdict must not call "no missing effect"."""
+        found = [c for c in self.candidates.values()
+                 if c.verdict in UNNAMED_SIGNIFICANT and np.isfinite(c.p_value) and c.p_value < c.threshold]
+        return sorted(found, key=lambda c: c.p_value)
+
     def params(self) -> dict[str, float]:
         """Geometric parameters of the final model, interface units (mm, deg)."""
         return {k: float(np.rad2deg(v)) if is_angular(k) else float(v)
@@ -122,6 +135,8 @@ class Diagnosis:
             "extrapolated_poses": self.extrapolated, "gap_before_all_poses": _num(self.gap_before_all),
             "gap_after_all_poses": _num(self.gap_after_all),
             "verdict": self.verdict, "unexplained": self.unexplained, "notes": self.notes,
+            "significant_unnamed": [{"name": c.name, "p_value": _num(c.p_value), "verdict": c.verdict,
+                                     "reason": c.reason} for c in self.found_unnamed],
             "unexplained_context": [{"context": c.context, "share": _num(c.share), "p_value": _num(c.p_value),
                                      "direction": c.direction} for c in self.unexplained_context],
             "named": [val(e) for e in self.named],

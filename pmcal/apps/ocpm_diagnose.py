@@ -116,8 +116,14 @@ def summary_line(d: Diagnosis) -> str:
         verdict = "missing effect: " + ", ".join(f"{effect_label(v)} = {v.value:.4g} {v.unit}" for v in d.named)
         if d.unexplained:
             verdict += "; structure left that no candidate explains"
+        elif d.found_unnamed:
+            verdict += "; significant but not named: " + ", ".join(
+                f"{c.name} (p = {c.p_value:.2g}, {c.verdict})" for c in d.found_unnamed)
     elif d.unexplained:
         verdict = "missing effect not identified: structure is left that no candidate effect explains"
+    elif d.found_unnamed:
+        verdict = "no effect named, but significant: " + ", ".join(
+            f"{c.name} (p = {c.p_value:.2g}, {c.verdict})" for c in d.found_unnamed)
     else:
         verdict = "no missing effect: the model explains the data to the noise level"
     left = f", {len(d.extrapolated)} extrapolated pose(s) left out" if d.extrapolated else ""

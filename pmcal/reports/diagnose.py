@@ -95,7 +95,9 @@ def verdict_cards(rep: Report, d) -> None:
     """The headline box (it names the method whose gaps it reports) and one card per named effect."""
     rep.heading("Verdict")
     named = named_labels(d)
-    head = {"noise": ("What is left is noise: nothing to name", "ok"),
+    found = ", ".join(f"{c.name} (p = {c.p_value:.2g}: {c.verdict})" for c in d.found_unnamed)
+    head = {"noise": (f"Nothing named; significant but not named: {found}" if found else
+                      "What is left is noise: nothing to name", "warn" if found else "ok"),
             "named": (f"Named: {named}", "ok"),
             "unexplained": ("Structure left that no candidate explains", "bad"),
             "named+unexplained": (f"Named: {named}; more structure left unexplained", "warn")
