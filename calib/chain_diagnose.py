@@ -114,9 +114,21 @@ class ChainDiagnosis:
     unexplained: dict
     time_unit: str
 
+    @property
+    def found_unnamed(self) -> list[dict]:
+        """Candidates significant (p <= ALPHA) but not named (held-out share, implausible values), most
+        significant first: what the verdict must not call noise."""
+        found = [c for c in self.candidates if c.get("verdict") != "named" and c.get("p_value", 1.0) <= ALPHA]
+        return sorted(found, key=lambda c: c["p_value"])
+
     def summary(self) -> str:
-        """One line: the verdict and what was named."""
+        """One line: the verdict and what was named; it agrees with the candidates (a significant one that was
+        not named is said with its p-value and why)."""
+        found = "; ".join(f"{c['name']} (p = {c['p_value']:.2g}, {c['verdict']})" for c in self.found_unnamed)
         if self.verdict == "noise":
+            if found:
+                return (f"no effect named, but significant: {found}; held-out residual {self.gap_before:.4f} mm "
+                        f"RMS (noise {self.noise_mm:g} mm per coordinate)")
             return (f"nothing beyond the tracker noise: held-out residual {self.gap_before:.4f} mm RMS "
                     f"(noise {self.noise_mm:g} mm per coordinate)")
         parts = [e.headline() for e in self.named]
@@ -124,6 +136,8 @@ class ChainDiagnosis:
             best = self.unexplained["correlates"][0] if self.unexplained["correlates"] else None
             parts.append(f"unexplained structure {self.unexplained['excess_mm']:.4f} mm"
                          + (f", follows {best['context']} ({best['share']:.0%} of it)" if best else ""))
+        elif found:
+            parts.append(f"significant but not named: {found}")
         return f"{'; '.join(parts)}; held-out gap {self.gap_before:.4f} -> {self.gap_after:.4f} mm"
 
 

@@ -53,3 +53,19 @@ def test_a_named_effect_and_a_significant_unnamed_one_are_both_said():
                     _candidate("encoder_eccentricity", "not confirmed on held-out poses", 1e-12)], named=[named])
     line = summary_line(d)
     assert line.startswith("missing effect: ") and "; significant but not named: encoder_eccentricity (p = 1e-12" in line
+
+
+def test_folder_machines_verdict_agrees_with_its_candidates():
+    from pmcal.calib.chain_diagnose import ALPHA, ChainDiagnosis
+
+    def dg(candidates, verdict="noise"):
+        return ChainDiagnosis(verdict=verdict, named=[], candidates=candidates, gap_before=0.012, gap_after=0.012,
+                              noise_mm=0.01, unexplained={}, time_unit="h")
+
+    quiet = dg([{"name": "backlash", "verdict": "not significant", "p_value": 0.3}])
+    assert quiet.summary().startswith("nothing beyond the tracker noise")
+    found = dg([{"name": "backlash", "verdict": "not significant", "p_value": 0.3},
+                {"name": "zero_drift", "verdict": "does not hold on held-out rows (removes 40% of the structure, "
+                 "75% needed)", "p_value": ALPHA / 100}])
+    line = found.summary()
+    assert line.startswith("no effect named, but significant: zero_drift (p = ") and "backlash" not in line

@@ -25,6 +25,8 @@ def diagnosis_document(machine, dg, source: str) -> dict:
                   for e in dg.named],
         "candidates": [{k: (float(v) if isinstance(v, float) else v) for k, v in c.items()} for c in dg.candidates],
         "unexplained": dg.unexplained,
+        "significant_unnamed": [{"name": c["name"], "p_value": float(c["p_value"]), "verdict": c["verdict"]}
+                                for c in dg.found_unnamed],
     }
 
 
