@@ -27,7 +27,7 @@ from pmcal.bridge.plc_types import Header, State, shadow_rows  # noqa: E402
 from tests.bridge_fixtures import make_table  # noqa: E402
 
 IK = "F_CompTableNominalIk"
-TOKEN = 0x600D0001          # the staging token of the benchmark's client
+TOKEN = 0x800D0001          # the staging token of the benchmark's client
 
 
 def commit_cost(n_phi: int, n_theta: int) -> dict:

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 from pmcal.bridge import plc_types
 from pmcal.bridge.plc_runtime import PlcTwin
-from pmcal.bridge.plc_types import Header, State, Status, shadow_rows
+from pmcal.bridge.plc_types import Header, State, Status, done_value, shadow_rows
 from tests.bridge_fixtures import make_table
 
-TOKEN = 0x5AFE0001
+TOKEN = 0xDAFE0001
 
 
 def _stage_and_commit(twin: PlcTwin, table) -> None:
@@ -96,7 +96,7 @@ def test_the_start_up_verdict_does_not_answer_a_commit_made_while_starting():
     twin.cycle()
     st = twin.state
     assert st.ack_token == TOKEN and st.status == Status.PLC_STARTING, (st.status, st.active_version)
-    twin.write_symbol("commit", (0).to_bytes(4, "little"))
+    twin.write_symbol("commit", done_value(TOKEN).to_bytes(4, "little"))
     twin.cycle()
     assert twin.state.ack_token == 0
     twin.write_symbol("commit", TOKEN.to_bytes(4, "little"))

@@ -163,29 +163,35 @@ class PlcRuntime:
         self.work_now = [0, 0, 0, 0]
         self.work_max = dict.fromkeys(WORK, 0)
         self.work_last = dict.fromkeys(WORK, 0)
-        n = len(self.program.call_names)
-        self.calls_now = [0] * n
-        self.calls_max = dict.fromkeys(self.program.call_names, 0)
-        self.calls_last = dict.fromkeys(self.program.call_names, 0)
         self.cycles = 0
         self.motion_idle = True
         self.fault: PlcFault | None = None
         p0, p1 = self.program.persistent
         self.saved_persistent = bytes(self.mem[p0:p1])
+        self._task_names = tuple(task)
+        self._constants = dict(constants or {})
+        self._exec_program()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _exec_program(self) -> None:
+        """Load the program's generated code, its constants (with this runtime's overrides) and its task."""
+        n = len(self.program.call_names)
+        self.calls_now = [0] * n
+        self.calls_max = dict.fromkeys(self.program.call_names, 0)
+        self.calls_last = dict.fromkeys(self.program.call_names, 0)
         ns = make_helpers(self)
         ns["_CALLS"] = self.calls_now
         for key, (value, t, py) in self.program.constants.items():
             ns[py] = value
         self._ns = ns
         exec(self.program.code, ns)                    # noqa: S102 - our own generated code
-        for key, value in (constants or {}).items():
+        for key, value in self._constants.items():
             self.set_constant(key, value)
         self._task = []
-        for name in task:
+        for name in self._task_names:
             pou = self.program.pous[name.lower()]
             self._task.append((ns[pou.pyname], self.program.instances[name.lower()]))
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
     # ---- execution ------------------------------------------------------------------------
     @property
@@ -295,7 +301,20 @@ class PlcRuntime:
             self._thread.join(timeout=2.0)
             self._thread = None
 
-    # ---- persistence ----------------------------------------------------------------------
+    # ---- remanent data: PERSISTENT and RETAIN ------------------------------------------------
+    # What survives which event, as Infosys tc3_plc_intro "Remanent Variables - PERSISTENT, RETAIN"
+    # (/content/1033/tc3_plc_intro/2528803467.html) and Tc2_Utilities "WritePersistentData"
+    # (/content/1033/tcplclib_tc2_utilities/35068555.html) document it:
+    #
+    #   event                                   VAR      RETAIN (NovRam)   PERSISTENT
+    #   restart (TwinCAT stop/start, UPS)       initial  kept              kept (written at shutdown)
+    #   power cut without UPS                   initial  kept (NovRam)     as the last FB_WritePersistentData
+    #   Reset cold                              initial  initial           kept
+    #   download (persistent list unchanged)    initial  initial           kept, by name and type
+    #   online change                           kept     kept              kept
+    #   Reset origin                            initial  initial           initial (boot data deleted)
+    #
+    # A variable without an ADS symbol ({attribute 'hide'}) is in neither region (compiler): initial.
     def mark_persistent_saved(self) -> None:
         """What Tc2_Utilities FB_WritePersistentData completes: the PERSISTENT variables as they are now
         are what the next power-up restores."""
@@ -304,22 +323,64 @@ class PlcRuntime:
 
     def restart(self) -> None:
         """A clean restart (TwinCAT stop/start, or a power cycle with UPS): TwinCAT writes the
-        PERSISTENT data at shutdown, so they survive; everything else starts from its initial value.
-        The task must be stopped around it; a stopped (faulted) task runs again."""
+        PERSISTENT data at shutdown, so they survive; RETAIN data survive in NovRam; everything else
+        starts from its initial value. The task must be stopped around it; a stopped task runs again."""
         with self.lock:
             self.mark_persistent_saved()
-            self._power_up()
+            self._power_up(keep_retain=True)
+
+    warm_restart = restart
 
     def power_cut(self) -> None:
         """Power lost without UPS: RAM is gone, PERSISTENT data come back as the last
-        FB_WritePersistentData (or clean shutdown) saved them."""
+        FB_WritePersistentData (or clean shutdown) saved them; RETAIN data from NovRam."""
         with self.lock:
-            self._power_up()
+            self._power_up(keep_retain=True)
 
-    def _power_up(self) -> None:
+    def reset_cold(self) -> None:
+        """Online command Reset cold: every variable but the PERSISTENT ones (as they are now) starts
+        from its initial value, RETAIN included."""
+        with self.lock:
+            self.mark_persistent_saved()
+            self._power_up(keep_retain=False)
+
+    def reset_origin(self) -> None:
+        """Online command Reset origin: everything starts from its initial value, PERSISTENT data too
+        (their boot data are gone)."""
+        with self.lock:
+            p0, p1 = self.program.persistent
+            self.saved_persistent = bytes(self.program.image[p0:p1])
+            self._power_up(keep_retain=False)
+
+    def online_change(self) -> None:
+        """Online change of code that keeps every variable: nothing is reinitialised."""
+
+    def download(self, program: Program) -> None:
+        """Download of another program (the task stopped around it): PERSISTENT variables keep their
+        values where the new program declares the same GVL variable with the same type size (TwinCAT
+        checks the persistent list on download); everything else, RETAIN included, starts from the new
+        program's initial values."""
+        with self.lock:
+            old, mem = self.program, bytes(self.mem)
+            self.program = program
+            self.mem = bytearray(program.image)
+            for gvl, names in program.gvls.items():
+                for name, gv in names.items():
+                    was = old.gvls.get(gvl, {}).get(name)
+                    if gv.persistent and was is not None and was.persistent and was.t.size == gv.t.size:
+                        self.mem[gv.addr:gv.addr + gv.t.size] = mem[was.addr:was.addr + was.t.size]
+            self._exec_program()
+            self.mark_persistent_saved()
+            self.fault = None
+
+    def _power_up(self, keep_retain: bool) -> None:
         p0, p1 = self.program.persistent
+        r0, r1 = self.program.retain
+        retain = bytes(self.mem[r0:r1])
         self.mem[:] = self.program.image
         self.mem[p0:p1] = self.saved_persistent
+        if keep_retain:
+            self.mem[r0:r1] = retain
         self.fault = None
 
     # ---- variables by name ----------------------------------------------------------------
