@@ -1,0 +1,57 @@
+"""The commissioning docs cannot drift from the PLC sources: every status and state they list has the
+value and name of E_CompTableStatus / E_CompTableState (parsed from plc/DUTs), every enum value is
+listed, and the interface and format versions they name are GVL_CompTableParam's."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+import pmcal.plc
+
+PLC = Path(pmcal.plc.__file__).parent
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+
+
+def _enum(name: str) -> dict[int, str]:
+    text = (PLC / "DUTs" / f"{name}.TcDUT").read_text(encoding="utf-8")
+    return {int(v): k for k, v in re.findall(r"^\s*(\w+)\s*:=\s*(\d+)", text, re.M)}
+
+
+def _constant(name: str) -> str:
+    text = (PLC / "GVLs" / "GVL_CompTableParam.TcGVL").read_text(encoding="utf-8")
+    return re.search(rf"^\s*{name}\s*:\s*\w+\s*:=\s*([^;]+);", text, re.M)[1].strip()
+
+
+def _table_rows(text: str) -> dict[int, str]:
+    """``| value | NAME | ...`` rows of the markdown tables in ``text``."""
+    return {int(v): n for v, n in re.findall(r"^\|\s*(\d+)\s*\|\s*([A-Z_]+)\s*\|", text, re.M)}
+
+
+@pytest.mark.parametrize("doc", [DOCS / "commissioning.md", PLC / "README.md"], ids=lambda p: p.name)
+def test_every_status_is_documented_with_its_value_and_name(doc):
+    rows = _table_rows(doc.read_text(encoding="utf-8"))
+    assert rows == _enum("E_CompTableStatus")
+
+
+def test_every_manager_state_is_documented():
+    text = (DOCS / "commissioning.md").read_text(encoding="utf-8")
+    line = re.search(r"\*\*Manager state\*\*[^\n]*\n?[^\n]*", text)[0]
+    listed = {int(v): n for v, n in re.findall(r"(\d+) ([A-Z_]+)", line)}
+    assert listed == _enum("E_CompTableState")
+
+
+def test_versions_and_sizes_named_in_the_docs_are_the_plcs():
+    interface, fmt = _constant("INTERFACE_VERSION"), _constant("FORMAT_VERSION")
+    bridge = (DOCS / "bridge.md").read_text(encoding="utf-8")
+    assert f"interface version ({interface})" in bridge
+    readme = (PLC / "README.md").read_text(encoding="utf-8")
+    assert f"INTERFACE_VERSION {interface}, FORMAT_VERSION {fmt}" in readme
+    commissioning = (DOCS / "commissioning.md").read_text(encoding="utf-8")
+    for m in re.finditer(r"format (\d+)\b", commissioning):
+        assert m[1] == fmt, m[0]
+    assert f"FORMAT_VERSION ({fmt})" in readme
+    from pmcal.bridge.plc_types import INTERFACE_VERSION
+    assert str(INTERFACE_VERSION) == interface
