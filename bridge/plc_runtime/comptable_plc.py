@@ -236,6 +236,22 @@ class PlcTwin:
             self.runtime.download(program or self.runtime.program)
             self._reapply()
 
+    def configure(self, machine: str, motors: int, corrections: bool) -> None:
+        """Set what this PLC accepts (GVL_CompTableParam.MACHINE, NMOTORS, CORRECTIONS): on a real CX
+        an edit of the GVL and a download; here the constants change and the PLC restarts (the table
+        store stays, the start-up check applies the new configuration; the memory stays the same
+        object, so a running mock's views of it stay valid)."""
+        with self.lock:
+            for key, value in machine_constants(machine, motors, corrections).items():
+                self.runtime.set_constant(key, value)
+            self.restart()
+
+    def configure_for(self, table: CompTable) -> None:
+        """:meth:`configure` for the machine, motors and kind of ``table``."""
+        from pmcal.bridge.nominal import REFERENCE_CONTROLLER
+
+        self.configure(table.machine, table.n_motors, table.reference_code == REFERENCE_CONTROLLER)
+
     def has_symbol(self, key: str) -> bool:
         """The PLC program generates an ADS symbol for this GVL_CompTable variable (declared, and not
         {attribute 'hide'}: Infosys tc3_plc_intro, Attribute 'hide')."""

@@ -465,6 +465,7 @@ class PlcRuntime:
         if k not in self.program.constants:
             raise KeyError(key)
         _, t, py = self.program.constants[k]
+        self._constants[key] = value                     # kept over a download of the same program
         self._ns[py] = float(value) if t.kind == "real" else value
         for name, memo in self._ns.items():           # pure functions may read constants
             if name.startswith("_MEMO_"):
