@@ -212,7 +212,8 @@ def _declarations() -> dict[str, str]:
         assert root.tag == "TcPlcObject"
         obj = root[0]
         assert obj.get("Name") == path.stem and re.fullmatch(r"\{[0-9a-f-]{36}\}", obj.get("Id"))
-        out[path.stem] = obj.find("Declaration").text
+        if path.suffix != ".TcTTO":                       # a task object has no declaration
+            out[path.stem] = obj.find("Declaration").text
     return out
 
 
