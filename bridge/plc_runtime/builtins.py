@@ -239,6 +239,10 @@ BUILTINS: dict[str, Builtin] = {
                                      "simulation hook: cycles a persistent write takes", simulation=True),
     "F_SIMPERSISTENTSAVE": Builtin(_call("_sim_persistent_save", [], None),
                                    "simulation hook: persistent data saved now", simulation=True),
+    "F_SIMADSPORT": Builtin(_call("_sim_ads_port", [], "UINT"), "simulation hook: this runtime's AMS port",
+                            simulation=True),
+    "F_SIMPORTEXISTS": Builtin(_call("_sim_port_exists", ["nPort"], "BOOL"),
+                               "simulation hook: a PLC runtime listens on this AMS port", simulation=True),
 }
 
 
@@ -482,5 +486,6 @@ def make_helpers(rt) -> dict:
     helpers.update(math=math, mem=mem, _W=work, _fmod=math.fmod, _idiv=_idiv, _imod=_imod,
                    _sim_time=lambda: rt.clock_ms & 0xFFFFFFFF, _sim_axis_idle=lambda: bool(rt.motion_idle),
                    _sim_persistent_cycles=lambda: rt.persistent_write_cycles,
-                   _sim_persistent_save=rt.mark_persistent_saved)
+                   _sim_persistent_save=rt.mark_persistent_saved, _sim_ads_port=lambda: rt.ams_port,
+                   _sim_port_exists=lambda port: port in rt.ams_ports)
     return helpers

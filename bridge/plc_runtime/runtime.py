@@ -25,6 +25,8 @@ from pmcal.bridge.plc_runtime.datatypes import DType, strides
 from pmcal.bridge.plc_runtime.source import parse_files, project_files
 
 LIBRARY = Path(__file__).with_name("library.st")
+#: TwinCAT's implicit GVL TwinCAT_SystemInfoVarList (_AppInfo), compiled with every program
+SYSTEM_INFO = Path(__file__).with_name("TwinCAT_SystemInfoVarList.TcGVL")
 #: counters per cycle, in this order (``work_last``, ``work_max``)
 WORK = ("statements", "math_calls", "bytes_copied", "crc_bytes")
 _TRAPS = (PlcException, ZeroDivisionError, ValueError, OverflowError, struct.error)
@@ -82,7 +84,7 @@ def compile_project(folder: Path | str | None = None, *, cache: bool = True) -> 
 
 def compile_files(files, *, cache: bool = True) -> Program:
     """Compile TwinCAT files and/or plain ``.st`` files (the library is added first)."""
-    files = [LIBRARY] + [Path(f) for f in files]
+    files = [LIBRARY, SYSTEM_INFO] + [Path(f) for f in files]
     key = _digest(files)
     with _CACHE_LOCK:
         if key in _CACHE:
@@ -150,7 +152,7 @@ class PlcRuntime:
 
     def __init__(self, program: Program | None = None, *, task=("PRG_CompTable",), cycle_s: float = 0.001,
                  library: dict | None = None, constants: dict | None = None, trap_overflow: bool = False,
-                 persistent_write_cycles: int = 5) -> None:
+                 persistent_write_cycles: int = 5, ams_port: int = 851, other_ports=()) -> None:
         if not cycle_s > 0:
             raise ValueError(f"cycle_s must be > 0, got {cycle_s}")
         self.program = program or compile_project()
@@ -158,6 +160,8 @@ class PlcRuntime:
         self.cycle_s = float(cycle_s)
         self.trap_overflow = trap_overflow
         self.persistent_write_cycles = int(persistent_write_cycles)
+        self.ams_port = int(ams_port)                  # _AppInfo.AdsPort: 851 for the first runtime, 852 ...
+        self.ams_ports = frozenset({self.ams_port, *other_ports})   # PLC runtimes on this device
         self.library = {"F_DATA_TO_CRC16_CCITT": crc16_ccitt, **(library or {})}
         self.mem = bytearray(self.program.image)
         self.work_now = [0, 0, 0, 0]
@@ -171,6 +175,7 @@ class PlcRuntime:
         self._task_names = tuple(task)
         self._constants = dict(constants or {})
         self._exec_program()
+        self._system_info()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -370,6 +375,7 @@ class PlcRuntime:
                     if gv.persistent and was is not None and was.persistent and was.t.size == gv.t.size:
                         self.mem[gv.addr:gv.addr + gv.t.size] = mem[was.addr:was.addr + was.t.size]
             self._exec_program()
+            self._system_info()
             self.mark_persistent_saved()
             self.fault = None
 
@@ -381,7 +387,15 @@ class PlcRuntime:
         self.mem[p0:p1] = self.saved_persistent
         if keep_retain:
             self.mem[r0:r1] = retain
+        self._system_info()
         self.fault = None
+
+    def _system_info(self) -> None:
+        """TwinCAT_SystemInfoVarList._AppInfo as TwinCAT fills it at start: this runtime's AMS port, the
+        persistent boot data loaded."""
+        if "twincat_systeminfovarlist" in self.program.gvls:
+            self.write_value("TwinCAT_SystemInfoVarList._AppInfo.AdsPort", self.ams_port)
+            self.write_value("TwinCAT_SystemInfoVarList._AppInfo.BootDataLoaded", True)
 
     # ---- variables by name ----------------------------------------------------------------
     def locate(self, path: str) -> tuple[int, DType]:
