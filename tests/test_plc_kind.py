@@ -22,7 +22,7 @@ from pmcal.bridge.plc_runtime import PlcRuntime, PlcTwin
 from pmcal.bridge.plc_runtime.comptable_plc import machine_constants
 from pmcal.bridge.plc_types import (SHADOW_SIZE, Header, LookupIn, LookupOut, LookupResult, State, Status,
                                    shadow_rows)
-from tests.bridge_fixtures import make_table, modbus_link, raw_commit, running, wait_state
+from tests.bridge_fixtures import make_table, modbus_link, raw_commit, running
 
 TOKEN = 0x8A5E0001
 

@@ -21,7 +21,7 @@ from pmcal.bridge.modbus_mock import ModbusMockPlc
 from pmcal.bridge.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import Header, State, Status, done_value, shadow_rows
 from pmcal.bridge.transfer import PushOptions, push
-from tests.bridge_fixtures import ads_link, make_table, modbus_link, running
+from tests.bridge_fixtures import ads_link, make_table, modbus_link, running, wait_state
 
 LEASE_S = 1.0
 #: what a push may wait for the staging area here: the shortened lease plus the margin of the default
@@ -35,24 +35,12 @@ def _plc(mock):
     return plc
 
 
-def _wait(plc, ready, cycles: int = 20_000):
-    import time
-
-    deadline = time.monotonic() + 20.0
-    while time.monotonic() < deadline:
-        st = plc.twin.state
-        if ready(st):
-            return st
-        time.sleep(0.005)
-    raise AssertionError(f"PLC state never got there: {plc.twin.state}")
-
-
 def _dead_push(plc, link, stop_at: str, version: int = 2) -> None:
     """A push that dies at ``stop_at``: 'claimed', 'mid_stage', 'committed' or 'acknowledged'."""
     table = make_table(version=version, offset_deg=0.2)
     with link(plc) as ln:
         ln.write_claim(DEAD)
-        _wait(plc, lambda s: s.staging_owner == DEAD)
+        wait_state(plc, lambda s: s.staging_owner == DEAD)
         if stop_at == "claimed":
             return
         rows = shadow_rows(table)
@@ -63,7 +51,7 @@ def _dead_push(plc, link, stop_at: str, version: int = 2) -> None:
         ln.write_commit(DEAD)
         if stop_at == "committed":
             return                                        # killed right after the commit
-        _wait(plc, lambda s: s.ack_token == DEAD and s.state == State.IDLE)
+        wait_state(plc, lambda s: s.ack_token == DEAD and s.state == State.IDLE)
         # 'acknowledged': killed while reading the acknowledgement, nothing released
 
 
@@ -90,7 +78,7 @@ def test_a_client_back_after_its_lease_cannot_commit_over_the_new_owner(mock, li
         stale = make_table(version=2, offset_deg=0.2)
         with link(plc) as other:                           # ... another client takes it after the lease
             other.write_claim(0x8000B0B1)
-            st = _wait(plc, lambda s: s.staging_owner == 0x8000B0B1)
+            st = wait_state(plc, lambda s: s.staging_owner == 0x8000B0B1)
             with link(plc) as back:                        # the frozen client wakes up and commits
                 back.stage(Header.of(stale).pack(), shadow_rows(stale))
                 back.write_commit(DEAD)
@@ -144,7 +132,7 @@ def test_unlock_cannot_break_a_live_owner(tmp_path, capsys, mock, link):
         stop = threading.Event()
         with link(plc) as ln:
             ln.write_claim(DEAD)
-            _wait(plc, lambda s: s.staging_owner == DEAD)
+            wait_state(plc, lambda s: s.staging_owner == DEAD)
 
             def live_owner():                              # a commit of a stale version every ~0.3 s
                 stale = make_table(version=1, offset_deg=0.1)
