@@ -202,3 +202,46 @@ def test_the_sample_does_not_move_without_a_table():
     twin = _sample()
     assert _start(twin, (100.0, 30.0))[0] == 0
     assert twin.runtime.read_value("PRG_CompTableMotionSample.eRefusal") == LookupResult.NO_TABLE
+
+
+def test_no_swap_from_the_start_of_a_move_until_it_is_over():
+    """NcToPlc lags: a move the sample starts in cycle c shows in the axes' status only from c + 2 (the
+    NC's cycles), so right after the start FB_CompTableMotionIdle still reads "standing still". The
+    sample's bMovePending (Execute, MC_MoveAbsolute.Busy) keeps the manager from swapping from the start
+    of the move until it is over; a commit waiting for motion swaps after it."""
+    twin = _sample()
+    rt = twin.runtime
+    twin.seed(make_table(version=1))
+    new = make_table(version=2, offset_deg=0.2)
+    twin.write_symbol("staging_claim", TOKEN.to_bytes(4, "little"))
+    twin.cycle()
+    twin.write_symbol("shadow_header", Header.of(new).pack())
+    twin.write_shadow_bytes(0, shadow_rows(new))
+    twin.motion_idle = False                                # another axis job: the commit waits
+    twin.write_symbol("commit", TOKEN.to_bytes(4, "little"))
+    for _ in range(2_000):
+        assert twin.cycle(), twin.fault
+        if twin.state.state == State.WAIT_MOTION:
+            break
+    assert twin.state.state == State.WAIT_MOTION
+    for k, v in enumerate((100.0, 30.0)):
+        rt.write_value(f"PRG_CompTableMotionSample.aX[{k}]", v)
+    rt.write_value("PRG_CompTableMotionSample.bStart", True)
+    twin.cycle()                                            # cycle c: the sample starts the move
+    assert rt.read_value("GVL_CompTableAxes.stAxisM1.nSimMoves") == 1
+    twin.motion_idle = True                                 # the other job is over
+    twin.cycle()                                            # c + 1: the NC has not reported the move yet
+    assert rt.read_value("PRG_CompTable.fbMotionIdle.bIdle")        # the axes' status alone says idle ...
+    assert twin.state.active_version == 1                           # ... and yet no swap
+    rt.write_value("PRG_CompTableMotionSample.bStart", False)
+    busy_cycles = 0
+    while rt.read_value("PRG_CompTableMotionSample.fbMoveM1.Busy"):
+        assert twin.state.active_version == 1, "swapped during a move"
+        assert twin.cycle(), twin.fault
+        busy_cycles += 1
+    assert busy_cycles >= rt.move_cycles - 2
+    for _ in range(20):
+        twin.cycle()
+        if twin.state.ack_token == TOKEN:
+            break
+    assert (twin.state.status, twin.state.active_version) == (Status.OK, 2)

@@ -239,6 +239,12 @@ BUILTINS: dict[str, Builtin] = {
                                      "simulation hook: cycles a persistent write takes", simulation=True),
     "F_SIMPERSISTENTSAVE": Builtin(_call("_sim_persistent_save", [], None),
                                    "simulation hook: persistent data saved now", simulation=True),
+    "F_SIMCYCLE": Builtin(_call("_sim_cycle", [], "UDINT"), "simulation hook: task cycles completed",
+                          simulation=True),
+    "F_SIMNCLAG": Builtin(_call("_sim_nc_lag", [], "UDINT"),
+                          "simulation hook: task cycles until NcToPlc shows a started move", simulation=True),
+    "F_SIMMOVECYCLES": Builtin(_call("_sim_move_cycles", [], "UDINT"),
+                               "simulation hook: task cycles a modelled move lasts", simulation=True),
     "F_SIMADSPORT": Builtin(_call("_sim_ads_port", [], "UINT"), "simulation hook: this runtime's AMS port",
                             simulation=True),
     "F_SIMPORTEXISTS": Builtin(_call("_sim_port_exists", ["nPort"], "BOOL"),
@@ -487,5 +493,7 @@ def make_helpers(rt) -> dict:
                    _sim_time=lambda: rt.clock_ms & 0xFFFFFFFF, _sim_axis_idle=lambda: bool(rt.motion_idle),
                    _sim_persistent_cycles=lambda: rt.persistent_write_cycles,
                    _sim_persistent_save=rt.mark_persistent_saved, _sim_ads_port=lambda: rt.ams_port,
+                   _sim_cycle=lambda: rt.cycles & 0xFFFFFFFF, _sim_nc_lag=lambda: rt.nc_lag_cycles,
+                   _sim_move_cycles=lambda: rt.move_cycles,
                    _sim_port_exists=lambda port: port in rt.ams_ports)
     return helpers

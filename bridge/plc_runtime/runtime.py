@@ -152,7 +152,8 @@ class PlcRuntime:
 
     def __init__(self, program: Program | None = None, *, task=("PRG_CompTable",), cycle_s: float = 0.001,
                  library: dict | None = None, constants: dict | None = None, trap_overflow: bool = False,
-                 persistent_write_cycles: int = 5, ams_port: int = 851, other_ports=()) -> None:
+                 persistent_write_cycles: int = 5, ams_port: int = 851, other_ports=(),
+                 nc_lag_cycles: int = 2, move_cycles: int = 100) -> None:
         if not cycle_s > 0:
             raise ValueError(f"cycle_s must be > 0, got {cycle_s}")
         self.program = program or compile_project()
@@ -162,6 +163,10 @@ class PlcRuntime:
         self.persistent_write_cycles = int(persistent_write_cycles)
         self.ams_port = int(ams_port)                  # _AppInfo.AdsPort: 851 for the first runtime, 852 ...
         self.ams_ports = frozenset({self.ams_port, *other_ports})   # PLC runtimes on this device
+        # axes (library AXIS_REF, MC_MoveAbsolute): NcToPlc shows a move nc_lag_cycles after its start (the
+        # NC's own cycles; 2 ms SAF at a 1 ms task: 2), a modelled move lasts move_cycles
+        self.nc_lag_cycles = int(nc_lag_cycles)
+        self.move_cycles = int(move_cycles)
         self.library = {"F_DATA_TO_CRC16_CCITT": crc16_ccitt, **(library or {})}
         self.mem = bytearray(self.program.image)
         self.work_now = [0, 0, 0, 0]
