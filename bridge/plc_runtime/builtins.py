@@ -172,7 +172,7 @@ def _adr(c, positional, named, pre):
 
 
 def _sizeof(c, positional, named, pre):
-    from pmcal.bridge.plc_runtime.compiler import UDINT, E
+    from pmcal.bridge.plc_runtime.compiler import E
     (x,) = positional or list(named.values())
     if type(x).__name__ == "SimpleVariable" and c.lookup(str(x.name)) and c.lookup(str(x.name))[0] == "type":
         size = c.lookup(str(x.name))[1].size
@@ -180,7 +180,10 @@ def _sizeof(c, positional, named, pre):
         size = elementary(str(x.name).upper()).size
     else:
         size = c.lvalue(x, []).t.size
-    return E(str(size), UDINT, const=size)
+    # the type of the result follows the size (Infosys tc3_plc_intro, SIZEOF): USINT below 256, UINT
+    # below 65536, UDINT below 2^32, else ULINT
+    t = elementary("USINT" if size < 256 else "UINT" if size < 65536 else "UDINT" if size < 2 ** 32 else "ULINT")
+    return E(str(size), t, const=size)
 
 
 def _call(pyname, names, ret, mathy=False, sim=False):
