@@ -55,3 +55,15 @@ def test_versions_and_sizes_named_in_the_docs_are_the_plcs():
     assert f"FORMAT_VERSION ({fmt})" in readme
     from pmcal.bridge.plc_types import INTERFACE_VERSION
     assert str(INTERFACE_VERSION) == interface
+
+
+def test_the_modbus_register_range_in_the_docs_is_the_areas():
+    """ST_CompTableModbusArea: aWindow at register 384, WINDOW_LREALS LREALs of 4 registers each."""
+    area = (PLC / "DUTs" / "ST_CompTableModbusArea.TcDUT").read_text(encoding="utf-8")
+    window_at = int(re.search(r"aWindow\s*:.*//\s*(\d+)", area)[1])
+    window = int(_constant("WINDOW_LREALS"))
+    registers = window_at + 4 * window
+    text = (DOCS / "commissioning.md").read_text(encoding="utf-8")
+    assert f"registers 16#3000 … 16#{0x3000 + registers - 1:X} ({registers:,} registers".replace(",", " ") in text
+    assert f"{2 * registers:,} bytes".replace(",", " ") in text
+    assert f"window of {window} LREALs" in text
