@@ -109,3 +109,33 @@ def test_of_two_pushes_at_once_every_ok_is_true(transport):
                 assert reports[oks[1]].previous_version == oks[0] and oks[1] > oks[0], reports
             assert plc.twin.state.active_version == oks[-1]
             before = oks[-1]
+
+
+@pytest.mark.parametrize("paging", [True, False], ids=["staging", "silent"])
+def test_modbus_page_requests_keep_the_owners_lease(paging):
+    """Over Modbus the staging shows as page requests: an owner paging a table in while another client
+    claims keeps the area past the lease (activity); a silent owner loses it after the lease."""
+    from pmcal.bridge.modbus_map import ModbusMap
+
+    rmap = ModbusMap()
+    twin = PlcTwin(staging_lease_s=0.2)
+    twin.use_modbus = True
+    regs = twin.modbus_memory(rmap.WINDOW)
+
+    def put(at: int, value: int, words: int = 2) -> None:
+        for k in range(words):
+            regs[at + k] = (value >> (16 * k)) & 0xFFFF
+
+    twin.cycle()
+    put(rmap.STAGING_CLAIM, FORMER)
+    twin.runtime.run(2)
+    assert twin.state.staging_owner == FORMER
+    put(rmap.STAGING_CLAIM, NEW)                          # another client claims and waits
+    for k in range(1, 8):                                 # 0.7 s of the owner staging: a page every 0.1 s
+        if paging:
+            put(rmap.PAGE_CONTROL, 0, 1)                  # page 0, 1 LREAL, window -> aShadow
+            put(rmap.PAGE_CONTROL + 1, 1, 1)
+            put(rmap.PAGE_CONTROL + 2, 1, 1)
+            put(rmap.PAGE_CONTROL + 3, k, 1)              # nPageSeq last: the request
+        assert twin.runtime.run(100) == 100, twin.fault
+    assert twin.state.staging_owner == (FORMER if paging else NEW)
