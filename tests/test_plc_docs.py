@@ -67,3 +67,14 @@ def test_the_modbus_register_range_in_the_docs_is_the_areas():
     assert f"registers 16#3000 … 16#{0x3000 + registers - 1:X} ({registers:,} registers".replace(",", " ") in text
     assert f"{2 * registers:,} bytes".replace(",", " ") in text
     assert f"window of {window} LREALs" in text
+
+
+def test_the_commit_timings_in_the_docs_are_the_benchmarks():
+    """The cycles a 100 x 100 commit takes, as benchmarks/plc_runtime_bench.py last measured them (its
+    JSON), are the ones the docs give (and the seconds at a 1 ms task)."""
+    import json
+
+    bench = json.loads((DOCS.parent / "benchmarks" / "results" / "plc_runtime_bench.json").read_text())
+    cycles = next(r["cycles"] for r in bench["commit"] if r["grid"] == "100x100")
+    assert f"{cycles} cycles, {cycles / 1000:g} s of 1 ms cycles" in (DOCS / "commissioning.md").read_text()
+    assert f"a 100x100 commit takes {cycles}\ncycles" in (PLC / "README.md").read_text(encoding="utf-8")
