@@ -65,7 +65,7 @@ def test_commit_swaps_only_when_motion_allows_and_acknowledges_last():
     st = commit(twin)
     assert (st.state, st.status, st.ack_token, st.active_version) == (State.WAIT_MOTION, Status.BUSY, 0, 0)
     twin.motion_idle = True
-    for _ in range(20):                                    # the swap, then WritePersistentData, then the ack
+    for _ in range(200):                   # the swap, then the save in PersistTask (every 10 cycles), then the ack
         twin.cycle()
         if twin.state.ack_token:
             break

@@ -135,7 +135,7 @@ def test_project_file_lists_every_object_on_disk_and_nothing_else():
     references the four libraries the allow-list names."""
     root = ET.parse(PLC / "CompTable.plcproj").getroot()
     compiled = {c.get("Include").replace("\\", "/") for c in root.iter(f"{_MSBUILD}Compile")}
-    assert compiled == {str(p.relative_to(PLC)) for p in FILES} | {"PlcTask.TcTTO"}
+    assert compiled == {str(p.relative_to(PLC)) for p in FILES} | {"PlcTask.TcTTO", "PersistTask.TcTTO"}
     assert all(c.findtext(f"{_MSBUILD}SubType") == "Code" for c in root.iter(f"{_MSBUILD}Compile"))
     libraries = {r.get("Include") for r in root.iter(f"{_MSBUILD}PlaceholderReference")}
     assert libraries == {"Tc2_Standard", "Tc2_System", "Tc2_Utilities", "Tc2_MC2"}
@@ -158,6 +158,15 @@ def test_the_project_opens_with_a_task_that_calls_prg_comptable():
     assert set(calls) <= programs
     rt = PlcRuntime(task=calls)
     assert rt.cycle_s == int(task.findtext("CycleTime")) * 1e-6 and rt.run(3) == 3
+    # the save runs in its own task, slower and of lower priority (a higher number), as the interpreter
+    # runs it (every SAVE_EVERY task cycles, after the task)
+    from pmcal.bridge.plc_runtime.runtime import SAVE_EVERY, SAVE_PROGRAM
+
+    save = ET.parse(PLC / "PersistTask.TcTTO").getroot().find("Task")
+    assert [c.findtext("Name") for c in save.findall("PouCall")] == [SAVE_PROGRAM]
+    assert int(save.findtext("Priority")) > int(task.findtext("Priority"))
+    assert int(save.findtext("CycleTime")) == SAVE_EVERY * int(task.findtext("CycleTime"))
+    assert SAVE_PROGRAM not in calls
 
 
 def test_axes_reach_the_function_blocks_in_out_and_no_pou_declares_one():

@@ -240,7 +240,7 @@ def test_no_swap_from_the_start_of_a_move_until_it_is_over():
         assert twin.cycle(), twin.fault
         busy_cycles += 1
     assert busy_cycles >= rt.move_cycles - 2
-    for _ in range(20):
+    for _ in range(200):                                    # the swap, the save in PersistTask, the ack
         twin.cycle()
         if twin.state.ack_token == TOKEN:
             break

@@ -261,7 +261,7 @@ END_PROGRAM
 
 @pytest.mark.parametrize("port, survives", [(0, True), (851, False)])
 def test_the_save_goes_to_the_runtimes_own_port(port, survives):
-    """A second PLC runtime (AMS port 852): FB_CompTableManager.nPlcPort = 0 (the default) saves this
+    """A second PLC runtime (AMS port 852): PRG_CompTableSave.nPlcPort = 0 (the default) saves this
     runtime's persistent data (TwinCAT_SystemInfoVarList._AppInfo.AdsPort); the former hard-coded 851
     saves the first runtime's data instead, answers OK, and a power cut brings the old table back."""
     from pmcal.bridge.plc_runtime import PlcRuntime
@@ -269,9 +269,9 @@ def test_the_save_goes_to_the_runtimes_own_port(port, survives):
 
     rt = PlcRuntime(constants=machine_constants("ocpm_2dof", 2, False), ams_port=852, other_ports=(851,))
     twin = PlcTwin(runtime=rt)
-    rt.write_value("PRG_CompTable.fbManager.nPlcPort", port)
+    rt.write_value("PRG_CompTableSave.nPlcPort", port)
     twin.seed(make_table(version=1))
-    rt.write_value("PRG_CompTable.fbManager.nPlcPort", port)          # seed restarted the runtime
+    rt.write_value("PRG_CompTableSave.nPlcPort", port)                # seed restarted the runtime
     new = make_table(version=2, offset_deg=0.3)
     _commit_until(twin, new, lambda s: s.ack_token == TOKEN)
     assert (twin.state.status, twin.state.active_version) == (Status.OK, 2)

@@ -25,6 +25,8 @@ from pmcal.bridge.plc_runtime.datatypes import DType, strides
 from pmcal.bridge.plc_runtime.source import parse_files, project_files
 
 LIBRARY = Path(__file__).with_name("library.st")
+#: the project's save program and its task's cycle in task cycles (plc/PersistTask.TcTTO: 10 ms at 1 ms)
+SAVE_PROGRAM, SAVE_EVERY = "PRG_CompTableSave", 10
 #: TwinCAT's implicit GVL TwinCAT_SystemInfoVarList (_AppInfo), compiled with every program
 SYSTEM_INFO = Path(__file__).with_name("TwinCAT_SystemInfoVarList.TcGVL")
 #: counters per cycle, in this order (``work_last``, ``work_max``)
@@ -153,7 +155,7 @@ class PlcRuntime:
     def __init__(self, program: Program | None = None, *, task=("PRG_CompTable",), cycle_s: float = 0.001,
                  library: dict | None = None, constants: dict | None = None, trap_overflow: bool = False,
                  persistent_write_cycles: int = 5, ams_port: int = 851, other_ports=(),
-                 nc_lag_cycles: int = 2, move_cycles: int = 100) -> None:
+                 nc_lag_cycles: int = 2, move_cycles: int = 100, background=None) -> None:
         if not cycle_s > 0:
             raise ValueError(f"cycle_s must be > 0, got {cycle_s}")
         self.program = program or compile_project()
@@ -178,6 +180,11 @@ class PlcRuntime:
         p0, p1 = self.program.persistent
         self.saved_persistent = bytes(self.mem[p0:p1])
         self._task_names = tuple(task)
+        # lower-priority tasks: (PROGRAM, every n task cycles), run after the task in those cycles; default:
+        # the project's PersistTask (PRG_CompTableSave every 10 ms) if the program has it
+        if background is None:
+            background = ((SAVE_PROGRAM, SAVE_EVERY),) if SAVE_PROGRAM.lower() in self.program.pous else ()
+        self._background_names = tuple((str(n), int(k)) for n, k in background)
         self._constants = dict(constants or {})
         self._exec_program()
         self._system_info()
@@ -202,6 +209,10 @@ class PlcRuntime:
         for name in self._task_names:
             pou = self.program.pous[name.lower()]
             self._task.append((ns[pou.pyname], self.program.instances[name.lower()]))
+        self._background = []
+        for name, every in self._background_names:
+            pou = self.program.pous[name.lower()]
+            self._background.append((ns[pou.pyname], self.program.instances[name.lower()], max(1, every)))
 
     # ---- execution ------------------------------------------------------------------------
     @property
@@ -224,6 +235,9 @@ class PlcRuntime:
             try:
                 for fn, addr in self._task:
                     fn(addr)
+                for fn, addr, every in self._background:
+                    if self.cycles % every == every - 1:
+                        fn(addr)
             except _TRAPS as exc:
                 self.fault = PlcFault(getattr(exc, "kind", _kind(exc)), str(exc), self.cycles, self._where(exc))
             finally:
