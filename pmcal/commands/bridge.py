@@ -76,13 +76,15 @@ def register(sub: CommandSet) -> None:
                    help="shorten the PLC's staging lease to S seconds (studies of killed clients)")
     m.add_argument("--plc-machine", default=None, metavar="NAME",
                    help="GVL_CompTableParam.MACHINE of the mock: the machine whose tables it accepts (default: "
-                        "the --table's machine, else ocpm_2dof); '' is the shipped, unconfigured PLC")
+                        "the --table's machine, else the --machine's, else ocpm_2dof); '' is the shipped, "
+                        "unconfigured PLC")
     m.add_argument("--plc-motors", type=int, default=None, metavar="N",
                    help="GVL_CompTableParam.NMOTORS: motors of a table it accepts, 0..6 (default: the --table's, "
-                        "else 2)")
+                        "else the --machine's, else 2)")
     m.add_argument("--plc-corrections", action=argparse.BooleanOptionalAction, default=None,
                    help="GVL_CompTableParam.CORRECTIONS: accept correction tables (reference 'controller') "
-                        "instead of motor commands (default: the --table's kind, else commands)")
+                        "instead of motor commands (default: the --table's kind, else the --machine's [table] "
+                        "reference, else commands)")
     m.set_defaults(func=cmd_mock_plc)
 
     pl = sub.add_parser("plc", help="ask the PLC what it runs: status, or verify a table is active")
@@ -416,13 +418,19 @@ def cmd_mock_plc(args) -> int:
     from pmcal.bridge.nominal import REFERENCE_CONTROLLER
     from pmcal.bridge.plc_runtime import PlcTwin
 
-    machine = args.plc_machine if args.plc_machine is not None else seed.machine if seed else "ocpm_2dof"
+    # what the mock PLC accepts: the options, else the --table's, else the selected machine's table
+    # (a folder with a [table]: its name, motors and kind), else the OCPM's
+    name, motors, corrections = "ocpm_2dof", 2, False
+    spec = getattr(getattr(args, "selected_machine", None), "spec", None)
+    if seed is not None:
+        name, motors, corrections = seed.machine, seed.n_motors, seed.reference_code == REFERENCE_CONTROLLER
+    elif spec is not None and not spec.legacy and spec.table is not None:
+        name, motors, corrections = spec.name, len(spec.motors), spec.table.reference == "controller"
+    machine = args.plc_machine if args.plc_machine is not None else name
     if len(machine.encode("ascii", "replace")) > 27:
         raise InputError(f"at most 27 characters (STRING(27)), got '{machine}'", field="--plc-machine")
-    twin = PlcTwin(machine=machine,
-                   motors=args.plc_motors if args.plc_motors is not None else seed.n_motors if seed else 2,
-                   corrections=(args.plc_corrections if args.plc_corrections is not None
-                                else bool(seed) and seed.reference_code == REFERENCE_CONTROLLER))
+    twin = PlcTwin(machine=machine, motors=args.plc_motors if args.plc_motors is not None else motors,
+                   corrections=args.plc_corrections if args.plc_corrections is not None else corrections)
     mock = Mock(twin, port=args.port, cycle_s=args.cycle_ms / 1000.0, lifetime_s=args.seconds,
                 restart_s=args.restart_s, **extra)
     mock.faults.arm(*faults)
