@@ -56,7 +56,7 @@ from pyads.testserver.testserver import AdsClientConnection
 from pmcal.bridge.ads_map import AdsMap, AdsTarget, read_only_symbols, struct_members
 from pmcal.bridge.faults import Kind, Point
 from pmcal.bridge.mock import LOOPBACK, MockPlc
-from pmcal.bridge.plc_types import SYMBOLS, Symbol
+from pmcal.bridge.plc_types import SYMBOLS, Symbol, is_token
 
 _NO_REPLY = "no-reply"
 _DROP = "drop"
@@ -482,14 +482,15 @@ class StrictHandler(AbstractHandler):
                     commit_value = payload[pos:pos + n]
         if "shadow" in keys_w:
             return Point.MID_STAGE
-        if "commit" in keys_w:
-            return Point.COMMIT if any(commit_value) else Point.BEFORE_STAGE
+        if "commit" in keys_w:            # a token commits; 0 or NOT token withdraws or clears
+            return Point.COMMIT if len(commit_value) == 4 and is_token(int.from_bytes(commit_value, "little")) \
+                else Point.BEFORE_STAGE
         if keys_w:
             return None
         if keys_r & {"shadow", "shadow_header"}:
             return Point.AFTER_STAGE
         if "state" in keys_r:
-            pending = any(self.mock.read_memory(*self.mock.location("commit")))
+            pending = is_token(int.from_bytes(self.mock.read_memory(*self.mock.location("commit")), "little"))
             return Point.ACK_WAIT if pending else Point.BEFORE_STAGE
         if keys_r and keys_r <= {"lookup_in", "lookup_out"}:
             return None
@@ -706,7 +707,9 @@ class AdsMockPlc(MockPlc):
         ``read_only``: ST names with read-only symbol access (default: as the shipped GVL declares)."""
         super().__init__(*args, **kwargs)
         self.amap = amap
-        self.symbols = symbols
+        # TwinCAT generates no ADS symbol for a variable under {attribute 'hide'} (Infosys tc3_plc_intro,
+        # Attribute 'hide'): such a variable of the program is not served (0x710 symbol not found)
+        self.symbols = symbols = tuple(s for s in symbols if self.twin.has_symbol(s.key))
         self.area = GvlArea(amap, symbols)
         self.routes = None if routes is None else frozenset(routes)
         self.read_only = read_only_symbols() if read_only is None else frozenset(read_only)

@@ -66,11 +66,12 @@ class LinkBase:
         return self.read_symbol("active_header")
 
     def write_commit(self, token: int) -> None:
-        """``nCommitToken := token``: the staging owner's token commits the staged table; 0 withdraws."""
+        """``nCommitToken := token``: the staging owner's token commits the staged table; its complement
+        (:func:`pmcal.bridge.plc_types.done_value`) withdraws the commit or clears the acknowledgement."""
         self.write_symbol("commit", int(token).to_bytes(4, "little"))
 
     def write_claim(self, token: int) -> None:
-        """``nStagingClaim := token`` (a session token claims the staging area; 0 releases it)."""
+        """``nStagingClaim := token`` (a session token claims the staging area; its complement releases it)."""
         self.write_symbol("staging_claim", int(token).to_bytes(4, "little"))
 
     def lookup(self, *x: float, timeout_s: float = 1.0) -> LookupOut:

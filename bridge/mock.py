@@ -92,12 +92,23 @@ class MockPlc:
         :meth:`restart`."""
         self._down(down_s, power_cut=True)
 
-    def _down(self, down_s: float | None, power_cut: bool) -> None:
+    def reset_cold(self, down_s: float | None = None) -> None:
+        """Online command Reset cold from the engineering system (then a start): PERSISTENT data stay,
+        every other variable, RETAIN included, starts from its initial value (:meth:`PlcTwin.reset_cold`)."""
+        self._down(down_s, power_cut=False, event="reset_cold")
+
+    def download(self, down_s: float | None = None) -> None:
+        """A download of the same PLC program (then a start): PERSISTENT data stay (:meth:`PlcTwin.download`)."""
+        self._down(down_s, power_cut=False, event="download")
+
+    def _down(self, down_s: float | None, power_cut: bool, event: str = "") -> None:
         down_s = self.restart_s if down_s is None else down_s
         self.twin.stop()
         self._stop_server()
         if power_cut:
             self.twin.power_cut()
+        elif event:
+            getattr(self.twin, event)()
         else:
             self.twin.restart()
         self.power_cuts += int(power_cut)

@@ -27,6 +27,7 @@ from pmcal.bridge.faults import Kind, Point
 from pmcal.bridge.mock import MockPlc
 from pmcal.bridge.modbus_map import FC3_MAX, FC16_MAX, ModbusMap
 from pmcal.bridge.plc_runtime import PlcTwin
+from pmcal.bridge.plc_types import is_token
 
 _FC_READ = (3, 4, 23)
 
@@ -51,7 +52,8 @@ class ModbusArea:
             if off >= r.WINDOW or r.SHADOW_HEADER <= off < r.COMMIT_VERSION:
                 return Point.AFTER_STAGE
             if r.STATE <= off < r.ACTIVE_HEADER:
-                committed = self.image[r.COMMIT_VERSION:r.COMMIT_VERSION + 2].any()
+                lo, hi = (int(w) for w in self.image[r.COMMIT_VERSION:r.COMMIT_VERSION + 2])
+                committed = is_token(lo | hi << 16)            # low word first
                 return Point.ACK_WAIT if committed else Point.BEFORE_STAGE
             return Point.BEFORE_STAGE if off < r.SHADOW_HEADER else None
         if off == r.SHADOW_HEADER:
@@ -61,7 +63,8 @@ class ModbusArea:
             self.window_writes += 1
             return Point.MID_STAGE if self.window_writes > 1 else None
         if off == r.COMMIT_VERSION:
-            return Point.COMMIT if any(values or ()) else Point.BEFORE_STAGE
+            words = list(values or ()) + [0, 0]
+            return Point.COMMIT if is_token(words[0] | words[1] << 16) else Point.BEFORE_STAGE
         return None
 
 

@@ -24,7 +24,7 @@ from pmcal.bridge.nominal import REFERENCE_CONTROLLER, REFERENCE_NONE  # noqa: F
 #: user always sees the PLC's verdict.
 COMMIT_TIMEOUT_S = 4.0
 #: interface version of GVL_CompTable (bumped when any layout below changes)
-INTERFACE_VERSION = 4
+INTERFACE_VERSION = 5
 LREAL_SIZE = 8
 #: ARRAY[0..NVALUES_MAX-1] OF LREAL: the used values first, in C order (last axis, then motor, fastest)
 SHADOW_LREALS = NVALUES_MAX
@@ -53,7 +53,10 @@ class Status(IntEnum):
     CRC_SELFTEST = 111         # F_CompTableCrc32 does not give 16#CBF43926 for '123456789'
     SWAP_TIMEOUT = 112         # motion did not allow the swap within tCommitTimeout
     REFERENCE_MISMATCH = 113   # header's nominal-IK reference is not the PLC's (nReference, nReferenceCrc)
-    MACHINE_MISMATCH = 114     # GVL_CompTableParam.MACHINE is set and the header names another machine
+    MACHINE_MISMATCH = 114     # the header names another machine than GVL_CompTableParam.MACHINE
+    KIND_MISMATCH = 115        # correction table (nReference 2) to a command PLC (CORRECTIONS FALSE) or back
+    MOTORS_MISMATCH = 116      # nMotors differs from GVL_CompTableParam.NMOTORS
+    NOT_CONFIGURED = 117       # GVL_CompTableParam.MACHINE empty or NMOTORS 0: the PLC serves no table
 
     @property
     def is_rejection(self) -> bool:
@@ -88,6 +91,32 @@ _HEADER = HEADER_STRUCT
 #: ST_CompTableState: nAckToken, nActiveVersion, nCycle (UDINT); eStatus, eState (INT); nActiveCrc (DWORD);
 #: nStagingOwner (UDINT) = 24 bytes
 _STATE = struct.Struct("<3I2H2I")
+#: a client's token (FB_CompTableManager, interface 5): a random UDINT with this bit set, never 16#FFFFFFFF;
+#: its complement (:func:`done_value`, bit clear) releases the staging area / withdraws the commit
+TOKEN_BIT = 0x8000_0000
+
+
+def new_token() -> int:
+    """A fresh random client token: bit 31 set, not 16#FFFFFFFF (whose complement would be 0)."""
+    import secrets
+
+    while True:
+        token = secrets.randbits(32) | TOKEN_BIT
+        if token != 0xFFFF_FFFF:
+            return token
+
+
+def is_token(value: int) -> bool:
+    """``value`` is a client token (a claim or a commit), not 0 nor a complement (a release or withdrawal)."""
+    return bool(value & TOKEN_BIT) and value != 0xFFFF_FFFF
+
+
+def done_value(token: int) -> int:
+    """``NOT token``: written to nStagingClaim it releases the staging area, to nCommitToken it withdraws
+    the owner's commit or clears its acknowledgement; only the current owner's complement counts."""
+    return token ^ 0xFFFF_FFFF
+
+
 #: GVL_CompTableParam.STAGING_LEASE (s): an owner silent this long while another client claims loses the
 #: staging area; a client waits this long (plus a margin) for it
 STAGING_LEASE_S = 30.0

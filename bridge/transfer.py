@@ -5,13 +5,14 @@
 1. validate the table locally (before connecting);
 2. open the link, check the PLC interface, read the PLC state;
 3. refuse a version that is not newer than the active one (before anything is written);
-4. claim the staging area with a random token (``nStagingClaim := token``) and wait until the PLC grants
-   it (``nStagingOwner = token``; at most ``claim_timeout_s``: the lease of a silent owner plus a margin);
-   withdraw any pending commit (``nCommitToken := 0``) and wait for the PLC to be idle;
+4. claim the staging area with a random token (``nStagingClaim := token``, bit 31 set) and wait until the
+   PLC grants it (``nStagingOwner = token``; at most ``claim_timeout_s``: the lease of a silent owner plus a
+   margin); read the active version again (what this push replaces) and wait for the PLC to be idle;
 5. stage header and table into the shadow buffer, read both back and compare bit for bit;
 6. commit by writing the token (``nCommitToken := token``: the fencing token; a client that lost the staging
    area cannot commit); wait for the PLC's acknowledgement (``nAckToken = token``, time-out
-   ``ack_timeout_s``); on time-out withdraw the commit and report the version that stays active. A PLC
+   ``ack_timeout_s``); on time-out withdraw the commit (``nCommitToken := NOT token``: every owner write
+   carries the token, a former owner's late write changes nothing) and report the version that stays active. A PLC
    still re-checking its persistent table after a restart answers ``PLC_STARTING``: commit again with
    backoff for up to ``start_wait_s``.
 
@@ -27,7 +28,6 @@ import datetime as _dt
 import hashlib
 import json
 import os
-import secrets
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -37,7 +37,7 @@ from pmcal.bridge.comptable import CompTable
 from pmcal.bridge.errors import AckTimeout, BridgeError, LinkError, ReadbackMismatch, Rejected, StagingBusy
 from pmcal.bridge.link import PlcLink
 from pmcal.bridge.plc_types import (HEADER_SIZE, LREAL_SIZE, STAGING_LEASE_S, Header, PlcState, State, Status,
-                                   shadow_rows)
+                                   done_value, new_token, shadow_rows)
 from pmcal.errors import InputError
 
 
@@ -150,30 +150,13 @@ class _Run:
     def __post_init__(self) -> None:
         self.header = Header.of(self.table).pack()
         self.rows = shadow_rows(self.table)
-        self.token = secrets.randbits(32) | 1          # this push's session token (never 0)
+        self.token = new_token()                       # this push's session token (bit 31 set)
 
     def claim(self) -> None:
-        """Own the PLC's staging area (``nStagingOwner = token``) or raise :class:`StagingBusy`.
-
-        The PLC grants the staging area to one claim and keeps it until its owner writes 0, or until the
-        owner has been silent for the PLC's staging lease while another client claims. So this waits up to
-        ``claim_timeout_s`` (lease + margin), writing the claim again whenever the area is free.
-        """
-        link, opt = self.link, self.opt
-        deadline = time.monotonic() + opt.claim_timeout_s
-        link.write_claim(self.token)
-        while True:
-            st = link.read_state()
-            if st.staging_owner == self.token:
-                self.owned = True
-                return
-            if st.staging_owner == 0:
-                link.write_claim(self.token)          # the area is free: claim (again, after a release)
-            if time.monotonic() >= deadline:
-                raise StagingBusy(f"another client is staging a table on this PLC (session 0x{st.staging_owner:08X}) "
-                                  f"and kept it for {opt.claim_timeout_s:g} s; nothing written (if that client is gone "
-                                  "and cannot be waited for: pmcal plc unlock)")
-            time.sleep(max(opt.poll_s, 0.002))
+        """Own the PLC's staging area (``nStagingOwner = token``) or raise :class:`StagingBusy`
+        (:func:`claim_area`, waiting up to ``claim_timeout_s``)."""
+        claim_area(self.link, self.token, self.opt.claim_timeout_s, self.opt.poll_s)
+        self.owned = True
 
     def lost(self) -> bool:
         """The PLC names another client (or nobody) as the staging owner: this push lost the area.
@@ -186,7 +169,7 @@ class _Run:
             return False
 
     def release(self) -> None:
-        """``nStagingClaim := 0`` if this push owns the staging area (best effort)."""
+        """``nStagingClaim := NOT token`` if this push owns the staging area (best effort, :func:`release_area`)."""
         if not self.owned:
             return
         for reopen in (False, True):                   # after a broken link: once more on a fresh one
@@ -197,11 +180,8 @@ class _Run:
                 if self.lost():                       # lease lost: the area is someone else's now
                     self.owned = False
                     return
-                self.link.write_claim(0)
+                release_area(self.link, self.token, self.opt.idle_timeout_s, self.opt.poll_s)
                 self.owned = False
-                # wait until the PLC has seen the release, so a push right after this one finds it free
-                _wait(self.link, lambda s: s.staging_owner != self.token, self.opt.idle_timeout_s,
-                      self.opt.poll_s, "")
                 return
             except (BridgeError, OSError):
                 continue
@@ -222,8 +202,8 @@ class _Run:
                 owner = self.token
                 link.close()
                 link.open()
-            if owner in (self.token, 0):              # never withdraw a newer owner's commit
-                link.write_commit(0)
+            if owner == self.token:                   # only the owner's NOT token withdraws (a lost lease
+                link.write_commit(done_value(self.token))   # already dropped this push's commit)
         except BridgeError:
             return f"; could not withdraw the commit of version {version} (link down): the PLC drops it " \
                    "unless it passes its checks and motion allows the swap before its commit time-out"
@@ -262,10 +242,13 @@ class _Run:
             rep.message = (f"dry run: would stage {len(would)} bytes (sha256 {rep.sha256_sent[:16]}) and commit "
                            f"version {version} (active version {st.active_version}); nothing written")
             return
-        # own the staging area, withdraw whatever is pending, wait for an idle manager
+        # own the staging area (the PLC dropped any commit of a former owner), wait for an idle manager;
+        # the active table now is the one this push replaces: only the owner changes it from here on
         self.claim()
-        link.write_commit(0)
-        _wait(link, _idle, opt.idle_timeout_s, opt.poll_s, "PLC manager did not become idle after clearing nCommitToken")
+        link.write_commit(done_value(self.token))      # a commit of this push from a lost link: withdrawn
+        st = _wait(link, _idle, opt.idle_timeout_s, opt.poll_s, "PLC manager did not become idle after the claim")
+        rep.previous_version = rep.active_version = st.active_version
+        self.table.validate(active_version=st.active_version)
         # stage and read back
         t = time.perf_counter()
         sent_header, sent_rows = link.stage(self.header, self.rows)
@@ -295,12 +278,12 @@ class _Run:
             elif st.status != Status.SWAP_TIMEOUT or time.monotonic() >= motion_deadline:
                 break
             # commit again: after PLC_STARTING, or SWAP_TIMEOUT (the machine kept moving) with --wait-motion
-            link.write_commit(0)
+            link.write_commit(done_value(self.token))
             _wait(link, _idle, opt.idle_timeout_s, opt.poll_s, "PLC manager did not become idle after clearing nCommitToken")
         rep.timings_s["commit_ack"] = time.perf_counter() - t
         self.acknowledged = True
         rep.active_version, rep.status = st.active_version, _name(st.status)
-        _release(link)
+        _release(link, self.token)
         if st.status.activated and st.active_version == version and st.active_crc == crc:
             rep.result = "ok"
             rep.message = f"version {version} active (was {rep.previous_version})"
@@ -323,7 +306,7 @@ class _Run:
                          opt.poll_s, "")
         except AckTimeout:
             before = link.read_state()                  # what the PLC was doing, before the withdrawal
-            st = _settle(link, opt) if self.lost() else _withdraw(link, opt)
+            st = _settle(link, opt) if self.lost() else _withdraw(link, opt, self.token)
             self.acknowledged = True                    # settled: withdrawn (or swapped just before)
             rep.active_version, rep.status = st.active_version, _name(st.status)
             if st.active_version == version and st.active_crc == crc:
@@ -370,6 +353,11 @@ _REASONS = {
     Status.REFERENCE_MISMATCH: "the table's nominal-IK reference differs from the PLC's GVL_CompTableParam.REF_*, "
                                "or the PLC program does not know the table's reference kind",
     Status.MACHINE_MISMATCH: "the table names another machine than the PLC's GVL_CompTableParam.MACHINE",
+    Status.KIND_MISMATCH: "the table's kind (motor commands or corrections) is not the one the PLC's motion code "
+                          "uses (GVL_CompTableParam.CORRECTIONS)",
+    Status.MOTORS_MISMATCH: "the table has another number of motors than the PLC's GVL_CompTableParam.NMOTORS",
+    Status.NOT_CONFIGURED: "the PLC is not configured for a machine (GVL_CompTableParam.MACHINE, NMOTORS): it "
+                           "serves no table",
 }
 
 
@@ -390,9 +378,45 @@ def _wait(link: PlcLink, ready: Callable[[PlcState], bool], timeout_s: float, po
         time.sleep(poll_s)
 
 
-def _withdraw(link: PlcLink, opt: PushOptions) -> PlcState:
-    """Clear the commit request after an ack time-out and return the settled PLC state."""
-    link.write_commit(0)
+def claim_area(link: PlcLink, token: int, timeout_s: float, poll_s: float) -> None:
+    """Own the PLC's staging area with ``token`` (``nStagingOwner = token``) or raise :class:`StagingBusy`.
+
+    The PLC grants the area to one claim and keeps it until its owner writes NOT token, or until the
+    owner has been silent for the PLC's staging lease while another client claims. So this waits up to
+    ``timeout_s`` (lease + margin), writing the claim again whenever the area is free.
+    """
+    deadline = time.monotonic() + timeout_s
+    link.write_claim(token)
+    while True:
+        st = link.read_state()
+        if st.staging_owner == token:
+            return
+        if st.staging_owner == 0:
+            link.write_claim(token)                   # the area is free: claim (again, after a release)
+        if time.monotonic() >= deadline:
+            raise StagingBusy(f"another client is staging a table on this PLC (session 0x{st.staging_owner:08X}) "
+                              f"and kept it for {timeout_s:g} s; nothing written (if that client is gone "
+                              "and cannot be waited for: pmcal plc unlock)")
+        time.sleep(max(poll_s, 0.002))
+
+
+def release_area(link: PlcLink, token: int, timeout_s: float, poll_s: float) -> bool:
+    """Release the staging area owned with ``token`` (``nStagingClaim := NOT token``) and wait until the
+    PLC has seen it, writing it again (a claim of another client may overwrite it first); True if released."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        link.write_claim(done_value(token))
+        try:
+            _wait(link, lambda s: s.staging_owner != token, 0.1, poll_s, "")
+            return True
+        except AckTimeout:
+            if time.monotonic() >= deadline:
+                return False
+
+
+def _withdraw(link: PlcLink, opt: PushOptions, token: int) -> PlcState:
+    """Withdraw the owner's commit after an ack time-out and return the settled PLC state."""
+    link.write_commit(done_value(token))
     return _settle(link, opt)
 
 
@@ -404,10 +428,10 @@ def _settle(link: PlcLink, opt: PushOptions) -> PlcState:
         return link.read_state()
 
 
-def _release(link: PlcLink) -> None:
-    """After the acknowledgement: ``nCommitToken := 0`` returns the manager to idle (best effort)."""
+def _release(link: PlcLink, token: int) -> None:
+    """After the acknowledgement: ``nCommitToken := NOT token`` clears it, the manager is idle (best effort)."""
     try:
-        link.write_commit(0)
+        link.write_commit(done_value(token))
     except BridgeError:
         pass
 

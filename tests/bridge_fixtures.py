@@ -141,3 +141,31 @@ def assert_within_cycle_budget(plc) -> None:
     ik, nbytes = rt.constant("GVL_CompTableParam.BUDGET_IK_PER_CYCLE"), rt.constant("GVL_CompTableParam.BUDGET_BYTES_PER_CYCLE")
     assert rt.calls_max.get("F_CompTableNominalIk", 0) <= ik, rt.calls_max
     assert rt.work_max["bytes_copied"] <= nbytes + INTERFACE_COPIES, rt.work_max
+
+
+def wait_state(plc, ready, timeout_s: float = 20.0):
+    """The PLC's state once ``ready(state)`` (read from the twin, the task running), else AssertionError."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        st = plc.twin.state
+        if ready(st):
+            return st
+        time.sleep(0.005)
+    raise AssertionError(f"PLC state never got there: {plc.twin.state}")
+
+
+def raw_commit(plc, ln, header: bytes, rows: bytes, token: int):
+    """A client without any of the bridge's table checks: claim with ``token``, stage ``header`` and
+    ``rows`` through the transport, commit and return the PLC's answer (the state with nAckToken = token),
+    then clear the answer and release. Only the PLC judges the table."""
+    from pmcal.bridge.plc_types import State, done_value
+
+    ln.write_claim(token)
+    wait_state(plc, lambda s: s.staging_owner == token)
+    ln.stage(header, rows)
+    ln.write_commit(token)
+    st = wait_state(plc, lambda s: s.ack_token == token and s.state in (State.IDLE, State.STARTING))
+    ln.write_commit(done_value(token))
+    ln.write_claim(done_value(token))
+    wait_state(plc, lambda s: s.staging_owner != token)
+    return st

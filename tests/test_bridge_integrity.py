@@ -18,7 +18,7 @@ from pmcal.bridge.ads_mock import AdsMockPlc
 from pmcal.bridge.errors import AckTimeout, Rejected
 from pmcal.bridge.modbus_mock import ModbusMockPlc
 from pmcal.bridge.plc_runtime import PlcTwin
-from pmcal.bridge.plc_types import COMMIT_TIMEOUT_S, State, Status
+from pmcal.bridge.plc_types import COMMIT_TIMEOUT_S, State, Status, done_value
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.cli import main
 from tests.bridge_fixtures import BIG_TABLE_ACK_S, BIG_TABLE_TIMEOUT_S, ads_link, make_table, modbus_link, running
@@ -149,15 +149,15 @@ def test_second_client_is_told_another_client_is_staging(link):
         plc.twin.seed(make_table(version=1))
         other = link(plc)
         with other:
-            other.write_claim(0x12345679)                  # a client that owns the staging area
+            other.write_claim(0x92345679)                  # a client that owns the staging area
             time.sleep(0.02)
-            assert plc.twin.state.staging_owner == 0x12345679
+            assert plc.twin.state.staging_owner == 0x92345679
             with pytest.raises(StagingBusy, match="another client is staging") as exc:
                 push(link(plc), make_table(version=2), PushOptions(ack_timeout_s=1.0, claim_timeout_s=0.3))
             assert "nothing committed" in str(exc.value)
             assert plc.twin.state.active_version == 1
-            assert plc.twin.state.staging_owner == 0x12345679   # the loser did not take it over
-            other.write_claim(0)                            # the owner finishes
+            assert plc.twin.state.staging_owner == 0x92345679   # the loser did not take it over
+            other.write_claim(done_value(0x92345679))      # the owner finishes
         time.sleep(0.02)
         rep = push(link(plc), make_table(version=2), PushOptions(ack_timeout_s=1.0))
         time.sleep(0.02)

@@ -21,7 +21,7 @@ from pmcal.bridge.modbus_map import MAGIC, PAGE_LOAD, PAGE_STORE, ModbusMap
 from pmcal.bridge.nominal import NominalReference
 from pmcal.bridge.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import (SYMBOLS, Header, LookupIn, LookupOut, LookupResult, State, Status,
-                              shadow_rows)
+                              done_value, shadow_rows)
 from tests.bridge_fixtures import make_table
 
 PLC = Path(__file__).resolve().parent.parent / "plc"
@@ -30,7 +30,7 @@ PLC = Path(__file__).resolve().parent.parent / "plc"
 # ---- the twin of FB_CompTableManager / FB_CompTableCheck / FB_CompTableLookup ----------------
 
 #: the staging token of the tests' client
-TOKEN = 0x5EED0001
+TOKEN = 0xDEED0001
 
 
 def stage(twin: PlcTwin, table, header: Header | None = None) -> None:
@@ -65,7 +65,7 @@ def test_commit_swaps_only_when_motion_allows_and_acknowledges_last():
     st = commit(twin)
     assert (st.state, st.status, st.ack_token, st.active_version) == (State.WAIT_MOTION, Status.BUSY, 0, 0)
     twin.motion_idle = True
-    for _ in range(20):                                    # the swap, then WritePersistentData, then the ack
+    for _ in range(200):                   # the swap, then the save in PersistTask (every 10 cycles), then the ack
         twin.cycle()
         if twin.state.ack_token:
             break
@@ -74,7 +74,7 @@ def test_commit_swaps_only_when_motion_allows_and_acknowledges_last():
         State.IDLE, Status.OK, TOKEN, 1, table.crc32())
     header, values = twin.active_table()
     assert header == Header.of(table) and values.tobytes() == table.values.tobytes()
-    st = commit(twin, 0, cycles=1)                         # release: ack cleared, table stays
+    st = commit(twin, done_value(TOKEN), cycles=1)                         # release: ack cleared, table stays
     assert (st.ack_token, st.active_version) == (0, 1)
 
 
@@ -161,7 +161,7 @@ def test_withdrawal_and_swap_timeout_leave_the_active_table():
     stage(twin, make_table(version=2))
     twin.motion_idle = False
     commit(twin)
-    st = commit(twin, 0, cycles=1)
+    st = commit(twin, done_value(TOKEN), cycles=1)
     assert (st.status, st.ack_token, st.active_version) == (Status.WITHDRAWN, TOKEN, 1)
 
 
@@ -212,7 +212,8 @@ def _declarations() -> dict[str, str]:
         assert root.tag == "TcPlcObject"
         obj = root[0]
         assert obj.get("Name") == path.stem and re.fullmatch(r"\{[0-9a-f-]{36}\}", obj.get("Id"))
-        out[path.stem] = obj.find("Declaration").text
+        if path.suffix != ".TcTTO":                       # a task object has no declaration
+            out[path.stem] = obj.find("Declaration").text
     return out
 
 
@@ -227,6 +228,7 @@ def _constants() -> dict[str, object]:
         value = value.strip()
         consts[name] = (int(value[3:], 16) if value.startswith("16#") else value.strip("'") if value.startswith("'")
                         else value if value.startswith("T#")
+                        else value == "TRUE" if value in ("TRUE", "FALSE")
                         else float(value) if "." in value or "E" in value else int(value))
     return consts
 

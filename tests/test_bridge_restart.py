@@ -54,10 +54,10 @@ def test_restart_after_a_push_keeps_the_table_and_refuses_a_stale_one(mock, link
 
         with plc.twin.lock:
             put("shadow_header", Header.of(stale).pack())
-            put("staging_claim", (0x77).to_bytes(4, "little"))
+            put("staging_claim", (0x80000077).to_bytes(4, "little"))
         time.sleep(0.05)                                  # the claim is granted
         with plc.twin.lock:
-            put("commit", (0x77).to_bytes(4, "little"))
+            put("commit", (0x80000077).to_bytes(4, "little"))
         time.sleep(0.05)
         assert (plc.twin.state.status, plc.twin.state.active_version) == (Status.STALE_VERSION, 7)
 

@@ -32,7 +32,7 @@ def test_status_and_verify(mock, tmp_path, capsys):
         s = json.loads(capsys.readouterr().out)
         assert (s["active_version"], s["active_crc32"], s["machine"], s["reference"], s["grid"]) == (
             9, f"0x{table.crc32():08X}", "ocpm_2dof", "nominal_ik", [37, 13])
-        assert s["interface_version"] == 4 and s["state"] == "IDLE" and s["time"].endswith("Z")
+        assert s["interface_version"] == 5 and s["state"] == "IDLE" and s["time"].endswith("Z")
         assert main(["plc", "verify", str(jp), *_target(plc), "--json"]) == 0
         v = json.loads(capsys.readouterr().out)
         assert v["active"] is True and v["version"] == 9

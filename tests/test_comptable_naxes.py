@@ -91,6 +91,8 @@ def test_file_push_lookup_matches_scipy(n_axes, n_motors, reference, transport, 
         assert back.columns()[n_axes:] == tuple("d" + m.column for m in table.motors)
         assert np.abs(table.values).max() > 0.05        # a correction field, not zeros
     plc = request.getfixturevalue(f"{transport}_plc")
+    plc.twin.configure_for(table)                        # the PLC's MACHINE, NMOTORS, CORRECTIONS
+    assert plc.twin.wait_started()
     rep = push((ads_link if transport == "ads" else modbus_link)(plc), back, PushOptions(attempts=1, ack_timeout_s=10.0))
     assert (rep.result, rep.active_version) == ("ok", 2)
     header, values = plc.twin.active_table()
@@ -143,11 +145,18 @@ def test_python_validation_mirrors_the_plc_per_motor(what, status):
     assert d is not None and (d.kind, d.field) == (kind, "m3_mm")
     with pytest.raises(InputError, match="m3"):
         bad.validate()
-    plc = PlcTwin()
+    plc = _plc_for(make(3, 3, version=1))
     plc.seed(make(3, 3, version=1))
     header = replace(Header.of(bad), crc=zlib.crc32(values.tobytes(), zlib.crc32(replace(Header.of(bad), crc=0).pack())))
     st = _commit(plc, header, values=values, table=bad)
     assert not plc.stopped and st.status == status and st.active_version == 1
+
+
+def _plc_for(table) -> PlcTwin:
+    """A PLC configured for ``table``'s machine, motors and kind (GVL_CompTableParam)."""
+    plc = PlcTwin()
+    plc.configure_for(table)
+    return plc
 
 
 def test_grid_sizes_beyond_the_plc_are_refused_locally():
@@ -170,7 +179,7 @@ def test_hostile_value_in_a_3_axis_table_never_stops_the_task(value):
     values[4, 3, 2, 1] = value                                # the very last node
     header = replace(Header.of(table), crc=zlib.crc32(values.tobytes(),
                                                       zlib.crc32(replace(Header.of(table), crc=0).pack())))
-    plc = PlcTwin()
+    plc = _plc_for(make(3, 3, version=1))
     plc.seed(make(3, 3, version=1))
     st = _commit(plc, header, values=values, table=table)
     assert not plc.stopped, plc.fault
@@ -182,7 +191,7 @@ def test_hostile_3_axis_targets_never_stop_the_task(reference):
     """Inside the grid the interpolation (for a correction table the correction, flagged bCorrection); a
     NaN, infinite or outside coordinate gives OUT_OF_GRID, every aM 0 and no flag."""
     table = make(3, 3, reference=reference)
-    plc = PlcTwin()
+    plc = _plc_for(table)
     plc.seed(table)
     seq = 0
     inside = [0.0, 0.0, -800.0]

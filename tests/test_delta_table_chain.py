@@ -56,7 +56,7 @@ def test_delta_measure_identify_table_push_lookup_reaches_held_out_targets(tmp_p
     table, absolute = CompTable.load("t.json"), CompTable.load("abs.json")
     assert (table.n_axes, table.n_motors, table.reference_code, absolute.reference) == (3, 3, 2, None)
 
-    proc = subprocess.Popen([sys.executable, "-m", "pmcal.cli", "mock-plc", "--ads", "--seconds", "120"],
+    proc = subprocess.Popen([sys.executable, "-m", "pmcal.cli", *m, "mock-plc", "--ads", "--seconds", "120"],
                             cwd=ROOT_DIR, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, MUJOCO_GL="egl"))
     try:

@@ -135,12 +135,38 @@ def test_project_file_lists_every_object_on_disk_and_nothing_else():
     references the four libraries the allow-list names."""
     root = ET.parse(PLC / "CompTable.plcproj").getroot()
     compiled = {c.get("Include").replace("\\", "/") for c in root.iter(f"{_MSBUILD}Compile")}
-    assert compiled == {str(p.relative_to(PLC)) for p in FILES}
+    assert compiled == {str(p.relative_to(PLC)) for p in FILES} | {"PlcTask.TcTTO", "PersistTask.TcTTO"}
     assert all(c.findtext(f"{_MSBUILD}SubType") == "Code" for c in root.iter(f"{_MSBUILD}Compile"))
     libraries = {r.get("Include") for r in root.iter(f"{_MSBUILD}PlaceholderReference")}
     assert libraries == {"Tc2_Standard", "Tc2_System", "Tc2_Utilities", "Tc2_MC2"}
     documented = " ".join(doc for entries in ALLOW.values() for doc in entries.values())
     assert all(f"Library {lib} " in documented for lib in libraries)      # each one is used and documented
+
+
+def test_the_project_opens_with_a_task_that_calls_prg_comptable():
+    """plc/PlcTask.TcTTO (a task object as XAE writes it: cycle time in microseconds, priority, the POU
+    calls in order) runs PRG_CompTable first, then the sample motion code, every 1 ms; each call names a
+    PROGRAM of plc/, and the interpreter's task (PlcRuntime) calls PRG_CompTable the same way."""
+    from pmcal.bridge.plc_runtime import PlcRuntime
+
+    task = ET.parse(PLC / "PlcTask.TcTTO").getroot().find("Task")
+    calls = [c.findtext("Name") for c in task.findall("PouCall")]
+    assert task.get("Name") == "PlcTask" and re.fullmatch(r"\{[0-9a-f-]{36}\}", task.get("Id"))
+    assert (int(task.findtext("CycleTime")), calls) == (1000, ["PRG_CompTable", "PRG_CompTableMotionSample"])
+    assert 0 < int(task.findtext("Priority")) <= 31
+    programs = {p.stem for p in FILES if p.suffix == ".TcPOU" and "PROGRAM " + p.stem in p.read_text()}
+    assert set(calls) <= programs
+    rt = PlcRuntime(task=calls)
+    assert rt.cycle_s == int(task.findtext("CycleTime")) * 1e-6 and rt.run(3) == 3
+    # the save runs in its own task, slower and of lower priority (a higher number), as the interpreter
+    # runs it (every SAVE_EVERY task cycles, after the task)
+    from pmcal.bridge.plc_runtime.runtime import SAVE_EVERY, SAVE_PROGRAM
+
+    save = ET.parse(PLC / "PersistTask.TcTTO").getroot().find("Task")
+    assert [c.findtext("Name") for c in save.findall("PouCall")] == [SAVE_PROGRAM]
+    assert int(save.findtext("Priority")) > int(task.findtext("Priority"))
+    assert int(save.findtext("CycleTime")) == SAVE_EVERY * int(task.findtext("CycleTime"))
+    assert SAVE_PROGRAM not in calls
 
 
 def test_axes_reach_the_function_blocks_in_out_and_no_pou_declares_one():

@@ -32,16 +32,20 @@ HOSTILE = {"nan": math.nan, "+inf": math.inf, "-inf": -math.inf, "huge": 1e308, 
 MAX_CYCLES = 20_000
 
 #: the staging token of the tests' client
-TOKEN = 0x0BAD7AB1
+TOKEN = 0x8BAD7AB1
 
 
 def _small(version: int = 2, **kw):
     return make_table(version=version, n_phi=37, n_theta=13, **kw)     # a valid table (9x5 steps too far)
 
 
-def _plc() -> PlcTwin:
-    plc = PlcTwin()
-    plc.seed(_small(version=1))
+def _plc(like: CompTable | None = None) -> PlcTwin:
+    """A PLC configured for the machine, motors and kind of ``like`` (default: the OCPM's table), with
+    version 1 of that table active."""
+    like = like or _small(version=1)
+    plc = PlcTwin(machine=like.machine, motors=like.n_motors,
+                  corrections=like.reference_code == plc_types.REFERENCE_CONTROLLER)
+    plc.seed(replace(like, version=1))
     return plc
 
 
@@ -113,7 +117,7 @@ def _header_cases():
         pytest.param(replace(h, reference=7), id="reference=7"),
         pytest.param(replace(h, reference_crc=h.reference_crc ^ 1), id="reference crc"),
         pytest.param(replace(h, axis_max=(360.0, 170.0)), id="theta beyond reach"),
-        pytest.param(replace(h, machine="another_machine"), id="machine renamed (CRC covers the header)"),
+        pytest.param(replace(h, machine="another_machine"), id="machine renamed (MACHINE_MISMATCH)"),
     ]
     return cases
 
@@ -150,7 +154,7 @@ def test_denormal_and_negative_zero_values_are_accepted():
     values = table.values.copy()
     values[4, 2, 1] = values[4, 2, 1] + 5e-324
     values[0, 0, 0] = -0.0 if values[0, 0, 0] == 0.0 else values[0, 0, 0]
-    plc = _plc()
+    plc = _plc(table)
     st = _commit(plc, _with_crc(Header.of(table), values), values=values, table=table)
     assert not plc.stopped and (st.status, st.active_version) == (Status.OK, 2)
 
@@ -169,13 +173,13 @@ def test_hostile_persistent_table_is_dropped_at_start_up(value):
     plc = PlcTwin()
     plc.seed(table)
     rt = plc.runtime
-    k = rt.read_value("GVL_CompTable.nActive")
-    addr, _ = rt.locate(f"GVL_CompTable.aBuffer[{k}][{(4 * 13 + 2) * 2 + 1}]")
+    k = rt.read_value("GVL_CompTableStore.nActive")
+    addr, _ = rt.locate(f"GVL_CompTableStore.aBuffer[{k}][{(4 * 13 + 2) * 2 + 1}]")
     rt.mem[addr:addr + 8] = np.float64(value).tobytes()            # persistent memory damaged
     values = table.values.copy()
     values[4, 2, 1] = value
     hdr = _with_crc(Header.of(table), values)            # ... with a matching CRC
-    rt.write_bytes(f"GVL_CompTable.aHeader[{k}]", hdr.pack())
+    rt.write_bytes(f"GVL_CompTableStore.aHeader[{k}]", hdr.pack())
     rt.restart()
     for _ in range(MAX_CYCLES):
         if not plc.cycle() or plc.started:
@@ -257,7 +261,7 @@ def test_hostile_correction_header_is_refused_and_the_task_runs_on(header, statu
     """Whatever a header of a correction table says, the task runs on and refuses it with the code that
     names the field (the CRC matches the header, so the header itself is judged)."""
     table = corrections()
-    plc = _plc()
+    plc = _plc(table)
     st = _commit(plc, _with_crc(header, table.values), table=table)
     _assert_survived_and_refused(plc, st)
     assert st.status == status, st
@@ -286,7 +290,7 @@ def test_hostile_correction_value_is_refused_as_python_refuses_it(value, status,
         values[2, 3, 1, 2] = value
     d = replace(table, values=values).defect()
     assert d is not None and (d.kind, d.field, d.node) == (kind, "dm3_mm", (2, 3, 1) if value != "step" else d.node)
-    plc = _plc()
+    plc = _plc(table)
     st = _commit(plc, _with_crc(Header.of(table), values), values=values, table=table)
     _assert_survived_and_refused(plc, st)
     assert st.status == status, st
@@ -300,7 +304,7 @@ def test_correction_bounds_are_the_plcs_cap_at_most():
     wide = [Motor(m.name, m.unit, -CORRECTION_ABS_MAX, CORRECTION_ABS_MAX, m.max_step) for m in table.motors]
     table = CompTable(machine=table.machine, version=2, axes=table.axes, motors=wide, values=table.values,
                       reference="controller").validate()
-    plc = _plc()
+    plc = _plc(table)
     st = _commit(plc, Header.of(table), table=table)
     assert not plc.stopped and (st.status, st.active_version) == (Status.OK, 2)
     too_wide = replace(table, motors=tuple(replace(m, max=CORRECTION_ABS_MAX * (1 + 1e-12)) for m in wide))
@@ -320,7 +324,7 @@ def test_checking_a_full_correction_table_stays_within_the_cycle_budget():
         table = CompTable(machine="t", version=2, axes=axes, motors=motors, values=values,
                           reference=reference).validate()
         assert table.values.size == plc_types.NVALUES_MAX
-        plc = _plc()
+        plc = _plc(table)
         rt = plc.runtime
         rt.reset_work_max()
         start = plc.cycle_count

@@ -205,7 +205,7 @@ VAR
 END_VAR
 nSaved := nSaved + 1;
 nVolatile := nVolatile + 1;
-fbWrite(START := bWrite);
+fbWrite(PORT := 851, START := bWrite);
 END_PROGRAM
 """
     rt = run_st(tmp_path, src, cycles=3)

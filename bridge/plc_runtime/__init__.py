@@ -32,10 +32,17 @@ TwinCAT semantics modelled, and where they come from
 - **TIME** is an unsigned 32-bit count of milliseconds; ``TIME()`` in TON reads the **simulated
   clock**: completed cycles x cycle time (default 1 ms), never the wall clock.
 - **PERSISTENT** variables (``VAR_GLOBAL PERSISTENT``) survive :meth:`PlcRuntime.restart` (TwinCAT
-  writes persistent data at a clean shutdown); :meth:`PlcRuntime.power_cut` restores them as the
-  last Tc2_Utilities ``FB_WritePersistentData`` (or clean shutdown) saved them. The FB is modelled
-  (``library.st``): a rising START makes it BUSY for ``persistent_write_cycles`` cycles (default 5),
-  then it saves the persistent variables as they are at that moment.
+  writes persistent data at a clean shutdown), a Reset cold and a download; :meth:`PlcRuntime.power_cut`
+  restores them as the last Tc2_Utilities ``FB_WritePersistentData`` (or clean shutdown) saved them;
+  only a Reset origin clears them. **RETAIN** variables survive a restart and a power cut (NovRam) but
+  not a Reset cold or a download (Infosys tc3_plc_intro, "Remanent Variables - PERSISTENT, RETAIN").
+  A variable under ``{attribute 'hide'}`` (or 'TcNoSymbol') is neither: TwinCAT cannot save it as
+  persistent and generates no ADS symbol for it (Infosys tc3_plc_intro, Attribute 'hide'); the mocks
+  do not serve it. The FB is modelled (``library.st``): a rising START makes it BUSY for
+  ``persistent_write_cycles`` cycles (default 5), then it saves the persistent variables as they are at
+  that moment, if PORT is this runtime's AMS port (``TwinCAT_SystemInfoVarList._AppInfo.AdsPort``).
+- **Axes** (``AXIS_REF``, ``MC_MoveAbsolute``): a move started in the PLC shows in the NcToPlc status
+  ``nc_lag_cycles`` task cycles later, as the NC picks it up in its own cycles.
 - **Memory**: every variable has an address; ADR, pointers, REFERENCE TO (``REF=``), MEMCPY/MEMSET/
   MEMCMP work on the one byte array (an address outside it, or NULL, stops the task: a page fault);
   an array index outside its bounds stops the task (TwinCAT would read foreign memory or raise an

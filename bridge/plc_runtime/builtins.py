@@ -172,7 +172,7 @@ def _adr(c, positional, named, pre):
 
 
 def _sizeof(c, positional, named, pre):
-    from pmcal.bridge.plc_runtime.compiler import UDINT, E
+    from pmcal.bridge.plc_runtime.compiler import E
     (x,) = positional or list(named.values())
     if type(x).__name__ == "SimpleVariable" and c.lookup(str(x.name)) and c.lookup(str(x.name))[0] == "type":
         size = c.lookup(str(x.name))[1].size
@@ -180,7 +180,10 @@ def _sizeof(c, positional, named, pre):
         size = elementary(str(x.name).upper()).size
     else:
         size = c.lvalue(x, []).t.size
-    return E(str(size), UDINT, const=size)
+    # the type of the result follows the size (Infosys tc3_plc_intro, SIZEOF): USINT below 256, UINT
+    # below 65536, UDINT below 2^32, else ULINT
+    t = elementary("USINT" if size < 256 else "UINT" if size < 65536 else "UDINT" if size < 2 ** 32 else "ULINT")
+    return E(str(size), t, const=size)
 
 
 def _call(pyname, names, ret, mathy=False, sim=False):
@@ -239,6 +242,16 @@ BUILTINS: dict[str, Builtin] = {
                                      "simulation hook: cycles a persistent write takes", simulation=True),
     "F_SIMPERSISTENTSAVE": Builtin(_call("_sim_persistent_save", [], None),
                                    "simulation hook: persistent data saved now", simulation=True),
+    "F_SIMCYCLE": Builtin(_call("_sim_cycle", [], "UDINT"), "simulation hook: task cycles completed",
+                          simulation=True),
+    "F_SIMNCLAG": Builtin(_call("_sim_nc_lag", [], "UDINT"),
+                          "simulation hook: task cycles until NcToPlc shows a started move", simulation=True),
+    "F_SIMMOVECYCLES": Builtin(_call("_sim_move_cycles", [], "UDINT"),
+                               "simulation hook: task cycles a modelled move lasts", simulation=True),
+    "F_SIMADSPORT": Builtin(_call("_sim_ads_port", [], "UINT"), "simulation hook: this runtime's AMS port",
+                            simulation=True),
+    "F_SIMPORTEXISTS": Builtin(_call("_sim_port_exists", ["nPort"], "BOOL"),
+                               "simulation hook: a PLC runtime listens on this AMS port", simulation=True),
 }
 
 
@@ -482,5 +495,8 @@ def make_helpers(rt) -> dict:
     helpers.update(math=math, mem=mem, _W=work, _fmod=math.fmod, _idiv=_idiv, _imod=_imod,
                    _sim_time=lambda: rt.clock_ms & 0xFFFFFFFF, _sim_axis_idle=lambda: bool(rt.motion_idle),
                    _sim_persistent_cycles=lambda: rt.persistent_write_cycles,
-                   _sim_persistent_save=rt.mark_persistent_saved)
+                   _sim_persistent_save=rt.mark_persistent_saved, _sim_ads_port=lambda: rt.ams_port,
+                   _sim_cycle=lambda: rt.cycles & 0xFFFFFFFF, _sim_nc_lag=lambda: rt.nc_lag_cycles,
+                   _sim_move_cycles=lambda: rt.move_cycles,
+                   _sim_port_exists=lambda port: port in rt.ams_ports)
     return helpers

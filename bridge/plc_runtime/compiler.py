@@ -173,7 +173,8 @@ class GlobalVar:
     addr: int
     persistent: bool
     constant: bool
-    hidden: bool = False
+    hidden: bool = False          # no ADS symbol ({attribute 'hide'}, 'TcNoSymbol'): not remanent either
+    retain: bool = False
 
 
 class Program:
@@ -187,7 +188,8 @@ class Program:
         self.constants: dict[str, tuple] = {}                # "gvl.name" (lower) -> (value, DType, pyname)
         self.instances: dict[str, int] = {}                  # lower program name -> address
         self.size = 0
-        self.persistent = (0, 0)
+        self.persistent = (0, 0)                              # PERSISTENT variables: address range
+        self.retain = (0, 0)                                  # RETAIN variables: address range
         self.m_area = (0, 0)                                  # %M: address, size
         self.image = bytearray()
         self.source = ""
@@ -199,6 +201,18 @@ class Program:
     # -- name lookups used by the runtime ---------------------------------------------------
     def global_var(self, gvl: str, name: str) -> GlobalVar:
         return self.gvls[gvl.lower()][name.lower()]
+
+
+#: attribute pragmas after which TwinCAT generates no ADS symbol for a variable (and cannot save it
+#: as persistent): Infosys tc3_plc_intro, Attribute 'hide' and Attribute 'TcNoSymbol'
+NO_SYMBOL_ATTRIBUTES = frozenset({"hide", "tc_no_symbol", "tcnosymbol"})
+
+
+def _no_symbol(decl) -> bool:
+    """The declaration carries an attribute that suppresses its ADS symbol (see NO_SYMBOL_ATTRIBUTES)."""
+    meta = getattr(decl, "meta", None)
+    pragmas = getattr(meta, "attribute_pragmas", None) or []
+    return any(str(a).strip().strip("'").lower() in NO_SYMBOL_ATTRIBUTES for a in pragmas)
 
 
 def _lit_int(tok) -> int:
@@ -468,7 +482,13 @@ class Compiler:
             at += t.size
             return a
 
-        persistent_blocks = []
+        # remanent variables in regions of their own (the runtime saves and restores them as a whole):
+        # PERSISTENT (also RETAIN PERSISTENT), then RETAIN. A variable TwinCAT makes no symbol for
+        # ({attribute 'hide'}, 'tc_no_symbol'/'TcNoSymbol') is not remanent whatever its block says:
+        # "variables declared with the 'hide' or 'hide_all_locals' attribute cannot be saved as
+        # persistent" (Infosys tc3_plc_intro, Attribute 'hide', /content/1033/tc3_plc_intro/2529654667.html;
+        # the same for 'TcNoSymbol', /3108007179.html): it is placed with the ordinary variables.
+        remanent = {"PERSISTENT": [], "RETAIN": []}
         for u in gvl_units:
             gvl = u.name.lower()
             p.gvls.setdefault(gvl, {})
@@ -476,18 +496,23 @@ class Compiler:
                 p.qualified.add(gvl)
             for block in u.item:
                 attrs = str(block.attrs or "").upper()
-                if "PERSISTENT" in attrs or "RETAIN" in attrs:
-                    persistent_blocks.append((u, block))
-                    continue
+                kind = "PERSISTENT" if "PERSISTENT" in attrs else "RETAIN" if "RETAIN" in attrs else None
                 for d in block.items:
-                    self._global(u.name, d, attrs, place, inits)
-        at = -(-at // 8) * 8
-        start = at
-        for u, block in persistent_blocks:
-            for d in block.items:
-                self._global(u.name, d, "PERSISTENT", place, inits)
-        at = -(-at // 8) * 8
-        p.persistent = (start, at)
+                    if kind is not None and not _no_symbol(d):
+                        remanent[kind].append((u, d))
+                    else:
+                        self._global(u.name, d, attrs.replace("PERSISTENT", "").replace("RETAIN", ""),
+                                     place, inits)
+        for kind in ("PERSISTENT", "RETAIN"):
+            at = -(-at // 8) * 8
+            start = at
+            for u, d in remanent[kind]:
+                self._global(u.name, d, kind, place, inits)
+            at = -(-at // 8) * 8
+            if kind == "PERSISTENT":
+                p.persistent = (start, at)
+            else:
+                p.retain = (start, at)
         for pou in p.pous.values():
             if pou.kind == "program":
                 p.instances[pou.name.lower()] = a = place(pou.itype)
@@ -530,7 +555,7 @@ class Compiler:
         t = self.type_of_spec(d.init)
         constant = "CONSTANT" in attrs
         a = place(t)
-        gv = GlobalVar(gvl, name, t, a, "PERSISTENT" in attrs, constant)
+        gv = GlobalVar(gvl, name, t, a, "PERSISTENT" in attrs, constant, _no_symbol(d), "RETAIN" in attrs)
         self.prog.gvls[gvl.lower()][name.lower()] = gv
         inits.append((a, t, getattr(d.init, "value", None)))
 
@@ -901,6 +926,8 @@ class Compiler:
             return repr(e.const)
         if hasattr(e, "addr"):
             return f"_cstr({e.addr})"
+        if e.t.kind == "string":                   # a string constant, by name (overridable): bytes
+            return e.code
         raise PlcCompileError(f"{self.pou.name}: not a string")
 
     def coerce(self, e: E, t: DType) -> str:
@@ -999,7 +1026,7 @@ class Compiler:
         what = found[0]
         if what == "const":
             value, t, py = self.prog.constants[found[1]]
-            return E(py, t, const=value if self.pou is None or not t.scalar else _NOCONST)   # overridable
+            return E(py, t, const=value if self.pou is None or not (t.scalar or t.kind == "string") else _NOCONST)   # overridable
         if what in ("global", "pou"):
             self.pure = False
         if what == "ret":
@@ -1021,7 +1048,7 @@ class Compiler:
                     value, t, py = self.prog.constants[ckey]
                     if elements:
                         raise PlcCompileError(f"{self.pou.name}: member of a constant {ckey}")
-                    return E(py, t, const=value if self.pou is None or not t.scalar else _NOCONST)   # overridable
+                    return E(py, t, const=value if self.pou is None or not (t.scalar or t.kind == "string") else _NOCONST)   # overridable
                 gv = self.prog.gvls[found[1]].get(member.lower())
                 self.pure = False
                 if gv is None:
@@ -1224,6 +1251,13 @@ class Compiler:
             code = f"({a.code} {py} {b.code})"
             return E(code, t, const=eval(code, {}) if const else _NOCONST)
         if op in ("=", "<>", "<", ">", "<=", ">="):
+            if a.t.kind == "string" or b.t.kind == "string":
+                if a.t.kind != b.t.kind or op not in ("=", "<>"):
+                    raise PlcCompileError(f"{self.pou.name if self.pou else ''}: {op} of a STRING with a "
+                                          f"{b.t.name if a.t.kind == 'string' else a.t.name}")
+                # by value, up to the terminating NUL (STRING(n) = STRING(m) compares the text)
+                code = f"({self._string_src(a)} {'==' if op == '=' else '!='} {self._string_src(b)})"
+                return E(code, BOOL, const=eval(code, {}) if const else _NOCONST)
             if a.t.kind == "real" or b.t.kind == "real":
                 # a comparison that is FALSE (TRUE for <>) may have a NaN operand: only then a call checks it
                 ta, tb = (a.code, b.code) if _simple(a.code) and _simple(b.code) else (self._tmp(), self._tmp())

@@ -21,10 +21,18 @@ from pmcal.bridge.plc_types import SYMBOL, Header, PlcState, shadow_rows, used_v
 
 GVL = "GVL_CompTable"
 PRG = "PRG_CompTable"
+#: the persistent double buffer (plc/GVLs/GVL_CompTableStore.TcGVL)
+STORE = "GVL_CompTableStore"
 #: GVL_CompTableParam constants that carry the nominal-IK reference geometry
 _REFERENCE_CONSTANTS = ("REF_A_MM", "REF_H_MM", "REF_L_MM", "REF_PSI1_DEG", "REF_PSI2_DEG")
 #: cycles seed() may run for the start-up check of the seeded table
 SETTLE_CYCLES = 200_000
+
+
+def machine_constants(machine: str, motors: int, corrections: bool) -> dict:
+    """GVL_CompTableParam constants that pin what a PLC accepts: its machine, motors and table kind."""
+    return {"GVL_CompTableParam.MACHINE": machine.encode("ascii"), "GVL_CompTableParam.NMOTORS": int(motors),
+            "GVL_CompTableParam.CORRECTIONS": bool(corrections)}
 
 
 def _time_setting(path: str, doc: str) -> property:
@@ -53,17 +61,22 @@ class PlcTwin:
         Task cycle time (s) of the simulated clock.
     runtime : PlcRuntime, optional
         An existing runtime (other parameters then only set its variables).
+    machine, motors, corrections : optional
+        What this PLC accepts, GVL_CompTableParam.MACHINE, NMOTORS and CORRECTIONS (set before the
+        download on a real CX: plc/README.md); default: the OCPM (``ocpm_2dof``, 2 motors, motor
+        commands). ``machine=""`` or ``motors=0`` is the shipped, unconfigured PLC (NOT_CONFIGURED).
     """
 
     def __init__(self, crc=None, commit_timeout_s: float | None = None, reference: NominalReference | None = None,
                  *, staging_lease_s: float | None = None, cycle_s: float = 0.001,
-                 runtime: PlcRuntime | None = None) -> None:
+                 runtime: PlcRuntime | None = None, machine: str = "ocpm_2dof", motors: int = 2,
+                 corrections: bool = False) -> None:
         library = {"F_DATA_TO_CRC16_CCITT": crc} if crc is not None else None
-        constants = None
+        constants = machine_constants(machine, motors, corrections)
         if reference is not None:
-            constants = {f"GVL_CompTableParam.{k}": v for k, v in zip(
+            constants.update({f"GVL_CompTableParam.{k}": v for k, v in zip(
                 _REFERENCE_CONSTANTS, (reference.a_mm, reference.h_mm, reference.l_mm, reference.psi1_deg,
-                                       reference.psi2_deg))}
+                                       reference.psi2_deg))})
         self.runtime = runtime or PlcRuntime(cycle_s=cycle_s, library=library, constants=constants)
         self.reference = reference or NominalReference.default()
         self.lock = self.runtime.lock
@@ -161,13 +174,13 @@ class PlcTwin:
     def corrupt_persistent(self) -> None:
         """Flip a bit of the active table in persistent memory (fault injection for the start-up check)."""
         with self.lock:
-            addr, _ = self.runtime.locate(f"{GVL}.aBuffer[{self._active()}]")
+            addr, _ = self.runtime.locate(f"{STORE}.aBuffer[{self._active()}]")
             self.runtime.mem[addr + 3] ^= 0x10
             self.runtime.mark_persistent_saved()
 
     # ---- observation ----------------------------------------------------------------------
     def _active(self) -> int:
-        return self.runtime.read_value(f"{GVL}.nActive")
+        return self.runtime.read_value(f"{STORE}.nActive")
 
     @property
     def state(self) -> PlcState:
@@ -181,8 +194,8 @@ class PlcTwin:
         """Header and used values (copy) of the active buffer."""
         with self.lock:
             k = self._active()
-            h = Header.unpack(self.runtime.read_bytes(f"{GVL}.aHeader[{k}]"))
-            data = self.runtime.read_bytes(f"{GVL}.aBuffer[{k}]")
+            h = Header.unpack(self.runtime.read_bytes(f"{STORE}.aHeader[{k}]"))
+            data = self.runtime.read_bytes(f"{STORE}.aBuffer[{k}]")
             return h, used_values(h, np.frombuffer(data, dtype="<f8")).copy()
 
     # ---- the PLC task ---------------------------------------------------------------------
@@ -210,6 +223,41 @@ class PlcTwin:
             self.runtime.power_cut()
             self._reapply()
 
+    def reset_cold(self) -> None:
+        """Online command Reset cold: PERSISTENT data stay, everything else (RETAIN too) is initial."""
+        with self.lock:
+            self.runtime.reset_cold()
+            self._reapply()
+
+    def download(self, program=None) -> None:
+        """Download of ``program`` (default: the same one again): PERSISTENT data stay where the new
+        program declares them alike (:meth:`PlcRuntime.download`)."""
+        with self.lock:
+            self.runtime.download(program or self.runtime.program)
+            self._reapply()
+
+    def configure(self, machine: str, motors: int, corrections: bool) -> None:
+        """Set what this PLC accepts (GVL_CompTableParam.MACHINE, NMOTORS, CORRECTIONS): on a real CX
+        an edit of the GVL and a download; here the constants change and the PLC restarts (the table
+        store stays, the start-up check applies the new configuration; the memory stays the same
+        object, so a running mock's views of it stay valid)."""
+        with self.lock:
+            for key, value in machine_constants(machine, motors, corrections).items():
+                self.runtime.set_constant(key, value)
+            self.restart()
+
+    def configure_for(self, table: CompTable) -> None:
+        """:meth:`configure` for the machine, motors and kind of ``table``."""
+        from pmcal.bridge.nominal import REFERENCE_CONTROLLER
+
+        self.configure(table.machine, table.n_motors, table.reference_code == REFERENCE_CONTROLLER)
+
+    def has_symbol(self, key: str) -> bool:
+        """The PLC program generates an ADS symbol for this GVL_CompTable variable (declared, and not
+        {attribute 'hide'}: Infosys tc3_plc_intro, Attribute 'hide')."""
+        gv = self.runtime.program.gvls.get(GVL.lower(), {}).get(SYMBOL[key].st_name.lower())
+        return gv is not None and not gv.hidden
+
     @property
     def started(self) -> bool:
         """FB_CompTableManager finished its start-up check of the persistent table (lookups may use it)."""
@@ -230,11 +278,11 @@ class PlcTwin:
         rt = self.runtime
         with self.lock:
             idx = 1 - self._active()
-            addr, t = rt.locate(f"{GVL}.aBuffer[{idx}]")
+            addr, t = rt.locate(f"{STORE}.aBuffer[{idx}]")
             rows = shadow_rows(table)
             rt.mem[addr:addr + t.size] = rows + bytes(t.size - len(rows))
-            rt.write_bytes(f"{GVL}.aHeader[{idx}]", Header.of(table).pack())
-            rt.write_value(f"{GVL}.nActive", idx)
+            rt.write_bytes(f"{STORE}.aHeader[{idx}]", Header.of(table).pack())
+            rt.write_value(f"{STORE}.nActive", idx)
             rt.restart()
             self._reapply()
             for _ in range(SETTLE_CYCLES):

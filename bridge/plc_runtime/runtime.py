@@ -25,6 +25,10 @@ from pmcal.bridge.plc_runtime.datatypes import DType, strides
 from pmcal.bridge.plc_runtime.source import parse_files, project_files
 
 LIBRARY = Path(__file__).with_name("library.st")
+#: the project's save program and its task's cycle in task cycles (plc/PersistTask.TcTTO: 10 ms at 1 ms)
+SAVE_PROGRAM, SAVE_EVERY = "PRG_CompTableSave", 10
+#: TwinCAT's implicit GVL TwinCAT_SystemInfoVarList (_AppInfo), compiled with every program
+SYSTEM_INFO = Path(__file__).with_name("TwinCAT_SystemInfoVarList.TcGVL")
 #: counters per cycle, in this order (``work_last``, ``work_max``)
 WORK = ("statements", "math_calls", "bytes_copied", "crc_bytes")
 _TRAPS = (PlcException, ZeroDivisionError, ValueError, OverflowError, struct.error)
@@ -82,7 +86,7 @@ def compile_project(folder: Path | str | None = None, *, cache: bool = True) -> 
 
 def compile_files(files, *, cache: bool = True) -> Program:
     """Compile TwinCAT files and/or plain ``.st`` files (the library is added first)."""
-    files = [LIBRARY] + [Path(f) for f in files]
+    files = [LIBRARY, SYSTEM_INFO] + [Path(f) for f in files]
     key = _digest(files)
     with _CACHE_LOCK:
         if key in _CACHE:
@@ -150,7 +154,8 @@ class PlcRuntime:
 
     def __init__(self, program: Program | None = None, *, task=("PRG_CompTable",), cycle_s: float = 0.001,
                  library: dict | None = None, constants: dict | None = None, trap_overflow: bool = False,
-                 persistent_write_cycles: int = 5) -> None:
+                 persistent_write_cycles: int = 5, ams_port: int = 851, other_ports=(),
+                 nc_lag_cycles: int = 2, move_cycles: int = 100, background=None) -> None:
         if not cycle_s > 0:
             raise ValueError(f"cycle_s must be > 0, got {cycle_s}")
         self.program = program or compile_project()
@@ -158,34 +163,56 @@ class PlcRuntime:
         self.cycle_s = float(cycle_s)
         self.trap_overflow = trap_overflow
         self.persistent_write_cycles = int(persistent_write_cycles)
+        self.ams_port = int(ams_port)                  # _AppInfo.AdsPort: 851 for the first runtime, 852 ...
+        self.ams_ports = frozenset({self.ams_port, *other_ports})   # PLC runtimes on this device
+        # axes (library AXIS_REF, MC_MoveAbsolute): NcToPlc shows a move nc_lag_cycles after its start (the
+        # NC's own cycles; 2 ms SAF at a 1 ms task: 2), a modelled move lasts move_cycles
+        self.nc_lag_cycles = int(nc_lag_cycles)
+        self.move_cycles = int(move_cycles)
         self.library = {"F_DATA_TO_CRC16_CCITT": crc16_ccitt, **(library or {})}
         self.mem = bytearray(self.program.image)
         self.work_now = [0, 0, 0, 0]
         self.work_max = dict.fromkeys(WORK, 0)
         self.work_last = dict.fromkeys(WORK, 0)
-        n = len(self.program.call_names)
-        self.calls_now = [0] * n
-        self.calls_max = dict.fromkeys(self.program.call_names, 0)
-        self.calls_last = dict.fromkeys(self.program.call_names, 0)
         self.cycles = 0
         self.motion_idle = True
         self.fault: PlcFault | None = None
         p0, p1 = self.program.persistent
         self.saved_persistent = bytes(self.mem[p0:p1])
+        self._task_names = tuple(task)
+        # lower-priority tasks: (PROGRAM, every n task cycles), run after the task in those cycles; default:
+        # the project's PersistTask (PRG_CompTableSave every 10 ms) if the program has it
+        if background is None:
+            background = ((SAVE_PROGRAM, SAVE_EVERY),) if SAVE_PROGRAM.lower() in self.program.pous else ()
+        self._background_names = tuple((str(n), int(k)) for n, k in background)
+        self._constants = dict(constants or {})
+        self._exec_program()
+        self._system_info()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _exec_program(self) -> None:
+        """Load the program's generated code, its constants (with this runtime's overrides) and its task."""
+        n = len(self.program.call_names)
+        self.calls_now = [0] * n
+        self.calls_max = dict.fromkeys(self.program.call_names, 0)
+        self.calls_last = dict.fromkeys(self.program.call_names, 0)
         ns = make_helpers(self)
         ns["_CALLS"] = self.calls_now
         for key, (value, t, py) in self.program.constants.items():
             ns[py] = value
         self._ns = ns
         exec(self.program.code, ns)                    # noqa: S102 - our own generated code
-        for key, value in (constants or {}).items():
+        for key, value in self._constants.items():
             self.set_constant(key, value)
         self._task = []
-        for name in task:
+        for name in self._task_names:
             pou = self.program.pous[name.lower()]
             self._task.append((ns[pou.pyname], self.program.instances[name.lower()]))
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._background = []
+        for name, every in self._background_names:
+            pou = self.program.pous[name.lower()]
+            self._background.append((ns[pou.pyname], self.program.instances[name.lower()], max(1, every)))
 
     # ---- execution ------------------------------------------------------------------------
     @property
@@ -208,6 +235,9 @@ class PlcRuntime:
             try:
                 for fn, addr in self._task:
                     fn(addr)
+                for fn, addr, every in self._background:
+                    if self.cycles % every == every - 1:
+                        fn(addr)
             except _TRAPS as exc:
                 self.fault = PlcFault(getattr(exc, "kind", _kind(exc)), str(exc), self.cycles, self._where(exc))
             finally:
@@ -295,7 +325,20 @@ class PlcRuntime:
             self._thread.join(timeout=2.0)
             self._thread = None
 
-    # ---- persistence ----------------------------------------------------------------------
+    # ---- remanent data: PERSISTENT and RETAIN ------------------------------------------------
+    # What survives which event, as Infosys tc3_plc_intro "Remanent Variables - PERSISTENT, RETAIN"
+    # (/content/1033/tc3_plc_intro/2528803467.html) and Tc2_Utilities "WritePersistentData"
+    # (/content/1033/tcplclib_tc2_utilities/35068555.html) document it:
+    #
+    #   event                                   VAR      RETAIN (NovRam)   PERSISTENT
+    #   restart (TwinCAT stop/start, UPS)       initial  kept              kept (written at shutdown)
+    #   power cut without UPS                   initial  kept (NovRam)     as the last FB_WritePersistentData
+    #   Reset cold                              initial  initial           kept
+    #   download (persistent list unchanged)    initial  initial           kept, by name and type
+    #   online change                           kept     kept              kept
+    #   Reset origin                            initial  initial           initial (boot data deleted)
+    #
+    # A variable without an ADS symbol ({attribute 'hide'}) is in neither region (compiler): initial.
     def mark_persistent_saved(self) -> None:
         """What Tc2_Utilities FB_WritePersistentData completes: the PERSISTENT variables as they are now
         are what the next power-up restores."""
@@ -304,23 +347,74 @@ class PlcRuntime:
 
     def restart(self) -> None:
         """A clean restart (TwinCAT stop/start, or a power cycle with UPS): TwinCAT writes the
-        PERSISTENT data at shutdown, so they survive; everything else starts from its initial value.
-        The task must be stopped around it; a stopped (faulted) task runs again."""
+        PERSISTENT data at shutdown, so they survive; RETAIN data survive in NovRam; everything else
+        starts from its initial value. The task must be stopped around it; a stopped task runs again."""
         with self.lock:
             self.mark_persistent_saved()
-            self._power_up()
+            self._power_up(keep_retain=True)
+
+    warm_restart = restart
 
     def power_cut(self) -> None:
         """Power lost without UPS: RAM is gone, PERSISTENT data come back as the last
-        FB_WritePersistentData (or clean shutdown) saved them."""
+        FB_WritePersistentData (or clean shutdown) saved them; RETAIN data from NovRam."""
         with self.lock:
-            self._power_up()
+            self._power_up(keep_retain=True)
 
-    def _power_up(self) -> None:
+    def reset_cold(self) -> None:
+        """Online command Reset cold: every variable but the PERSISTENT ones (as they are now) starts
+        from its initial value, RETAIN included."""
+        with self.lock:
+            self.mark_persistent_saved()
+            self._power_up(keep_retain=False)
+
+    def reset_origin(self) -> None:
+        """Online command Reset origin: everything starts from its initial value, PERSISTENT data too
+        (their boot data are gone)."""
+        with self.lock:
+            p0, p1 = self.program.persistent
+            self.saved_persistent = bytes(self.program.image[p0:p1])
+            self._power_up(keep_retain=False)
+
+    def online_change(self) -> None:
+        """Online change of code that keeps every variable: nothing is reinitialised."""
+
+    def download(self, program: Program) -> None:
+        """Download of another program (the task stopped around it): PERSISTENT variables keep their
+        values where the new program declares the same GVL variable with the same type size (TwinCAT
+        checks the persistent list on download); everything else, RETAIN included, starts from the new
+        program's initial values."""
+        with self.lock:
+            old, mem = self.program, bytes(self.mem)
+            self.program = program
+            self.mem = bytearray(program.image)
+            for gvl, names in program.gvls.items():
+                for name, gv in names.items():
+                    was = old.gvls.get(gvl, {}).get(name)
+                    if gv.persistent and was is not None and was.persistent and was.t.size == gv.t.size:
+                        self.mem[gv.addr:gv.addr + gv.t.size] = mem[was.addr:was.addr + was.t.size]
+            self._exec_program()
+            self._system_info()
+            self.mark_persistent_saved()
+            self.fault = None
+
+    def _power_up(self, keep_retain: bool) -> None:
         p0, p1 = self.program.persistent
+        r0, r1 = self.program.retain
+        retain = bytes(self.mem[r0:r1])
         self.mem[:] = self.program.image
         self.mem[p0:p1] = self.saved_persistent
+        if keep_retain:
+            self.mem[r0:r1] = retain
+        self._system_info()
         self.fault = None
+
+    def _system_info(self) -> None:
+        """TwinCAT_SystemInfoVarList._AppInfo as TwinCAT fills it at start: this runtime's AMS port, the
+        persistent boot data loaded."""
+        if "twincat_systeminfovarlist" in self.program.gvls:
+            self.write_value("TwinCAT_SystemInfoVarList._AppInfo.AdsPort", self.ams_port)
+            self.write_value("TwinCAT_SystemInfoVarList._AppInfo.BootDataLoaded", True)
 
     # ---- variables by name ----------------------------------------------------------------
     def locate(self, path: str) -> tuple[int, DType]:
@@ -404,6 +498,7 @@ class PlcRuntime:
         if k not in self.program.constants:
             raise KeyError(key)
         _, t, py = self.program.constants[k]
+        self._constants[key] = value                     # kept over a download of the same program
         self._ns[py] = float(value) if t.kind == "real" else value
         for name, memo in self._ns.items():           # pure functions may read constants
             if name.startswith("_MEMO_"):

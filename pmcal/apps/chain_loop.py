@@ -209,6 +209,7 @@ def run_chain_loop(mock, machine, cal: LoopCalibration, *, n_targets: int = DEFA
     points = task[:, [coords.index(a.column) for a in table.axes]]
     controller = twin.inverse(task, None)                   # the controller's own nominal IK
     link_factory = link_factory or default_links
+    mock.twin.configure_for(table)                          # the PLC's MACHINE, NMOTORS, CORRECTIONS
     mock.twin.seed(nominal_table(machine, table))
 
     def lookups() -> tuple[np.ndarray, np.ndarray, int]:

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import sys
@@ -73,6 +74,17 @@ def register(sub: CommandSet) -> None:
                         "times out: ADS error 1861)")
     m.add_argument("--staging-lease", type=float, default=None, metavar="S",
                    help="shorten the PLC's staging lease to S seconds (studies of killed clients)")
+    m.add_argument("--plc-machine", default=None, metavar="NAME",
+                   help="GVL_CompTableParam.MACHINE of the mock: the machine whose tables it accepts (default: "
+                        "the --table's machine, else the --machine's, else ocpm_2dof); '' is the shipped, "
+                        "unconfigured PLC")
+    m.add_argument("--plc-motors", type=int, default=None, metavar="N",
+                   help="GVL_CompTableParam.NMOTORS: motors of a table it accepts, 0..6 (default: the --table's, "
+                        "else the --machine's, else 2)")
+    m.add_argument("--plc-corrections", action=argparse.BooleanOptionalAction, default=None,
+                   help="GVL_CompTableParam.CORRECTIONS: accept correction tables (reference 'controller') "
+                        "instead of motor commands (default: the --table's kind, else the --machine's [table] "
+                        "reference, else commands)")
     m.set_defaults(func=cmd_mock_plc)
 
     pl = sub.add_parser("plc", help="ask the PLC what it runs: status, or verify a table is active")
@@ -86,10 +98,15 @@ def register(sub: CommandSet) -> None:
     _target_args(vf)
     vf.add_argument("--json", action="store_true", help="print the verdict as one JSON object")
     vf.set_defaults(func=cmd_plc_verify)
-    ul = psub.add_parser("unlock", help="free the PLC's staging area held by a client that is gone (instead of "
-                                        "waiting for its lease); asks first, logs to the audit file")
+    ul = psub.add_parser("unlock", help="take the PLC's staging area over from a client that is gone and free it "
+                                        "(the PLC hands it over only once that client has been silent for its "
+                                        "staging lease: a live owner is never broken); asks first, logs to the "
+                                        "audit file")
     _target_args(ul)
     ul.add_argument("--yes", action="store_true", help="do not ask for confirmation")
+    ul.add_argument("--wait", type=float, default=None, metavar="S",
+                    help="seconds to wait for the owner's lease to end (default: the PLC's staging lease, 30 s, "
+                         "plus 5 s)")
     ul.add_argument("--audit", default="bridge_audit.log", metavar="FILE",
                     help="audit log to append to (default: bridge_audit.log in the current folder)")
     ul.set_defaults(func=cmd_plc_unlock)
@@ -331,19 +348,27 @@ def cmd_plc_verify(args) -> int:
 
 
 def cmd_plc_unlock(args) -> int:
-    """Free the staging area: ``nStagingClaim := 0`` and ``nCommitToken := 0``, as its owner would on release.
+    """Take the staging area over from a client that is gone, then free it.
 
-    For an operator who cannot wait for the lease of a client that died holding the area. A push still
-    running from that client then finds it lost the area and commits nothing (fencing token).
+    Claims the area with a fresh token and waits: the PLC hands it over only when its owner has shown
+    no activity for the staging lease while another client claims (FB_CompTableManager), so a live
+    owner keeps it and this command fails after ``--wait``. Once granted, the area is released
+    (``nStagingClaim := NOT token``). Every write carries this command's own token: it never writes
+    on behalf of the owner.
     """
     import datetime as dt
 
-    from pmcal.bridge.errors import BridgeError
-    from pmcal.bridge.transfer import append_audit, check_writable
+    from pmcal.bridge.errors import BridgeError, StagingBusy
+    from pmcal.bridge.plc_types import STAGING_LEASE_S, new_token
+    from pmcal.bridge.transfer import append_audit, check_writable, claim_area, release_area
 
     check_writable(args.audit, "--audit")
+    if args.wait is not None and not args.wait >= 0:
+        raise InputError(f"must be a number of seconds >= 0, got {args.wait}", field="--wait")
+    wait_s = STAGING_LEASE_S + 5.0 if args.wait is None else args.wait
     link = make_link(args, writes=frozenset({"staging_claim", "commit"}))
     _quiet_libraries()
+    token = new_token()
     try:
         with link:
             link.check_interface()
@@ -357,30 +382,29 @@ def cmd_plc_unlock(args) -> int:
                 if not sys.stdin.isatty():
                     raise InputError("confirmation needed: run in a terminal or pass --yes", field="--yes")
                 answer = input(f"{link.transport} {link.target}: the staging area belongs to session 0x{owner:08X} "
-                               f"(manager {state}); a commit of that client in progress is dropped. "
-                               "Free it? [y/N] ")
+                               f"(manager {state}); wait up to {wait_s:g} s for its lease to end and free it? "
+                               "[y/N] ")
                 if answer.strip().lower() not in ("y", "yes"):
                     print("not unlocked")
                     return 1
-            link.write_claim(0)
-            link.write_commit(0)
-            deadline = time.monotonic() + 2.0
-            while link.read_state().staging_owner == owner and time.monotonic() < deadline:
-                time.sleep(0.005)
-            after = link.read_state().staging_owner
+            try:
+                claim_area(link, token, wait_s, 0.005)
+                freed = release_area(link, token, 2.0, 0.005)
+            except StagingBusy:
+                freed = False
     except BridgeError as exc:
         print(f"pmcal: failed: unlock of {link.transport} {link.target}: {exc}", file=sys.stderr)
         return exc.exit_status
-    freed = after != owner
     append_audit(args.audit, json.dumps({
         "time": dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds"), "event": "unlock",
         "transport": link.transport, "target": link.target, "owner": f"0x{owner:08X}", "manager_state": state,
-        "result": "ok" if freed else "failed"}))
+        "session": f"0x{token:08X}", "result": "ok" if freed else "failed"}))
     if not freed:
-        print(f"pmcal: failed: the PLC still names session 0x{owner:08X} as staging owner", file=sys.stderr)
+        print(f"pmcal: failed: session 0x{owner:08X} kept the staging area for {wait_s:g} s (it is active, or "
+              "its lease is longer): nothing changed", file=sys.stderr)
         return 1
-    print(f"unlocked: {link.transport} {link.target}: staging area of session 0x{owner:08X} freed "
-          f"(logged in {args.audit})")
+    print(f"unlocked: {link.transport} {link.target}: staging area of session 0x{owner:08X} freed after its "
+          f"lease (logged in {args.audit})")
     return 0
 
 
@@ -447,7 +471,25 @@ def cmd_mock_plc(args) -> int:
     else:
         from pmcal.bridge.modbus_mock import ModbusMockPlc as Mock
     extra = {"routes": args.route} if args.ads and args.route else {}
-    mock = Mock(port=args.port, cycle_s=args.cycle_ms / 1000.0, lifetime_s=args.seconds,
+    if args.plc_motors is not None and not 0 <= args.plc_motors <= 6:
+        raise InputError(f"must be 0..6, got {args.plc_motors}", field="--plc-motors")
+    from pmcal.bridge.nominal import REFERENCE_CONTROLLER
+    from pmcal.bridge.plc_runtime import PlcTwin
+
+    # what the mock PLC accepts: the options, else the --table's, else the selected machine's table
+    # (a folder with a [table]: its name, motors and kind), else the OCPM's
+    name, motors, corrections = "ocpm_2dof", 2, False
+    spec = getattr(getattr(args, "selected_machine", None), "spec", None)
+    if seed is not None:
+        name, motors, corrections = seed.machine, seed.n_motors, seed.reference_code == REFERENCE_CONTROLLER
+    elif spec is not None and not spec.legacy and spec.table is not None:
+        name, motors, corrections = spec.name, len(spec.motors), spec.table.reference == "controller"
+    machine = args.plc_machine if args.plc_machine is not None else name
+    if len(machine.encode("ascii", "replace")) > 27:
+        raise InputError(f"at most 27 characters (STRING(27)), got '{machine}'", field="--plc-machine")
+    twin = PlcTwin(machine=machine, motors=args.plc_motors if args.plc_motors is not None else motors,
+                   corrections=args.plc_corrections if args.plc_corrections is not None else corrections)
+    mock = Mock(twin, port=args.port, cycle_s=args.cycle_ms / 1000.0, lifetime_s=args.seconds,
                 restart_s=args.restart_s, **extra)
     mock.faults.arm(*faults)
     if args.staging_lease is not None:
