@@ -196,9 +196,12 @@ def _pivoted_qr_r(A: np.ndarray, rank_tol: float) -> tuple[np.ndarray, np.ndarra
     length (:data:`TIE_TOL`) goes to the lowest index. LAPACK's ``geqp3`` breaks such ties by the last bits
     of the norms, which differ between BLAS kernels: its result is kept where it broke none otherwise
     (no equivalent errors), else the pivots come from :func:`_gram_schmidt_pivots` and the columns are
-    factored in that order."""
+    factored in that order. Where every column is a base one, the order is the columns' own (nothing to decide)."""
     R, piv = _geqp3(A)
     rank = _rank(R, rank_tol)
+    if rank == A.shape[1]:                     # every column a base one: key order, no tie to decide
+        return R, np.sort(piv), rank           # (R's columns stay in pivot order: only its singular values
+                                               # are used, the same in any column order)
     if _ties_to_first(R, piv, rank):
         return R, piv, rank
     C = R[:, np.argsort(piv)]                   # A = Q C: same lengths and angles, min(m, n) rows only
@@ -369,6 +372,8 @@ def spread_map(model: ChainModel, basis: BaseSet) -> np.ndarray:
     representative alone carries a tilt or offset the real machine spreads over its frames), with the same
     base values. Errors with no effect get 0."""
     A = combination_matrix(basis)
+    if not basis.dependent:                    # nothing regrouped: the base values are the errors
+        return A.T
     S2 = model.prior_std(list(basis.keys)) ** 2
     return (S2[:, None] * A.T) @ _spd_inverse((A * S2) @ A.T)
 
@@ -478,6 +483,11 @@ class _Observations:
         return self._white(self.D @ self.model.observation_jacobian(self.commands, params, keys)[:, 0, :])
 
 
+#: :func:`held_out_check`'s answer where it cannot judge (too few poses, a direction left free, no prior)
+NOT_CHECKED = {"folds": 0, "passed": None, "rms_mm": None, "predicted_rms_mm": None, "chi2_per_dof": None,
+               "p_value": None}
+
+
 def held_out_check(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior_precision: np.ndarray | float,
                    sigma: float, folds: int = HELD_OUT_FOLDS) -> dict:
     """Does the fit predict what it did not see? Linearised k-fold cross-validation at the solution.
@@ -509,8 +519,7 @@ def held_out_check(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior_preci
     """
     poses = np.unique(groups)
     k = min(folds, len(poses) // 2)
-    undetermined = {"folds": 0, "passed": None, "rms_mm": None, "predicted_rms_mm": None, "chi2_per_dof": None,
-                    "p_value": None}
+    undetermined = dict(NOT_CHECKED)
     if k < 2:
         return undetermined
     fold_of = {p: i % k for i, p in enumerate(poses)}
@@ -628,12 +637,13 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         p, sol, Jp = _map_over_every_error(model, obs, keys, sigma, J0, max_nfev)
         x = combination_matrix(basis) @ p
     else:
-        x, sol, Jp = _solve_base_values(model, obs, basis, M, J0, sigma, prior_cov if prior else None, method,
-                                        max_nfev, seed, options)
+        x, sol, Jp = _solve_base_values(model, obs, basis, M, J0, sigma, prior_cov, prior, method, max_nfev, seed,
+                                        options)
         p = M @ x
     Jf = Jp / sigma
     Jb = Jf @ M
-    resid = y - obs.predict(dict(zip(keys, map(float, p))))
+    # the solver's residuals at its solution (data first, then any prior pseudo-observations)
+    resid = sol.residuals[:y.size] if len(sol.residuals) >= y.size else y - obs.predict(dict(zip(keys, map(float, p))))
     info_data = Jb.T @ Jb            # by the base values, realised spread at the identified machine
     cov = _spd_inverse(info_data + (np.linalg.inv(prior_cov) if prior else 0.0))
     p_eff = float(np.trace(cov @ info_data))
@@ -643,8 +653,9 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     chi2 = float(np.sum((resid / sigma) ** 2))
     dof = max(y.size - p_eff, 1.0)
     params = dict(zip(keys, map(float, p)))
-    held_out = held_out_check(Jb, resid / sigma, obs.row_poses(), np.linalg.inv(prior_cov) if prior else 0.0,
-                              sigma)
+    # without a prior a fold left out often leaves a direction free (as many readings as parameters): not run
+    held_out = held_out_check(Jb, resid / sigma, obs.row_poses(), np.linalg.inv(prior_cov), sigma) if prior \
+        else dict(NOT_CHECKED)
     return ChainIdentResult(
         params=params, base=list(base), units=units, x=x, covariance=cov, std=dict(zip(base, map(float, std))),
         crlb=dict(zip(base, map(float, crlb_std))), combinations=basis.combinations,
@@ -659,11 +670,11 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
 
 
 def _solve_base_values(model: ChainModel, obs: "_Observations", basis: BaseSet, M: np.ndarray, J0: np.ndarray,
-                       sigma: float, prior_cov: np.ndarray | None, method: str, max_nfev: int | None,
+                       sigma: float, prior_cov: np.ndarray, prior: bool, method: str, max_nfev: int | None,
                        seed: int | None, options: dict):
-    """The base values (len(base),) by ``method`` on the base-set problem (the machine ``M b``, with the
-    correlated prior ``prior_cov`` unless None), the solver's result, and every key's (unwhitened) Jacobian
-    at the solution (model units: mm per key unit)."""
+    """The base values (len(base),) by ``method`` on the base-set problem (the machine ``M b``; with the
+    correlated prior ``prior_cov`` when ``prior``, which also scales the search box), the solver's result, and
+    every key's (unwhitened) Jacobian at the solution (model units: mm per key unit)."""
     keys, base = list(basis.keys), basis.base
     full = {np.zeros(len(base)).tobytes(): J0}
 
@@ -680,10 +691,10 @@ def _solve_base_values(model: ChainModel, obs: "_Observations", basis: BaseSet, 
             full[key] = obs.jacobian(params_of(x), keys)
         return full[key]
 
-    sb = np.sqrt(np.diag(prior_cov if prior_cov is not None else base_prior_cov(model, basis)))
+    sb = np.sqrt(np.diag(prior_cov))
     problem = box_problem(fun, base, model.error_units(base), half_width=50.0 * sb, sigma=sigma,
                           jac=lambda x: -full_jacobian(x) @ M, scale=sb, info={"residual_unit": "mm"})
-    work = problem.with_prior(cov=prior_cov) if prior_cov is not None else problem
+    work = problem.with_prior(cov=prior_cov) if prior else problem
     sol = lm(work, max_nfev=max_nfev) if method == "lm" else SOLVERS[method](work, seed=seed, **options)
     x = np.array([dict(zip(sol.names, sol.x))[k] for k in base])
     return x, sol, full_jacobian(x)
