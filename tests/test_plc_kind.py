@@ -4,13 +4,15 @@ a PLC whose motion code expects motor commands, a table of another machine, or o
 PLC whose MACHINE or NMOTORS is not set serves nothing. The sample motion code (PRG_CompTableMotionSample,
 FB_CompTableTargets) checks eResult, the kind and the motors before it moves, run in the interpreter.
 
-ADS: a plain pyads client writes the GVL symbols by name. Modbus: the bridge's ModbusLink transport
-primitives (claim, paged staging, commit: they check nothing of a table), no push logic.
+ADS: a plain pyads client writes the GVL symbols by name. Modbus: a plain pymodbus client writes the
+registers of ST_CompTableModbusArea at the addresses docs/bridge.md documents (typed here again, not taken
+from pmcal's register map), pages the rows through the window and waits for the PLC's page echo.
 """
 
 from __future__ import annotations
 
 import ctypes
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -22,7 +24,7 @@ from pmcal.bridge.plc_runtime import PlcRuntime, PlcTwin
 from pmcal.bridge.plc_runtime.comptable_plc import machine_constants
 from pmcal.bridge.plc_types import (SHADOW_SIZE, Header, LookupIn, LookupOut, LookupResult, State, Status,
                                    shadow_rows)
-from tests.bridge_fixtures import make_table, modbus_link, raw_commit, running
+from tests.bridge_fixtures import make_table, raw_commit, running
 
 TOKEN = 0x8A5E0001
 
@@ -50,6 +52,60 @@ class PlainAds:
         self.conn.write_by_name("GVL_CompTable.stShadowHeader", list(header), ctypes.c_uint8 * len(header))
         data = np.frombuffer(rows + bytes(SHADOW_SIZE - len(rows)), dtype="<f8")
         self.conn.write_by_name("GVL_CompTable.aShadow", data.tolist(), pyads.PLCTYPE_ARR_LREAL(len(data)))
+
+
+class PlainModbus:
+    """A plain pymodbus client of ST_CompTableModbusArea (holding registers from 16#3000, unit 1; register k
+    of a value = bytes 2k, 2k+1 of its little-endian image): no interface check, no table check, no bridge
+    code."""
+
+    BASE, HEADER, COMMIT, PAGE_CONTROL, PAGE_ACK, CLAIM, WINDOW = 0x3000, 8, 132, 134, 138, 324, 384
+    WINDOW_LREALS, CHUNK = 2970, 120
+
+    def __init__(self, plc) -> None:
+        from pymodbus.client import ModbusTcpClient
+
+        self.client = ModbusTcpClient(plc.host, port=plc.port, timeout=5)
+
+    def __enter__(self):
+        assert self.client.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.client.close()
+
+    def _write(self, offset: int, regs) -> None:
+        regs = [int(r) for r in regs]
+        for k in range(0, len(regs), self.CHUNK):
+            rr = self.client.write_registers(self.BASE + offset + k, regs[k:k + self.CHUNK], device_id=1)
+            assert not rr.isError(), rr
+
+    def _read(self, offset: int, count: int) -> list[int]:
+        rr = self.client.read_holding_registers(self.BASE + offset, count=count, device_id=1)
+        assert not rr.isError(), rr
+        return list(rr.registers)
+
+    def write_claim(self, token: int) -> None:
+        self._write(self.CLAIM, [token & 0xFFFF, token >> 16])
+
+    def write_commit(self, token: int) -> None:
+        self._write(self.COMMIT, [token & 0xFFFF, token >> 16])
+
+    def stage(self, header: bytes, rows: bytes) -> None:
+        self._write(self.HEADER, np.frombuffer(header, dtype="<u2"))
+        regs = np.frombuffer(rows, dtype="<u2")
+        seq = self._read(self.PAGE_ACK, 1)[0]
+        n = len(rows) // 8
+        for page in range((n + self.WINDOW_LREALS - 1) // self.WINDOW_LREALS):
+            count = min(self.WINDOW_LREALS, n - page * self.WINDOW_LREALS)
+            start = page * self.WINDOW_LREALS * 4
+            self._write(self.WINDOW, regs[start:start + 4 * count])
+            seq = (seq + 1) & 0xFFFF or 1
+            self._write(self.PAGE_CONTROL, [page, count, 1, seq])          # 1: window -> aShadow
+            deadline = time.monotonic() + 10.0
+            while self._read(self.PAGE_ACK, 2) != [seq, 0]:
+                assert time.monotonic() < deadline, "the PLC did not take the page"
+                time.sleep(0.005)
 
 
 def _corrections(machine: str = "ocpm_2dof", version: int = 6) -> CompTable:
@@ -90,13 +146,13 @@ def test_the_plc_refuses_a_table_of_another_kind_machine_or_motors(transport, ma
     table = make()
     with running(_mock(transport)) as plc:                # ocpm_2dof, 2 motors, motor commands
         plc.twin.seed(make_table(version=5))
-        with (PlainAds(plc) if transport == "ads" else modbus_link(plc)) as ln:
+        with (PlainAds(plc) if transport == "ads" else PlainModbus(plc)) as ln:
             st = raw_commit(plc, ln, Header.of(table).pack(), shadow_rows(table), TOKEN)
         assert (st.status, st.active_version) == (status, 5), st
         assert plc.twin.active_table()[1].tobytes() == make_table(version=5).values.tobytes()
         # and a table that fits is taken from the same client
         good = make_table(version=7, offset_deg=0.1)
-        with (PlainAds(plc) if transport == "ads" else modbus_link(plc)) as ln:
+        with (PlainAds(plc) if transport == "ads" else PlainModbus(plc)) as ln:
             st = raw_commit(plc, ln, Header.of(good).pack(), shadow_rows(good), TOKEN + 2)
         assert (st.status, st.active_version) == (Status.OK, 7)
 
