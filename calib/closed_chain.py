@@ -36,7 +36,7 @@ set's regrouping holds at the nominal machine only: at the identified one the er
 slightly apart (a tilt makes a length visible: on the Delta a prior-sized move of a regrouped error
 changes the fit by 7-18 noise sigmas at the identified machine, 21-54 at 3x the sizes). So with LM and the
 prior, where the base set regroups anything, the estimate is the MAP over every error under the same
-(diagonal) prior (:func:`_map_over_every_error`), and the base set says what it determines: ``x = A p``.
+(diagonal) prior (:func:`_fit` over every error), and the base set says what it determines: ``x = A p``.
 On the Delta at 3x its error sizes the held-out error is then 0.88-1.17x a plain least-squares fit's of all
 99 errors (5 seeds; 0.96-1.32x for a fit of the base values alone; ``benchmarks/large_errors_bench.py``). The
 reported covariance is that of the base values (realised spread at the identified machine); it equals the
@@ -519,9 +519,8 @@ def held_out_check(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior_preci
     """
     poses = np.unique(groups)
     k = min(folds, len(poses) // 2)
-    undetermined = dict(NOT_CHECKED)
     if k < 2:
-        return undetermined
+        return dict(NOT_CHECKED)
     fold_of = {p: i % k for i, p in enumerate(poses)}
     fold = np.array([fold_of[g] for g in groups])
     H = J.T @ J + prior_precision
@@ -532,7 +531,7 @@ def held_out_check(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior_preci
         try:                                 # without the fold (and the prior) a direction may be left free
             L = np.linalg.cholesky(H - Jf.T @ Jf)
         except np.linalg.LinAlgError:
-            return undetermined
+            return dict(NOT_CHECKED)
         W = scipy.linalg.solve_triangular(L, Jf.T, lower=True)
         G = W.T @ W                                                  # J_f H_f^-1 J_f^T
         held = rf + G @ rf
@@ -633,12 +632,14 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
 
     M = spread_map(model, basis)
     if prior and method == "lm" and basis.dependent:
-        # the MAP over every error under the same prior (module docstring); the base set names what it shows
-        p, sol, Jp = _map_over_every_error(model, obs, keys, sigma, J0, max_nfev)
+        # the MAP over every error under the same (diagonal) prior: the base set's regrouping holds at the
+        # nominal machine only, and at the identified one the regrouped errors act slightly apart (a tilt makes
+        # a length visible); the base set then says what the fit determines (module docstring)
+        p, sol, Jp = _fit(model, obs, keys, keys, np.eye(len(keys)), J0, sigma,
+                          np.diag(model.prior_std(keys) ** 2), True, max_nfev=max_nfev)
         x = combination_matrix(basis) @ p
     else:
-        x, sol, Jp = _solve_base_values(model, obs, basis, M, J0, sigma, prior_cov, prior, method, max_nfev, seed,
-                                        options)
+        x, sol, Jp = _fit(model, obs, keys, base, M, J0, sigma, prior_cov, prior, method, max_nfev, seed, options)
         p = M @ x
     Jf = Jp / sigma
     Jb = Jf @ M
@@ -669,14 +670,15 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
               "beyond_prior": [k for k, v, s in zip(base, x, sb) if abs(v) > PRIOR_SIGMAS * s]})
 
 
-def _solve_base_values(model: ChainModel, obs: "_Observations", basis: BaseSet, M: np.ndarray, J0: np.ndarray,
-                       sigma: float, prior_cov: np.ndarray, prior: bool, method: str, max_nfev: int | None,
-                       seed: int | None, options: dict):
-    """The base values (len(base),) by ``method`` on the base-set problem (the machine ``M b``; with the
-    correlated prior ``prior_cov`` when ``prior``, which also scales the search box), the solver's result, and
-    every key's (unwhitened) Jacobian at the solution (model units: mm per key unit)."""
-    keys, base = list(basis.keys), basis.base
-    full = {np.zeros(len(base)).tobytes(): J0}
+def _fit(model: ChainModel, obs: "_Observations", keys: list[str], names: list[str], M: np.ndarray,
+         J0: np.ndarray, sigma: float, prior_cov: np.ndarray, prior: bool, method: str = "lm",
+         max_nfev: int | None = None, seed: int | None = None, options: dict | None = None):
+    """Fit the values ``x`` of ``names`` whose machine is the errors ``M x`` (in the order of ``keys``) by
+    ``method``, from the nominal machine (whose Jacobian over ``keys`` is ``J0``); with the prior ``prior_cov``
+    of ``x`` when ``prior`` (its sizes also scale the search box). Returns ``x``, the solver's result and every
+    key's (unwhitened) Jacobian at the solution (mm per key unit). The base values: ``names`` the base set,
+    ``M`` its :func:`spread_map`; the MAP over every error: ``names = keys``, ``M`` the identity."""
+    last = {np.zeros(len(names)).tobytes(): J0}           # every key's Jacobian at the last point asked
 
     def params_of(x: np.ndarray) -> dict[str, float]:
         return dict(zip(keys, map(float, M @ x)))
@@ -684,48 +686,20 @@ def _solve_base_values(model: ChainModel, obs: "_Observations", basis: BaseSet, 
     def fun(X: np.ndarray) -> np.ndarray:
         return np.stack([obs.y - obs.predict(params_of(x)) for x in X])
 
-    def full_jacobian(x: np.ndarray) -> np.ndarray:
+    def jacobian(x: np.ndarray) -> np.ndarray:
         key = np.asarray(x, float).tobytes()
-        if key not in full:
-            full.clear()
-            full[key] = obs.jacobian(params_of(x), keys)
-        return full[key]
-
-    sb = np.sqrt(np.diag(prior_cov))
-    problem = box_problem(fun, base, model.error_units(base), half_width=50.0 * sb, sigma=sigma,
-                          jac=lambda x: -full_jacobian(x) @ M, scale=sb, info={"residual_unit": "mm"})
-    work = problem.with_prior(cov=prior_cov) if prior else problem
-    sol = lm(work, max_nfev=max_nfev) if method == "lm" else SOLVERS[method](work, seed=seed, **options)
-    x = np.array([dict(zip(sol.names, sol.x))[k] for k in base])
-    return x, sol, full_jacobian(x)
-
-
-def _map_over_every_error(model: ChainModel, obs: "_Observations", keys: list[str], sigma: float,
-                          J0: np.ndarray, max_nfev: int | None):
-    """The maximum a-posteriori errors (len(keys),) over every error (not only the base set) under the
-    diagonal prior of their sizes, by LM from the nominal machine (whose Jacobian is ``J0``), the solver's
-    result, and every key's Jacobian at the solution. The base set's regrouping holds at the nominal machine
-    only; at the identified one the errors it regroups act slightly apart (a tilt makes a length visible),
-    and only a fit over every error can follow: on the Delta at 3x its error sizes the held-out error is
-    1.10x a plain least-squares fit's where a fit of the base values alone gives 1.26x (median of 5 seeds)."""
-    S = model.prior_std(keys)
-    last: dict[bytes, np.ndarray] = {np.zeros(len(keys)).tobytes(): J0}
-
-    def fun(P: np.ndarray) -> np.ndarray:
-        return np.stack([obs.y - obs.predict(dict(zip(keys, map(float, q)))) for q in P])
-
-    def jacobian(q: np.ndarray) -> np.ndarray:
-        key = np.asarray(q, float).tobytes()
         if key not in last:
             last.clear()
-            last[key] = obs.jacobian(dict(zip(keys, map(float, q))), keys)
+            last[key] = obs.jacobian(params_of(x), keys)
         return last[key]
 
-    problem = box_problem(fun, keys, model.error_units(keys), half_width=50.0 * S, sigma=sigma,
-                          jac=lambda q: -jacobian(q), scale=S, info={"residual_unit": "mm"}).with_prior(S)
-    sol = lm(problem, max_nfev=max_nfev)
-    p = np.array([dict(zip(sol.names, sol.x))[k] for k in keys])
-    return p, sol, jacobian(p)
+    sb = np.sqrt(np.diag(prior_cov))
+    problem = box_problem(fun, names, model.error_units(names), half_width=50.0 * sb, sigma=sigma,
+                          jac=lambda x: -jacobian(x) @ M, scale=sb, info={"residual_unit": "mm"})
+    work = problem.with_prior(cov=prior_cov) if prior else problem
+    sol = lm(work, max_nfev=max_nfev) if method == "lm" else SOLVERS[method](work, seed=seed, **(options or {}))
+    x = np.array([dict(zip(sol.names, sol.x))[k] for k in names])
+    return x, sol, jacobian(x)
 
 
 def reading_covariance(model: ChainModel, commands, motor_sigma, sigma: float | None = None,

@@ -171,7 +171,7 @@ class ClosedChainTwin:
         without ``[closures]`` compliance the projection that closes the loops along the others only."""
         jp, jr = self._kin(self.home_qpos, closure_only=True)
         C = self._closure(jp, jr)[1][: self.n_equations]
-        rank, D = redundant_directions(C[:, self.passive])
+        D = redundant_directions(C[:, self.passive])
         #: (n_redundant, n_equations) unit rows: equation combinations no joint motion changes at home
         self.redundant_directions = D
         if len(D) and not self.spec.closures:

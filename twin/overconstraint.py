@@ -63,19 +63,14 @@ class LoopRedundancy:
         """Number of redundant closure equations."""
         return self.n_equations - self.rank
 
-    def summary(self) -> dict:
-        """JSON-friendly digest."""
-        return {"closure_equations": self.n_equations, "independent": self.rank, "redundant": self.redundant,
-                "directions": list(self.described), "strain_errors": list(self.strain_errors)}
 
-
-def redundant_directions(C: np.ndarray) -> tuple[int, np.ndarray]:
-    """The rank of the closure Jacobian ``C`` (n_eq, n_passive; motors held) and its redundant directions
-    (n_eq - rank, n_eq): unit rows spanning the equation combinations no joint motion changes (SVD, relative
-    threshold :data:`RANK_TOL`)."""
+def redundant_directions(C: np.ndarray) -> np.ndarray:
+    """The redundant directions (n_eq - rank, n_eq) of the closure Jacobian ``C`` (n_eq, n_passive; motors
+    held): unit rows spanning the equation combinations no joint motion changes (SVD, relative threshold
+    :data:`RANK_TOL`)."""
     U, sv, _ = np.linalg.svd(C, full_matrices=True)
     rank = int(np.sum(sv > RANK_TOL * max(float(sv.max(initial=0.0)), 1e-300)))
-    return rank, U[:, rank:].T
+    return U[:, rank:].T
 
 
 def _equation_names(twin) -> list[str]:
