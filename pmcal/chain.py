@@ -313,12 +313,13 @@ def gross_outliers(machine, meas: ChainMeasurements, res, sigma_mm: float | None
     return out
 
 
-def campaign_quality(machine, meas: ChainMeasurements, res, sigma_mm: float | None = None) -> dict:
+def campaign_quality(machine, meas: ChainMeasurements, res, sigma_mm: float | None = None,
+                     reference=None) -> dict:
     """The ``quality`` object of an identification (:func:`pmcal.campaign_quality.chain_quality`): the
-    campaign's rank against the machine's structural base set (:func:`reference_basis`), its distinct
-    poses, its gross outliers (:func:`gross_outliers`), whether the fit reaches the noise floor and predicts
-    the poses it did not fit (``res.info["held_out"]``)."""
-    reference = reference_basis(machine)
+    campaign's rank against the machine's structural base set (``reference``, made by :func:`reference_basis`
+    when not given), its distinct poses, its gross outliers (:func:`gross_outliers`), whether the fit reaches
+    the noise floor and predicts the poses it did not fit (``res.info["held_out"]``)."""
+    reference = reference_basis(machine) if reference is None else reference
     per_pose = 1 if machine.spec.measure == "distance" else 3 * len(machine.spec.targets)
     outliers = gross_outliers(machine, meas, res, sigma_mm, basis=None)
     fit = {"chi2": float(res.chi2), "dof": float(res.dof), "residual_rms_mm": float(res.residual_rms_mm),

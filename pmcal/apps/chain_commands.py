@@ -105,7 +105,7 @@ def identify(args) -> int:
         progress.warning(f"{len(partial)} pose(s) with a blocked target left out ({', '.join(partial[:3])}"
                          f"{', ...' if len(partial) > 3 else ''}): identification uses the poses with every "
                          "target measured")
-    quality = campaign_quality(machine, meas, res, sigma)
+    quality = campaign_quality(machine, meas, res, sigma, reference=basis)
     write_json(args.output, dict(params_document(machine, res, str(args.measurements)), quality=quality))
     print(f"{res.rank} of {len(res.params)} errors identifiable (base set), {len(res.weak)} weak; residual "
           f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}; "
