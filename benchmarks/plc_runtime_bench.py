@@ -5,8 +5,11 @@ Delta-shaped 13 x 13 x 9 table (3 motors, corrections to the controller's IK) on
 that machine that already holds a table of the same grid: the task cycles the commit takes, and per cycle the
 most statements, numeric operator calls (SIN, COS, SQRT, ACOS, ATAN2...), calls of the nominal IK
 F_CompTableNominalIk, bytes copied (MEMCPY / struct assignment) and CRC bytes; the interpreter's own
-time: CPU per idle cycle (median), CPU of the busiest cycle, CPU of the whole commit (process time,
+time: CPU per idle cycle (median), CPU of the whole commit (process time,
 so other load on the machine does not count). The cold-start compile (blark parse) is not included.
+Then the task's modelled time per cycle on the slowest CX5100/CX5200-class CPU (cost model with its
+sources: bridge/plc_runtime/cost_model.py): the worst and the median cycle of the commit in µs against the
+share of the 1 ms cycle the table manager may take (TASK_SHARE).
 
 Run: python benchmarks/plc_runtime_bench.py [--idle 2000] [--json PATH]
 """
@@ -22,13 +25,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
-import numpy as np  # noqa: E402
 
-from pmcal.bridge import plc_types  # noqa: E402
-from pmcal.bridge.comptable import Axis, CompTable, Motor  # noqa: E402
 from pmcal.bridge.plc_runtime import PlcTwin  # noqa: E402
-from pmcal.bridge.plc_types import Header, State, shadow_rows  # noqa: E402
-from tests.bridge_fixtures import make_table  # noqa: E402
+from pmcal.bridge.plc_runtime.cost_model import CX_SLOWEST, TASK_SHARE  # noqa: E402
+from tests.bridge_fixtures import commit_on_twin, delta_correction_table, make_table  # noqa: E402
 
 IK = "F_CompTableNominalIk"
 TOKEN = 0x800D0001          # the staging token of the benchmark's client
@@ -39,46 +39,20 @@ def ocpm_table(n_phi: int, n_theta: int):
     return lambda version, offset: make_table(version=version, n_phi=n_phi, n_theta=n_theta, offset_deg=offset)
 
 
-def delta_table(version: int, offset: float):
-    """A Delta-shaped table: 13 x 13 x 9 nodes over x, y, z (mm), 3 revolute motors, corrections to the
-    controller's IK (nReference 2) of at most 0.3 deg, as mjcf/delta_3dof's default [table]."""
-    axes = [Axis("x", "mm", -150.0, 150.0, 13), Axis("y", "mm", -150.0, 150.0, 13), Axis("z", "mm", -900.0, -700.0, 9)]
-    motors = [Motor(f"m{k + 1}", "deg", -1.0, 1.0, 0.5) for k in range(3)]
-    shape = (13, 13, 9, 3)
-    x = CompTable(machine="delta_3dof", version=1, axes=axes, motors=motors, values=np.zeros(shape)).nodes()
-    values = 0.2 * np.sin(x / 80.0) + offset
-    return CompTable(machine="delta_3dof", version=version, axes=axes, motors=motors, values=values,
-                     reference="controller").validate()
-
-
 def commit_cost(label: str, make) -> dict:
     plc = PlcTwin()
     plc.configure_for(make(1, 0.0))
     plc.seed(make(1, 0.0))
     rt = plc.runtime
-    table = make(2, 0.1)
-    rows = shadow_rows(table)
-    plc.write_symbol("staging_claim", TOKEN.to_bytes(4, "little"))
-    plc.cycle()                                            # the claim is granted
-    plc.write_symbol("shadow_header", Header.of(table).pack())
-    plc.write_symbol("shadow", rows + bytes(plc_types.SHADOW_SIZE - len(rows)))
-    rt.reset_work_max()
-    plc.write_symbol("commit", TOKEN.to_bytes(4, "little"))
-    cycles, busiest, t0 = 0, 0.0, time.process_time()
-    while True:
-        a = time.process_time()
-        plc.cycle()
-        busiest = max(busiest, time.process_time() - a)
-        cycles += 1
-        st = plc.state
-        if plc.stopped or (st.ack_token == TOKEN and st.state == State.IDLE):
-            break
-        if cycles == 1 and st.state != State.CHECKING:
-            break
+    t0 = time.process_time()
+    st, modelled = commit_on_twin(plc, make(2, 0.1), TOKEN)
     total = time.process_time() - t0
+    share = TASK_SHARE * 1e6 * rt.cycle_s
     return {"grid": label, "status": st.status.name if hasattr(st.status, "name") else st.status,
-            "cycles": cycles, **{f"max_{k}": v for k, v in rt.work_max.items()},
-            "max_ik_calls": rt.calls_max[IK], "busiest_cycle_cpu_ms": 1e3 * busiest, "commit_cpu_s": total}
+            "cycles": len(modelled), **{f"max_{k}": v for k, v in rt.work_max.items()},
+            "max_ik_calls": rt.calls_max[IK], "commit_cpu_s": total,
+            "worst_cycle_us": max(modelled), "median_cycle_us": statistics.median(modelled),
+            "share_us": share, "within_share": max(modelled) <= share}
 
 
 def idle_cost(n: int) -> float:
@@ -98,14 +72,18 @@ def main() -> None:
     ap.add_argument("--json", default=None, help="output file (default benchmarks/results/plc_runtime_bench.json)")
     args = ap.parse_args()
     rows = [commit_cost("37x13", ocpm_table(37, 13)), commit_cost("100x100", ocpm_table(100, 100)),
-            commit_cost("13x13x9 (Delta, 3 motors)", delta_table)]
+            commit_cost("13x13x9 (Delta, 3 motors)", delta_correction_table)]
     idle_us = idle_cost(args.idle)
     keys = ["grid", "status", "cycles", "max_statements", "max_math_calls", "max_ik_calls", "max_bytes_copied",
-            "max_crc_bytes", "busiest_cycle_cpu_ms", "commit_cpu_s"]
+            "max_crc_bytes", "commit_cpu_s"]
     print_table("Commit of a table on the interpreted ST (per task cycle: the largest)", keys,
                 [[r[k] for k in keys] for r in rows])
+    keys = ["grid", "max_cpu_cycles", "worst_cycle_us", "median_cycle_us", "share_us", "within_share"]
+    print_table(f"Modelled task time per cycle on {CX_SLOWEST.name} (bridge/plc_runtime/cost_model.py)", keys,
+                [[r[k] for k in keys] for r in rows])
     print(f"\nidle cycle (PRG_CompTable, no commit, no lookup): {idle_us:.1f} us CPU (median of {args.idle})")
-    write_json("plc_runtime_bench", {"commit": rows, "idle_cycle_cpu_us": idle_us}, args.json)
+    write_json("plc_runtime_bench", {"commit": rows, "idle_cycle_cpu_us": idle_us, "cpu_model": CX_SLOWEST.name,
+                                     "clock_hz": CX_SLOWEST.clock_hz, "task_share": TASK_SHARE}, args.json)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,8 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from pmcal.bridge.comptable import CompTable
+from pmcal.bridge.comptable import Axis, CompTable, Motor
+from pmcal.bridge.plc_runtime.cost_model import TASK_SHARE
 from pmcal.mechanism.ocpm.kinematics import nominal_ik
 
 MOTOR_LIMITS_DEG = (-120.0, 60.0)
@@ -46,6 +47,18 @@ def make_table(version: int = 1, n_phi: int = 37, n_theta: int = 13, offset_deg:
                                     version=version, n_phi=n_phi, n_theta=n_theta,
                                     motor_limits_deg=MOTOR_LIMITS_DEG, max_step_deg=MAX_STEP_DEG,
                                     reference=reference)
+
+
+def delta_correction_table(version: int, offset: float) -> CompTable:
+    """A Delta-shaped table: 13 x 13 x 9 nodes over x, y, z (mm), 3 revolute motors, corrections to the
+    controller's IK (nReference 2) of at most 0.3 deg, as mjcf/delta_3dof's default [table]."""
+    axes = [Axis("x", "mm", -150.0, 150.0, 13), Axis("y", "mm", -150.0, 150.0, 13), Axis("z", "mm", -900.0, -700.0, 9)]
+    motors = [Motor(f"m{k + 1}", "deg", -1.0, 1.0, 0.5) for k in range(3)]
+    shape = (13, 13, 9, 3)
+    x = CompTable(machine="delta_3dof", version=1, axes=axes, motors=motors, values=np.zeros(shape)).nodes()
+    values = 0.2 * np.sin(x / 80.0) + offset
+    return CompTable(machine="delta_3dof", version=version, axes=axes, motors=motors, values=values,
+                     reference="controller").validate()
 
 
 @contextmanager
@@ -141,6 +154,32 @@ def assert_within_cycle_budget(plc) -> None:
     ik, nbytes = rt.constant("GVL_CompTableParam.BUDGET_IK_PER_CYCLE"), rt.constant("GVL_CompTableParam.BUDGET_BYTES_PER_CYCLE")
     assert rt.calls_max.get("F_CompTableNominalIk", 0) <= ik, rt.calls_max
     assert rt.work_max["bytes_copied"] <= nbytes + INTERFACE_COPIES, rt.work_max
+    assert rt.task_us_max <= TASK_SHARE * 1e6 * rt.cycle_s, (rt.task_us_max, rt.work_max)
+
+
+def commit_on_twin(plc, table: CompTable, token: int = 0x800D0001):
+    """Stage and commit ``table`` on a PlcTwin cycle by cycle (no task thread, no transport): claim,
+    stage, commit, run cycles until the PLC acknowledges ``token`` idle (or stops). Returns the final
+    state and the task's modelled time of every cycle of the commit (µs, cost_model)."""
+    from pmcal.bridge import plc_types
+    from pmcal.bridge.plc_types import Header, State, shadow_rows
+
+    rows = shadow_rows(table)
+    plc.write_symbol("staging_claim", token.to_bytes(4, "little"))
+    plc.cycle()                                            # the claim is granted
+    plc.write_symbol("shadow_header", Header.of(table).pack())
+    plc.write_symbol("shadow", rows + bytes(plc_types.SHADOW_SIZE - len(rows)))
+    plc.runtime.reset_work_max()
+    plc.write_symbol("commit", token.to_bytes(4, "little"))
+    micros = []
+    while True:
+        plc.cycle()
+        micros.append(plc.runtime.task_us_last)
+        st = plc.state
+        if plc.stopped or (st.ack_token == token and st.state == State.IDLE):
+            return st, micros
+        if len(micros) == 1 and st.state != State.CHECKING:
+            return st, micros
 
 
 def wait_state(plc, ready, timeout_s: float = 20.0):

@@ -14,6 +14,7 @@ import pytest
 
 from pmcal.bridge import plc_types
 from pmcal.bridge.plc_runtime import PlcRuntime, compile_files, compile_project
+from pmcal.bridge.plc_runtime.cost_model import COSTS
 from pmcal.bridge.plc_runtime.compiler import PlcCompileError
 
 PLC = Path(__file__).resolve().parent.parent / "plc"
@@ -191,7 +192,11 @@ END_FOR
 a := b;                                                           // 800 bytes
 END_PROGRAM
 """)
-    assert rt.work_last == {"statements": 13, "math_calls": 20, "bytes_copied": 1600, "crc_bytes": 0}
+    c = COSTS     # the cost model's cycles, by hand: the call, the loop (11 tests, 10 bodies, the exit), a := b
+    loop = c["store"] + 11 * (2 * c["load"] + 2 * c["alu"] + c["loop"] + c["store"]) + c["branch"]
+    body = 2 * (c["load"] + c["transcendental"]) + c["fp_add"] + c["store"]
+    assert rt.work_last == {"statements": 13, "math_calls": 20, "bytes_copied": 1600, "crc_bytes": 0,
+                            "cpu_cycles": c["call"] + loop + 10 * body + c["store"]}
 
 
 def test_persistent_data_survive_a_restart_and_a_power_cut_loses_what_was_not_written(tmp_path):

@@ -431,6 +431,7 @@ def make_helpers(rt) -> dict:
     def _memcmp(a, b, n):
         _span(a, n, "MEMCMP")
         _span(b, n, "MEMCMP")
+        work[2] += n                                   # bytes compared: streamed like a copy
         x, y = bytes(mem[a:a + n]), bytes(mem[b:b + n])
         return 0 if x == y else (-1 if x < y else 1)
 

@@ -20,6 +20,7 @@ import ast
 import math
 from dataclasses import dataclass, field
 
+from pmcal.bridge.plc_runtime.cost_model import COSTS
 from pmcal.bridge.plc_runtime.datatypes import (ELEMENTARY, DType, PlcTypeError, array_type, elementary,
                                                 enum_type, layout, pointer_type, string_type, strides)
 from pmcal.bridge.plc_runtime.source import PlcSourceError, Unit
@@ -238,6 +239,8 @@ class Compiler:
         self.out: list[str] = []
         self.tmp = 0
         self.math_calls = 0
+        self.cost = 0                           # modelled CPU cycles of the code being compiled (cost_model)
+        self.last_far = False                   # the last reference's address is computed (index, pointer)
         self.pou: Pou | None = None
         self.loop_depth = 0
         self.pure = False
@@ -694,14 +697,15 @@ class Compiler:
         self._line(f"return {impl}(*a)", 2)
         self._line(f"r = {memo}.get(a)", 1)
         self._line("if r is None:", 1)
-        self._line("w0, w1 = _W[0], _W[1]", 2)
+        self._line("w0, w1, w4 = _W[0], _W[1], _W[4]", 2)
         self._line(f"v = {impl}(*a)", 2)
         self._line(f"if len({memo}) < 200000:", 2)
-        self._line(f"{memo}[a] = (v, _W[0] - w0, _W[1] - w1)", 3)
+        self._line(f"{memo}[a] = (v, _W[0] - w0, _W[1] - w1, _W[4] - w4)", 3)
         self._line("return v", 2)
         self._line(f"_CALLS[{pou.index}] += 1", 1)
         self._line("_W[0] += r[1]", 1)
         self._line("_W[1] += r[2]", 1)
+        self._line("_W[4] += r[3]", 1)
         self._line("return r[0]", 1)
 
     def _return_code(self, pou: Pou) -> str:
@@ -731,19 +735,21 @@ class Compiler:
         for seg in segments:
             mark = len(self.out)
             self._line("", indent)                 # placeholder for the work counters
-            calls0 = self.math_calls
-            static = 0
+            calls0, cost0 = self.math_calls, self.cost
+            static, cost = 0, 0
             for s in seg:
-                before = self.math_calls
+                before, cbefore = self.math_calls, self.cost
                 self._stmt(s, indent, ret)
                 if type(s).__name__ in ("AssignmentStatement", "FunctionCallStatement", "ReferenceAssignmentStatement",
                                         "SetStatement", "ResetStatement"):
                     static += self.math_calls - before
+                    cost += self.cost - cbefore
                 else:
                     self.math_calls = before + 0   # compound statements count their own conditions
-                    static += 0
-            self.math_calls = calls0
-            counter = f"_W[0] += {len(seg)}" + (f"; _W[1] += {static}" if static else "")
+                    self.cost = cbefore            # ... and charge their own cost where they evaluate it
+            self.math_calls, self.cost = calls0, cost0
+            counter = f"_W[0] += {len(seg)}" + (f"; _W[1] += {static}" if static else "") + \
+                (f"; _W[4] += {cost}" if cost else "")
             self.out[mark] = "    " * indent + counter
 
     def _loc(self, s, indent: int) -> None:
@@ -760,13 +766,13 @@ class Compiler:
                         "FunctionCallStatement"):
             self._stmt_inner(s, indent, ret)
             return
-        mark, tmp, calls = len(self.out), self.tmp, self.math_calls
+        mark, tmp, calls, cost = len(self.out), self.tmp, self.math_calls, self.cost
         self.hoist, self.impure_call = {}, False
         try:
             self._stmt_inner(s, indent, ret)
             if self.impure_call and self.hoist:          # compile again without hoisting
                 del self.out[mark:]
-                self.tmp, self.math_calls, self.hoist = tmp, calls, None
+                self.tmp, self.math_calls, self.hoist, self.cost = tmp, calls, None, cost
                 self._stmt_inner(s, indent, ret)
         finally:
             self.hoist, self.impure_call = None, False
@@ -801,8 +807,11 @@ class Compiler:
             self._if([(s.if_expression, s.statements)] + [(c.if_expression, c.statements) for c in s.else_ifs],
                      s.else_clause, indent, ret)
         elif kind == "CaseStatement":
+            c0 = self.cost
             sel = self.expr(s.expression, pre)
             self._emit(pre, indent)
+            self._charge(self.cost - c0 + COSTS["branch"], indent)      # a jump table: one branch
+            self.cost = c0
             name = self._tmp()
             self._line(f"{name} = {sel.code}", indent)
             branches = []
@@ -824,6 +833,7 @@ class Compiler:
                 self._line("else:" if not first else "if True:", indent)
                 self._block(s.else_clause.statements, indent + 1, ret)
         elif kind == "ForStatement":
+            c0 = self.cost
             ctl = self.lvalue(s.control, pre)
             start = self.expr(s.from_, pre)
             self._emit(pre, indent)
@@ -831,12 +841,19 @@ class Compiler:
             step = self.expr(s.step, []) if s.step is not None else E("1", ANYINT, const=1)
             if step.const is _NOCONST or step.const == 0:
                 raise PlcCompileError(f"{self.pou.name}: FOR needs a constant, non-zero BY")
+            self._charge(self.cost - c0, indent)
+            self.cost = c0
             self._line("while True:", indent)
             pre = []
             end = self.expr(s.to, pre)
             self._emit(pre, indent + 1)
+            # per iteration: the bound, the test, the predicted back edge, the increment (load, add, store)
+            self._charge(self.cost - c0 + 2 * COSTS["load"] + 2 * COSTS["alu"] + COSTS["loop"] + COSTS["store"],
+                         indent + 1)
+            self.cost = c0
             op = "<=" if step.const > 0 else ">="
             self._line(f"if not ({ctl.read()} {op} {end.code}):", indent + 1)
+            self._charge(COSTS["branch"], indent + 2)
             self._line("break", indent + 2)
             self.loop_depth += 1
             self._block(s.statements, indent + 1, ret)
@@ -844,9 +861,13 @@ class Compiler:
             self._line(ctl.write(ctl.t.wrap_code(f"{ctl.read()} + {step.const}")), indent + 1)
         elif kind == "WhileStatement":
             self._line("while True:", indent)
+            c0 = self.cost
             c = self.cond(s.expression, pre)
             self._emit(pre, indent + 1)
+            self._charge(self.cost - c0 + COSTS["loop"], indent + 1)
+            self.cost = c0
             self._line(f"if not {c}:", indent + 1)
+            self._charge(COSTS["branch"], indent + 2)
             self._line("break", indent + 2)
             self.loop_depth += 1
             self._block(s.statements, indent + 1, ret)
@@ -856,9 +877,13 @@ class Compiler:
             self.loop_depth += 1
             self._block(s.statements, indent + 1, ret)
             self.loop_depth -= 1
+            c0 = self.cost
             c = self.cond(s.expression, pre)
             self._emit(pre, indent + 1)
+            self._charge(self.cost - c0 + COSTS["loop"], indent + 1)
+            self.cost = c0
             self._line(f"if {c}:", indent + 1)
+            self._charge(COSTS["branch"], indent + 2)
             self._line("break", indent + 2)
         elif kind == "ReturnStatement":
             self._line(ret, indent)
@@ -875,8 +900,11 @@ class Compiler:
         (expr, body), rest = branches[0], branches[1:]
         self._loc(expr, indent)                    # a trap in an ELSIF condition names its line
         pre: list[str] = []
+        c0 = self.cost
         c = self.cond(expr, pre)
         self._emit(pre, indent)
+        self._charge(self.cost - c0 + COSTS["branch"], indent)
+        self.cost = c0
         self._line(f"if {c}:", indent)
         self._block(body, indent + 1, ret)
         if rest or else_clause is not None:
@@ -885,6 +913,11 @@ class Compiler:
                 self._if(rest, else_clause, indent + 1, ret)
             else:
                 self._block(else_clause.statements, indent + 1, ret)
+
+    def _charge(self, cycles: int, indent: int) -> None:
+        """Add ``cycles`` of the cost model (cost_model.COSTS) to the cycle's work where this line runs."""
+        if cycles:
+            self._line(f"_W[4] += {cycles}", indent)
 
     def _emit(self, pre: list[str], indent: int) -> None:
         for line in pre:
@@ -897,6 +930,8 @@ class Compiler:
 
     def _assign(self, lv: LV, e: E, indent: int) -> None:
         t = lv.t
+        self.cost += COSTS["store"] + (COSTS["convert"] if t.kind == "real" and e.t.kind != "real"
+                                       and e.const is _NOCONST else 0)
         if not t.scalar or t.kind == "string":
             src = e.addr if hasattr(e, "addr") else None
             if t.kind == "string":
@@ -1067,6 +1102,7 @@ class Compiler:
                 lv = LV(v.t, addr=str(self.prog.instances[pou.name.lower()] + v.offset), ref=v.t.kind == "reference")
         else:
             raise PlcCompileError(f"{base}: not a variable")
+        cost0 = self.cost
         if deref:
             lv = self._deref(lv, pre)
         for el in elements:
@@ -1090,6 +1126,7 @@ class Compiler:
                     raise PlcCompileError(f"{self.pou.name}: one index for a pointer")
                 target = self._deref(lv, pre)
                 ie = self.expr(el.subscripts[0], pre)
+                self.cost += COSTS["index"]
                 lv = LV(lv.t.elem, addr=f"_ptr({target.addr} + ({ie.code}) * {lv.t.elem.size})", align=1)
             elif ek == "SubscriptList":
                 t = lv.t
@@ -1108,6 +1145,7 @@ class Compiler:
                         parts.append(f"_ix({ie.code}, {lo}, {hi}) * {stride}")
                         align = min(align, lowbit(stride))
                 code = addr_add(self._addr(lv), const_off)
+                self.cost += COSTS["index"] * len(parts)
                 if parts:
                     code = f"{code} + " + " + ".join(parts)
                 lv = LV(t.elem, addr=code, ref=t.elem.kind == "reference", align=min(align, lowbit(const_off)))
@@ -1117,6 +1155,8 @@ class Compiler:
                 lv = self._deref(lv, pre)
         if lv.ref and not raw_ref:
             lv = self._deref(lv, pre)
+        # an address computed at run time (a variable index or a pointer) makes the access an L2 one
+        self.last_far = self.cost != cost0 or "_ix(" in str(lv.addr) or "_ptr(" in str(lv.addr)
         return lv
 
     def _addr(self, lv: LV) -> str:
@@ -1130,6 +1170,7 @@ class Compiler:
         if lv.t.kind not in ("pointer", "reference"):
             raise PlcCompileError(f"{self.pou.name}: dereference of {lv.t.name}")
         self.pure = False
+        self.cost += COSTS["load"]                        # the pointer itself
         code = f"_ptr({lv.read()})"
         if self.hoist is not None and pre is not None and lv.local is None:
             if code not in self.hoist:
@@ -1145,14 +1186,14 @@ class Compiler:
 
     # ---------------------------------------------------------------- expressions
     def cond(self, node, pre) -> str:
-        mark, tmp, calls = len(pre), self.tmp, self.math_calls
+        mark, tmp, calls, cost = len(pre), self.tmp, self.math_calls, self.cost
         saved = self.hoist, self.impure_call
         self.hoist, self.impure_call = {}, False
         try:
             e = self.expr(node, pre)
             if self.impure_call and self.hoist:          # compile again without hoisting
                 del pre[mark:]
-                self.tmp, self.math_calls, self.hoist = tmp, calls, None
+                self.tmp, self.math_calls, self.hoist, self.cost = tmp, calls, None, cost
                 e = self.expr(node, pre)
         finally:
             self.hoist, self.impure_call = saved
@@ -1206,6 +1247,7 @@ class Compiler:
                 e = E("None", r.t)
                 e.addr = self._addr(r)
                 return e
+            self.cost += COSTS["load_far"] if self.last_far else COSTS["load"]
             e = E(r.read(), r.t)
             e.plain = True
             e.computed = False
@@ -1224,6 +1266,8 @@ class Compiler:
     def _unary(self, node, pre) -> E:
         op = str(node.op).upper()
         e = self.expr(node.expr, pre)
+        if op != "+" and e.const is _NOCONST:
+            self.cost += COSTS["alu"]
         if op == "NOT":
             if e.t.kind == "bool":
                 return E(f"(not {e.code})", BOOL, const=(not e.const) if e.const is not _NOCONST else _NOCONST)
@@ -1242,6 +1286,9 @@ class Compiler:
         a = self.expr(node.left, pre)
         b = self.expr(node.right, pre)
         const = a.const is not _NOCONST and b.const is not _NOCONST
+        if not const:
+            self.cost += _op_cost(op, a.t.kind == "real" or b.t.kind == "real",
+                                  a.t.kind == "string" or b.t.kind == "string")
         if op in ("AND", "OR", "XOR", "AND_THEN", "OR_ELSE"):
             if a.t.kind == "bool" and b.t.kind == "bool":
                 py = {"AND": "&", "OR": "|", "XOR": "^", "AND_THEN": "and", "OR_ELSE": "or"}[op]
@@ -1317,6 +1364,7 @@ class Compiler:
             if found[0] == "pou" and found[1].kind == "program":
                 pou = found[1]
                 self.impure_call = True
+                self.cost += COSTS["call"]
                 self._store_inputs(pou, str(self.prog.instances[pou.name.lower()]), params, pre)
                 pre.append(f"{pou.pyname}({self.prog.instances[pou.name.lower()]})")
                 self._read_outputs(pou, str(self.prog.instances[pou.name.lower()]), params, pre)
@@ -1390,6 +1438,7 @@ class Compiler:
             self.impure_call = True
         inputs, outputs = self._bind(pou, params)
         args = self._args(pou, inputs, pre)
+        self.cost += COSTS["call"] + COSTS["store"] * (len(args) + len(outputs))
         code = f"{pou.pyname}({', '.join(args)})"
         has_outs = any(v.block == "VAR_OUTPUT" for v in pou.order)
         if has_outs:
@@ -1408,6 +1457,7 @@ class Compiler:
         self.impure_call = True
         inputs, outputs = self._bind(m, params)
         args = [this] + self._args(m, inputs, pre)
+        self.cost += COSTS["call"] + COSTS["store"] * (len(args) + len(outputs))
         code = f"{m.pyname}({', '.join(args)})"
         if any(v.block == "VAR_OUTPUT" for v in m.order):
             tmp = self._tmp()
@@ -1432,6 +1482,7 @@ class Compiler:
             pre.append(f"{tmp} = {addr}")
             addr = tmp
         self._store_inputs(pou, addr, params, pre)
+        self.cost += COSTS["call"]
         pre.append(f"{pou.pyname}({addr})")
         self._read_outputs(pou, addr, params, pre)
         return E("None", BOOL)
@@ -1444,6 +1495,7 @@ class Compiler:
                 pre.append(store_code(POINTER, addr_add(addr, v.offset), self.address_of(value, pre)))
                 continue
             e = self.expr(value, pre)
+            self.cost += COSTS["store"]
             target = LV(v.t, addr=addr_add(addr, v.offset))
             if not v.t.scalar:
                 if not hasattr(e, "addr"):
@@ -1459,6 +1511,7 @@ class Compiler:
             if v is None or v.block != "VAR_OUTPUT":
                 raise PlcCompileError(f"{self.pou.name}: {pou.name} has no output {oname}")
             src = LV(v.t, addr=addr_add(addr, v.offset)).read()
+            self.cost += COSTS["load"] + COSTS["store"]
             lv = self.lvalue(target, pre)
             pre.append(lv.write(f"(not {src})" if inverted else src))
 
@@ -1473,6 +1526,7 @@ class Compiler:
                 positional.append(p.value)
             else:
                 args[str(p.name.name).lower()] = p.value
+        self.cost += _builtin_cost(name)
         if _is_conversion(name) and name not in BUILTINS:
             return conversion(self, name, positional or list(args.values()), pre)
         spec = BUILTINS[name]
@@ -1485,6 +1539,47 @@ class Compiler:
 
 
 # ====================================================================== helpers
+#: operators of one cost class (cost_model.COSTS)
+_TRANSCENDENTAL = {"SIN", "COS", "TAN", "ASIN", "ACOS", "ATAN", "ATAN2", "EXP", "LN", "LOG", "EXPT"}
+_SELECT = {"MIN", "MAX", "LIMIT", "SEL", "MUX"}
+_FREE = {"ADR", "SIZEOF"}
+
+
+def _builtin_cost(name: str) -> int:
+    """Cycles of an operator or library call (its arguments are charged as they are compiled; the bytes
+    a memory function moves are counted at run time)."""
+    if name in _TRANSCENDENTAL:
+        return COSTS["transcendental"]
+    if name == "SQRT":
+        return COSTS["fp_div"]
+    if name in _SELECT:
+        return 2 * COSTS["fp_cmp"]                             # compare and conditional move, twice at most
+    if name in _FREE:
+        return 0
+    if name.startswith("TRUNC") or (_is_conversion(name) and "REAL" in name):
+        return COSTS["convert"]
+    if _is_conversion(name) or name in ("ABS", "SHL", "SHR", "ROL", "ROR"):
+        return COSTS["alu"]
+    return COSTS["call"]                                       # MEMCPY, MEMSET, MEMCMP, CRC, hooks
+
+
+def _op_cost(op: str, real: bool, string: bool) -> int:
+    """Cycles of a binary operator (cost_model.COSTS): by operator and operand kind."""
+    if string:
+        return COSTS["call"]                                   # a string compare is a library call
+    if op in ("AND", "OR", "XOR", "AND_THEN", "OR_ELSE"):
+        return COSTS["alu"]
+    if op in ("=", "<>", "<", ">", "<=", ">="):
+        return COSTS["fp_cmp"] if real else COSTS["alu"]
+    if op in ("+", "-"):
+        return COSTS["fp_add"] if real else COSTS["alu"]
+    if op == "*":
+        return COSTS["fp_mul"] if real else COSTS["int_mul"]
+    if op in ("/", "MOD"):
+        return COSTS["fp_div"] if real else COSTS["int_div"]
+    return COSTS["transcendental"]                             # **
+
+
 def _split_top(text: str, sep: str) -> list[str]:
     out, depth, cur = [], 0, ""
     for ch in text:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from pmcal.bridge.plc_runtime.builtins import PlcException, crc16_ccitt, make_helpers
 from pmcal.bridge.plc_runtime.compiler import Compiler, Program
+from pmcal.bridge.plc_runtime.cost_model import CX_SLOWEST, CpuModel
 from pmcal.bridge.plc_runtime.datatypes import DType, strides
 from pmcal.bridge.plc_runtime.source import parse_files, project_files
 
@@ -30,7 +31,7 @@ SAVE_PROGRAM, SAVE_EVERY = "PRG_CompTableSave", 10
 #: TwinCAT's implicit GVL TwinCAT_SystemInfoVarList (_AppInfo), compiled with every program
 SYSTEM_INFO = Path(__file__).with_name("TwinCAT_SystemInfoVarList.TcGVL")
 #: counters per cycle, in this order (``work_last``, ``work_max``)
-WORK = ("statements", "math_calls", "bytes_copied", "crc_bytes")
+WORK = ("statements", "math_calls", "bytes_copied", "crc_bytes", "cpu_cycles")
 _TRAPS = (PlcException, ZeroDivisionError, ValueError, OverflowError, struct.error)
 _CACHE: dict[str, Program] = {}
 _CACHE_LOCK = threading.Lock()
@@ -135,6 +136,9 @@ class PlcRuntime:
     trap_overflow : bool
         Stop the task on a floating-point overflow too (default False: the result is +-inf, see
         the package docstring).
+    cpu : CpuModel
+        The CPU whose time the work counters are turned into (default: the slowest of the CX5100/CX5200
+        families, cost_model.CX_SLOWEST).
 
     Attributes
     ----------
@@ -142,8 +146,12 @@ class PlcRuntime:
         The task stopped on an exception (``fault`` says why); an ADS client sees the PLC not in RUN.
     work_last, work_max : dict
         Work of the last cycle and the largest per cycle since start: statements, math_calls
-        (transcendental/numeric operator calls), bytes_copied (MEMCPY/MEMSET/struct assignment),
-        crc_bytes; ``calls_last``/``calls_max`` count calls per POU.
+        (transcendental/numeric operator calls), bytes_copied (MEMCPY/MEMSET/MEMCMP/struct assignment),
+        crc_bytes, cpu_cycles (the operations' clock cycles on the modelled CPU, cost_model.COSTS);
+        ``calls_last``/``calls_max`` count calls per POU.
+    task_us_last, task_us_max : float
+        The task's own time (without the background PersistTask, which runs in a task of its own) in
+        the last cycle and the most since start, µs on ``cpu`` (bridge/plc_runtime/cost_model.py).
 
     Examples
     --------
@@ -155,7 +163,8 @@ class PlcRuntime:
     def __init__(self, program: Program | None = None, *, task=("PRG_CompTable",), cycle_s: float = 0.001,
                  library: dict | None = None, constants: dict | None = None, trap_overflow: bool = False,
                  persistent_write_cycles: int = 5, ams_port: int = 851, other_ports=(),
-                 nc_lag_cycles: int = 2, move_cycles: int = 100, background=None) -> None:
+                 nc_lag_cycles: int = 2, move_cycles: int = 100, background=None,
+                 cpu: CpuModel = CX_SLOWEST) -> None:
         if not cycle_s > 0:
             raise ValueError(f"cycle_s must be > 0, got {cycle_s}")
         self.program = program or compile_project()
@@ -171,7 +180,10 @@ class PlcRuntime:
         self.move_cycles = int(move_cycles)
         self.library = {"F_DATA_TO_CRC16_CCITT": crc16_ccitt, **(library or {})}
         self.mem = bytearray(self.program.image)
-        self.work_now = [0, 0, 0, 0]
+        self.work_now = [0] * len(WORK)
+        self.cpu = cpu
+        self.task_us_last = 0.0                        # the task's (not the background's) modelled time, µs
+        self.task_us_max = 0.0
         self.work_max = dict.fromkeys(WORK, 0)
         self.work_last = dict.fromkeys(WORK, 0)
         self.cycles = 0
@@ -230,11 +242,13 @@ class PlcRuntime:
             if self.fault is not None:
                 return False
             work, calls = self.work_now, self.calls_now
-            work[:] = [0, 0, 0, 0]
+            work[:] = [0] * len(WORK)
             calls[:] = [0] * len(calls)
             try:
                 for fn, addr in self._task:
                     fn(addr)
+                self.task_us_last = self.cpu.micros(dict(zip(WORK, work)))
+                self.task_us_max = max(self.task_us_max, self.task_us_last)
                 for fn, addr, every in self._background:
                     if self.cycles % every == every - 1:
                         fn(addr)
@@ -263,6 +277,7 @@ class PlcRuntime:
         with self.lock:
             self.work_max = dict.fromkeys(WORK, 0)
             self.calls_max = dict.fromkeys(self.program.call_names, 0)
+            self.task_us_max = 0.0
 
     def overflow(self, x: float) -> float:
         if self.trap_overflow:
