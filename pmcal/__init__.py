@@ -9,8 +9,8 @@ The library API (:mod:`pmcal.api`), in the style of :mod:`scipy.optimize`::
     table = cal.compensation_table(version=7)        # CompTable; grid=(n_phi, n_theta)
     table.save("t.json")
     report = pmcal.push(table, ads="NETID@HOST:PORT")   # or modbus="HOST:PORT"
-    machine = pmcal.Machine.from_folder("my_delta")  # any machine folder (docs/ADDING_A_MACHINE.md);
-                                                     # pmcal.chain: campaign, identify, compensate
+    machine = pmcal.Machine.from_folder("my_delta")  # any machine folder (docs/ADDING_A_MACHINE.md):
+    meas = pmcal.read_measurements("d.csv", machine) # the same lines then (a ChainCalibration)
 
 Sub-packages, in layer order (each imports only those before it; docs/DEVELOPING.md):
 :mod:`pmcal.mechanism` (machine description), :mod:`pmcal.twin` (MuJoCo digital twin),
@@ -20,8 +20,8 @@ transport), and the application (this package: API, command line, file formats, 
 
 __version__ = "0.2.0"
 
-__all__ = ["Calibration", "CompTable", "Machine", "Measurements", "PushReport", "identify", "load_calibration",
-           "open_link", "push", "read_measurements", "__version__"]
+__all__ = ["Calibration", "ChainCalibration", "ChainMeasurements", "CompTable", "Machine", "Measurements",
+           "PushReport", "identify", "load_calibration", "open_link", "push", "read_measurements", "__version__"]
 
 
 def __getattr__(name: str):

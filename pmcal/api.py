@@ -15,13 +15,16 @@ Examples
 >>> report = pmcal.push(table, ads="127.0.0.1.1.1@127.0.0.1:48898")  # doctest: +SKIP
 
 A machine of one's own is a folder (``docs/ADDING_A_MACHINE.md``): :class:`Machine` holds its validated
-``machine.toml``, its commands' defaults and its twin; :mod:`pmcal.chain` runs the job on it:
+``machine.toml``, its commands' defaults and its twin. The same lines serve it (the campaign knows its
+machine; the calibration is a :class:`~pmcal.chain_calibration.ChainCalibration`):
 
->>> from pmcal import chain
 >>> m = pmcal.Machine.from_folder("my_delta")                     # doctest: +SKIP
->>> meas, truth = chain.campaign(m, 48, seed=3)                   # doctest: +SKIP
->>> res = chain.identify(m, meas)                                 # doctest: +SKIP
->>> commands = chain.compensate(m, res.params, chain.sample_targets(m, 12))  # doctest: +SKIP
+>>> meas = pmcal.read_measurements("m.csv", m)                    # doctest: +SKIP
+>>> cal = pmcal.identify(meas)                                    # doctest: +SKIP
+>>> m_cmd = cal.setpoints([[0.0, 0.0, -800.0]])                   # doctest: +SKIP
+>>> table = cal.compensation_table(version=7)                     # doctest: +SKIP
+
+:mod:`pmcal.chain` has the steps one by one (virtual campaign, plan, identification, compensation).
 """
 
 from __future__ import annotations
@@ -32,45 +35,118 @@ from pmcal.bridge.comptable import CompTable
 from pmcal.bridge.link import PlcLink
 from pmcal.bridge.transfer import PushOptions, PushReport
 from pmcal.bridge.transfer import push as _push
-from pmcal.calibration import Calibration, identify
+from pmcal.calibration import Calibration
+from pmcal.calibration import identify as _identify_ocpm
+from pmcal.chain_calibration import ChainCalibration
 from pmcal.errors import InputError
+from pmcal.io_chain import ChainMeasurements
+from pmcal.io_chain import read_measurements as _read_chain
 from pmcal.io_ocpm import read_measurements as _read_measurements
 from pmcal.machines import Machine
 from pmcal.mechanism.ocpm.data import Measurements
 
-__all__ = ["Calibration", "CompTable", "Machine", "Measurements", "PushReport", "identify", "load_calibration",
-           "open_link", "push", "read_measurements"]
+__all__ = ["Calibration", "ChainCalibration", "ChainMeasurements", "CompTable", "Machine", "Measurements",
+           "PushReport", "identify", "load_calibration", "open_link", "push", "read_measurements"]
+
+#: the seeded machine the ocpm-only calls (no machine given) stand for
+DEFAULT_MACHINE = "ocpm_2dof"
+_FRAMES = ("base", "tracker")
 
 
-def read_measurements(path: str | Path, frame: str = "base") -> Measurements:
-    """Read a measurement campaign of the over-constrained PM (CSV, ``docs/formats.md``).
+def _machine(machine) -> Machine:
+    """A :class:`Machine`, a built-in name or a folder -> Machine (InputError naming ``machine``)."""
+    if isinstance(machine, Machine):
+        return machine
+    return Machine.resolve(DEFAULT_MACHINE if machine is None else machine)
+
+
+def _library_machine(machine: Machine) -> Machine:
+    if machine.legacy and machine.spec.kind != DEFAULT_MACHINE:
+        raise InputError(f"machine '{machine.name}' has no library API yet: use its command line "
+                         f"(pmcal --machine {machine.name} identify ...)", field="machine")
+    return machine
+
+
+def read_measurements(path: str | Path, machine=None, frame: str = "base"):
+    """Read a measurement campaign (CSV, ``docs/formats.md``) of a machine; the campaign knows its machine.
 
     Parameters
     ----------
     path : str or Path
-        UTF-8 CSV with ``pose_id, m1_cmd_deg, m2_cmd_deg, t1_x ... t3_z`` (mm, base frame) and optional
-        ``temp_c, time_s, payload_kg, m1_approach, m2_approach``. A blocked target has its three cells
-        empty (NaN); a row needs at least two targets.
+        UTF-8 CSV. ocpm_2dof: ``pose_id, m1_cmd_deg, m2_cmd_deg, t1_x ... t3_z`` (mm, base frame) and
+        optional ``temp_c, time_s, payload_kg, m1_approach, m2_approach``. A machine folder: ``pose_id``,
+        one command column per motor (``m1_cmd_deg`` or ``m1_cmd_mm``), ``t1_x ...`` per tracker nest (mm,
+        base frame) or ``reading_mm``; optional ``time_s, temp_c``. A blocked target has its three cells
+        empty (NaN).
+    machine : Machine, str or None
+        The machine (:class:`Machine`), a built-in name or a machine folder; None: ocpm_2dof.
     frame : {"base", "tracker"}
-        Frame of the targets; ``"tracker"`` (the tracker's own frame, ``docs/tracker_frame.md``) skips
-        the checks that need the base frame. Pass the same ``frame`` to :func:`identify`.
+        ocpm_2dof only: frame of the targets; ``"tracker"`` (the tracker's own frame,
+        ``docs/tracker_frame.md``) skips the checks that need the base frame. Pass the same ``frame`` to
+        :func:`identify`. (Given as the second positional argument, as before machines, it still works.)
 
     Returns
     -------
-    Measurements
+    Measurements (ocpm_2dof) or ChainMeasurements (a machine folder: ``.machine`` is its machine)
 
     Raises
     ------
     pmcal.errors.InputError
         Naming file, row and field of the first bad cell (also implausible units).
     """
-    if frame not in ("base", "tracker"):
+    if isinstance(machine, str) and machine in _FRAMES:      # read_measurements(path, "tracker")
+        machine, frame = None, machine
+    if frame not in _FRAMES:
         raise InputError(f"unknown frame '{frame}' (base or tracker)", field="--frame")
+    m = _library_machine(_machine(machine))
+    if not m.legacy:
+        if frame != "base":
+            raise InputError("frame='tracker' is for ocpm_2dof; a machine folder's targets are in its base frame",
+                             field="--frame")
+        meas = _read_chain(path, m.spec)
+        meas.machine = m
+        return meas
     return _read_measurements(path, frame=frame)
 
 
-def load_calibration(path: str | Path) -> Calibration:
-    """Read a parameters file (``pmcal identify`` output, or :meth:`Calibration.save`)."""
+def identify(meas, **options):
+    """Identify the machine's errors from a campaign read by :func:`read_measurements`.
+
+    Parameters
+    ----------
+    meas : Measurements or ChainMeasurements
+        The campaign; a machine folder's knows its machine.
+    **options
+        ocpm_2dof: those of :func:`pmcal.calibration.identify` (``model="full"|"paper"``, ``method``,
+        ``sigma``, ``seed`` ...). A machine folder: ``sigma_mm`` (tracker noise, mm; default machine.toml's).
+
+    Returns
+    -------
+    Calibration (ocpm_2dof) or ChainCalibration (a machine folder): ``setpoints``, ``compensation_table``,
+    ``save``, the parameters document.
+
+    Raises
+    ------
+    pmcal.errors.InputError
+        An option the machine does not have, too few or implausible poses.
+    """
+    if isinstance(meas, ChainMeasurements):
+        if meas.machine is None:
+            raise InputError("this campaign does not know its machine: read it with "
+                             "pmcal.read_measurements(path, machine)", field="machine")
+        unknown = sorted(set(options) - {"sigma_mm"})
+        if unknown:
+            raise InputError(f"option {unknown[0]!r} is not one of a machine folder's (sigma_mm)", field=unknown[0])
+        return ChainCalibration.identify(meas.machine, meas, options.get("sigma_mm"))
+    return _identify_ocpm(meas, **options)
+
+
+def load_calibration(path: str | Path, machine=None):
+    """Read a parameters file (``pmcal identify`` output, or ``cal.save``) of ``machine`` (a
+    :class:`Machine`, a built-in name or a folder; None: ocpm_2dof)."""
+    m = _library_machine(_machine(machine))
+    if not m.legacy:
+        return ChainCalibration.load(path, m)
     return Calibration.load(path)
 
 

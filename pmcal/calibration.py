@@ -110,19 +110,26 @@ class Calibration:
         return PaperCompensation(errors, comp.PositionMap.from_dict(pmap) if pmap is not None else None, geom)
 
     @blas_policy()
-    def setpoints(self, phi_deg, theta_deg) -> np.ndarray:
+    def setpoints(self, phi_deg, theta_deg=None) -> np.ndarray:
         """Motor commands (n, 2) deg that point the calibrated machine at the orientations (deg).
 
         Parameters
         ----------
         phi_deg, theta_deg : array_like
-            Azimuth and tilt (tilt-torsion angles, base frame), degrees.
+            Azimuth and tilt (tilt-torsion angles, base frame), degrees; or ``phi_deg`` alone an (n, 2)
+            array of targets ``[phi, theta]`` (the task coordinates, as every machine's ``setpoints`` takes).
 
         Raises
         ------
         pmcal.errors.InputError
             Naming the first orientation out of reach or needing commands outside the motor limits.
         """
+        if theta_deg is None:
+            task = np.atleast_2d(np.asarray(phi_deg, float))
+            if task.ndim != 2 or task.shape[1] != 2:
+                raise InputError(f"targets need 2 columns (phi_deg, theta_deg), got shape {task.shape}",
+                                 field="targets")
+            phi_deg, theta_deg = task[:, 0], task[:, 1]
         phi, theta = np.atleast_1d(np.asarray(phi_deg, float)), np.atleast_1d(np.asarray(theta_deg, float))
         if phi.shape != theta.shape:
             raise InputError(f"phi_deg has {phi.size} values, theta_deg {theta.size}", field="theta_deg")

@@ -134,7 +134,7 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
         y = np.zeros((n, 0, 3))
     ids = list(pose_id) if pose_id is not None else [f"P{i + 1}" for i in range(n)]
     meas = ChainMeasurements(pose_id=ids, commands=commands, targets=y,
-                             time_s=np.arange(n) * float(seconds_per_pose), readings=readings)
+                             time_s=np.arange(n) * float(seconds_per_pose), readings=readings, machine=machine)
     return meas, truth
 
 

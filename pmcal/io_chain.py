@@ -50,7 +50,8 @@ class ChainMeasurements:
     pose_id : list of str; commands : (n, M) deg or mm per motor; targets : (n, K, 3) mm, base frame, NaN for
     a blocked target ((n, 0, 3) for a machine measuring a distance); time_s, temp_c : (n,) or None; path :
     the file (for messages). readings : (n,) mm for a machine measuring a distance, NaN on the first pose
-    of each chain (else None); chain : (n,) chain labels (None: one chain).
+    of each chain (else None); chain : (n,) chain labels (None: one chain); machine : the
+    :class:`pmcal.Machine` of the campaign when read through ``pmcal.read_measurements`` (else None).
     """
 
     pose_id: list[str]
@@ -61,6 +62,7 @@ class ChainMeasurements:
     path: str = ""
     readings: np.ndarray | None = None
     chain: np.ndarray | None = None
+    machine: object = None          # the pmcal.Machine whose campaign this is (set by pmcal.read_measurements)
 
     def chain_starts(self) -> np.ndarray:
         """(n,) True on the first pose of each chain of readings."""

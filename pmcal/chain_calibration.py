@@ -1,0 +1,117 @@
+"""A calibration of a machine described by a folder (the closed-chain core): the same calls as the
+over-constrained PM's :class:`pmcal.calibration.Calibration`, so that the library API reads the same for
+every machine (``pmcal.identify`` -> ``cal.setpoints`` -> ``cal.compensation_table`` -> ``cal.save``).
+
+The calibration owns its parameters document (docs/formats.md, "Any machine": every error's value in mm
+or deg, the base set, the covariance, the prior, the fit's quality), which is what ``pmcal --machine DIR
+identify`` writes; loading it needs the machine (its twin says each error's unit).
+
+Example
+-------
+>>> import pmcal                                                            # doctest: +SKIP
+>>> m = pmcal.Machine.builtin("delta_3dof")                                 # doctest: +SKIP
+>>> cal = pmcal.identify(pmcal.read_measurements("m.csv", m))               # doctest: +SKIP
+>>> cal.setpoints([[0.0, 0.0, -800.0]])                                     # doctest: +SKIP
+array([[...]])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pmcal.bridge.comptable import CompTable
+from pmcal.campaign_quality import refuse_unusable
+from pmcal.chain import (campaign_quality, compensate, compensation_table, identify as identify_errors,
+                         params_document, table_refusal)
+from pmcal.errors import InputError
+from pmcal.fileio import check_output, write_json
+from pmcal.io_chain import ChainMeasurements, read_params
+
+
+@dataclass
+class ChainCalibration:
+    """The identified machine of a folder: its errors and the document that records them.
+
+    Attributes
+    ----------
+    machine : pmcal.Machine
+        The machine (folder) the parameters belong to.
+    document : dict
+        The parameters document (docs/formats.md, "Any machine"), with its ``quality`` object.
+    """
+
+    machine: object
+    document: dict
+
+    @property
+    def params(self) -> dict[str, float]:
+        """Every error considered, ``{key: value}`` in its unit (mm or deg): the identified machine."""
+        return {k: float(v) for k, v in self.document["params"].items()}
+
+    @property
+    def quality(self) -> dict:
+        """The campaign's and the fit's quality (``usable``, ``why``, rank, outliers, held-out check)."""
+        return dict(self.document.get("quality") or {})
+
+    @property
+    def usable(self) -> bool:
+        return self.quality.get("usable", True) is not False
+
+    def _check_usable(self, force: bool) -> None:
+        refuse_unusable(self.document, self.document.get("source") or self.machine.name, force,
+                        "measure poses spread over the workspace ('pmcal twin plan' plans them)")
+
+    def setpoints(self, targets, *, force: bool = False) -> np.ndarray:
+        """Motor commands (n, M) (deg revolute, mm prismatic) that put the task point at ``targets`` (n, C),
+        in the task's coordinates and units (machine.toml ``[task]``: mm and deg), by the identified
+        machine's inverse kinematics. Refused (InputError) for a calibration flagged not usable unless
+        ``force``; an unreachable target is an InputError naming its row."""
+        self._check_usable(force)
+        task = np.atleast_2d(np.asarray(targets, float))
+        width = len(self.machine.spec.task.coordinates)
+        if task.shape[1] != width:
+            raise InputError(f"targets need {width} columns ({', '.join(self.machine.spec.task.coordinates)}), "
+                             f"got {task.shape[1]}", field="targets")
+        return compensate(self.machine, self.params, task)
+
+    def compensation_table(self, version: int = 1, grid=None, *, absolute: bool | None = None,
+                           force: bool = False) -> CompTable:
+        """The PLC's compensation table (format 4, docs/compensation_table.md) over machine.toml's ``[table]``
+        axes: corrections to the controller's nominal IK by default, absolute commands with ``absolute``.
+        ``grid``: nodes per axis (default ``[table] nodes``). InputError for a machine without a table, or a
+        calibration flagged not usable (unless ``force``)."""
+        why = table_refusal(self.machine)
+        if why:
+            raise InputError(why, field="compensation_table")
+        self._check_usable(force)
+        return compensation_table(self.machine, self.params, int(version), grid, absolute=absolute)
+
+    def to_document(self) -> dict:
+        """The parameters document (a copy)."""
+        return dict(self.document)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the parameters JSON (what ``pmcal --machine DIR identify`` writes), atomically, after the
+        output guard (:func:`pmcal.fileio.check_output`); returns the path."""
+        check_output(path, suffixes=(".json",))
+        write_json(path, self.document)
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | Path, machine) -> ChainCalibration:
+        """Read a parameters JSON of ``machine`` (checked: its mechanism, error keys and value sizes)."""
+        units = dict(zip(machine.twin.error_keys, machine.twin.error_units()))
+        _, doc = read_params(path, machine.spec, units)
+        return cls(machine, doc)
+
+    @classmethod
+    def identify(cls, machine, meas: ChainMeasurements, sigma_mm: float | None = None) -> ChainCalibration:
+        """Identify ``machine``'s errors from a campaign (:func:`pmcal.chain.identify`) and judge it
+        (:func:`pmcal.chain.campaign_quality`)."""
+        res = identify_errors(machine, meas, sigma_mm)
+        quality = campaign_quality(machine, meas, res, sigma_mm)
+        return cls(machine, dict(params_document(machine, res, meas.path or None), quality=quality))
+
