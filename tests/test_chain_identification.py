@@ -190,3 +190,20 @@ def test_held_out_check_passes_a_right_model_and_fails_a_missing_effect(twin, ca
     y[:, :, 2] += 0.0005 * cmd[:, :1] ** 2 / 10
     sagged = identify_chain(twin, cmd, y, twin.sigma_mm)
     assert sagged.info["held_out"]["passed"] is False and sagged.info["held_out"]["p_value"] < 1e-6
+
+
+def test_errors_three_times_their_prior_sizes_are_fitted_exactly_when_the_data_say_so(twin):
+    """Noise-free data of a Delta whose every error is drawn at three times its machine.toml size: declared
+    with the noise they have (1e-4 mm), the fit reaches the exact solution (residual <= 1e-4 mm, the nests at
+    held-out poses to 1e-3 mm), the prior no longer holding it back; declared with 0.01 mm, the prior keeps
+    the fit about 0.1 sigma off (a residual of ~1e-3 mm that no noise of that size could show)."""
+    rng = np.random.default_rng(1)
+    true = {k: float(rng.normal(0.0, 3.0 * s)) for k, s in zip(twin.error_keys, twin.prior_std())}
+    cmd = twin.sample_commands(48, rng)
+    held = twin.sample_commands(30, np.random.default_rng(1001))
+    y = twin.targets(cmd, true)
+    exact = identify_chain(twin, cmd, y, 1e-4)
+    assert exact.residual_rms_mm <= 1e-4
+    assert np.abs(twin.targets(held, exact.params) - twin.targets(held, true)).max() < 1e-3
+    held_back = identify_chain(twin, cmd, y, 0.01)
+    assert 3e-4 < held_back.residual_rms_mm < 0.2 * 0.01
