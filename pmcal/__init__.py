@@ -21,7 +21,8 @@ transport), and the application (this package: API, command line, file formats, 
 __version__ = "0.2.0"
 
 __all__ = ["Calibration", "ChainCalibration", "ChainMeasurements", "CompTable", "Machine", "Measurements",
-           "PushReport", "identify", "load_calibration", "open_link", "push", "read_measurements", "__version__"]
+           "PlanarCalibration", "PlanarMeasurements", "PushReport", "identify", "load_calibration", "open_link",
+           "push", "read_measurements", "__version__"]
 
 
 def __getattr__(name: str):

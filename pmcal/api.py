@@ -42,14 +42,21 @@ from pmcal.errors import InputError
 from pmcal.io_chain import ChainMeasurements
 from pmcal.io_chain import read_measurements as _read_chain
 from pmcal.io_ocpm import read_measurements as _read_measurements
+from pmcal.io_planar import PlanarMeasurements
+from pmcal.io_planar import read_measurements as _read_planar
 from pmcal.machines import Machine
 from pmcal.mechanism.ocpm.data import Measurements
+from pmcal.planar_calibration import PlanarCalibration
+from pmcal.planar_calibration import identify as _identify_planar
+from pmcal.twin.planar.config import default_machine as _planar_machine
 
 __all__ = ["Calibration", "ChainCalibration", "ChainMeasurements", "CompTable", "Machine", "Measurements",
-           "PushReport", "identify", "load_calibration", "open_link", "push", "read_measurements"]
+           "PlanarCalibration", "PlanarMeasurements", "PushReport", "identify", "load_calibration", "open_link",
+           "push", "read_measurements"]
 
 #: the seeded machine the ocpm-only calls (no machine given) stand for
 DEFAULT_MACHINE = "ocpm_2dof"
+PLANAR = "planar_2dof"
 _FRAMES = ("base", "tracker")
 
 
@@ -58,13 +65,6 @@ def _machine(machine) -> Machine:
     if isinstance(machine, Machine):
         return machine
     return Machine.resolve(DEFAULT_MACHINE if machine is None else machine)
-
-
-def _library_machine(machine: Machine) -> Machine:
-    if machine.legacy and machine.spec.kind != DEFAULT_MACHINE:
-        raise InputError(f"machine '{machine.name}' has no library API yet: use its command line "
-                         f"(pmcal --machine {machine.name} identify ...)", field="machine")
-    return machine
 
 
 def read_measurements(path: str | Path, machine=None, frame: str = "base"):
@@ -79,7 +79,8 @@ def read_measurements(path: str | Path, machine=None, frame: str = "base"):
         base frame) or ``reading_mm``; optional ``time_s, temp_c``. A blocked target has its three cells
         empty (NaN).
     machine : Machine, str or None
-        The machine (:class:`Machine`), a built-in name or a machine folder; None: ocpm_2dof.
+        The machine (:class:`Machine`), a built-in name or a machine folder; None: ocpm_2dof. planar_2dof:
+        ``pose_id, theta1_cmd_deg, theta2_cmd_deg, scale_change_mm`` (docs/planar_measurement_format.md).
     frame : {"base", "tracker"}
         ocpm_2dof only: frame of the targets; ``"tracker"`` (the tracker's own frame,
         ``docs/tracker_frame.md``) skips the checks that need the base frame. Pass the same ``frame`` to
@@ -87,7 +88,8 @@ def read_measurements(path: str | Path, machine=None, frame: str = "base"):
 
     Returns
     -------
-    Measurements (ocpm_2dof) or ChainMeasurements (a machine folder: ``.machine`` is its machine)
+    Measurements (ocpm_2dof), PlanarMeasurements (planar_2dof) or ChainMeasurements (a machine folder);
+    ``.machine`` is its machine (planar_2dof and folders)
 
     Raises
     ------
@@ -98,15 +100,15 @@ def read_measurements(path: str | Path, machine=None, frame: str = "base"):
         machine, frame = None, machine
     if frame not in _FRAMES:
         raise InputError(f"unknown frame '{frame}' (base or tracker)", field="--frame")
-    m = _library_machine(_machine(machine))
-    if not m.legacy:
-        if frame != "base":
-            raise InputError("frame='tracker' is for ocpm_2dof; a machine folder's targets are in its base frame",
-                             field="--frame")
-        meas = _read_chain(path, m.spec)
-        meas.machine = m
-        return meas
-    return _read_measurements(path, frame=frame)
+    m = _machine(machine)
+    if m.legacy and m.spec.kind == DEFAULT_MACHINE:
+        return _read_measurements(path, frame=frame)
+    if frame != "base":
+        raise InputError(f"frame='tracker' is for ocpm_2dof; {m.name}'s campaign is in its base frame",
+                         field="--frame")
+    meas = _read_planar(path, _planar_machine().geometry) if m.legacy else _read_chain(path, m.spec)
+    meas.machine = m
+    return meas
 
 
 def identify(meas, **options):
@@ -114,16 +116,18 @@ def identify(meas, **options):
 
     Parameters
     ----------
-    meas : Measurements or ChainMeasurements
-        The campaign; a machine folder's knows its machine.
+    meas : Measurements, PlanarMeasurements or ChainMeasurements
+        The campaign (it knows its machine).
     **options
         ocpm_2dof: those of :func:`pmcal.calibration.identify` (``model="full"|"paper"``, ``method``,
-        ``sigma``, ``seed`` ...). A machine folder: ``sigma_mm`` (tracker noise, mm; default machine.toml's).
+        ``sigma``, ``seed`` ...). planar_2dof: those of :func:`pmcal.planar_calibration.identify` (``model``,
+        ``method``, ``sigma``, ``allow_rank_deficient``). A machine folder: ``sigma_mm`` (tracker noise, mm;
+        default machine.toml's).
 
     Returns
     -------
-    Calibration (ocpm_2dof) or ChainCalibration (a machine folder): ``setpoints``, ``compensation_table``,
-    ``save``, the parameters document.
+    Calibration (ocpm_2dof), PlanarCalibration (planar_2dof) or ChainCalibration (a machine folder):
+    ``setpoints``, ``compensation_table``, ``save``, the parameters document.
 
     Raises
     ------
@@ -138,15 +142,19 @@ def identify(meas, **options):
         if unknown:
             raise InputError(f"option {unknown[0]!r} is not one of a machine folder's (sigma_mm)", field=unknown[0])
         return ChainCalibration.identify(meas.machine, meas, options.get("sigma_mm"))
+    if isinstance(meas, PlanarMeasurements):
+        return _identify_planar(meas, **options)
     return _identify_ocpm(meas, **options)
 
 
 def load_calibration(path: str | Path, machine=None):
     """Read a parameters file (``pmcal identify`` output, or ``cal.save``) of ``machine`` (a
     :class:`Machine`, a built-in name or a folder; None: ocpm_2dof)."""
-    m = _library_machine(_machine(machine))
+    m = _machine(machine)
     if not m.legacy:
         return ChainCalibration.load(path, m)
+    if m.spec.kind == PLANAR:
+        return PlanarCalibration.load(path)
     return Calibration.load(path)
 
 

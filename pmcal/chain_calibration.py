@@ -41,10 +41,13 @@ class ChainCalibration:
         The machine (folder) the parameters belong to.
     document : dict
         The parameters document (docs/formats.md, "Any machine"), with its ``quality`` object.
+    path : str
+        The file it was loaded from ("" when identified here): what a refusal names.
     """
 
     machine: object
     document: dict
+    path: str = ""
 
     @property
     def params(self) -> dict[str, float]:
@@ -61,7 +64,7 @@ class ChainCalibration:
         return self.quality.get("usable", True) is not False
 
     def _check_usable(self, force: bool) -> None:
-        refuse_unusable(self.document, self.document.get("source") or self.machine.name, force,
+        refuse_unusable(self.document, self.path or self.machine.name, force,
                         "measure poses spread over the workspace ('pmcal twin plan' plans them)")
 
     def setpoints(self, targets, *, force: bool = False) -> np.ndarray:
@@ -105,7 +108,7 @@ class ChainCalibration:
         """Read a parameters JSON of ``machine`` (checked: its mechanism, error keys and value sizes)."""
         units = dict(zip(machine.twin.error_keys, machine.twin.error_units()))
         _, doc = read_params(path, machine.spec, units)
-        return cls(machine, doc)
+        return cls(machine, doc, path=str(path))
 
     @classmethod
     def identify(cls, machine, meas: ChainMeasurements, sigma_mm: float | None = None) -> ChainCalibration:

@@ -46,6 +46,7 @@ class PlanarMeasurements:
     segments: np.ndarray
     r: np.ndarray
     path: str = ""
+    machine: object = None          # the pmcal.Machine whose campaign this is (set by pmcal.read_measurements)
 
 
 def _plausible_positions(geom: Geometry, theta: np.ndarray, path: str, fields: str) -> np.ndarray:

@@ -59,10 +59,6 @@ def option_help(machine) -> dict:
     return OPTION_HELP
 
 
-MODEL_CHOICES = {None: "simplified", "paper": "simplified", "simplified": "simplified", "full": "full",
-                 "chain": "chain"}
-
-
 def _status(text: str) -> None:
     from pmcal import progress
     progress.status(text)
@@ -73,58 +69,32 @@ def _machine():
     return default_machine()
 
 
-def _noise(machine, sigma: float | None):
-    from pmcal.mechanism.planar.noise import Noise
-    if sigma is None:
-        return machine.noise
-    if not (math.isfinite(sigma) and sigma > 0):
-        raise InputError(f"scale noise must be a positive number of mm, got {sigma}", field="--sigma")
-    return Noise(scale=float(sigma), servo=machine.noise.servo)
-
-
 def identify(args) -> int:
-    """``pmcal --machine planar_2dof identify MEAS.csv -o PARAMS.json [--model full] [--method tsvd|ls|gls]``."""
+    """``pmcal --machine planar_2dof identify MEAS.csv -o PARAMS.json [--model full|chain] [--method tsvd|ls|gls]``:
+    :func:`pmcal.planar_calibration.identify`, its document written, one line printed."""
     if getattr(args, "history", None):
         raise InputError("--history files ocpm_2dof calibrations only", field="--history")
-    from pmcal.calib.planar.identification import METHODS, identify as run
-    from pmcal.campaign_quality import judge
-    from pmcal.fileio import write_json
-    from pmcal.io_planar import params_document, read_measurements
+    from pmcal.io_planar import read_measurements
+    from pmcal.planar_calibration import identify as run
 
-    machine = _machine()
-    model = MODEL_CHOICES.get(getattr(args, "model", None))
-    if model is None:
-        raise InputError(f"unknown model '{args.model}' (simplified/paper, full or chain)", field="--model")
-    if model == "chain":
-        return identify_chain_model(args, machine)
-    method = getattr(args, "method", None) or machine.calibration.method
-    if method not in METHODS:
-        raise InputError(f"unknown method '{method}' for planar_2dof ({', '.join(METHODS)})", field="--method")
-    meas = read_measurements(args.measurements, machine.geometry)
-    n_unknowns = 4 if model == "simplified" else 12
-    if len(meas.readings) < n_unknowns:
-        raise InputError(f"{len(meas.readings)} readings for {n_unknowns} unknowns of the {model} model",
-                         file=meas.path, field="scale_change_mm")
-    noise = _noise(machine, getattr(args, "sigma", None))
-    res = run(machine.geometry, meas.r, meas.readings, model=model, method=method, segments=meas.segments,
-              noise=noise)
-    doc = params_document(res, {"n_positions": len(meas.ids), "source": str(args.measurements),
-                                "noise": {"scale_sigma_mm": noise.scale,
-                                          "servo_sigma_deg": math.degrees(noise.servo)}})
-    doc["quality"] = judge(int(doc.get("rank") or 0), len(doc["params"]), what="position", unit="mm")
-    deficient = rank_deficiency(machine.geometry, meas, model, doc)
-    if deficient and not getattr(args, "allow_rank_deficient", False):
-        doc["success"] = False
-        doc["message"] = (f"{deficient}; the parameters along the null space are not identified (values and "
-                          "uncertainties hold only for the identifiable combinations). --allow-rank-deficient "
-                          "accepts the minimum-norm solution")
+    meas = read_measurements(args.measurements, _machine().geometry)
+    cal = run(meas, model=getattr(args, "model", None), method=getattr(args, "method", None),
+              sigma=getattr(args, "sigma", None), allow_rank_deficient=bool(getattr(args, "allow_rank_deficient", False)))
+    doc = cal.document
+    doc["source"] = str(args.measurements)
+    from pmcal.fileio import write_json
     write_json(args.output, doc)
     p = doc["params"]
-    print(f"{model} model, {method}: dtheta1 = {p['dtheta1']:.4f} deg, dtheta2 = {p['dtheta2']:.4f} deg, "
-          f"drM = ({p['drMx']:.3f}, {p['drMy']:.3f}) mm; rank {doc['rank']}, "
+    if doc["model"] == "chain":
+        print(f"chain model: {doc['rank']} of {len(p)} errors identifiable (base set); dtheta1 = "
+              f"{p['dtheta1']:.4f} deg, dtheta2 = {p['dtheta2']:.4f} deg; residual {doc['residual_rms_mm']:.4f} mm "
+              f"rms -> {args.output}")
+        return 0
+    print(f"{doc['model']} model, {doc['method']}: dtheta1 = {p['dtheta1']:.4f} deg, dtheta2 = {p['dtheta2']:.4f} "
+          f"deg, drM = ({p['drMx']:.3f}, {p['drMy']:.3f}) mm; rank {doc['rank']}, "
           f"cond {doc['condition_number']:.1f} -> {args.output}")
-    if deficient and not getattr(args, "allow_rank_deficient", False):
-        raise RunError(f"{args.output} written with success false: {deficient} (--allow-rank-deficient "
+    if cal.deficient:
+        raise RunError(f"{args.output} written with success false: {cal.deficient} (--allow-rank-deficient "
                        "accepts it)")
     if not doc["success"]:
         from pmcal import progress
@@ -132,101 +102,25 @@ def identify(args) -> int:
     return 0
 
 
-def identify_chain_model(args, machine) -> int:
-    """``identify --model chain``: the paper's 12 errors on the generic closed-chain core
-    (``mjcf/planar_2dof/chain``: exact model, exact Jacobian, generalised least squares with the servo and
-    scale noise, Tikhonov prior) through the closed-form fast path
-    (:class:`pmcal.mechanism.planar.chain.PlanarChainModel`, the same numbers as the MuJoCo twin of the folder
-    to 1e-9, tests/test_planar_chain_model.py): the identifiable base set is found from the data and the
-    combinations it cannot separate are written out (``unidentifiable``)."""
-    from pmcal.calib.closed_chain import identify_chain, reading_covariance
-    from pmcal.fileio import write_json
-    from pmcal.io_planar import MECHANISM, read_measurements
-    from pmcal.mechanism.planar.geometry import ERROR_KEYS, interface_unit
-
-    if getattr(args, "method", None):
-        raise InputError("--model chain fits by least squares on the exact model (no --method)", field="--method")
-    meas = read_measurements(args.measurements, machine.geometry)
-    noise = _noise(machine, getattr(args, "sigma", None))
-    model = _chain_model(machine)
-    cmd = np.rad2deg(meas.theta_cmd)
-    servo = [math.degrees(noise.servo)] * 2
-    cov = reading_covariance(model, cmd, servo, noise.scale, meas.segments)
-    try:
-        res = identify_chain(model, cmd, meas.readings, noise.scale, keys=list(ERROR_KEYS), segments=meas.segments,
-                             covariance=cov)
-    except ValueError as exc:
-        raise InputError(str(exc), file=meas.path) from None
-    doc = {"mechanism": MECHANISM, "model": "chain", "method": "lm+tikhonov (generic closed-chain core)",
-           "params": {k: float(res.params[k]) for k in ERROR_KEYS},
-           "units": {k: interface_unit(k) for k in ERROR_KEYS}, "identifiable": list(res.base),
-           "uncertainty": dict(res.std), "crlb": dict(res.crlb), "combinations": dict(res.combinations),
-           "unidentifiable": list(res.unidentifiable), "weak": list(res.weak), "rank": int(res.rank),
-           "condition_number": float(res.condition_number), "residual_rms_mm": float(res.residual_rms_mm),
-           "chi2_per_dof": float(res.chi2_per_dof), "n_readings": int(len(meas.readings)),
-           "n_positions": len(meas.ids), "source": str(args.measurements), "success": bool(res.success),
-           "message": res.message, "noise": {"scale_sigma_mm": noise.scale, "servo_sigma_deg": servo[0]}}
-    write_json(args.output, doc)
-    p = doc["params"]
-    print(f"chain model: {res.rank} of {len(ERROR_KEYS)} errors identifiable (base set); dtheta1 = "
-          f"{p['dtheta1']:.4f} deg, dtheta2 = {p['dtheta2']:.4f} deg; residual {res.residual_rms_mm:.4f} mm rms "
-          f"-> {args.output}")
-    return 0
-
-
-def rank_deficiency(geom, meas, model: str, doc: dict) -> str:
-    """Describe the null space of the identification matrix ``G`` (eq. 24/28) in ``doc`` ("null_space": one
-    unit vector per missing rank, keyed by parameter, in the scaled unknowns of eq. 29: mm, and mm per
-    link length for the zero offsets); return a one-line summary, or "" when ``G`` has full column rank."""
-    from pmcal.calib.planar.identification import MODELS, system
-
-    G, _ = system(geom, meas.r, meas.readings, model, None, meas.segments)
-    _, s, Vt = np.linalg.svd(G)
-    rank = int(doc.get("rank") or 0)
-    n = G.shape[1]
-    if rank >= n:
-        return ""
-    keys = list(MODELS[model])
-    null = [{k: round(float(v), 6) for k, v in zip(keys, vec) if abs(v) > 1e-6} for vec in Vt[rank:]]
-    doc["null_space"] = null
-    biggest = [max(vec, key=lambda k: abs(vec[k])) for vec in null]
-    return (f"rank {rank} of {n}: the readings cannot tell {n - rank} combination(s) of the parameters "
-            f"apart (largest in {', '.join(dict.fromkeys(biggest))})")
-
-
-def _chain_model(machine):
-    """The generic core's model of this machine: ``mjcf/planar_2dof/chain`` through the paper's closed forms
-    (the fast path, :class:`pmcal.mechanism.planar.chain.PlanarChainModel`)."""
-    from pmcal.mechanism.machine_spec import MachineSpec
-    from pmcal.mechanism.planar.chain import PlanarChainModel
-    from pmcal.mjcf import machine_dir
-
-    return PlanarChainModel(MachineSpec.load(machine_dir("planar_2dof") / "chain"), machine.geometry)
-
-
 def compensate(args) -> int:
     """Motor commands (deg) that bring the identified machine to target positions (mm): the generic core's
     compensation (:func:`pmcal.calib.closed_chain.compensate_targets`: the identified machine's inverse
     kinematics, the zero offsets taken off) on the closed-form fast path (paper section 5)."""
-    from pmcal.calib.closed_chain import compensate_targets
-    from pmcal.campaign_quality import refuse_unusable
-    from pmcal.io_planar import read_params, read_targets, write_setpoints
+    from pmcal.io_planar import read_targets, write_setpoints
+    from pmcal.planar_calibration import PlanarCalibration
 
     if getattr(args, "table", None) or getattr(args, "grid", None):
         raise InputError("compensation tables are not available for planar_2dof", field="--table")
     if not getattr(args, "targets", None) or not getattr(args, "output", None):
         raise InputError("planar_2dof needs --targets TARGETS.csv and -o SETPOINTS.csv", field="--targets")
-    machine = _machine()
-    errors, doc = read_params(args.params)
-    refuse_unusable(doc, str(args.params), bool(getattr(args, "force", False)),
-                    fix=f"measure at least {2 * len(errors.as_internal())} positions spread over the workspace "
-                        "('pmcal --machine planar_2dof twin measure --poses 24')")
-    r, rows, header = read_targets(args.targets, machine.geometry)
-    theta = np.deg2rad(compensate_targets(_chain_model(machine), errors.as_interface(), r))
-    if not np.all(np.isfinite(theta)):
-        row = int(np.flatnonzero(~np.all(np.isfinite(theta), axis=1))[0]) + 1
-        raise InputError("out of reach of the identified machine (or outside a motor's range)", file=args.targets,
-                         row=row, field="y_mm")
+    cal = PlanarCalibration.load(args.params)
+    r, rows, header = read_targets(args.targets, _machine().geometry)
+    try:
+        theta = np.deg2rad(cal.setpoints(r, force=bool(getattr(args, "force", False))))
+    except InputError as exc:
+        if exc.row is None:
+            raise
+        raise InputError(exc.message, file=args.targets, row=exc.row, field=exc.field) from None
     write_setpoints(args.output, header, rows, theta, comments=[
         f"pmcal compensate, machine planar_2dof, parameters {args.params}", "units: mm, deg"])
     print(f"{len(r)} setpoints for the targets of {args.targets} (machine planar_2dof, parameters {args.params})")
@@ -240,11 +134,12 @@ def evaluate(args) -> int:
     from pmcal.calib.closed_chain import reading_operator
     from pmcal.fileio import write_json
     from pmcal.io_planar import read_measurements, read_params
+    from pmcal.planar_calibration import chain_model
 
     machine = _machine()
     errors, _ = read_params(args.params)
     meas = read_measurements(args.measurements, machine.geometry)
-    model = _chain_model(machine)
+    model = chain_model(machine)
     D = reading_operator(len(meas.ids), model.reading_reference, meas.segments)
     cmd = np.rad2deg(meas.theta_cmd)
 
