@@ -34,6 +34,7 @@ from pathlib import Path
 
 from pmcal import __version__, machines, progress, threads
 from pmcal.commands.options import CommandSet
+from pmcal.commands.routing import option_help
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import check_output
 from pmcal.option_ranges import check_ranges
@@ -141,7 +142,7 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
                              "libraries' own default); see docs/speed.md")
     record: dict = {}
     describe = "" if selected.name == DEFAULT_MACHINE else f"(machine {selected.name}) "
-    commands = CommandSet(parser.add_subparsers(dest="command", metavar="COMMAND"), selected.option_help(),
+    commands = CommandSet(parser.add_subparsers(dest="command", metavar="COMMAND"), option_help(selected),
                           record, _finish_command, describe=describe)
     import pmcal.commands as command_modules
     for info in sorted(pkgutil.iter_modules(command_modules.__path__), key=lambda i: i.name):

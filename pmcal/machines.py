@@ -1,19 +1,14 @@
 """Registry of machines: a built-in name (a folder under ``mjcf/``) or any folder holding ``<name>.xml``
-and ``machine.toml``, routed to the application module that implements its commands.
-
-An application module implements the subcommands that make sense for its machine as functions taking
-the parsed ``argparse`` namespace and returning an exit status (``identify``, ``compensate``,
-``twin_measure``, ...), ``option_help(machine)`` (the table of per-machine help texts of
-:mod:`pmcal.commands.options`) and ``command_defaults(machine)``. A command a machine does not implement is refused with a clear message.
+and ``machine.toml``, and the name of the application module that implements its commands (imported by
+:mod:`pmcal.commands.routing`, the layer above). Also the markers a machine's table of option help uses to
+say what it supports (:data:`HIDDEN`, :data:`ABSENT`; :mod:`pmcal.commands.options`).
 """
 
 from __future__ import annotations
 
-import importlib
 import json
 import re
 from pathlib import Path
-from types import ModuleType
 
 from pmcal.errors import InputError
 from pmcal.mechanism.machine_spec import MachineSpec
@@ -31,6 +26,10 @@ LEGACY_APPS: dict[str, str] = {
 GENERIC_APP = "pmcal.apps.chain"
 #: the configuration file of a machine folder
 TOML_NAME = "machine.toml"
+#: a machine's option-help table value: the option is accepted but not listed in ``--help``
+HIDDEN = None
+#: a machine's option-help table value: the option does not exist for this machine
+ABSENT = "<absent>"
 
 
 def builtin_names() -> list[str]:
@@ -66,16 +65,14 @@ class Machine:
         The folder's configuration (docs/machine_toml.md): motors, targets, task coordinates, workspace,
         errors, tracker noise, table axes. ``spec.legacy`` for the seeded machines.
     name, folder : the machine's name (``[machine] name``, else the folder's) and its folder.
-    app_name : the application module of its commands (:data:`LEGACY_APPS` or :data:`GENERIC_APP`).
-    defaults : dict
-        Defaults of the machine's commands (``twin measure --poses``, ``--noise``, ``targets --count``, ...),
-        from the application module's ``command_defaults(machine)``.
+    app_name : the application module of its commands (:data:`LEGACY_APPS` or :data:`GENERIC_APP`;
+        :mod:`pmcal.commands.routing` imports it and gives its commands' defaults and option help).
 
     Examples
     --------
     >>> m = Machine.builtin("delta_3dof")                        # doctest: +SKIP
-    >>> m.spec.motor_columns, m.defaults["poses"]                 # doctest: +SKIP
-    (('m1_cmd_deg', 'm2_cmd_deg', 'm3_cmd_deg'), 48)
+    >>> m.spec.motor_columns                                      # doctest: +SKIP
+    ('m1_cmd_deg', 'm2_cmd_deg', 'm3_cmd_deg')
     >>> Machine.from_folder("/home/me/my_delta").twin.error_keys   # doctest: +SKIP
     """
 
@@ -114,18 +111,6 @@ class Machine:
         return cls.from_folder(machine_folder(value))
 
     @property
-    def app(self) -> ModuleType:
-        return importlib.import_module(self.app_name)
-
-    def option_help(self) -> dict:
-        """The application's per-machine help table (:mod:`pmcal.commands.options`)."""
-        return self.app.option_help(self)
-
-    @property
-    def defaults(self) -> dict:
-        return self.app.command_defaults(self)
-
-    @property
     def twin(self):
         """The closed-chain digital twin (:class:`pmcal.twin.closed_chain.ClosedChainTwin`), compiled on
         first use. The seeded machines have their own twins (``pmcal.twin.machine``, ``pmcal.twin.planar``)."""
@@ -148,16 +133,6 @@ class Machine:
 def resolve(value: str | Path) -> Machine:
     """The machine ``--machine VALUE`` selects."""
     return Machine.resolve(value)
-
-
-def dispatch(command: str, args) -> int:
-    """Run ``command`` of the machine selected by ``args.machine``."""
-    machine = getattr(args, "selected_machine", None) or resolve(args.machine)
-    func = getattr(machine.app, command, None)
-    if func is None:
-        raise InputError(f"'{command.replace('_', ' ')}' is not available for machine '{machine.name}'",
-                         field="--machine")
-    return int(func(args) or 0)
 
 
 def file_machine(path: str | Path) -> str | None:

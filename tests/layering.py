@@ -26,7 +26,14 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("twin", ("pmcal.twin",)),
     ("identification and compensation", ("pmcal.calib",)),
     ("bridge", ("pmcal.bridge",)),
-    ("application", ("pmcal",)),
+    # the application, in its own sub-layers: file formats, the library API, reports, the applications of
+    # the machines (their commands' handlers and studies), the command parsers, the entry point
+    ("application: file formats", ("pmcal.io_ocpm", "pmcal.io_chain", "pmcal.io_planar", "pmcal.io_tracker")),
+    ("application: library", ("pmcal",)),
+    ("application: reports", ("pmcal.reports",)),
+    ("application: apps", ("pmcal.apps", "pmcal.studies")),
+    ("application: commands", ("pmcal.commands",)),
+    ("application: cli", ("pmcal.cli",)),
 ]
 #: (importer prefix, forbidden prefix, why)
 FORBIDDEN = [

@@ -403,11 +403,12 @@ def test_the_api_gives_one_machine_object(tmp_path):
     m = pmcal.Machine.from_folder(folder)
     assert (m.name, m.folder, m.legacy, m.app_name) == ("delta_3dof", folder.resolve(), False, "pmcal.apps.chain")
     assert m.spec.motor_columns == ("m1_cmd_deg", "m2_cmd_deg", "m3_cmd_deg")
-    assert m.defaults == {"poses": 48, "sigma_mm": m.spec.sigma_mm, "errors": "random"}
+    from pmcal.commands.routing import command_defaults
+    assert command_defaults(m) == {"poses": 48, "sigma_mm": m.spec.sigma_mm, "errors": "random"}
     assert m._twin is None                              # compiled on first use only
     assert m.twin is m.twin and "m1.dzero" in m.twin.error_keys
     seeded = pmcal.Machine.builtin("ocpm_2dof")
-    assert seeded.legacy and seeded.app_name == "pmcal.apps.ocpm" and seeded.defaults["poses"] == 24
+    assert seeded.legacy and seeded.app_name == "pmcal.apps.ocpm" and command_defaults(seeded)["poses"] == 24
     from pmcal.errors import InputError
     with pytest.raises(InputError, match="dedicated twin"):
         seeded.twin

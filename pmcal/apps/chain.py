@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 
-from pmcal.commands.options import ABSENT
+from pmcal.machines import ABSENT
 from pmcal.io_chain import setpoint_columns
 
 #: options of the seeded machines' commands that a machine folder does not have (argparse refuses them)
@@ -33,7 +33,7 @@ DEFAULT_POSES = 48
 
 
 def command_defaults(machine) -> dict:
-    """Defaults of the commands for ``machine`` (:attr:`pmcal.machines.Machine.defaults`): campaign poses,
+    """Defaults of the commands for ``machine`` (:func:`pmcal.commands.routing.command_defaults`): campaign poses,
     tracker noise (mm, from machine.toml), the twin's error set."""
     return {"poses": DEFAULT_POSES, "sigma_mm": machine.spec.sigma_mm, "errors": "random"}
 

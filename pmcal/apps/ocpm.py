@@ -1,14 +1,14 @@
 """Application of the over-constrained 2-DoF PM (``--machine ocpm_2dof``, the default).
 
 Each command lives in the module that owns its subject; this module only routes, lazily, so a command
-imports only what it needs (:func:`pmcal.machines.dispatch` looks the command up by name).
+imports only what it needs (:func:`pmcal.commands.routing.dispatch` looks the command up by name).
 """
 
 from __future__ import annotations
 
 import importlib
 
-from pmcal.commands.options import ABSENT, HIDDEN
+from pmcal.machines import ABSENT, HIDDEN
 
 #: this machine's wording of the commands' options (:mod:`pmcal.commands.options`)
 OPTION_HELP = {
@@ -37,7 +37,7 @@ ROUTES = {
 }
 
 
-#: defaults of this machine's commands (:attr:`pmcal.machines.Machine.defaults`)
+#: defaults of this machine's commands (:func:`pmcal.commands.routing.command_defaults`)
 DEFAULTS = {"poses": 24}
 
 

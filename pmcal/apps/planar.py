@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from pmcal.commands.options import ABSENT, HIDDEN
+from pmcal.machines import ABSENT, HIDDEN
 from pmcal.errors import InputError, RunError, for_option
 from pmcal.option_ranges import parse_task_pose
 
@@ -45,7 +45,7 @@ OPTION_HELP = {
 }
 
 
-#: defaults of this machine's commands (:attr:`pmcal.machines.Machine.defaults`): 6 positions, the paper's
+#: defaults of this machine's commands (:func:`pmcal.commands.routing.command_defaults`): 6 positions, the paper's
 DEFAULTS = {"poses": 6}
 
 

@@ -542,7 +542,7 @@ def _stop_on_sigterm() -> list:
 
 def cmd_loop(args) -> int:
     """ocpm_2dof's loop (:mod:`pmcal.apps.plc_loop`), or a machine folder's (:mod:`pmcal.apps.chain_loop`)."""
-    from pmcal.machines import dispatch
+    from pmcal.commands.routing import dispatch
 
     if not args.selected_machine.legacy:
         return dispatch("loop", args)

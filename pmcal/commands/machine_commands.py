@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from pmcal.commands.options import CommandSet
-from pmcal.machines import dispatch
+from pmcal.commands.routing import dispatch
 
 
 def _cmd(name: str):

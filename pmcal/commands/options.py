@@ -22,10 +22,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable, Mapping
 
-#: table value: the option is accepted but not listed in ``--help``
-HIDDEN = None
-#: table value: the option does not exist for this machine
-ABSENT = "<absent>"
+from pmcal.machines import ABSENT, HIDDEN  # noqa: F401  (the table's markers: what a machine supports)
 
 HelpTable = Mapping[tuple[str, str], "str | dict | None"]
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pmcal.commands.options import CommandSet
-from pmcal.machines import dispatch
+from pmcal.commands.routing import dispatch
 
 
 def register(sub: CommandSet) -> None:

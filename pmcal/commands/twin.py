@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pmcal.commands.options import Command, CommandSet
 from pmcal.errors import InputError
-from pmcal.machines import dispatch
+from pmcal.commands.routing import dispatch
 
 #: image size limits of ``twin render`` (pixels): the offscreen buffer of the MJCF models
 IMAGE_LIMITS = {"width": 1280, "height": 960}
