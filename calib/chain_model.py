@@ -36,6 +36,10 @@ class ChainModel(Protocol):
     error_keys: list[str]
     #: Tracker noise (1 sigma per coordinate, mm) of the machine's configuration.
     sigma_mm: float
+    #: None when the tracker reads nest positions; ``"previous"`` / ``"first"`` when it reads one distance
+    #: per pose relative to a reference pose (a scale): identification then fits the readings
+    #: (:func:`pmcal.calib.closed_chain.reading_operator`).
+    reading_reference: str | None
 
     def error_units(self, keys: list[str] | None = None) -> list[str]:
         """Unit of each key (``"mm"`` or ``"deg"``), default every :attr:`error_keys`."""
@@ -54,6 +58,15 @@ class ChainModel(Protocol):
 
     def forward(self, commands: np.ndarray, params: Params = None) -> np.ndarray:
         """Task coordinates (N, C) reached at commands (N, M); NaN where the chain cannot assemble."""
+
+    def observe(self, commands: np.ndarray, params: Params = None) -> np.ndarray:
+        """What the tracker reads of each pose before a reference is taken off, (N, R) mm: the nest
+        coordinates (R = 3 K) or one distance (R = 1, :attr:`reading_reference` set). NaN rows where the chain
+        cannot assemble."""
+
+    def observation_jacobian(self, commands: np.ndarray, params: Params = None,
+                             keys: list[str] | None = None) -> np.ndarray:
+        """Exact d :meth:`observe` / d params (N, R, P), mm per key unit."""
 
 
 class NamedModel:

@@ -425,7 +425,7 @@ class _Observations:
     def __init__(self, model: ChainModel, commands: np.ndarray, measured, segments=None, covariance=None,
                  sigma: float = 1.0):
         self.model = model
-        self.reference = getattr(model, "reading_reference", None)
+        self.reference = model.reading_reference
         measured = np.asarray(measured, float)
         if self.reference is None:
             if measured.ndim != 3 or measured.shape[0] != commands.shape[0] or measured.shape[2] != 3:
@@ -726,7 +726,7 @@ def measured_jacobian(model: ChainModel, commands, params: Mapping[str, float] |
     coordinates (:func:`flat_jacobian`), or for a model measuring a distance (rows, P) scale readings
     (:func:`reading_operator`, ``segments``); mm per key unit, NaN rows where the chain cannot assemble."""
     commands = np.atleast_2d(commands)
-    if getattr(model, "reading_reference", None) is None:
+    if model.reading_reference is None:
         return flat_jacobian(model, commands, params, list(keys))
     return reading_operator(len(commands), model.reading_reference, segments) @ \
         model.observation_jacobian(commands, params, list(keys))[:, 0, :]

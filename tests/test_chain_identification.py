@@ -207,3 +207,19 @@ def test_errors_three_times_their_prior_sizes_are_fitted_exactly_when_the_data_s
     assert np.abs(twin.targets(held, exact.params) - twin.targets(held, true)).max() < 1e-3
     held_back = identify_chain(twin, cmd, y, 0.01)
     assert 3e-4 < held_back.residual_rms_mm < 0.2 * 0.01
+
+
+def test_the_protocol_declares_everything_the_core_calls_on_a_model():
+    """Every attribute the closed-chain core (identification, design, diagnosis) reads of its model is a
+    member of :class:`ChainModel`, so another simulator knows what to implement (figaroh-style protocol)."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent / "calib"
+    used = set()
+    for name in ("closed_chain.py", "chain_design.py", "chain_diagnose.py"):
+        text = (root / name).read_text(encoding="utf-8")
+        used |= set(re.findall(r"\bmodel\.([A-Za-z_]\w*)", text))
+        used |= set(re.findall(r"getattr\(model, \"(\w+)\"", text))
+    declared = {n for n in dir(ChainModel) if not n.startswith("_")} | set(ChainModel.__annotations__)
+    assert used and used <= declared, sorted(used - declared)
