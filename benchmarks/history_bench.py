@@ -29,7 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
-from pmcal.calibration import identify  # noqa: E402
+from pmcal.calibration import identify, record_document  # noqa: E402
 from pmcal.history import ALPHA, compare, file_calibration, read_record  # noqa: E402
 from pmcal.io_ocpm import write_measurements  # noqa: E402
 from pmcal.mechanism.ocpm.params import random_errors  # noqa: E402
@@ -52,7 +52,7 @@ def history_pair(seed: int, folder: Path) -> dict:
         meas = run_campaign(Twin(errors), plan_campaign(POSES, THETA_MAX, seed=plan_seed),
                             LaserTracker(SIGMA, np.random.default_rng(noise_seed)))
         write_measurements(folder / f"{name}.csv", meas)
-        return read_record(file_calibration(identify(meas), folder / f"{name}.csv", folder / name))
+        return read_record(file_calibration(record_document(identify(meas), folder / f"{name}.csv"), folder / name))
 
     a = filed(base, 3 * seed + 1, 5000 + seed, "a")
     b = filed(base, 3 * seed + 2, 6000 + seed, "b")
@@ -79,8 +79,8 @@ def example_history(folder: Path) -> Path:
         meas = run_campaign(Twin(errors), plan_campaign(POSES, THETA_MAX, seed=i + 1),
                             LaserTracker(SIGMA, np.random.default_rng(50 + i)))
         write_measurements(folder / f"campaign{i + 1}.csv", meas)
-        file_calibration(identify(meas), folder / f"campaign{i + 1}.csv", folder / "history",
-                         date=t0 + timedelta(days=91 * i))
+        file_calibration(record_document(identify(meas), folder / f"campaign{i + 1}.csv",
+                                         date=t0 + timedelta(days=91 * i)), folder / "history")
     return folder / "history"
 
 

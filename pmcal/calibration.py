@@ -9,8 +9,10 @@ map fitted afterwards. Units at this interface: mm and degrees.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
+from datetime import datetime
 from functools import cached_property
 from pathlib import Path
 
@@ -19,20 +21,22 @@ from scipy.linalg import block_diag
 
 from pmcal import progress
 from pmcal.bridge.comptable import CompTable
-from pmcal.campaign_quality import full_chain_quality, paper_quality
+from pmcal.campaign_quality import judge, paper_quality
 from pmcal.calib.ocpm import compensation as comp
 from pmcal.calib.ocpm import paper_calibration
 from pmcal.calib.ocpm import paper_model as pm
+from pmcal.calib.ocpm.fullchain import platform_normals
 from pmcal.calib.solvers import METHODS
 from pmcal.compensators import (DEFAULT_GRID, Compensator, FullCompensation, PaperCompensation, build_table,
                                 checked_commands)
 from pmcal.errors import InputError
 from pmcal.fileio import check_output
 from pmcal.threads import blas_policy
-from pmcal.io_ocpm import PARAM_MODELS, paper_keys_only, read_params, write_params
+from pmcal.history import LOG_UNIT, UNDETERMINED_FRACTION, make_record
+from pmcal.io_ocpm import PARAM_MODELS, param_unit, paper_keys_only, read_params, write_params
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.kinematics import limb_ik
+from pmcal.mechanism.ocpm.kinematics import limb_ik, nominal_ik
 from pmcal.mechanism.ocpm.params import LOG_RATIO, ErrorSet, describe, is_angular, to_interface
 from pmcal.tracker_frame import identify_result, tracker_document
 from pmcal.twin.forward import FullChainModel
@@ -43,9 +47,6 @@ DEFAULT_MODEL = "full"
 DEFAULT_METHOD = "hga"
 #: Fewest poses the whole-chain fit accepts: ~40 effective parameters, 6 pose coordinates a pose.
 MIN_POSES_FULL = 12
-#: A parameter whose posterior std is above this fraction of its prior std is "not determined by the
-#: campaign": the data moved it little, the prior (manufacturing tolerance) holds it.
-UNDETERMINED_FRACTION = 0.7
 
 
 @dataclass
@@ -363,3 +364,74 @@ def _identify_paper(meas: Measurements, method: str, sigma: float, rng_seed: int
     cov = block_diag(*covs) if all(c is not None for c in covs) else None
     return Calibration(params=cal.params(), model="paper", method=method, document=doc, names=names,
                        covariance=cov, residuals=chi, geometry=geom, solution=cal)
+
+
+#: Orientations (phi, theta) deg over which the pointing uncertainty is predicted: phi every 30 deg,
+#: theta 10..60 deg every 10 deg, and the home pose (73 orientations over the default workspace).
+QUALITY_GRID = np.array([(0.0, 0.0)] + [(p, t) for t in range(10, 61, 10) for p in range(0, 360, 30)], float)
+
+
+def _normal_jacobian(model, names: list[str], x: np.ndarray, ratio0: float, geom: Geometry) -> np.ndarray:
+    """d normal / d parameter (N, 3, P) of the whole-chain ``model`` at ``x`` over :data:`QUALITY_GRID`."""
+    phi, theta = np.deg2rad(QUALITY_GRID).T
+    m = np.rad2deg(nominal_ik(phi, theta, geom))
+    model.set_vector(names, x, ratio0)
+    T, dT = model.predict(m, names)
+    X = geom.targets[: T.shape[1]]
+    n0 = platform_normals(T, X)
+    h = 1e-4                                           # mm of target motion per unit step: linear regime
+    scale = h / np.maximum(np.abs(dT).max(axis=(0, 1, 2)), 1e-300)
+    dn = np.stack([(platform_normals(T + s * dT[..., j], X) - n0) / s for j, s in enumerate(scale)], axis=-1)
+    return dn[np.isfinite(dn).all(axis=(1, 2))]
+
+
+def _pointing_std_deg(dn: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """1-sigma pointing error (deg) of each grid pose: sqrt(trace(dn C dnᵀ)) of the normal's covariance."""
+    return np.rad2deg(np.sqrt(np.einsum("nap,pq,naq->n", dn, cov, dn)))
+
+
+def full_chain_quality(model, res, geom: Geometry) -> dict:
+    """The ``quality`` object of a whole-chain fit ``res`` (``IdentResult`` with covariance, prior_std and
+    effective_parameters in its ``info``) evaluated with ``model`` (the fit's forward model)."""
+    names, x = list(res.names), np.asarray(res.x, float)
+    ratio0 = float(res.info["stiffness_ratio"])
+    dn = _normal_jacobian(model, names, x, ratio0, geom)
+    post = _pointing_std_deg(dn, np.asarray(res.covariance, float))
+    prior = _pointing_std_deg(dn, np.diag(np.asarray(res.info["prior_std"], float) ** 2))
+    determined = int(round(float(res.info["effective_parameters"])))
+    return judge(determined, len(names), float(np.sqrt(np.mean(post**2))), float(post.max()),
+                 float(np.sqrt(np.mean(prior**2))), unit="deg", what="pointing")
+
+
+def _record_unit(name: str) -> str:
+    """A parameter's unit in a history record: mm, deg, or the log scale of the stiffness ratio."""
+    return LOG_UNIT if name == LOG_RATIO else param_unit(name)
+
+
+def record_document(cal, campaign_path: str | Path, machine: str = "ocpm_2dof", date: datetime | None = None) -> dict:
+    """The history record of a :class:`pmcal.calibration.Calibration` (interface units: mm, deg).
+
+    Parameters are those of the covariance (the stiffness ratio, fitted on a log scale, is recorded
+    apart); angular ones converted from rad to deg with their covariance rows and columns."""
+    if cal.covariance is None:
+        raise InputError("the calibration has no covariance to file", field="--history")
+    names = [n for n in cal.names if n in cal.params]
+    info = getattr(cal.solution, "info", None) or {}
+    prior_std = {n: float(v) for n, v in (cal.document.get("prior_std") or {}).items() if n in names}
+    prior_mean = {}
+    values = [cal.params[n] for n in names]
+    ratio = cal.document.get("stiffness_ratio")
+    if LOG_RATIO in cal.names and ratio and "prior_std" in info:
+        i = cal.names.index(LOG_RATIO)             # a nuisance of the test: shared, never flagged
+        names.append(LOG_RATIO)
+        values.append(math.log(ratio))
+        prior_std[LOG_RATIO] = float(info["prior_std"][i])
+        prior_mean[LOG_RATIO] = float(info["prior_mean"][i])
+    idx = [cal.names.index(n) for n in names]
+    scale = np.array([math.degrees(1.0) if _record_unit(n) == "deg" else 1.0 for n in names])
+    cov = np.asarray(cal.covariance)[np.ix_(idx, idx)] * np.outer(scale, scale)
+    fit = cal.document.get("fit", {})
+    doc = make_record(machine, cal.model, cal.method, cal.document.get("frame", "base"), campaign_path, names,
+                  np.array(values), cov, [_record_unit(n) for n in names], fit, fit.get("noise_sigma_mm"), date)
+    doc.update(stiffness_ratio=cal.document.get("stiffness_ratio"), prior_std=prior_std, prior_mean=prior_mean)
+    return doc

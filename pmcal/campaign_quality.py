@@ -10,7 +10,7 @@ Two numbers say how much a campaign determines:
   (each direction counts 1 when the data fix it, 0 when only the prior holds it), rounded, of the number
   of parameters;
 - **predicted pointing uncertainty**: the posterior covariance C propagated to the platform normal over
-  :data:`QUALITY_GRID` (1 sigma, deg): RMS and max over the grid. The same propagation of the prior
+  :data:`pmcal.calibration.QUALITY_GRID` (1 sigma, deg; ocpm_2dof's, :func:`pmcal.calibration.full_chain_quality`): RMS and max over the grid. The same propagation of the prior
   (the manufacturing tolerances the machine's configuration assumes, ``docs/fullchain.md``) gives the
   **uncalibrated machine's expected pointing error**.
 
@@ -39,15 +39,9 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from pmcal.calib.ocpm.fullchain import platform_normals
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
-from pmcal.mechanism.ocpm.config import Geometry
-from pmcal.mechanism.ocpm.kinematics import nominal_ik
 
-#: Orientations (phi, theta) deg over which the pointing uncertainty is predicted: phi every 30 deg,
-#: theta 10..60 deg every 10 deg, and the home pose (73 orientations over the default workspace).
-QUALITY_GRID = np.array([(0.0, 0.0)] + [(p, t) for t in range(10, 61, 10) for p in range(0, 360, 30)], float)
 #: A calibration whose predicted pointing uncertainty (RMS over the grid, 1 sigma) is above this fraction
 #: of the uncalibrated machine's expected pointing error (RMS, 1 sigma) is not usable (module docstring).
 USABLE_FRACTION = 0.1
@@ -57,38 +51,6 @@ RANK_TOL = 1e-6
 #: The campaign that fixes an unusable calibration (named by warnings and refusals).
 CAMPAIGN_FIX = ("measure >= 24 poses spread over the workspace: 'pmcal twin plan --frame tracker --poses 48' "
                 "plans them (docs/fullchain.md)")
-
-
-def _normal_jacobian(model, names: list[str], x: np.ndarray, ratio0: float, geom: Geometry) -> np.ndarray:
-    """d normal / d parameter (N, 3, P) of the whole-chain ``model`` at ``x`` over :data:`QUALITY_GRID`."""
-    phi, theta = np.deg2rad(QUALITY_GRID).T
-    m = np.rad2deg(nominal_ik(phi, theta, geom))
-    model.set_vector(names, x, ratio0)
-    T, dT = model.predict(m, names)
-    X = geom.targets[: T.shape[1]]
-    n0 = platform_normals(T, X)
-    h = 1e-4                                           # mm of target motion per unit step: linear regime
-    scale = h / np.maximum(np.abs(dT).max(axis=(0, 1, 2)), 1e-300)
-    dn = np.stack([(platform_normals(T + s * dT[..., j], X) - n0) / s for j, s in enumerate(scale)], axis=-1)
-    return dn[np.isfinite(dn).all(axis=(1, 2))]
-
-
-def _pointing_std_deg(dn: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """1-sigma pointing error (deg) of each grid pose: sqrt(trace(dn C dnᵀ)) of the normal's covariance."""
-    return np.rad2deg(np.sqrt(np.einsum("nap,pq,naq->n", dn, cov, dn)))
-
-
-def full_chain_quality(model, res, geom: Geometry) -> dict:
-    """The ``quality`` object of a whole-chain fit ``res`` (``IdentResult`` with covariance, prior_std and
-    effective_parameters in its ``info``) evaluated with ``model`` (the fit's forward model)."""
-    names, x = list(res.names), np.asarray(res.x, float)
-    ratio0 = float(res.info["stiffness_ratio"])
-    dn = _normal_jacobian(model, names, x, ratio0, geom)
-    post = _pointing_std_deg(dn, np.asarray(res.covariance, float))
-    prior = _pointing_std_deg(dn, np.diag(np.asarray(res.info["prior_std"], float) ** 2))
-    determined = int(round(float(res.info["effective_parameters"])))
-    return judge(determined, len(names), float(np.sqrt(np.mean(post**2))), float(post.max()),
-                 float(np.sqrt(np.mean(prior**2))), unit="deg", what="pointing")
 
 
 def judge(determined: int, n_params: int, rms: float | None = None, most: float | None = None,

@@ -1,6 +1,7 @@
 """A machine's calibration history: one JSON record per calibration in a folder, and what moved.
 
-:func:`file_calibration` files an identification (``pmcal identify ... --history DIR``): date, the campaign
+:func:`file_calibration` files an identification's record (:func:`chain_record_document`, or ocpm_2dof's
+:func:`pmcal.calibration.record_document`) (``pmcal identify ... --history DIR``): date, the campaign
 file's SHA-256, every parameter with its standard deviation and 95 % interval, their covariance, the fit
 residual and the tracker noise. Records are never overwritten.
 
@@ -35,17 +36,20 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from pmcal.calibration import UNDETERMINED_FRACTION
 from pmcal.errors import InputError, for_option
 from pmcal.fileio import check_output, write_json
-from pmcal.io_ocpm import param_unit
-from pmcal.mechanism.ocpm.params import LOG_RATIO
 
 #: two-sided 95 % interval half-width in standard deviations
 Z95 = float(stats.norm.ppf(0.975))
 #: default family-wise false-flag rate of :func:`compare`
 ALPHA = 0.05
 RECORD_VERSION = 1
+#: A parameter whose posterior std is above this fraction of its prior std is "not determined by the
+#: campaign": the data moved it little, the prior (manufacturing tolerance) holds it.
+UNDETERMINED_FRACTION = 0.7
+#: the unit of a parameter fitted on a log scale (ocpm_2dof's stiffness ratio): a nuisance the models share,
+#: compared never
+LOG_UNIT = "ln"
 
 
 def sha256(path: str | Path) -> str:
@@ -77,35 +81,6 @@ class Record:
         return np.sqrt(np.diag(self.cov))
 
 
-def record_document(cal, campaign_path: str | Path, machine: str = "ocpm_2dof", date: datetime | None = None) -> dict:
-    """The history record of a :class:`pmcal.calibration.Calibration` (interface units: mm, deg).
-
-    Parameters are those of the covariance (the stiffness ratio, fitted on a log scale, is recorded
-    apart); angular ones converted from rad to deg with their covariance rows and columns."""
-    if cal.covariance is None:
-        raise InputError("the calibration has no covariance to file", field="--history")
-    names = [n for n in cal.names if n in cal.params]
-    info = getattr(cal.solution, "info", None) or {}
-    prior_std = {n: float(v) for n, v in (cal.document.get("prior_std") or {}).items() if n in names}
-    prior_mean = {}
-    values = [cal.params[n] for n in names]
-    ratio = cal.document.get("stiffness_ratio")
-    if LOG_RATIO in cal.names and ratio and "prior_std" in info:
-        i = cal.names.index(LOG_RATIO)             # a nuisance of the test: shared, never flagged
-        names.append(LOG_RATIO)
-        values.append(math.log(ratio))
-        prior_std[LOG_RATIO] = float(info["prior_std"][i])
-        prior_mean[LOG_RATIO] = float(info["prior_mean"][i])
-    idx = [cal.names.index(n) for n in names]
-    scale = np.array([math.degrees(1.0) if unit_of(n) == "deg" else 1.0 for n in names])
-    cov = np.asarray(cal.covariance)[np.ix_(idx, idx)] * np.outer(scale, scale)
-    fit = cal.document.get("fit", {})
-    doc = _record(machine, cal.model, cal.method, cal.document.get("frame", "base"), campaign_path, names,
-                  np.array(values), cov, [unit_of(n) for n in names], fit, fit.get("noise_sigma_mm"), date)
-    doc.update(stiffness_ratio=cal.document.get("stiffness_ratio"), prior_std=prior_std, prior_mean=prior_mean)
-    return doc
-
-
 def chain_record_document(result, campaign_path: str | Path, machine: str, date: datetime | None = None) -> dict:
     """The history record of a machine folder's identification (a
     :class:`pmcal.calib.closed_chain.ChainIdentResult` made in the machine's structural base set,
@@ -116,7 +91,7 @@ def chain_record_document(result, campaign_path: str | Path, machine: str, date:
     names = list(result.base)
     fit = {"residual_rms_mm": float(result.residual_rms_mm), "chi2_per_dof": float(result.chi2_per_dof),
            "n_poses": int(result.n_poses)}
-    doc = _record(machine, "closed_chain", "lm+tikhonov", "base", campaign_path, names, np.asarray(result.x, float),
+    doc = make_record(machine, "closed_chain", "lm+tikhonov", "base", campaign_path, names, np.asarray(result.x, float),
                   np.asarray(result.covariance, float), list(result.units), fit, float(result.sigma_mm), date)
     for n in names:
         doc["params"][n]["estimates"] = result.combinations[n]
@@ -126,8 +101,11 @@ def chain_record_document(result, campaign_path: str | Path, machine: str, date:
     return doc
 
 
-def _record(machine: str, model: str, method: str, frame: str, campaign_path, names: list[str], value: np.ndarray,
-            cov: np.ndarray, units: list[str], fit: dict, noise_mm, date: datetime | None) -> dict:
+def make_record(machine: str, model: str, method: str, frame: str, campaign_path, names: list[str], value: np.ndarray,
+                cov: np.ndarray, units: list[str], fit: dict, noise_mm, date: datetime | None) -> dict:
+    """A history record (``RECORD_VERSION``): the parameters ``names`` with their values, units (mm, deg, or
+    :data:`LOG_UNIT`), standard deviations and 95 % intervals, their covariance, the fit, the campaign
+    file's SHA-256 and the date (now in UTC unless given)."""
     std = np.sqrt(np.diag(cov))
     date = date or datetime.now(timezone.utc)
     return {
@@ -143,11 +121,10 @@ def _record(machine: str, model: str, method: str, frame: str, campaign_path, na
     }
 
 
-def file_calibration(cal, campaign_path: str | Path, history_dir: str | Path, machine: str = "ocpm_2dof",
-                     date: datetime | None = None) -> Path:
+def file_calibration(record: dict, history_dir: str | Path) -> Path:
     """Write a calibration's record into ``history_dir`` (created if missing); never overwrites.
-    ``cal`` is a :class:`pmcal.calibration.Calibration` or a record already made
-    (:func:`chain_record_document`).
+    ``record``: :func:`chain_record_document` (a machine folder's identification) or
+    :func:`pmcal.calibration.record_document` (ocpm_2dof's).
 
     The file is ``YYYYMMDDTHHMMSSZ-<first 8 hex of the campaign SHA-256>.json`` (``-2``, ``-3`` ... when
     taken). Returns its path.
@@ -155,10 +132,10 @@ def file_calibration(cal, campaign_path: str | Path, history_dir: str | Path, ma
     Examples
     --------
     >>> cal = pmcal.identify(pmcal.read_measurements("m.csv"))             # doctest: +SKIP
-    >>> file_calibration(cal, "m.csv", "history/cell2")                    # doctest: +SKIP
+    >>> file_calibration(record_document(cal, "m.csv"), "history/cell2")  # doctest: +SKIP
     PosixPath('history/cell2/20261125T101500Z-3fa4c2d1.json')
     """
-    doc = cal if isinstance(cal, dict) else record_document(cal, campaign_path, machine, date)
+    doc = record
     folder = Path(history_dir)
     check_history_dir(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -291,7 +268,7 @@ def data_information(record: Record, idx: list[int], P: np.ndarray) -> tuple[np.
 
 def determined(record: Record, name: str) -> bool:
     """The record's campaign determines the parameter: its standard deviation is below
-    :data:`pmcal.calibration.UNDETERMINED_FRACTION` of its prior (tolerance) standard deviation (True when the
+:data:`UNDETERMINED_FRACTION` of its prior (tolerance) standard deviation (True when the
     record has no prior)."""
     prior = (record.doc.get("prior_std") or {}).get(name)
     return prior is None or record.std[record.names.index(name)] < UNDETERMINED_FRACTION * prior
@@ -333,7 +310,8 @@ def compare(prev: Record, last: Record, alpha: float = ALPHA) -> list[Change]:
         return float(r @ sol) - base, sol[m:], cov
 
     base = float(r0 @ np.linalg.lstsq(N0, r0, rcond=None)[0])
-    candidates = [k for k, n in enumerate(names) if n != LOG_RATIO and determined(prev, n) and determined(last, n)]
+    candidates = [k for k, n in enumerate(names)
+                  if unit_of(n, last) != LOG_UNIT and determined(prev, n) and determined(last, n)]
     selected: list[int] = []
     pvals: dict[int, float] = {}
     explained = 0.0
@@ -376,11 +354,10 @@ def same_quantity(a: Record, b: Record, name: str) -> bool:
     return _param_field(a, name, "estimates") == _param_field(b, name, "estimates")
 
 
-def unit_of(name: str, record: Record | None = None) -> str:
-    """``mm``, ``deg``, or ``ln`` for the log stiffness ratio; the record's own unit of the parameter when it
-    has one (a machine folder's)."""
-    unit = _param_field(record, name, "unit") if record is not None else None
-    return unit or ("ln" if name == LOG_RATIO else param_unit(name))
+def unit_of(name: str, record: Record) -> str:
+    """The record's unit of the parameter: ``mm``, ``deg``, or :data:`LOG_UNIT` (every record carries its
+    units)."""
+    return _param_field(record, name, "unit") or ""
 
 
 def history_table(records: list[Record], changes: list[Change] | None) -> tuple[list[str], list[list]]:

@@ -224,3 +224,32 @@ def test_machine_folder_points_off_the_base_frame_are_said(tmp_path, capsys):
     found = re.search(r"not in the machine's base frame \(the nests are (\d+) mm \(median\)", " ".join(err.split()))
     assert found and 110 <= int(found[1]) <= 130, err        # 120 mm shift, the machine's errors a few mm
     assert "transform them into the base frame" in err
+
+
+def test_identifying_a_folder_machine_loads_no_seeded_machines_code(tmp_path):
+    """``pmcal --machine delta_3dof identify`` runs on the generic core alone: no module of ocpm_2dof's or
+    planar_2dof's wings (their mechanism, twin, identification, file formats, calibration) is imported."""
+    import subprocess
+    import sys
+
+    from pmcal import chain
+    from pmcal.io_chain import write_measurements
+    from pmcal.machines import Machine
+
+    machine = Machine.builtin("delta_3dof")
+    meas, _ = chain.campaign(machine, 24, seed=1)
+    write_measurements(tmp_path / "m.csv", machine.spec, meas)
+    code = ("import sys\nfrom pmcal.cli import main\n"
+            f"rc = main(['--quiet', '--machine', 'delta_3dof', 'identify', {str(tmp_path / 'm.csv')!r}, '-o', "
+            f"{str(tmp_path / 'p.json')!r}])\n"
+            "print(rc)\nprint(' '.join(m for m in sys.modules if m.startswith('pmcal')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**__import__("os").environ, "MUJOCO_GL": "egl"})
+    rc, loaded = out.stdout.strip().splitlines()[-2:]
+    assert rc == "0", out.stderr
+    seeded = {"pmcal.calibration", "pmcal.compensators", "pmcal.tracker_frame", "pmcal.io_ocpm", "pmcal.io_planar",
+              "pmcal.planar_calibration", "pmcal.calib.forward_model"} | {
+        f"pmcal.twin.{m}" for m in ("aiming", "assembly", "campaign", "dynamics", "effect_model", "effects", "forward",
+                                    "machine", "model", "sensitivity")}
+    wings = [m for m in loaded.split() if ".ocpm" in m or ".planar" in m or m in seeded]
+    assert not wings, wings

@@ -110,7 +110,7 @@ def test_changing_the_stiffness_ratio_keeps_the_passive_closures():
 def test_assembly_steps_are_capped_and_singular_poses_give_up():
     """Far from the equilibrium (a joint 0.6 rad off) the capped Gauss-Newton steps still reach the
     closed-form pose; a stack with a singular normal matrix gives NaN for that row only."""
-    from pmcal.twin.assembly import solve_stacked
+    from pmcal.twin.closures import solve_stacked
 
     phi, theta, cmd = commands(10, 60, seed=8)
     tw = Twin()

@@ -34,7 +34,8 @@ import numpy as np
 
 from pmcal.mechanism.ocpm.kinematics import nominal_ik, nominal_pose
 from pmcal.mechanism.rotations import tilt_torsion
-from pmcal.twin.assembly import BALL, HINGE, chain_dofs, integrate_pos, solve_stacked
+from pmcal.twin.assembly import BALL, HINGE, chain_dofs, integrate_pos
+from pmcal.twin.closures import solve_stacked
 
 
 class _BodyRotation:

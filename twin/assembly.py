@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from pmcal.twin.closures import solve_stacked
 from pmcal.twin.model import ModelIndex
 
 
@@ -239,24 +240,6 @@ def integrate_pos(m: mujoco.MjModel, qpos: np.ndarray, dv: np.ndarray) -> None:
     idx = qa[:, None] + np.arange(4)
     q = _quat_mul(qpos[:, idx], dq)
     qpos[:, idx] = q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
-def solve_stacked(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``A^-1 B`` for a stack of square matrices ``A`` (M, k, k) and right-hand sides ``B`` (M, k) or
-    (M, k, m). Rows whose ``A`` is singular (a configuration at the singularity, a pose the solve gave
-    up) come back as NaN; numpy's batched solve fails as a whole, so those rows are redone one by one."""
-    vec = B.ndim == A.ndim - 1
-    Bm = B[..., None] if vec else B
-    try:
-        out = np.linalg.solve(A, Bm)
-    except np.linalg.LinAlgError:
-        out = np.full(Bm.shape, np.nan)
-        for i in range(len(A)):
-            try:
-                out[i] = np.linalg.solve(A[i], Bm[i])
-            except np.linalg.LinAlgError:
-                pass
-    return out[..., 0] if vec else out
 
 
 class BatchAssembler:

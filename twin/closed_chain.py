@@ -72,7 +72,7 @@ from pmcal.mechanism.machine_spec import MachineSpec
 from pmcal.mechanism.rigid import fit_pose
 from pmcal.mechanism.rotations import rotvec_matrix
 from pmcal.mechanism.task_space import POSITION, task_coordinates, task_difference
-from pmcal.twin.assembly import solve_stacked
+from pmcal.twin.closures import solve_stacked
 from pmcal.twin.closures import compile_with_site_closures
 from pmcal.twin.frame_errors import DEG, MM, FrameErrors
 from pmcal.twin.overconstraint import redundant_directions

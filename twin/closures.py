@@ -8,7 +8,8 @@ compiler from the reference configuration ``qpos0``), and for a weld the relativ
 turns every active body-based connect/weld into the equivalent site-based one by adding two sites,
 ``<equality name>_site1`` on body1 and ``_site2`` on body2 (``closureN_site1`` for an unnamed equality, N
 its index), at those compiled anchors, so a model written either way is calibrated the same way and its
-anchors carry errors like any closure site.
+anchors carry errors like any closure site. Also the stacked linear solve the closure solvers share
+(:func:`solve_stacked`: one Newton step per configuration of a batch).
 
 MuJoCo's body-based residuals (``engine_core_constraint.c``): connect, the point ``eq_data[0:3]`` of body1
 meets ``eq_data[3:6]`` of body2; weld, the point ``eq_data[3:6]`` of body1 meets ``eq_data[0:3]`` of
@@ -104,3 +105,21 @@ def sites_for_body_closures(root: ET.Element, model: mujoco.MjModel) -> None:
                 el.attrib.pop(a, None)
             el.set("site1", names[0])
             el.set("site2", names[1])
+
+
+def solve_stacked(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A^-1 B`` for a stack of square matrices ``A`` (M, k, k) and right-hand sides ``B`` (M, k) or
+    (M, k, m). Rows whose ``A`` is singular (a configuration at the singularity, a pose the solve gave
+    up) come back as NaN; numpy's batched solve fails as a whole, so those rows are redone one by one."""
+    vec = B.ndim == A.ndim - 1
+    Bm = B[..., None] if vec else B
+    try:
+        out = np.linalg.solve(A, Bm)
+    except np.linalg.LinAlgError:
+        out = np.full(Bm.shape, np.nan)
+        for i in range(len(A)):
+            try:
+                out[i] = np.linalg.solve(A[i], Bm[i])
+            except np.linalg.LinAlgError:
+                pass
+    return out[..., 0] if vec else out

@@ -23,7 +23,8 @@ import numpy as np
 
 from pmcal.mechanism.ocpm.kinematics import limb_frames
 from pmcal.mechanism.ocpm.params import LOG_RATIO
-from pmcal.twin.assembly import _ChainJacobian, solve_stacked
+from pmcal.twin.assembly import _ChainJacobian
+from pmcal.twin.closures import solve_stacked
 from pmcal.twin.model import MM
 
 _E = np.eye(3)

@@ -138,7 +138,7 @@ def file_history(machine, res, basis, campaign: str, folder: str) -> None:
                          f"e.g. 'pmcal --machine {machine.name} twin plan')")
         return
     record = chain_record_document(res, campaign, machine.name)
-    print(f"pmcal: wrote {file_calibration(record, campaign, folder)}")
+    print(f"pmcal: wrote {file_calibration(record, folder)}")
 
 
 def identify_warnings(res, n_poses: int, outliers: bool = False) -> list[str]:

@@ -15,7 +15,7 @@ import numpy as np
 from pmcal import progress
 from pmcal.apps import error_stats
 from pmcal.campaign_quality import CAMPAIGN_FIX, quality_line, refuse_unusable, save_table
-from pmcal.calibration import Calibration, identify as identify_campaign
+from pmcal.calibration import Calibration, identify as identify_campaign, record_document
 from pmcal.compensators import DEFAULT_GRID, PaperCompensation, build_table, check_grid, checked_commands
 from pmcal.errors import InputError
 from pmcal.fileio import write_json
@@ -75,7 +75,7 @@ def identify(args) -> int:
     print(f"identified {len(cal.params)} parameters ({'whole chain' if cal.model == 'full' else cal.method}); "
           f"{quality}; {quality_line(q)}", flush=True)
     if history:
-        print(f"pmcal: wrote {file_calibration(cal, args.measurements, history)}")
+        print(f"pmcal: wrote {file_calibration(record_document(cal, args.measurements), history)}")
     if not q["usable"]:
         progress.warning(f"this calibration is not usable: {q['why']}; {CAMPAIGN_FIX} (compensate and push "
                          "refuse it without --force)")
