@@ -332,3 +332,14 @@ def test_nominal_reference_equals_the_mechanism_inverse_kinematics():
                                rtol=0, atol=1e-11)
     # the table stores only the calibration's correction: zero for the nominal machine
     assert np.abs(make_table(n_phi=37, n_theta=13).values).max() < 1e-11
+
+
+def test_the_plcs_reference_geometry_is_the_machines():
+    """The nominal-IK reference a table is built on is the shipped PLC's REF_* constants; they must be
+    ocpm_2dof's nominal geometry (machine.toml), or every nominal-IK table would be refused (nReferenceCrc)."""
+    from pmcal.bridge.nominal import NominalReference
+    from pmcal.mechanism.ocpm.config import default_geometry
+
+    g = default_geometry()
+    psi = [float(np.rad2deg(g.psi[j - 1])) for j in g.actuated[:2]]
+    assert NominalReference.default() == NominalReference(float(g.a), float(g.h), float(g.l), *psi)

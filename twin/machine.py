@@ -21,7 +21,8 @@ from pmcal.mechanism.ocpm.kinematics import (from_pointing_coords, limb_frames, 
 from pmcal.mechanism.ocpm.params import ErrorSet
 from pmcal.mechanism.rotations import rot_x, rot_y
 from pmcal.twin.assembly import AssemblyResult, BatchAssembler, Stiffness
-from pmcal.twin.model import MM, apply_errors, build_model
+from pmcal.twin.model import MM, SCENE_XML, ModelIndex, apply_errors, build_model, load_model
+from pmcal.twin.render import render_model_png
 
 
 @dataclass
@@ -238,3 +239,20 @@ def _mat2quat(R: np.ndarray) -> np.ndarray:
 
     xyzw = Rotation.from_matrix(R).as_quat()
     return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+
+
+def render_png(qpos: np.ndarray | None = None, errors=None, width: int = 800, height: int = 600,
+               azimuth: float = 135.0, elevation: float = -22.0, distance: float = 1.35,
+               lookat=(0.0, 0.0, 0.22)) -> bytes:
+    """PNG image of the over-constrained PM (scene with floor and light) at configuration ``qpos`` (default
+    home) with geometric ``errors`` (an :class:`ErrorSet`; default none)."""
+    m = load_model(SCENE_XML)
+    geom = default_geometry()
+    apply_errors(m, errors if errors is not None else ErrorSet(), geom, ModelIndex.of(m, geom.n_limbs))
+    d = mujoco.MjData(m)
+    d.qpos[:] = m.key_qpos[0] if qpos is None else qpos
+    mujoco.mj_forward(m, d)
+    cam = mujoco.MjvCamera()
+    cam.azimuth, cam.elevation, cam.distance = azimuth, elevation, distance
+    cam.lookat[:] = lookat
+    return render_model_png(m, d, width, height, cam)

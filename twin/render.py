@@ -1,4 +1,5 @@
-"""Offscreen pictures of the machine (PNG bytes), for reports and model READMEs.
+"""Offscreen pictures of a machine (PNG bytes), for reports and model READMEs: a machine folder's
+(:func:`render_machine_png`) or any compiled model (:func:`render_model_png`).
 
 Uses ``mujoco.Renderer`` headless: set ``MUJOCO_GL=egl`` (default here) or ``osmesa`` before MuJoCo
 creates its first context.
@@ -15,30 +16,10 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco  # noqa: E402
 
-from pmcal.twin.model import SCENE_XML, ModelIndex, apply_errors, load_model  # noqa: E402
 
 
 class RenderUnavailable(RuntimeError):
     """No offscreen OpenGL context could be created."""
-
-
-def render_png(qpos: np.ndarray | None = None, errors=None, width: int = 800, height: int = 600,
-               azimuth: float = 135.0, elevation: float = -22.0, distance: float = 1.35,
-               lookat=(0.0, 0.0, 0.22)) -> bytes:
-    """PNG image of the machine (scene with floor and light) at configuration ``qpos`` (default home)."""
-    from pmcal.mechanism.ocpm.config import default_geometry
-    from pmcal.mechanism.ocpm.params import ErrorSet
-
-    m = load_model(SCENE_XML)
-    geom = default_geometry()
-    apply_errors(m, errors if errors is not None else ErrorSet(), geom, ModelIndex.of(m, geom.n_limbs))
-    d = mujoco.MjData(m)
-    d.qpos[:] = m.key_qpos[0] if qpos is None else qpos
-    mujoco.mj_forward(m, d)
-    cam = mujoco.MjvCamera()
-    cam.azimuth, cam.elevation, cam.distance = azimuth, elevation, distance
-    cam.lookat[:] = lookat
-    return render_model_png(m, d, width, height, cam)
 
 
 def render_machine_png(spec, qpos: np.ndarray, width: int = 800, height: int = 600) -> bytes:

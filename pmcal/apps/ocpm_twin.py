@@ -287,7 +287,8 @@ def parse_pose(text: str) -> tuple[float, float]:
 def twin_render(args) -> int:
     from pmcal.mechanism.ocpm.kinematics import nominal_ik
     from pmcal.twin.campaign import THETA_LIMIT_DEG
-    from pmcal.twin.render import RenderUnavailable, render_png
+    from pmcal.twin.machine import render_png
+    from pmcal.twin.render import RenderUnavailable
 
     phi, theta = parse_pose(args.pose)
     if not 0 <= theta <= THETA_LIMIT_DEG:

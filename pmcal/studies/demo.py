@@ -83,7 +83,7 @@ def _render(truth: dict, geom: Geometry) -> tuple[bytes | None, str]:
 
     try:
         from pmcal.twin.machine import Twin
-        from pmcal.twin.render import render_png
+        from pmcal.twin.machine import render_png
 
         twin = Twin(truth, geom)
         st = twin.reach(np.rad2deg(nominal_ik(np.deg2rad(45.0), np.deg2rad(30.0), geom)))
