@@ -15,13 +15,15 @@ import numpy as np
 from pmcal import progress
 from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.kinematics import nominal_fk
+from pmcal.mechanism.ocpm.kinematics import nominal_fk, nominal_pose
 from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, PAPER_LIMB_FIELDS, check_key
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.csvio import (LONG_POSES, MAX_POSES, check_blocked, check_context, read_csv, target_columns,  # noqa: F401
                          write_columns, write_csv)
 from pmcal.errors import InputError
 from pmcal.fileio import check_param_values, read_json, read_text, write_json
+from pmcal.io_tracker import (BASE_FRAME_LIMITS, BASE_FRAME_NAMES, ControllerLog, ImportResult, TrackerExport,  # noqa: F401
+                              named_base_frame, place_points)
 
 MECHANISM = "ocpm_2dof"
 
@@ -271,3 +273,63 @@ def write_setpoints(path: str | Path, phi_deg, theta_deg, m_deg, comments=()) ->
     """Targets with the motor commands that reach them appended (``m1_deg``, ``m2_deg``)."""
     rows = ([f"{p:.6f}", f"{t:.6f}", f"{m[0]:.6f}", f"{m[1]:.6f}"] for p, t, m in zip(phi_deg, theta_deg, m_deg))
     write_csv(path, ["phi_deg", "theta_deg", "m1_deg", "m2_deg"], rows, comments)
+
+
+# ---- tracker exports and controller logs joined into this machine's measurements (pmcal.io_tracker)
+def join(export: TrackerExport, log: ControllerLog, names: str | None = None,
+         time_tolerance_s: float | None = None, geom: Geometry | None = None) -> ImportResult:
+    """Join tracker points and the controller log into ocpm_2dof measurements (mm, deg).
+
+    Each point's name (:func:`compile_names`) gives its nest (``target`` group: ``T1``, ``T2``, ... ->
+    the machine's nests 1, 2, ...) and, when the pattern has a ``pose`` group that matches, its pose:
+    the pose label's digits equal those of a log ``pose_id`` (``P007`` is pose 7). Points without a pose
+    in their name are joined by time: the log row nearest in time within ``time_tolerance_s`` (needs
+    time stamps on both sides; two log rows within the tolerance is ambiguous).
+
+    A point measured twice (same pose and nest; a re-shot point) keeps the **last** one, the one the
+    operator took to replace the first, and says so. Unmatched and ambiguous points are left out and
+    reported; a nest without a point is blocked (NaN). Poses with fewer than two points are left out.
+
+    Raises
+    ------
+    pmcal.errors.InputError
+        No point matches the log, or the log's pose numbers are not unique.
+
+    Examples
+    --------
+    >>> res = join(read_sa_ascii("tracker.txt"), read_controller_log("log.csv"))   # doctest: +SKIP
+    >>> res.meas.targets.shape                                                     # doctest: +SKIP
+    (24, 3, 3)
+    """
+    geom = geom or default_geometry()
+    placed = place_points(export, log, [f"T{k + 1}" for k in range(len(geom.targets))], names, time_tolerance_s,
+                          min_points=2)
+    idx = placed.keep
+    meas = Measurements(pose_id=[log.pose_id[i] for i in idx], m_cmd_deg=log.commands[idx],
+                        targets=placed.coords[idx], temp_c=None if log.temp_c is None else log.temp_c[idx],
+                        time_s=None if log.time_s is None else log.time_s[idx])
+    base, reason = in_base_frame(meas, geom, export.frame)
+    return placed.result(export, log, meas, base, reason, "identify with --frame tracker")
+
+
+def in_base_frame(meas: Measurements, geom: Geometry, frame_name: str | None = None) -> tuple[bool, str]:
+    """Whether measured points are in the machine's base frame, and why not.
+
+    Not in the base frame: the export names a working frame other than :data:`BASE_FRAME_NAMES` (after
+    SA's ``COLLECTION::``), or the rigid check fails: the platform fitted to the points lies more than
+    :data:`BASE_FRAME_LIMITS` (mm, deg) from where the commands put the nominal machine's platform."""
+    base, reason = named_base_frame(frame_name)
+    if not base:
+        return base, reason
+    r, R, _ = meas.poses(geom)
+    phi, theta = nominal_fk(np.deg2rad(meas.m_cmd_deg), geom)
+    ok = np.isfinite(theta) & np.isfinite(R).all(axis=(1, 2))
+    if not ok.any():
+        return False, "no pose to check the frame with"
+    r_nom, _ = nominal_pose(phi[ok], theta[ok], geom)
+    dist = np.linalg.norm(r[ok] - r_nom, axis=1)
+    angle = np.rad2deg(pointing_error(tilt_torsion(phi[ok], theta[ok]), R[ok]))
+    if np.median(dist) > BASE_FRAME_LIMITS[0] or np.median(angle) > BASE_FRAME_LIMITS[1]:
+        return False, (f"the platform is {np.median(dist):.3g} mm and {np.median(angle):.3g} deg (median) from "
+                       "where the commands put it in the base frame")
+    return True, ""

@@ -2,13 +2,13 @@
 
 A real campaign leaves two files: the metrology package's export of named points (Spatial Analyzer's
 ASCII point export, or any CSV of named points with a column map) and the controller's log of the motor
-commands per pose. :func:`join` matches each point to a pose of the log (by the pose number in its name,
+commands per pose. :func:`pmcal.io_ocpm.join` matches each point to a pose of the log (by the pose number in its name,
 or by the nearest time stamp) and to a nest on the platform (by its target name) and returns the
 :class:`pmcal.mechanism.ocpm.data.Measurements` of the documented measurement file, with a report of every
 point it could not place; :func:`join_machine` the same for a machine folder (its N motor columns and K
 nests, :class:`pmcal.io_chain.ChainMeasurements`), both on :func:`place_points`.
 
-Units out: mm. Spatial Analyzer's export is in the working frame of the SA job; :func:`in_base_frame`
+Units out: mm. Spatial Analyzer's export is in the working frame of the SA job; :func:`pmcal.io_ocpm.in_base_frame`
 tells whether that frame is the machine's base frame (otherwise identify needs ``--frame tracker``).
 """
 
@@ -24,12 +24,8 @@ import numpy as np
 
 from pmcal.csvio import MAX_CSV_BYTES, read_csv
 from pmcal.errors import InputError
+from pmcal.csvio import MAX_POSES, check_context
 from pmcal.io_chain import ChainMeasurements
-from pmcal.io_ocpm import MAX_POSES, check_context
-from pmcal.mechanism.ocpm.config import Geometry, default_geometry
-from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.mechanism.ocpm.kinematics import nominal_fk, nominal_pose
-from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 
 #: millimetres per unit of length a tracker export may use
 UNITS_MM = {"mm": 1.0, "in": 25.4}
@@ -299,14 +295,14 @@ def read_controller_log(path: str | Path, motor_columns: tuple[str, ...] = OCPM_
 
 @dataclass
 class ImportResult:
-    """What :func:`join` made: the measurements, how it joined, and every point it could not place.
+    """What :func:`pmcal.io_ocpm.join` made: the measurements, how it joined, and every point it could not place.
 
     ``meas`` rows are the log's poses in log order (poses with fewer than two points left out, listed in
-    ``left_out``); ``frame`` is ``base`` or ``tracker`` (:func:`in_base_frame`, ``frame_reason`` why not
+    ``left_out``); ``frame`` is ``base`` or ``tracker`` (:func:`pmcal.io_ocpm.in_base_frame`, ``frame_reason`` why not
     the base frame); ``warnings`` one line each
     (unmatched, re-shot, ambiguous points by name and line); ``comments`` the header lines of the file."""
 
-    meas: Measurements | ChainMeasurements
+    meas: object                    # ocpm_2dof's Measurements (pmcal.io_ocpm.join) or ChainMeasurements
     frame: str
     frame_reason: str
     join: str
@@ -335,45 +331,9 @@ def compile_names(pattern: str | None) -> re.Pattern:
     return rx
 
 
-def join(export: TrackerExport, log: ControllerLog, names: str | None = None,
-         time_tolerance_s: float | None = None, geom: Geometry | None = None) -> ImportResult:
-    """Join tracker points and the controller log into ocpm_2dof measurements (mm, deg).
-
-    Each point's name (:func:`compile_names`) gives its nest (``target`` group: ``T1``, ``T2``, ... ->
-    the machine's nests 1, 2, ...) and, when the pattern has a ``pose`` group that matches, its pose:
-    the pose label's digits equal those of a log ``pose_id`` (``P007`` is pose 7). Points without a pose
-    in their name are joined by time: the log row nearest in time within ``time_tolerance_s`` (needs
-    time stamps on both sides; two log rows within the tolerance is ambiguous).
-
-    A point measured twice (same pose and nest; a re-shot point) keeps the **last** one, the one the
-    operator took to replace the first, and says so. Unmatched and ambiguous points are left out and
-    reported; a nest without a point is blocked (NaN). Poses with fewer than two points are left out.
-
-    Raises
-    ------
-    pmcal.errors.InputError
-        No point matches the log, or the log's pose numbers are not unique.
-
-    Examples
-    --------
-    >>> res = join(read_sa_ascii("tracker.txt"), read_controller_log("log.csv"))   # doctest: +SKIP
-    >>> res.meas.targets.shape                                                     # doctest: +SKIP
-    (24, 3, 3)
-    """
-    geom = geom or default_geometry()
-    placed = place_points(export, log, [f"T{k + 1}" for k in range(len(geom.targets))], names, time_tolerance_s,
-                          min_points=2)
-    idx = placed.keep
-    meas = Measurements(pose_id=[log.pose_id[i] for i in idx], m_cmd_deg=log.commands[idx],
-                        targets=placed.coords[idx], temp_c=None if log.temp_c is None else log.temp_c[idx],
-                        time_s=None if log.time_s is None else log.time_s[idx])
-    base, reason = in_base_frame(meas, geom, export.frame)
-    return placed.result(export, log, meas, base, reason, "identify with --frame tracker")
-
-
 def join_machine(export: TrackerExport, log: ControllerLog, spec, distance_from_nominal,
                  names: str | None = None, time_tolerance_s: float | None = None) -> ImportResult:
-    """:func:`join` for a machine folder (``spec``: its :class:`~pmcal.mechanism.machine_spec.MachineSpec`):
+    """:func:`pmcal.io_ocpm.join` for a machine folder (``spec``: its :class:`~pmcal.mechanism.machine_spec.MachineSpec`):
     ``log`` read with the machine's motor columns, a point's target named ``T<k>``, ``<k>`` or the nest's
     site name in machine.toml (``[tracker] targets``), poses kept with at least the targets the machine
     needs (3 when the platform pose is measured, else 1). The frame check: the export's working frame
@@ -385,7 +345,7 @@ def join_machine(export: TrackerExport, log: ControllerLog, spec, distance_from_
     meas = ChainMeasurements(pose_id=[log.pose_id[i] for i in idx], commands=log.commands[idx],
                              targets=placed.coords[idx], temp_c=None if log.temp_c is None else log.temp_c[idx],
                              time_s=None if log.time_s is None else log.time_s[idx], path=log.path)
-    base, reason = _named_base_frame(export.frame)
+    base, reason = named_base_frame(export.frame)
     if base and len(meas):
         d = distance_from_nominal(meas.commands, meas.targets)
         med = float(np.nanmedian(np.where(np.isfinite(d), d, np.nan))) if np.isfinite(d).any() else math.inf
@@ -431,7 +391,7 @@ class PlacedPoints:
 def place_points(export: TrackerExport, log: ControllerLog, nests: list[str], names: str | None,
                  time_tolerance_s: float | None, min_points: int) -> PlacedPoints:
     """Place each exported point on a pose of the log and a nest (``nests``: the nests' names in order;
-    a target label ``T<k>``, ``<k>`` or a nest's name, case-insensitive), as :func:`join` describes; poses
+    a target label ``T<k>``, ``<k>`` or a nest's name, case-insensitive), as :func:`pmcal.io_ocpm.join` describes; poses
     with fewer than ``min_points`` points are left out."""
     rx = compile_names(names)
     n_nests = len(nests)
@@ -506,33 +466,10 @@ def place_points(export: TrackerExport, log: ControllerLog, nests: list[str], na
                         left_out=left_out, blocked=blocked, how=how)
 
 
-def _named_base_frame(frame_name: str | None) -> tuple[bool, str]:
+def named_base_frame(frame_name: str | None) -> tuple[bool, str]:
     """Whether the export's working-frame name (if any) is the machine's base frame, and why not."""
     if frame_name:
         short = frame_name.split("::")[-1].strip().lower()
         if short not in BASE_FRAME_NAMES:
             return False, f"working frame '{frame_name}' is not the machine's base frame"
-    return True, ""
-
-
-def in_base_frame(meas: Measurements, geom: Geometry, frame_name: str | None = None) -> tuple[bool, str]:
-    """Whether measured points are in the machine's base frame, and why not.
-
-    Not in the base frame: the export names a working frame other than :data:`BASE_FRAME_NAMES` (after
-    SA's ``COLLECTION::``), or the rigid check fails: the platform fitted to the points lies more than
-    :data:`BASE_FRAME_LIMITS` (mm, deg) from where the commands put the nominal machine's platform."""
-    base, reason = _named_base_frame(frame_name)
-    if not base:
-        return base, reason
-    r, R, _ = meas.poses(geom)
-    phi, theta = nominal_fk(np.deg2rad(meas.m_cmd_deg), geom)
-    ok = np.isfinite(theta) & np.isfinite(R).all(axis=(1, 2))
-    if not ok.any():
-        return False, "no pose to check the frame with"
-    r_nom, _ = nominal_pose(phi[ok], theta[ok], geom)
-    dist = np.linalg.norm(r[ok] - r_nom, axis=1)
-    angle = np.rad2deg(pointing_error(tilt_torsion(phi[ok], theta[ok]), R[ok]))
-    if np.median(dist) > BASE_FRAME_LIMITS[0] or np.median(angle) > BASE_FRAME_LIMITS[1]:
-        return False, (f"the platform is {np.median(dist):.3g} mm and {np.median(angle):.3g} deg (median) from "
-                       "where the commands put it in the base frame")
     return True, ""

@@ -14,7 +14,8 @@ import pytest
 from pmcal.calibration import identify
 from pmcal.cli import main
 from pmcal.io_ocpm import read_measurements, write_measurements
-from pmcal.io_tracker import join, read_controller_log, read_sa_ascii
+from pmcal.io_ocpm import join
+from pmcal.io_tracker import read_controller_log, read_sa_ascii
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 from pmcal.twin.campaign import plan_campaign, run_campaign
 from pmcal.twin.machine import Twin

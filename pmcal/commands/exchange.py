@@ -13,7 +13,8 @@ from pmcal.errors import InputError
 
 def _import(args) -> int:
     from pmcal import progress
-    from pmcal.io_tracker import (join, join_machine, parse_columns, read_controller_log, read_point_csv,
+    from pmcal.io_ocpm import join
+    from pmcal.io_tracker import (join_machine, parse_columns, read_controller_log, read_point_csv,
                                   read_sa_ascii)
     from pmcal.machines import resolve
 
