@@ -29,17 +29,20 @@ from pmcal.calib.ocpm.fullchain import platform_normals
 from pmcal.calib.solvers import METHODS
 from pmcal.compensators import (DEFAULT_GRID, Compensator, FullCompensation, PaperCompensation, build_table,
                                 checked_commands)
-from pmcal.errors import InputError
+from pmcal.errors import InputError, RunError
+from pmcal.export_model import ExportParts
 from pmcal.fileio import check_output
 from pmcal.threads import blas_policy
 from pmcal.history import LOG_UNIT, UNDETERMINED_FRACTION, make_record
 from pmcal.io_ocpm import PARAM_MODELS, param_unit, paper_keys_only, read_params, write_params
-from pmcal.mechanism.ocpm.config import Geometry, default_geometry
+from pmcal.mechanism.ocpm.config import MACHINE_DIR, Geometry, default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import limb_ik, nominal_ik
 from pmcal.mechanism.ocpm.params import LOG_RATIO, ErrorSet, describe, is_angular, to_interface
 from pmcal.tracker_frame import identify_result, tracker_document
 from pmcal.twin.forward import FullChainModel
+from pmcal.twin.machine import Twin
+from pmcal.twin.model import MM, MODEL_XML, build_model, load_model
 
 #: Calibration models: the one list, shared with the parameters-file schema.
 MODELS = PARAM_MODELS
@@ -435,3 +438,58 @@ def record_document(cal, campaign_path: str | Path, machine: str = "ocpm_2dof", 
                   np.array(values), cov, [_record_unit(n) for n in names], fit, fit.get("noise_sigma_mm"), date)
     doc.update(stiffness_ratio=cal.document.get("stiffness_ratio"), prior_std=prior_std, prior_mean=prior_mean)
     return doc
+
+
+# ---- the calibrated model (pmcal export-model)
+#: Simulation settings of the exported ocpm_2dof model, those of the dynamic twin (:mod:`pmcal.twin.dynamics`):
+#: the template's implicitfast at 1 ms diverges with stiff servos and hard closures; Euler at 0.2 ms with
+#: the SS limb's axial spring locked (rigid) settles (tests/test_export_model.py)
+SIMULATION_OPTIONS = {"integrator": "Euler", "timestep": "0.0002"}
+#: effects an MJCF model holds, and where (``diagnose`` family names)
+IN_MJCF = {"joint_compliance": "motor position servos: kp = K (N m/rad)"}
+
+
+def export_parts(params_path: str) -> ExportParts:
+    """ocpm_2dof's whole-chain calibration as its exported model holds it (:mod:`pmcal.export_model`): the
+    geometry in the frames, nest offsets in the target sites, zero offsets as the motor joints' ``ref``, the
+    closure stiffness ratio as custom numerics, the joint compliance as the servos' gain."""
+    geom = default_geometry()
+    cal = Calibration.load(params_path, geom)
+    if cal.model != "full":
+        raise InputError("the paper's per-limb model (model 'paper') is not a whole machine; export a whole-chain "
+                         "calibration (pmcal identify without --model paper)", file=params_path, field="model")
+    errors = ErrorSet.from_dict(cal.params, geom.n_limbs, geom.actuated)
+    ratio = float(cal.document.get("stiffness_ratio") or geom.stiffness_ratio)
+    m, idx = build_model(errors, geom)
+    nests = (cal.document.get("nests") or {}).get("offsets_mm") or {}
+    for k, site in enumerate(idx.site_targets):
+        m.site_pos[site] += np.asarray(nests.get(f"t{k + 1}", [0.0, 0.0, 0.0]), float) * MM
+    nominal = load_model(MODEL_XML)
+    key = 0
+    home_cmd = np.rad2deg(nominal.key_ctrl[key])          # the nominal home commands (the keyframe's)
+    twin = Twin(errors, geom, stiffness_ratio=ratio)
+    state = twin.reach(home_cmd[None])
+    if not state.converged.all():
+        raise RunError("the calibrated machine does not assemble at the home commands")
+    qpos = state.qpos[0].copy()
+    qpos[idx.qadr_base[:2]] = np.deg2rad(home_cmd)         # joint coordinate = command (ref = -dtheta)
+    k_p = geom.passive_closure_stiffness / MM               # N/m
+    dtheta = errors.dtheta[:2]
+    edits = dict(joint_ref={"limb1_B": -dtheta[0], "limb2_B": -dtheta[1]},
+                 joint_stiffness={"ss_slide": 0.0}, equality_active={"ss_axial_lock": True},
+                 option=SIMULATION_OPTIONS,
+                 keyframe=("home", qpos, np.deg2rad(home_cmd)),
+                 custom={"pmcal_stiffness_ratio": [ratio], "pmcal_passive_closure_stiffness": [k_p],
+                         "pmcal_zero_offset_deg": list(np.rad2deg(dtheta))})
+    facts = {"machine": "ocpm_2dof", "model": cal.model, "stiffness_ratio": ratio,
+             "zero_offsets_deg": list(np.rad2deg(dtheta)),
+             "zero_offsets_as": "motor joints' ref = -dtheta: joint coordinate = commanded angle"}
+    return ExportParts(MODEL_XML, MACHINE_DIR / "machine.toml", m, edits, cal.params, cal.document, facts,
+                       holds=IN_MJCF, effect_edits=_servo_gains)
+
+
+def _servo_gains(effects: dict) -> dict:
+    """The MJCF edits of the effects ocpm_2dof's model holds: joint compliance K as the servos' kp."""
+    K = effects["joint_compliance"]["value"]
+    K = K if isinstance(K, list) else [K, K]
+    return {"actuator_kp": {"motor1": K[0], "motor2": K[1]}}

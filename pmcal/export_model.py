@@ -24,37 +24,49 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
-from pmcal.calibration import Calibration
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write, check_output
-from pmcal.io_planar import read_params as read_planar_params
-from pmcal.mechanism.ocpm.config import MACHINE_DIR, default_geometry
-from pmcal.mechanism.ocpm.params import ErrorSet
+from pmcal.io_chain import read_params as read_chain_params
 from pmcal.twin.export import calibrated_xml
-from pmcal.twin.machine import Twin
-from pmcal.twin.model import MM, MODEL_XML, build_model, load_model
-from pmcal.twin.planar.config import MODEL_XML as PLANAR_XML, default_machine
-from pmcal.twin.planar.twin import PlanarTwin
 
 #: What the machine.toml written beside a calibrated MJCF starts with: an existing file of that name is
 #: replaced only if it is one
 SIDE_FILE_START = "# Calibrated "
 
-#: Simulation settings of the exported ocpm_2dof model, those of the dynamic twin (:mod:`pmcal.twin.dynamics`):
-#: the template's implicitfast at 1 ms diverges with stiff servos and hard closures; Euler at 0.2 ms with
-#: the SS limb's axial spring locked (rigid) settles (tests/test_export_model.py)
-SIMULATION_OPTIONS = {"integrator": "Euler", "timestep": "0.0002"}
-#: effects an MJCF model holds, and where (``diagnose`` family names)
-IN_MJCF = {"joint_compliance": "motor position servos: kp = K (N m/rad)"}
 #: effects written as a comment and in the machine.toml only
 AS_COMMENT = {"backlash": "full dead band of lost motion per motor (deg), as diagnose reports it: 2b in "
                           "joint = command + dtheta - b * approach sign"}
+
+
+@dataclass
+class ExportParts:
+    """What a machine's calibration puts into its exported model (each machine's code builds it:
+    :func:`chain_parts`, ``pmcal.calibration.export_parts``, ``pmcal.planar_calibration.export_parts``).
+
+    ``template``: the machine's MJCF; ``toml_path``: its machine.toml; ``model``: the compiled model with the
+    identified errors; ``edits``: the MJCF edits :func:`pmcal.twin.export.calibrated_xml` applies (joint refs,
+    keyframe, options, custom numerics); ``params``, ``doc``: the parameters and their document; ``facts``:
+    what the header and the machine.toml say (``machine``, ``model``, zero offsets and how they are held);
+    ``holds``: the named effects this machine's MJCF can hold and where; ``effect_edits(effects)``: the edits
+    that put them there."""
+
+    template: Path
+    toml_path: Path
+    model: mujoco.MjModel
+    edits: dict
+    params: dict
+    doc: dict
+    facts: dict
+    holds: dict = field(default_factory=dict)
+    effect_edits: Callable[[dict], dict] | None = None
 
 
 def _toml_value(v) -> str:
@@ -96,54 +108,7 @@ def read_effects(doc: dict, path: str) -> dict[str, dict]:
     return out
 
 
-def _ocpm(params_path: str):
-    geom = default_geometry()
-    cal = Calibration.load(params_path, geom)
-    if cal.model != "full":
-        raise InputError("the paper's per-limb model (model 'paper') is not a whole machine; export a whole-chain "
-                         "calibration (pmcal identify without --model paper)", file=params_path, field="model")
-    errors = ErrorSet.from_dict(cal.params, geom.n_limbs, geom.actuated)
-    ratio = float(cal.document.get("stiffness_ratio") or geom.stiffness_ratio)
-    m, idx = build_model(errors, geom)
-    nests = (cal.document.get("nests") or {}).get("offsets_mm") or {}
-    for k, site in enumerate(idx.site_targets):
-        m.site_pos[site] += np.asarray(nests.get(f"t{k + 1}", [0.0, 0.0, 0.0]), float) * MM
-    nominal = load_model(MODEL_XML)
-    key = 0
-    home_cmd = np.rad2deg(nominal.key_ctrl[key])          # the nominal home commands (the keyframe's)
-    twin = Twin(errors, geom, stiffness_ratio=ratio)
-    state = twin.reach(home_cmd[None])
-    if not state.converged.all():
-        raise RunError("the calibrated machine does not assemble at the home commands")
-    qpos = state.qpos[0].copy()
-    qpos[idx.qadr_base[:2]] = np.deg2rad(home_cmd)         # joint coordinate = command (ref = -dtheta)
-    k_p = geom.passive_closure_stiffness / MM               # N/m
-    dtheta = errors.dtheta[:2]
-    edits = dict(joint_ref={"limb1_B": -dtheta[0], "limb2_B": -dtheta[1]},
-                 joint_stiffness={"ss_slide": 0.0}, equality_active={"ss_axial_lock": True},
-                 option=SIMULATION_OPTIONS,
-                 keyframe=("home", qpos, np.deg2rad(home_cmd)),
-                 custom={"pmcal_stiffness_ratio": [ratio], "pmcal_passive_closure_stiffness": [k_p],
-                         "pmcal_zero_offset_deg": list(np.rad2deg(dtheta))})
-    facts = {"machine": "ocpm_2dof", "model": cal.model, "stiffness_ratio": ratio,
-             "zero_offsets_deg": list(np.rad2deg(dtheta)),
-             "zero_offsets_as": "motor joints' ref = -dtheta: joint coordinate = commanded angle"}
-    return MODEL_XML, MACHINE_DIR / "machine.toml", m, edits, cal.params, cal.document, facts
-
-
-def _planar(params_path: str):
-    """The planar robot's calibration: its paper-named errors (``io_planar``) mapped onto the frame errors of
-    ``mjcf/planar_2dof/chain`` (``[names]``), exported as a machine folder's (:func:`_frames`)."""
-    errors, doc = read_planar_params(params_path)
-    planar = PlanarTwin(errors, default_machine())
-    m, edits = _frames(planar.chain, planar.chain.spec, planar.params)
-    facts = {"machine": "planar_2dof", "model": doc.get("model", ""),
-             "zero_offsets_deg": list(np.rad2deg(errors.dtheta)),
-             "zero_offsets_as": "motor joints' ref = -dtheta: joint coordinate = commanded angle"}
-    return PLANAR_XML, PLANAR_XML.parent / "machine.toml", m, edits, doc.get("params", {}), doc, facts
-
-
-def _frames(twin, spec, params: dict):
+def frame_parts(twin, spec, params: dict):
     """The compiled model with the frame errors ``params`` and the MJCF edits that carry the rest: motor zero
     offsets as the motor joints' ``ref`` (joint coordinate = command - zero, as in the nominal model, while
     the link sits ``dzero`` further on), the home keyframe re-assembled."""
@@ -161,18 +126,16 @@ def _frames(twin, spec, params: dict):
     return m, dict(joint_ref=refs, keyframe=(spec.home, qpos, m.key_ctrl[key].copy()))
 
 
-def _chain(params_path: str, machine):
+def chain_parts(params_path: str, machine) -> ExportParts:
     """A machine folder's calibration (``pmcal --machine DIR identify``): the twin's frames with the
-    identified errors (:func:`_frames`)."""
-    from pmcal.io_chain import read_params as read_chain_params
-
+    identified errors (:func:`frame_parts`)."""
     twin, spec = machine.twin, machine.spec
     params, doc = read_chain_params(params_path, spec, dict(zip(twin.error_keys, twin.error_units())))
-    m, edits = _frames(twin, spec, params)
+    m, edits = frame_parts(twin, spec, params)
     zero = [f"{v:.6g} {mot.unit}" for mot, v in zip(spec.motors, twin.errors.zero_offset)]
     facts = {"machine": spec.name, "model": "chain", "zero_offsets": zero,
              "zero_offsets_as": "motor joints' ref lowered by dzero: joint coordinate = command - zero"}
-    return spec.model_path, spec.folder / "machine.toml", m, edits, params, doc, facts
+    return ExportParts(spec.model_path, spec.folder / "machine.toml", m, edits, params, doc, facts)
 
 
 def _zero_text(facts: dict) -> str:
@@ -195,21 +158,22 @@ def _retarget_model(toml: str, model_name: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def export_model(params_path: str | Path, output: str | Path, machine="ocpm_2dof") -> dict:
+def export_model(parts: ExportParts, params_path: str | Path, output: str | Path, keep=None) -> dict:
     """Write the calibrated MJCF (``output``) and its machine.toml (``output`` with suffix ``.toml``).
 
     Parameters
     ----------
+    parts : ExportParts
+        The machine's calibration as its exported model holds it (:class:`ExportParts`).
     params_path : path
         Parameters JSON of ``pmcal identify`` (or ``params.json`` of ``diagnose --report``, which adds the
-        named effects), of ``machine``.
+        named effects): named in the header.
     output : path
         MJCF file to write. Mesh and texture files stay where they are: their paths are rewritten relative to
         the output's folder (``compiler meshdir``/``texturedir``/``assetdir`` honoured); a missing asset or
         an ``<include>`` is an InputError (exit 2).
-    machine : {"ocpm_2dof", "planar_2dof"} or :class:`pmcal.machines.Machine`
-        The seeded machines by name; any machine folder as its ``Machine`` (its MJCF must include no
-        other MJCF file).
+    keep : path, optional
+        The machine folder: never written into.
 
     Returns
     -------
@@ -218,26 +182,18 @@ def export_model(params_path: str | Path, output: str | Path, machine="ocpm_2dof
 
     Examples
     --------
-    >>> export_model("params.json", "calibrated.xml")                          # doctest: +SKIP
-    >>> import mujoco; mujoco.MjModel.from_xml_path("calibrated.xml")           # doctest: +SKIP
+    >>> export_model(chain_parts("params.json", machine), "params.json", "calibrated.xml")   # doctest: +SKIP
+    >>> import mujoco; mujoco.MjModel.from_xml_path("calibrated.xml")                        # doctest: +SKIP
     """
     params_path = str(params_path)
-    keep = None if isinstance(machine, str) else machine.folder     # the machine folder: never written into
-    if not isinstance(machine, str) and machine.legacy:
-        machine = machine.name
-    if not isinstance(machine, str):
-        template, toml_path, model, edits, params, doc, facts = _chain(params_path, machine)
-        machine = "chain"
-    else:
-        template, toml_path, model, edits, params, doc, facts = (_ocpm if machine == "ocpm_2dof" else _planar)(params_path)
+    template, toml_path, model, edits, params, doc, facts = (parts.template, parts.toml_path, parts.model,
+                                                             dict(parts.edits), parts.params, parts.doc, parts.facts)
     effects = read_effects(doc, params_path)
-    in_mjcf = {n: IN_MJCF[n] for n in effects if n in IN_MJCF and machine == "ocpm_2dof"}
+    in_mjcf = {n: parts.holds[n] for n in effects if n in parts.holds}
     comment_only = [n for n in effects if n in AS_COMMENT]
     not_in = [n for n in effects if n not in in_mjcf and n not in comment_only]
-    if "joint_compliance" in in_mjcf:
-        K = effects["joint_compliance"]["value"]
-        K = K if isinstance(K, list) else [K, K]
-        edits["actuator_kp"] = {"motor1": K[0], "motor2": K[1]}
+    if in_mjcf and parts.effect_edits is not None:
+        edits.update(parts.effect_edits({n: effects[n] for n in in_mjcf}))
     stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     header = [f" Calibrated {facts['machine']}: written by pmcal export-model from {params_path} ({stamp}).",
               f" The machine's MJCF ({template.name}) with the identified geometry in the body, joint and site "

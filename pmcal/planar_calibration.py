@@ -28,6 +28,7 @@ from pmcal.calib.planar.identification import METHODS, MODELS, system
 from pmcal.calib.planar.identification import identify as identify_linear
 from pmcal.campaign_quality import judge, refuse_unusable
 from pmcal.errors import InputError
+from pmcal.export_model import ExportParts, frame_parts
 from pmcal.fileio import check_output, write_json
 from pmcal.io_planar import MECHANISM, PlanarMeasurements, params_document, read_params
 from pmcal.mechanism.machine_spec import MachineSpec
@@ -35,7 +36,8 @@ from pmcal.mechanism.planar.chain import PlanarChainModel
 from pmcal.mechanism.planar.geometry import ERROR_KEYS, Errors, interface_unit
 from pmcal.mechanism.planar.noise import Noise
 from pmcal.mjcf import machine_dir
-from pmcal.twin.planar.config import PlanarMachine, default_machine
+from pmcal.twin.planar.config import MODEL_XML as PLANAR_XML, PlanarMachine, default_machine
+from pmcal.twin.planar.twin import PlanarTwin
 
 #: ``model=`` values and the model each names
 MODEL_CHOICES = {None: "simplified", "paper": "simplified", "simplified": "simplified", "full": "full",
@@ -219,3 +221,15 @@ def _chain_document(machine: PlanarMachine, meas: PlanarMeasurements, method: st
             "chi2_per_dof": float(res.chi2_per_dof), "n_readings": int(len(meas.readings)),
             "n_positions": len(meas.ids), "source": str(meas.path), "success": bool(res.success),
             "message": res.message, "noise": {"scale_sigma_mm": noise.scale, "servo_sigma_deg": servo[0]}}
+
+
+def export_parts(params_path: str) -> ExportParts:
+    """The planar robot's calibration: its paper-named errors (``io_planar``) mapped onto the frame errors of
+    ``mjcf/planar_2dof/chain`` (``[names]``), exported as a machine folder's (:func:`_frames`)."""
+    errors, doc = read_params(params_path)
+    planar = PlanarTwin(errors, default_machine())
+    m, edits = frame_parts(planar.chain, planar.chain.spec, planar.params)
+    facts = {"machine": "planar_2dof", "model": doc.get("model", ""),
+             "zero_offsets_deg": list(np.rad2deg(errors.dtheta)),
+             "zero_offsets_as": "motor joints' ref = -dtheta: joint coordinate = commanded angle"}
+    return ExportParts(PLANAR_XML, PLANAR_XML.parent / "machine.toml", m, edits, doc.get("params", {}), doc, facts)

@@ -197,6 +197,16 @@ def compensate(args) -> int:
     return 0
 
 
+def export_model(args) -> int:
+    """``pmcal --machine DIR export-model PARAMS.json -o MODEL.xml``: the folder's calibrated MJCF and
+    machine.toml (never written into the machine folder)."""
+    from pmcal.apps import export_calibrated_model
+    from pmcal.export_model import chain_parts
+
+    machine = _machine(args)
+    return export_calibrated_model(chain_parts(str(args.params), machine), args, machine.name, keep=machine.folder)
+
+
 def evaluate(args) -> int:
     """``pmcal --machine DIR evaluate PARAMS.json MEAS.csv [--json OUT.json]``: how far the measured targets
     are from where the machine with those parameters puts them (mm)."""

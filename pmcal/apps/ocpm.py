@@ -34,6 +34,7 @@ ROUTES = {
     "demo": "pmcal.apps.ocpm_calib",
     "targets": "pmcal.apps.ocpm_twin",
     "diagnose": "pmcal.apps.ocpm_diagnose",
+    "export_model": "pmcal.apps.ocpm_calib",
 }
 
 

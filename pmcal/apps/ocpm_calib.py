@@ -157,3 +157,11 @@ def demo(args) -> int:
     from pmcal.studies.demo import run_demo
 
     return run_demo(Path(args.out), args.seed, full=getattr(args, "full", False))
+
+
+def export_model(args) -> int:
+    """``pmcal export-model PARAMS.json -o MODEL.xml``: ocpm_2dof's calibrated MJCF and machine.toml."""
+    from pmcal.apps import export_calibrated_model
+    from pmcal.calibration import export_parts
+
+    return export_calibrated_model(export_parts(str(args.params)), args, MECHANISM)

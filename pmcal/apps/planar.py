@@ -127,6 +127,15 @@ def compensate(args) -> int:
     return 0
 
 
+def export_model(args) -> int:
+    """``pmcal --machine planar_2dof export-model PARAMS.json -o MODEL.xml``: the calibrated MJCF of
+    ``mjcf/planar_2dof/chain`` and its machine.toml."""
+    from pmcal.apps import export_calibrated_model
+    from pmcal.planar_calibration import export_parts
+
+    return export_calibrated_model(export_parts(str(args.params)), args, "planar_2dof")
+
+
 def evaluate(args) -> int:
     """How well a parameter set explains a measurement file: RMS of the reading residuals (mm) with the
     nominal machine and with the parameters (the generic core's readings on the closed-form fast path,

@@ -72,20 +72,9 @@ def _check_nest_distances(meas, path: str, units: str) -> None:
 
 
 def _export_model(args) -> int:
-    from pmcal import progress
-    from pmcal.export_model import export_model
-    from pmcal.machines import resolve
+    from pmcal.commands.routing import dispatch
 
-    machine = getattr(args, "selected_machine", None) or resolve(args.machine)   # unknown: one line, exit 2
-    out = export_model(args.params, args.output, machine)
-    for name, where in out["in_mjcf"].items():
-        progress.status(f"{name}: in the MJCF ({where})")
-    for name in out["comment_only"] + out["not_in_mjcf"]:
-        progress.warning(f"{name} cannot be held by MJCF: written to {out['toml']} (and the file's comment)")
-    held = len(out["comment_only"]) + len(out["not_in_mjcf"])
-    print(f"calibrated model of {machine.name} from {args.params}: {len(out['in_mjcf'])} effect(s) in the MJCF"
-          + (f", {held} only in {out['toml']}" if held else ""))
-    return 0
+    return dispatch("export_model", args)
 
 
 def _history(args) -> int:
