@@ -117,7 +117,8 @@ def option_help(machine) -> dict:
 
 #: command -> module that implements it (a function of the same name taking the parsed arguments)
 ROUTES = {**{name: "pmcal.apps.chain_commands"
-             for name in ("twin_measure", "identify", "targets", "compensate", "evaluate", "export_model")},
+             for name in ("twin_measure", "identify", "targets", "compensate", "evaluate", "export_model",
+                          "import_campaign")},
           "twin_render": "pmcal.apps.chain_render", "twin_plan": "pmcal.apps.chain_plan",
           "demo": "pmcal.apps.chain_demo", "diagnose": "pmcal.apps.chain_diagnose", "loop": "pmcal.apps.chain_loop"}
 

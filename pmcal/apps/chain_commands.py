@@ -207,6 +207,23 @@ def export_model(args) -> int:
     return export_calibrated_model(chain_parts(str(args.params), machine), args, machine.name, keep=machine.folder)
 
 
+def import_campaign(args) -> int:
+    """``pmcal --machine DIR import TRACKER LOG -o MEAS.csv``: the folder's measurement CSV from a tracker
+    export and the controller log with its motor columns (:func:`pmcal.io_tracker.join_machine`)."""
+    from pmcal.apps import import_tracker_campaign
+    from pmcal.chain import distance_from_nominal
+    from pmcal.io_tracker import join_machine, read_controller_log
+
+    machine = _machine(args)
+    spec = machine.spec
+    return import_tracker_campaign(
+        args, lambda export: join_machine(export, read_controller_log(args.log, spec.motor_columns), spec,
+                                          lambda c, t: distance_from_nominal(machine, c, t), names=args.names,
+                                          time_tolerance_s=args.time_tolerance),
+        lambda res: write_measurements(args.output, spec, res.meas, comments=res.comments),
+        "transform them into the base frame (the frame of the MJCF's world) before identifying")
+
+
 def evaluate(args) -> int:
     """``pmcal --machine DIR evaluate PARAMS.json MEAS.csv [--json OUT.json]``: how far the measured targets
     are from where the machine with those parameters puts them (mm)."""

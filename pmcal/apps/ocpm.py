@@ -35,6 +35,7 @@ ROUTES = {
     "targets": "pmcal.apps.ocpm_twin",
     "diagnose": "pmcal.apps.ocpm_diagnose",
     "export_model": "pmcal.apps.ocpm_calib",
+    "import_campaign": "pmcal.apps.ocpm_calib",
 }
 
 

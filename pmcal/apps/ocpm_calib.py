@@ -165,3 +165,27 @@ def export_model(args) -> int:
     from pmcal.calibration import export_parts
 
     return export_calibrated_model(export_parts(str(args.params)), args, MECHANISM)
+
+
+def import_campaign(args) -> int:
+    """``pmcal import TRACKER LOG -o MEAS.csv``: ocpm_2dof's measurement CSV from a tracker export and the
+    controller log (:func:`pmcal.io_ocpm.join`); the nests' distances are checked against the platform's
+    before anything is written (points in metres are refused here, not blamed on the frame later)."""
+    from pmcal.apps import import_tracker_campaign
+    from pmcal.io_ocpm import check_plausible, join, write_measurements
+    from pmcal.io_tracker import read_controller_log
+
+    def joined(export):
+        res = join(export, read_controller_log(args.log), names=args.names, time_tolerance_s=args.time_tolerance)
+        try:
+            check_plausible(res.meas, default_geometry(), args.tracker, "tracker")
+        except InputError as exc:
+            pose = res.meas.pose_id[exc.row - 1] if exc.row else None
+            unit = f"--units {args.units}" if args.units else "the unit its header names (else --units)"
+            raise InputError(f"pose {pose}: {exc.message}; check the export's unit ({unit})",
+                             file=args.tracker) from None
+        return res
+
+    return import_tracker_campaign(
+        args, joined, lambda res: write_measurements(args.output, res.meas, comments=res.comments),
+        f"identify with 'pmcal identify {args.output} --frame tracker' (recorded in its header)")

@@ -127,6 +127,12 @@ def compensate(args) -> int:
     return 0
 
 
+def import_campaign(args) -> int:
+    """``import`` reads tracker points of nests: this machine is measured by its linear scale."""
+    raise InputError("'import' reads tracker points of nests; machine 'planar_2dof' is measured by its linear "
+                     "scale, not a tracker", field="--machine")
+
+
 def export_model(args) -> int:
     """``pmcal --machine planar_2dof export-model PARAMS.json -o MODEL.xml``: the calibrated MJCF of
     ``mjcf/planar_2dof/chain`` and its machine.toml."""

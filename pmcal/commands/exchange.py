@@ -12,63 +12,9 @@ from pmcal.errors import InputError
 
 
 def _import(args) -> int:
-    from pmcal import progress
-    from pmcal.io_ocpm import join
-    from pmcal.io_tracker import (join_machine, parse_columns, read_controller_log, read_point_csv,
-                                  read_sa_ascii)
-    from pmcal.machines import resolve
+    from pmcal.commands.routing import dispatch
 
-    machine = getattr(args, "selected_machine", None) or resolve(args.machine)
-    if machine.legacy and machine.name != "ocpm_2dof":
-        raise InputError(f"'import' reads tracker points of nests; machine '{machine.name}' is measured by its "
-                         "linear scale, not a tracker", field="--machine")
-    if args.time_tolerance is not None and not args.time_tolerance > 0:
-        raise InputError(f"time tolerance must be a positive number of seconds, got {args.time_tolerance}",
-                         field="--time-tolerance")
-    if args.columns:
-        export = read_point_csv(args.tracker, parse_columns(args.columns), args.units)
-    else:
-        export = read_sa_ascii(args.tracker, args.units)
-    if machine.legacy:
-        from pmcal.io_ocpm import write_measurements
-
-        res = join(export, read_controller_log(args.log), names=args.names, time_tolerance_s=args.time_tolerance)
-        _check_nest_distances(res.meas, args.tracker, args.units)
-        advice = f"identify with 'pmcal identify {args.output} --frame tracker' (recorded in its header)"
-        write = lambda: write_measurements(args.output, res.meas, comments=res.comments)  # noqa: E731
-    else:
-        from pmcal.chain import distance_from_nominal
-        from pmcal.io_chain import write_measurements as write_chain
-
-        spec = machine.spec
-        res = join_machine(export, read_controller_log(args.log, spec.motor_columns), spec,
-                           lambda c, t: distance_from_nominal(machine, c, t), names=args.names,
-                           time_tolerance_s=args.time_tolerance)
-        advice = "transform them into the base frame (the frame of the MJCF's world) before identifying"
-        write = lambda: write_chain(args.output, spec, res.meas, comments=res.comments)  # noqa: E731
-    for w in res.warnings:
-        progress.warning(w)
-    if res.frame != "base":
-        progress.warning(f"{args.tracker}: the points are not in the machine's base frame ({res.frame_reason}): "
-                         f"{advice}")
-    write()
-    print(f"imported {len(res.meas)} poses ({res.join}, {res.frame} frame)")
-    return 0
-
-
-def _check_nest_distances(meas, path: str, units: str) -> None:
-    """ocpm_2dof: the distances between the nests of each pose against the platform's (frame-free), before
-    anything is written: points in metres (or in another unit than ``--units``) are refused here, not
-    written and then blamed on the frame."""
-    from pmcal.io_ocpm import check_plausible
-    from pmcal.mechanism.ocpm.config import default_geometry
-
-    try:
-        check_plausible(meas, default_geometry(), path, "tracker")
-    except InputError as exc:
-        pose = meas.pose_id[exc.row - 1] if exc.row else None
-        unit = f"--units {units}" if units else "the unit its header names (else --units)"
-        raise InputError(f"pose {pose}: {exc.message}; check the export's unit ({unit})", file=path) from None
+    return dispatch("import_campaign", args)
 
 
 def _export_model(args) -> int:
