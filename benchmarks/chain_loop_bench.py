@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
 from pmcal.apps.chain_loop import calibrate, run_chain_loop  # noqa: E402
-from pmcal.apps.plc_loop import loopback_mock  # noqa: E402
+from pmcal.apps.twin_loop import loopback_mock  # noqa: E402
 from pmcal.machines import Machine  # noqa: E402
 
 

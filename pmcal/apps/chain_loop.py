@@ -30,7 +30,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from pmcal import progress
-from pmcal.apps.plc_loop import NOMINAL_VERSION, default_links, error_summary, plc_lookup
+from pmcal.apps.twin_loop import NOMINAL_VERSION, default_links, error_summary, plc_lookup
 from pmcal.bridge.comptable import CompTable
 from pmcal.bridge.errors import BridgeError
 from pmcal.bridge.plc_types import LOOKUP_WRITES
@@ -241,7 +241,7 @@ def loop(args) -> int:
     [--targets N] [--grid N1,N2,..] [--json OUT.json]``: calibrate the folder's twin, run the loop on a mock
     PLC started here, print the table of errors (and write the summary)."""
     from pmcal.apps.chain_commands import error_set, parse_nodes
-    from pmcal.apps.plc_loop import check_target_count, loopback_mock, state_lines
+    from pmcal.apps.twin_loop import check_target_count, loopback_mock, state_lines
     from pmcal.fileio import write_json
 
     machine = args.selected_machine

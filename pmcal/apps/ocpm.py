@@ -36,6 +36,7 @@ ROUTES = {
     "diagnose": "pmcal.apps.ocpm_diagnose",
     "export_model": "pmcal.apps.ocpm_calib",
     "import_campaign": "pmcal.apps.ocpm_calib",
+    "loop": "pmcal.apps.plc_loop",
 }
 
 

@@ -11,8 +11,6 @@ Units: deg for orientations, commands and pointing errors; mm inside the tracker
 
 from __future__ import annotations
 
-import logging
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -22,10 +20,11 @@ from pmcal.mechanism.ocpm.config import Geometry, default_geometry
 from pmcal.mechanism.ocpm.params import ErrorSet
 from pmcal.bridge.errors import BridgeError
 from pmcal.bridge.link import PlcLink
-from pmcal.bridge.plc_types import LOOKUP_WRITES, LookupResult
+from pmcal.bridge.plc_types import LOOKUP_WRITES
 from pmcal.bridge.transfer import PushReport, push
+from pmcal.apps.twin_loop import (NOMINAL_VERSION, check_target_count, default_links, error_summary,  # noqa: F401
+                                  loopback_mock, plc_lookup, state_lines)
 
-NOMINAL_VERSION = 1
 #: 5 deg in phi, 2 deg in theta (as ``pmcal compensate --table``)
 DEFAULT_GRID = (73, 31)
 
@@ -65,17 +64,6 @@ class LoopResult:
                 **self.extra}
 
 
-def _rms(x: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.square(x))))
-
-
-def error_summary(measured: np.ndarray, true: np.ndarray, unit: str) -> dict:
-    """rms and max of errors as the tracker measures them and true ones, keys ``rms_<unit>``, ``max_<unit>``,
-    ``true_rms_<unit>``, ``true_max_<unit>`` (what :func:`state_lines` prints)."""
-    return {f"rms_{unit}": _rms(measured), f"max_{unit}": float(np.max(measured)),
-            f"true_rms_{unit}": _rms(true), f"true_max_{unit}": float(np.max(true))}
-
-
 def nominal_table(grid: tuple[int, int], geom: Geometry | None = None, version: int = NOMINAL_VERSION,
                   max_step_deg: float = 15.0) -> CompTable:
     """The uncalibrated controller as a table: nominal inverse kinematics on the grid (deg)."""
@@ -109,26 +97,6 @@ def plc_commands(link: PlcLink, phi_deg: np.ndarray, theta_deg: np.ndarray) -> t
     """Motor targets (N, 2) deg that FB_CompTableLookup gives for the orientations, and the table version."""
     out, version, _ = plc_lookup(link, np.stack([phi_deg, theta_deg], axis=-1), ("phi_deg", "theta_deg"))
     return out[:, :2], version
-
-
-def plc_lookup(link: PlcLink, points: np.ndarray, labels: tuple[str, ...]) -> tuple[np.ndarray, int, bool]:
-    """What FB_CompTableLookup gives at task points ``points`` (N, A) (the table's axes, in their order and
-    units; ``labels`` their columns, for messages): values (N, M) deg / mm, the table version, and whether
-    they are corrections to the controller's own nominal IK (a table with nReference 2) or motor commands.
-    A failed lookup, or tables switched between lookups, is a :class:`BridgeError`."""
-    out, versions, kinds = [], set(), set()
-    for x in np.atleast_2d(points):
-        res = link.lookup(*(float(v) for v in x))
-        if res.result != LookupResult.OK:
-            what = getattr(res.result, "name", res.result)
-            where = ", ".join(f"{c} {v:g}" for c, v in zip(labels, x))
-            raise BridgeError(f"PLC lookup of ({where}) failed: {what}")
-        out.append(res.m)
-        versions.add(res.table_version)
-        kinds.add(res.correction)
-    if len(versions) != 1:
-        raise BridgeError(f"PLC switched tables during the lookups: versions {sorted(versions)}")
-    return np.array(out, float), versions.pop(), kinds.pop()
 
 
 def measure(twin, tracker, commands_deg: np.ndarray, phi_deg: np.ndarray, theta_deg: np.ndarray) -> Pointing:
@@ -187,61 +155,12 @@ def run_loop(mock, errors: dict | ErrorSet, table: CompTable | None = None, *, n
                       extra={"plc_equals_table_interpolation": bool(np.array_equal(cmd, exact))})
 
 
-def default_links(mock, writes):
-    """A client link to the started ``mock`` over its own transport, allowed to write ``writes`` (None: what
-    a push writes)."""
-    from pmcal.bridge.plc_types import PUSH_WRITES
-
-    writes = PUSH_WRITES if writes is None else writes
-    if mock.transport == "ads":
-        from pmcal.bridge.ads import AdsLink
-
-        return AdsLink(mock.address, writes=writes)
-    from pmcal.bridge.modbus import ModbusLink
-
-    return ModbusLink(mock.host, mock.port, rmap=mock.rmap, writes=writes)
-
-
-@contextmanager
-def loopback_mock(transport: str, lifetime_s: float = 600.0):
-    """A strict mock PLC (:class:`pmcal.bridge.ads_mock.AdsMockPlc` or
-    :class:`pmcal.bridge.modbus_mock.ModbusMockPlc`, ``transport`` ``"ads"`` or ``"modbus"``) started on
-    127.0.0.1 for the loop, stopped after it; AdsLib's and pymodbus' own logging silenced (one line per
-    failure)."""
-    from pmcal.bridge.ads import set_adslib_log_level
-
-    set_adslib_log_level(4)
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-    if transport == "ads":
-        from pmcal.bridge.ads_mock import AdsMockPlc as Mock
-    else:
-        from pmcal.bridge.modbus_mock import ModbusMockPlc as Mock
-    with Mock(lifetime_s=lifetime_s) as mock:
-        yield mock
-
-
-def state_lines(summary: dict, what: str, unit: str) -> list[str]:
-    """The printed rows of a loop's summary: ``what`` (e.g. "pointing error") rms and max as the tracker
-    measures it, and the true rms, in ``unit``, before the push, after it and without a table."""
-    rows = []
-    for name, key in (("before push (nominal table)", "before"), ("after push", "after"),
-                      ("compensation without table", "direct_no_table")):
-        v = summary[key]
-        rows.append(f"  {name:30s} {what} rms {v[f'rms_{unit}']:.4f} {unit}, max {v[f'max_{unit}']:.4f} {unit} "
-                    f"(true rms {v[f'true_rms_{unit}']:.4f} {unit})")
-    return rows
-
-
-def run_loop_cli(args) -> int:
+def loop(args) -> int:
     """``pmcal loop``: start a mock PLC, run the loop, print (and optionally write) the result."""
     from pmcal.apps.ocpm_twin import machine_errors
     from pmcal.apps.ocpm_calib import parse_grid
-    from pmcal.errors import InputError
     from pmcal.fileio import write_json
 
-    if getattr(args, "machine", "ocpm_2dof") != "ocpm_2dof":
-        raise InputError(f"the twin loop exists for ocpm_2dof and machine folders, not '{args.machine}'",
-                         field="--machine")
     check_target_count(args.targets)
     errors = machine_errors(args)
     grid = parse_grid(args.grid)
@@ -264,15 +183,3 @@ def run_loop_cli(args) -> int:
     if args.json:
         write_json(args.json, s, indent=1)
     return 0
-
-
-#: most test targets of a loop
-TARGETS_MAX = 10000
-
-
-def check_target_count(n: int) -> None:
-    """``--targets``: 1..:data:`TARGETS_MAX` test targets, else an :class:`pmcal.errors.InputError`."""
-    from pmcal.errors import InputError
-
-    if not 1 <= n <= TARGETS_MAX:
-        raise InputError(f"targets must be 1..{TARGETS_MAX}, got {n}", field="--targets")

@@ -541,11 +541,8 @@ def _stop_on_sigterm() -> list:
 
 
 def cmd_loop(args) -> int:
-    """ocpm_2dof's loop (:mod:`pmcal.apps.plc_loop`), or a machine folder's (:mod:`pmcal.apps.chain_loop`)."""
+    """The machine's twin loop: ocpm_2dof's (:mod:`pmcal.apps.plc_loop`), a machine folder's
+    (:mod:`pmcal.apps.chain_loop`); planar_2dof has none."""
     from pmcal.commands.routing import dispatch
 
-    if not args.selected_machine.legacy:
-        return dispatch("loop", args)
-    from pmcal.apps.plc_loop import run_loop_cli
-
-    return run_loop_cli(args)
+    return dispatch("loop", args)
