@@ -43,6 +43,49 @@ FORBIDDEN = [
 ]
 
 
+#: The seeded machines' code ("wings"): the modules of each, by prefix. Generic modules import no wing and
+#: wings do not import each other; only the library's front door (:data:`FRONT_DOORS`) routes to them.
+WINGS: dict[str, tuple[str, ...]] = {
+    "ocpm_2dof": ("pmcal.mechanism.ocpm", "pmcal.calib.ocpm", "pmcal.calib.forward_model",
+                  *(f"pmcal.twin.{m}" for m in ("aiming", "assembly", "campaign", "dynamics", "effect_model", "effects",
+                                               "forward", "machine", "model", "sensitivity")),
+                  "pmcal.io_ocpm", "pmcal.calibration", "pmcal.compensators", "pmcal.tracker_frame",
+                  "pmcal.apps.ocpm", "pmcal.apps.ocpm_calib", "pmcal.apps.ocpm_diagnose", "pmcal.apps.ocpm_diagnose_frame",
+                  "pmcal.apps.ocpm_diagnosis_plan", "pmcal.apps.ocpm_tracker_plan", "pmcal.apps.ocpm_twin",
+                  "pmcal.apps.effect_scenarios", "pmcal.apps.plc_loop", "pmcal.reports.demo", "pmcal.reports.diagnose",
+                  "pmcal.studies.demo", "pmcal.studies.demo_tracker"),
+    "planar_2dof": ("pmcal.mechanism.planar", "pmcal.calib.planar", "pmcal.twin.planar", "pmcal.io_planar",
+                    "pmcal.planar_calibration", "pmcal.apps.planar", "pmcal.apps.planar_demo", "pmcal.apps.planar_study"),
+}
+#: The library API: ``pmcal.read_measurements(path, machine)`` and ``pmcal.identify(campaign)`` route a
+#: campaign to its machine's code, so it may import every wing.
+FRONT_DOORS = ("pmcal.api",)
+
+
+def wing_of(module: str) -> str | None:
+    """The seeded machine whose code ``module`` is (a module, or a name inside one), None for generic code."""
+    for name, prefixes in WINGS.items():
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return name
+    return None
+
+
+def wing_violations(sources: dict[str, str]) -> list[Violation]:
+    """Generic modules importing a wing, and wings importing each other (:data:`WINGS`)."""
+    bad = []
+    for mod, src in sources.items():
+        mine = wing_of(mod)
+        if mod in FRONT_DOORS:
+            continue
+        for imp, line in imports_of(mod, src):
+            theirs = wing_of(imp)
+            if theirs is not None and theirs != mine:
+                why = (f"generic code may not import {theirs}'s code" if mine is None
+                       else f"{mine}'s code may not import {theirs}'s")
+                bad.append(Violation(mod, imp, line, why))
+    return bad
+
+
 def layer_of(module: str) -> int:
     best, rank = -1, -1
     for i, (_, prefixes) in enumerate(LAYERS):

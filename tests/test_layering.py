@@ -1,6 +1,6 @@
 """The one-way import contract (tests/layering.py) holds, and the checker does catch a reverse import."""
 
-from layering import LAYERS, check, layer_of, modules
+from layering import LAYERS, check, layer_of, modules, wing_of, wing_violations
 
 
 def test_every_module_has_a_layer():
@@ -45,3 +45,25 @@ def test_the_application_sub_layers_point_one_way_too():
     assert {(v.importer, v.imported) for v in check(sources)} == {
         ("pmcal.apps.chain", "pmcal.commands.options.ABSENT"), ("pmcal.machines", "pmcal.apps.chain"),
         ("pmcal.io_chain", "pmcal.chain.identify")}
+
+
+def test_the_generic_core_imports_no_seeded_machine_and_the_machines_not_each_other():
+    bad = wing_violations({m: p.read_text(encoding="utf-8") for m, p in modules().items()})
+    assert not bad, "\n".join(map(str, bad))
+
+
+def test_a_generic_module_importing_a_wing_is_caught():
+    """A generic twin module importing ocpm_2dof's assembler (inside a function too), a planar module importing
+    ocpm's, and the bridge importing ocpm's geometry are each reported; the front door routing is not."""
+    sources = {
+        "pmcal.twin.closed_chain": "def f():\n    from pmcal.twin.assembly import BatchAssembler\n",
+        "pmcal.twin.planar.twin": "from pmcal.twin.machine import Twin\n",
+        "pmcal.bridge.nominal": "from pmcal.mechanism.ocpm.config import default_geometry\n",
+        "pmcal.api": "from pmcal.calibration import Calibration\n",
+        "pmcal.calibration": "from pmcal.history import make_record\n",
+    }
+    assert {(v.importer, v.imported) for v in wing_violations(sources)} == {
+        ("pmcal.twin.closed_chain", "pmcal.twin.assembly.BatchAssembler"),
+        ("pmcal.twin.planar.twin", "pmcal.twin.machine.Twin"),
+        ("pmcal.bridge.nominal", "pmcal.mechanism.ocpm.config.default_geometry")}
+    assert (wing_of("pmcal.calib.ocpm.fullchain"), wing_of("pmcal.twin.closed_chain")) == ("ocpm_2dof", None)
