@@ -1,8 +1,8 @@
 """The corpus on a second simulator (tests/crosssim_chain: plain MuJoCo and scipy, its own error
 parameterisation and loop solver, nothing of pmcal).
 
-- Without errors both simulators put the nests at the same place at random poses (1e-6 mm): two loop solvers
-  written apart agree on the nominal machine.
+- Without errors both simulators put the nests at the same place at random poses (1e-6 mm; 1e-5 mm for an
+  over-constrained loop, :data:`NOMINAL_ATOL`): two loop solvers written apart agree on the nominal machine.
 - With random errors of the toml's sizes in the simulator's own parameters (slow): pmcal identifies from the
   simulator's 48-pose campaign (pmcal's plan, 0.01 mm noise) and the compensated commands, driven on the
   simulator, bring the task site within 2x the error pmcal predicts and 50x closer than the nominal IK does.
@@ -18,13 +18,20 @@ from tests.test_corpus import CORPUS, MODELS, REFUSED
 
 CALIBRATED = [n for n in MODELS if n not in REFUSED]         # the corpus models pmcal accepts
 
+#: mm: where the two simulators' over-constraint rules part on the nominal machine (default 1e-6). The
+#: ToddlerBot neck's tilt rods are not an exact parallelogram (their lengths differ by 0.05 mm in the CAD): its
+#: second rod is over-constrained away from home, pmcal closes it along the directions independent at home,
+#: the second simulator by least squares; they part by 4e-6 mm on the nests
+NOMINAL_ATOL = {"toddlerbot_neck": 1e-5}
+
 
 @pytest.mark.parametrize("name", CALIBRATED)
 def test_second_simulator_agrees_on_the_nominal_machine(name):
     machine = Machine.from_folder(CORPUS / name)
     commands = machine.twin.sample_commands(4, np.random.default_rng(2))
     sim = SimMachine(CORPUS / name)
-    np.testing.assert_allclose(sim.nests(commands), machine.twin.targets(commands, None), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(sim.nests(commands), machine.twin.targets(commands, None), rtol=0,
+                               atol=NOMINAL_ATOL.get(name, 1e-6))
 
 
 @pytest.mark.slow

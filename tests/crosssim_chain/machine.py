@@ -21,7 +21,11 @@ a motor; the residual is, per ``connect`` equality, the world distance vector (m
 points (two sites, or body1's ``anchor`` and the point of body2 MuJoCo's compiler placed there); scipy
 ``least_squares`` (trust-region reflective, finite-difference Jacobian) from the previous solution, the
 motors moved from the ``home`` configuration (the keyframe, else the default configuration) in sub-steps
-of at most 10 % of their ranges. Welds are not simulated (no corpus model has one). A ``joint`` equality
+of at most 10 % of their ranges. An over-constrained loop (a planar loop closed by a 3-D ``connect``
+carrying an out-of-plane error, a parallelogram's second rod, a closing hinge made of two ``connect``s)
+cannot close exactly: the least-squares solution is kept when the joints can reduce its gap no further
+(the gap's part in the range of the closure Jacobian below 1e-7 mm) and the gap left, taken up by the
+joints' play, is below :data:`PLAY` mm. Welds are not simulated (no corpus model has one). A ``joint`` equality
 (coupled drivers) is a residual row ``q1 - q1_0 - poly(q2 - q2_0)`` (rad).
 
 Units: mm and degrees at the interface, SI inside MuJoCo.
@@ -39,6 +43,7 @@ from scipy.spatial.transform import Rotation
 
 POSITION = ("x_mm", "y_mm", "z_mm")
 SUBSTEP = 0.1
+PLAY = 0.5          # mm: the largest gap an over-constrained loop may leave to the joints' play
 
 
 class SimMachine:
@@ -180,7 +185,12 @@ class SimMachine:
         sol = least_squares(lambda x: self._gaps(at(x)), np.zeros(len(self.free_dofs)), method="trf",
                             xtol=1e-13, ftol=1e-13, gtol=1e-13, max_nfev=100)
         q = at(sol.x)
-        if np.max(np.abs(self._gaps(q))) > 1e-7:                  # mm
+        gap = self._gaps(q)
+        if np.max(np.abs(gap)) <= 1e-7:                            # mm: closed
+            return q
+        J = sol.jac                                                # over-constrained: what can the joints still move?
+        movable = J @ np.linalg.lstsq(J, gap, rcond=None)[0] if J.size else np.zeros_like(gap)
+        if np.max(np.abs(movable)) > 1e-7 or np.max(np.abs(gap)) > PLAY:
             return np.full(m.nq, np.nan)
         return q
 
