@@ -25,7 +25,8 @@ of at most 10 % of their ranges. An over-constrained loop (a planar loop closed 
 carrying an out-of-plane error, a parallelogram's second rod, a closing hinge made of two ``connect``s)
 cannot close exactly: the least-squares solution is kept when the joints can reduce its gap no further
 (the gap's part in the range of the closure Jacobian below 1e-5 mm) and the gap left, taken up by the
-joints' play, is below :data:`PLAY` mm. Welds are not simulated (no corpus model has one). A ``joint`` equality
+joints' play, is below :data:`PLAY` mm. A site-based ``weld``: the distance vector (mm) and the rotation vector
+between the two site frames (mrad); body-based welds are not simulated (no corpus model has one). A ``joint`` equality
 (coupled drivers) is a residual row ``q1 - q1_0 - poly(q2 - q2_0)`` (rad).
 
 Units: mm and degrees at the interface, SI inside MuJoCo.
@@ -93,7 +94,8 @@ class SimMachine:
                 keys += [f"{name}/t{a}" for a in "xyz"] + [f"{name}/e{a}" for a in "xyz"]
                 size += [self.sizes["t"]] * 3 + [self.sizes["e"]] * 3
         for e in range(m.neq):
-            if m.eq_type[e] == mujoco.mjtEq.mjEQ_CONNECT and m.eq_objtype[e] == mujoco.mjtObj.mjOBJ_SITE:
+            if m.eq_type[e] in (mujoco.mjtEq.mjEQ_CONNECT, mujoco.mjtEq.mjEQ_WELD) \
+                    and m.eq_objtype[e] == mujoco.mjtObj.mjOBJ_SITE:
                 for s in (m.eq_obj1id[e], m.eq_obj2id[e]):
                     name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SITE, int(s))
                     if f"{name}/tx" not in keys:
@@ -164,13 +166,18 @@ class SimMachine:
                     p1 = d.xpos[b1] + d.xmat[b1].reshape(3, 3) @ data[0:3]
                     p2 = d.xpos[b2] + d.xmat[b2].reshape(3, 3) @ data[3:6]
                 out.append((p1 - p2) * 1000.0)
+            elif kind == mujoco.mjtEq.mjEQ_WELD and m.eq_objtype[e] == mujoco.mjtObj.mjOBJ_SITE:
+                a, b = m.eq_obj1id[e], m.eq_obj2id[e]
+                rot = Rotation.from_matrix(d.site_xmat[a].reshape(3, 3).T @ d.site_xmat[b].reshape(3, 3))
+                out.append((d.site_xpos[a] - d.site_xpos[b]) * 1000.0)
+                out.append(rot.as_rotvec() * 1000.0)
             elif kind == mujoco.mjtEq.mjEQ_JOINT:
                 j1, j2 = m.eq_obj1id[e], m.eq_obj2id[e]
                 q1 = qpos[m.jnt_qposadr[j1]] - m.qpos0[m.jnt_qposadr[j1]]
                 x = qpos[m.jnt_qposadr[j2]] - m.qpos0[m.jnt_qposadr[j2]] if j2 >= 0 else 0.0
                 out.append(np.array([q1 - sum(data[k] * x ** k for k in range(5))]))
             else:
-                raise NotImplementedError("this simulator closes connect and joint equalities only")
+                raise NotImplementedError("this simulator closes connect, site-based weld and joint equalities only")
         return np.concatenate(out)
 
     def _close(self, q0: np.ndarray) -> np.ndarray:
