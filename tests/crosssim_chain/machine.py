@@ -94,7 +94,7 @@ class SimMachine:
                 keys += [f"{name}/t{a}" for a in "xyz"] + [f"{name}/e{a}" for a in "xyz"]
                 size += [self.sizes["t"]] * 3 + [self.sizes["e"]] * 3
         for e in range(m.neq):
-            if m.eq_type[e] in (mujoco.mjtEq.mjEQ_CONNECT, mujoco.mjtEq.mjEQ_WELD) \
+            if int(m.eq_type[e]) in (int(mujoco.mjtEq.mjEQ_CONNECT), int(mujoco.mjtEq.mjEQ_WELD)) \
                     and m.eq_objtype[e] == mujoco.mjtObj.mjOBJ_SITE:
                 for s in (m.eq_obj1id[e], m.eq_obj2id[e]):
                     name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SITE, int(s))
