@@ -30,10 +30,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
 from benchmarks.corpus_bench import CORPUS, corpus_arguments, corpus_cases  # noqa: E402
-from pmcal.chain import compensate, plan, sample_targets  # noqa: E402
+from pmcal.chain import compensate, identify, plan, sample_targets  # noqa: E402
 from pmcal.cli import main as pmcal_main  # noqa: E402
 from pmcal.errors import InputError  # noqa: E402
-from pmcal.io_chain import ChainMeasurements, write_measurements  # noqa: E402
+from pmcal.io_chain import ChainMeasurements, read_measurements, write_measurements  # noqa: E402
 from pmcal.machines import Machine  # noqa: E402
 from pmcal.mechanism.task_space import error_families, rms, task_difference  # noqa: E402
 from tests.crosssim_chain.machine import SimMachine  # noqa: E402
@@ -81,9 +81,12 @@ def run(folder: Path, seed: int, tmp: Path) -> dict:
         return {**row, "stage": "compensate", "failure": str(exc)}
     before = task_difference(sim.task(nominal), task, coords)
     after = task_difference(sim.task(commands), task, coords)
-    J = machine.twin.task_jacobian(commands, identified, doc["identifiable"])
-    cov = np.asarray(doc["covariance"], float)
-    predicted = np.sqrt(np.einsum("ncp,pq,ncq->nc", J, cov, J))
+    # the prediction as the demo makes it: the task's derivatives by the identified base values (each spread
+    # over the errors it regroups, ChainIdentResult.base_derivative) and their posterior covariance, from the
+    # same identification through the API (the command line's, deterministic)
+    res = identify(machine, read_measurements(str(csv), machine.spec))
+    J = res.base_derivative(machine.twin.task_jacobian(commands, res.params, list(res.params)))
+    predicted = np.sqrt(np.einsum("ncp,pq,ncq->nc", J, res.covariance, J))
     for name, unit, members, size in error_families(coords):
         idx = [i for i, c in enumerate(coords) if c in members]
         row[f"{name}_before_{unit}"] = rms(size(before, coords))

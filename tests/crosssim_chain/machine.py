@@ -21,7 +21,12 @@ a motor; the residual is, per ``connect`` equality, the world distance vector (m
 points (two sites, or body1's ``anchor`` and the point of body2 MuJoCo's compiler placed there); scipy
 ``least_squares`` (trust-region reflective, finite-difference Jacobian) from the previous solution, the
 motors moved from the ``home`` configuration (the keyframe, else the default configuration) in sub-steps
-of at most 10 % of their ranges. Welds are not simulated (no corpus model has one). A ``joint`` equality
+of at most 10 % of their ranges. An over-constrained loop (a planar loop closed by a 3-D ``connect``
+carrying an out-of-plane error, a parallelogram's second rod, a closing hinge made of two ``connect``s)
+cannot close exactly: the least-squares solution is kept when the joints can reduce its gap no further
+(the gap's part in the range of the closure Jacobian below 1e-5 mm) and the gap left, taken up by the
+joints' play, is below :data:`PLAY` mm. A site-based ``weld``: the distance vector (mm) and the rotation vector
+between the two site frames (mrad); body-based welds are not simulated (no corpus model has one). A ``joint`` equality
 (coupled drivers) is a residual row ``q1 - q1_0 - poly(q2 - q2_0)`` (rad).
 
 Units: mm and degrees at the interface, SI inside MuJoCo.
@@ -39,6 +44,8 @@ from scipy.spatial.transform import Rotation
 
 POSITION = ("x_mm", "y_mm", "z_mm")
 SUBSTEP = 0.1
+PLAY = 10.0         # mm: the largest gap an over-constrained loop may leave to the joints' play (random
+#                     0.1 deg tilts over the five-bar's 0.9 m loop leave up to 6 mm out of its plane)
 
 
 class SimMachine:
@@ -87,7 +94,8 @@ class SimMachine:
                 keys += [f"{name}/t{a}" for a in "xyz"] + [f"{name}/e{a}" for a in "xyz"]
                 size += [self.sizes["t"]] * 3 + [self.sizes["e"]] * 3
         for e in range(m.neq):
-            if m.eq_type[e] == mujoco.mjtEq.mjEQ_CONNECT and m.eq_objtype[e] == mujoco.mjtObj.mjOBJ_SITE:
+            if int(m.eq_type[e]) in (int(mujoco.mjtEq.mjEQ_CONNECT), int(mujoco.mjtEq.mjEQ_WELD)) \
+                    and m.eq_objtype[e] == mujoco.mjtObj.mjOBJ_SITE:
                 for s in (m.eq_obj1id[e], m.eq_obj2id[e]):
                     name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SITE, int(s))
                     if f"{name}/tx" not in keys:
@@ -158,13 +166,18 @@ class SimMachine:
                     p1 = d.xpos[b1] + d.xmat[b1].reshape(3, 3) @ data[0:3]
                     p2 = d.xpos[b2] + d.xmat[b2].reshape(3, 3) @ data[3:6]
                 out.append((p1 - p2) * 1000.0)
+            elif kind == mujoco.mjtEq.mjEQ_WELD and m.eq_objtype[e] == mujoco.mjtObj.mjOBJ_SITE:
+                a, b = m.eq_obj1id[e], m.eq_obj2id[e]
+                rot = Rotation.from_matrix(d.site_xmat[a].reshape(3, 3).T @ d.site_xmat[b].reshape(3, 3))
+                out.append((d.site_xpos[a] - d.site_xpos[b]) * 1000.0)
+                out.append(rot.as_rotvec() * 1000.0)
             elif kind == mujoco.mjtEq.mjEQ_JOINT:
                 j1, j2 = m.eq_obj1id[e], m.eq_obj2id[e]
                 q1 = qpos[m.jnt_qposadr[j1]] - m.qpos0[m.jnt_qposadr[j1]]
                 x = qpos[m.jnt_qposadr[j2]] - m.qpos0[m.jnt_qposadr[j2]] if j2 >= 0 else 0.0
                 out.append(np.array([q1 - sum(data[k] * x ** k for k in range(5))]))
             else:
-                raise NotImplementedError("this simulator closes connect and joint equalities only")
+                raise NotImplementedError("this simulator closes connect, site-based weld and joint equalities only")
         return np.concatenate(out)
 
     def _close(self, q0: np.ndarray) -> np.ndarray:
@@ -180,7 +193,12 @@ class SimMachine:
         sol = least_squares(lambda x: self._gaps(at(x)), np.zeros(len(self.free_dofs)), method="trf",
                             xtol=1e-13, ftol=1e-13, gtol=1e-13, max_nfev=100)
         q = at(sol.x)
-        if np.max(np.abs(self._gaps(q))) > 1e-7:                  # mm
+        gap = self._gaps(q)
+        if np.max(np.abs(gap)) <= 1e-7:                            # mm: closed
+            return q
+        J = sol.jac                                                # over-constrained: what can the joints still move?
+        movable = J @ np.linalg.lstsq(J, gap, rcond=None)[0] if J.size else np.zeros_like(gap)
+        if np.max(np.abs(movable)) > 1e-5 or np.max(np.abs(gap)) > PLAY:
             return np.full(m.nq, np.nan)
         return q
 
@@ -189,6 +207,8 @@ class SimMachine:
         close. Each from ``home`` by sub-steps of the motors."""
         commands = np.atleast_2d(np.asarray(commands, float))
         out = np.full((len(commands), self.model.nq), np.nan)
+        if not np.isfinite(self.home).all():                       # home itself does not assemble
+            return out
         span = np.ptp(self.range, axis=1)
         for i, c in enumerate(commands):
             n = max(1, int(np.ceil(np.max(np.abs(c - self.home_cmd) / span) / SUBSTEP)))
