@@ -81,12 +81,10 @@ def run(folder: Path, seed: int, tmp: Path) -> dict:
         return {**row, "stage": "compensate", "failure": str(exc)}
     before = task_difference(sim.task(nominal), task, coords)
     after = task_difference(sim.task(commands), task, coords)
-    # the prediction as the demo makes it: the task's derivatives by the identified base values (each spread
-    # over the errors it regroups, ChainIdentResult.base_derivative) and their posterior covariance, from the
-    # same identification through the API (the command line's, deterministic)
+    # the prediction as the demo makes it (ChainIdentResult.predicted_task_std: the posterior over every error,
+    # propagated to the task), from the same identification through the API (the command line's, deterministic)
     res = identify(machine, read_measurements(str(csv), machine.spec))
-    J = res.base_derivative(machine.twin.task_jacobian(commands, res.params, list(res.params)))
-    predicted = np.sqrt(np.einsum("ncp,pq,ncq->nc", J, res.covariance, J))
+    predicted = res.predicted_task_std(machine.twin.task_jacobian(commands, res.params, list(res.params)))
     for name, unit, members, size in error_families(coords):
         idx = [i for i, c in enumerate(coords) if c in members]
         row[f"{name}_before_{unit}"] = rms(size(before, coords))

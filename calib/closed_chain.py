@@ -297,6 +297,10 @@ class ChainIdentResult:
     basis : the :class:`BaseSet` (regrouping matrix included).
     solver : the underlying :class:`pmcal.calib.solvers.result.IdentResult`.
     realization : (len(params), len(base)) ``M``: the machine ``params = M x`` (:meth:`base_derivative`).
+    error_covariance : (len(params), len(params)) posterior covariance of every error considered (data and
+        the prior), unit^2, where the fit has a prior (else None): what :meth:`predicted_task_std` propagates,
+        so that errors the data cannot see, or see only in combination, count with what the prior knows of
+        them.
     """
 
     params: dict[str, float]
@@ -325,6 +329,19 @@ class ChainIdentResult:
     solver: IdentResult | None = None
     info: dict = field(default_factory=dict)
     realization: np.ndarray | None = None
+    error_covariance: np.ndarray | None = None
+
+    def predicted_task_std(self, J: np.ndarray) -> np.ndarray:
+        """1-sigma (n, C) of the task coordinates a compensation with the identified errors leaves, from
+        their derivatives ``J`` (n, C, len(params)) by every error (in the order of ``params``; e.g. the
+        twin's ``task_jacobian`` at the compensated commands), in the coordinates' units. With a prior, the
+        posterior over every error (:attr:`error_covariance`): an error that moves the task point but no
+        tracker reading (a task site on a body no nest sits on) counts with its prior size, as it stays
+        uncorrected. Without a prior, the base values' covariance."""
+        if self.error_covariance is not None:
+            return np.sqrt(np.einsum("ncp,pq,ncq->nc", J, self.error_covariance, J))
+        Jb = self.base_derivative(J)
+        return np.sqrt(np.einsum("ncp,pq,ncq->nc", Jb, self.covariance, Jb))
 
     def base_derivative(self, J: np.ndarray) -> np.ndarray:
         """Derivatives (..., len(base)) by the identified base values from derivatives (..., len(params)) by
@@ -654,6 +671,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     chi2 = float(np.sum((resid / sigma) ** 2))
     dof = max(y.size - p_eff, 1.0)
     params = dict(zip(keys, map(float, p)))
+    error_cov = _spd_inverse(Jf.T @ Jf + np.diag(1.0 / model.prior_std(keys) ** 2)) if prior else None
     # without a prior a fold left out often leaves a direction free (as many readings as parameters): not run
     held_out = held_out_check(Jb, resid / sigma, obs.row_poses(), np.linalg.inv(prior_cov), sigma) if prior \
         else dict(NOT_CHECKED)
@@ -664,7 +682,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         rank=basis.rank, condition_number=basis.condition_number, chi2=chi2, dof=dof, chi2_per_dof=chi2 / dof,
         residual_rms_mm=float(np.sqrt(np.mean(obs.residual_mm(resid) ** 2))), sigma_mm=sigma, n_poses=int(len(commands)),
         success=bool(sol.success), message=str(sol.message), nfev=int(sol.n_eval),
-        wall_time=time.perf_counter() - t0, basis=basis, solver=sol, realization=M,
+        wall_time=time.perf_counter() - t0, basis=basis, solver=sol, realization=M, error_covariance=error_cov,
         info={"effective_parameters": p_eff, "prior_std": dict(zip(base, map(float, sb))),
               "prior_covariance": prior_cov, "basis": which, "held_out": held_out,
               "beyond_prior": [k for k, v, s in zip(base, x, sb) if abs(v) > PRIOR_SIGMAS * s]})

@@ -342,6 +342,36 @@ def reference_basis(machine):
     return structural_basis(twin, twin.sample_commands(poses, np.random.default_rng(0)))
 
 
+#: an error whose posterior standard deviation stays above this fraction of its prior one is not seen by the
+#: campaign's readings (:func:`unseen_task_errors`)
+UNSEEN_FRACTION = 0.95
+#: an unseen error matters when, at its prior size, it moves the task point by more than the tracker noise
+#: (position) or than the noise over this lever arm (orientation), mm
+UNSEEN_ARM_MM = 100.0
+
+
+def unseen_task_errors(machine, result, poses: int = 8) -> list[str]:
+    """Errors that move the task point but that the campaign's readings do not see: the data leave them at
+    their prior (:attr:`~pmcal.calib.closed_chain.ChainIdentResult.error_covariance`), so no compensation
+    corrects them (a task site on a body no tracker nest sits on, e.g. a CAD export's end-effector frame).
+    Named when, at their prior size, they move the task point by more than the tracker noise somewhere
+    among ``poses`` commands drawn over the workspace. Empty without a prior."""
+    if result.error_covariance is None:
+        return []
+    keys = list(result.params)
+    twin = machine.twin
+    prior = twin.prior_std(keys)
+    blind = np.sqrt(np.clip(np.diag(result.error_covariance), 0.0, None)) > UNSEEN_FRACTION * prior
+    if not blind.any():
+        return []
+    J = twin.task_jacobian(twin.sample_commands(poses, np.random.default_rng(0)), result.params, keys)
+    coords = machine.spec.task.coordinates
+    limit = np.array([result.sigma_mm if c.endswith("_mm") else np.rad2deg(result.sigma_mm / UNSEEN_ARM_MM)
+                      for c in coords])
+    moved = (np.nanmax(np.abs(J) * prior, axis=0) > limit[:, None]).any(axis=0)
+    return [k for k, b, m in zip(keys, blind, moved) if b and m]
+
+
 def params_document(machine, result, source: str | None = None) -> dict:
     """The parameters JSON of an identification (docs/formats.md, "Any machine"): ``params`` every error
     considered (mm / deg; the identified machine: each base value spread over the errors it regroups,
@@ -350,7 +380,7 @@ def params_document(machine, result, source: str | None = None) -> dict:
     the order of ``identifiable``), ``prior_covariance`` (the ``[errors]`` prior carried onto the base
     parameters, same order) and ``crlb`` (data alone), what each base value
     estimates (``combinations``), what the data cannot see (``unidentifiable``), ``weak`` ones, fit
-    quality."""
+    quality; ``unseen_by_tracker``: errors that move the task point but no reading (:func:`unseen_task_errors`)."""
     units = dict(zip(machine.twin.error_keys, machine.twin.error_units()))
     return {
         "mechanism": machine.name, "model": "closed_chain", "method": "lm+tikhonov",
@@ -367,6 +397,7 @@ def params_document(machine, result, source: str | None = None) -> dict:
         "n_poses": int(result.n_poses), "source": source, "success": bool(result.success),
         "loops": loop_summary(machine.twin), "held_out": dict(result.info["held_out"]),
         "beyond_prior": list(result.info["beyond_prior"]),
+        "unseen_by_tracker": unseen_task_errors(machine, result),
         "message": result.message,
     }
 

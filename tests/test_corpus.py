@@ -132,16 +132,17 @@ def test_a_free_joint_that_moves_the_nests_is_refused_naming_it(tmp_path):
     assert "yaw_body" in str(exc.value) and "machine.toml" in str(exc.value)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 34: the prediction leaves out errors the nests cannot see but the task "
-                                       "site feels (gepetto_5bar's task frame is a body of its own, no nest on it)")
 def test_prediction_covers_a_task_frame_no_nest_sits_on():
     """gepetto_5bar's task site sits on the URDF's fixed `effector` frame, a child body of `end_rod`; the nests
     sit on `end_rod`. The effector frame's six errors move the task and no tracker reading, so no campaign
-    identifies them, and the demo's prediction (the posterior covariance of the identifiable errors) leaves them
-    out: seed 1 compensates to 0.24 mm where 0.0027 mm is predicted (90x; exit 0, with the warning). Without
-    those errors (`exclude = ["effector"]`) it gives 0.0042 mm for 0.0027. Strict: passes once the prediction
-    carries the prior of what the task feels and the nests do not."""
+    identifies them. The prediction propagates the posterior over every error (ChainIdentResult.
+    predicted_task_std), so they count with their prior size: seed 1 compensates to 0.24 mm where 0.14 mm is
+    predicted (it was 0.0027 mm, 90x off, when only the identifiable errors counted), and identify names
+    them (``unseen_by_tracker``). Without those errors (`exclude = ["effector"]`) it gives 0.0042 mm."""
     from pmcal.studies.chain_demo import chain_demo
 
-    s = chain_demo(Machine.from_folder(CORPUS / "gepetto_5bar"), seed=1).summary()
+    demo = chain_demo(Machine.from_folder(CORPUS / "gepetto_5bar"), seed=1)
+    s = demo.summary()
     assert s["position_rms_after_mm"] < 3.0 * s["position_rms_predicted_mm"]
+    from pmcal.chain import unseen_task_errors
+    assert unseen_task_errors(demo.machine, demo.result)

@@ -106,7 +106,8 @@ def identify(args) -> int:
                          f"{', ...' if len(partial) > 3 else ''}): identification uses the poses with every "
                          "target measured")
     quality = campaign_quality(machine, meas, res, sigma, reference=basis)
-    write_json(args.output, dict(params_document(machine, res, str(args.measurements)), quality=quality))
+    doc = params_document(machine, res, str(args.measurements))
+    write_json(args.output, dict(doc, quality=quality))
     print(f"{res.rank} of {len(res.params)} errors identifiable (base set), {len(res.weak)} weak; residual "
           f"{res.residual_rms_mm:.4f} mm rms, chi2/dof {res.chi2_per_dof:.2f}; "
           f"{'usable' if quality['usable'] else 'NOT usable'}")
@@ -118,6 +119,12 @@ def identify(args) -> int:
         file_history(machine, res, basis, args.measurements, history)
     for line in identify_warnings(res, len(meas), outliers=bool(quality["outliers"])):
         progress.warning(line)
+    unseen = doc["unseen_by_tracker"]
+    if unseen:
+        progress.warning(f"{len(unseen)} error(s) move the task point but no tracker reading "
+                         f"({', '.join(unseen[:4])}{', ...' if len(unseen) > 4 else ''}): the compensation cannot "
+                         "correct them (the predicted task error counts them at their [errors] size); put a nest "
+                         "on that part, or list it under [errors] exclude if its geometry is known")
     if not quality["usable"]:
         progress.warning(f"calibration not usable: {quality['why']}; compensate and push refuse it without --force "
                          "('pmcal twin plan' with this --machine plans a campaign)")

@@ -178,8 +178,7 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
         step("evaluate")
         err_nominal = task_difference(twin.forward(nominal, truth), task, coords)
         err_comp = task_difference(twin.forward(compensated, truth), task, coords)
-        J = res.base_derivative(twin.task_jacobian(compensated, res.params, list(res.params)))
-        predicted = np.sqrt(np.einsum("ncp,pq,ncq->nc", J, res.covariance, J))
+        predicted = res.predicted_task_std(twin.task_jacobian(compensated, res.params, list(res.params)))
         done("evaluate")
     demo = ChainDemo(machine=machine, seed=seed, truth=truth, design=design, meas=meas, result=res, task=task,
                      commands_nominal=nominal, commands_compensated=compensated, error_nominal=err_nominal,
