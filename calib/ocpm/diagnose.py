@@ -21,9 +21,12 @@ e. Cross-validation: the same selection runs inside each fold (training poses on
 f. The named effects with value ± 95 % interval are written into the model; ``gap_before`` and
    ``gap_after`` are RMS held-out disagreements (folds refitted, linearised at the full-data fits),
    without the poses that held out are predicted by extrapolation (leverage > 1, named in a note).
-f'. A name is earned on held-out data: it removes most of the held-out excess over the noise that the model
-   without it leaves (half when structure is left; 75 % wherever that share is measured clearly, 90 % then
-   with structure left); the share with workspace regions held out whole is reported beside it.
+f'. A name is earned on held-out data: its held-out share passes a test calibrated on this campaign's poses
+   (:mod:`pmcal.calib.ocpm.held_out_test`: at least what it would leave were it the truth, 5 % quantile, at
+   its fitted or a typical size, capped at 75 %; above what a structure of its size outside it gives, 95 %
+   quantile); with structure left also half of the held-out excess, 90 % where that share is measured
+   clearly; the share with workspace regions held out whole is reported beside it. A per-motor effect is
+   reported on the motors whose own part passes that test against zero.
 g. Structure left after that (omnibus test, also robust to heavy-tailed noise) is flagged unexplained.
 
 Units: mm, rad inside (interface values of effects in :data:`VOCABULARY` units).
@@ -92,11 +95,14 @@ class DiagnoseOptions:
     min_held_out : when structure is left after the named model, a name stays only if, on the held-out
         poses, it removes at least this share of the held-out excess over the noise of the model without
         it (:func:`held_out_shares`); otherwise the structure is reported unexplained.
-    min_held_out_measured, min_held_out_left, measured_sd : where the name's own held-out improvement
-        stands out of the noise of a held-out sum of squares by more than ``measured_sd`` standard
-        deviations (the share is then measured, not noise), it must remove at least
-        ``min_held_out_measured`` of the held-out excess, and ``min_held_out_left`` of it when structure is
-        left after the named model (``min_held_out`` applies where the improvement is not measured clearly).
+    min_held_out_measured : the most the calibrated held-out test (:func:`_earned_on_held_out`,
+        :mod:`pmcal.calib.ocpm.held_out_test`) asks of a name's held-out share (its candidate-true 5 %
+        quantile applies where lower).
+    min_held_out_left, measured_sd : when structure is left after the named model and the name's own
+        held-out improvement stands out of the noise of a held-out sum of squares by more than
+        ``measured_sd`` standard deviations (the share is then measured, not noise), it must remove at
+        least ``min_held_out_left`` of the held-out excess (``min_held_out`` where the improvement is not
+        measured clearly).
     """
 
     baseline_keys: list[str] | None = None
@@ -918,8 +924,11 @@ def _earned_on_held_out(pb: _Problem, named: list[str], res: IdentResult, lin: L
         inside = ~lin.rows(_extrapolated(pb, lin, res)[0])
         for n in named:
             ecols = lin.cols(pb.candidates[n])
+            # the typical size where the share is measured clearly (a weak effect's is mostly noise: the
+            # cross-sim's thermal expansion under invar links, 0.67 with a band from 0.33 at its fitted size)
+            typical = _typical_factor(pb, lin, n) if sd[n] > pb.opt.measured_sd else 1.0
             bands[n] = held_out_test(lin, cols, ecols, pb.folds, inside, shares[n], ceiling=pb.opt.min_held_out_measured,
-                                     typical_factor=_typical_factor(pb, lin, n))
+                                     typical_factor=typical)
             if len(named) > 1:                 # were it the only effect: what the baseline alone absorbs of it
                 others = lin.cols([k for m in named if m != n for k in pb.candidates[m]])
                 alone = held_out_test(lin, np.setdiff1d(cols, others), ecols, pb.folds, inside, shares[n])
