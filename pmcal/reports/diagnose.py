@@ -124,19 +124,23 @@ def verdict_cards(rep: Report, d) -> None:
         c = d.candidates.get(v.name)
         if c is not None and c.held_out_band is not None:
             lines += [f"held-out test: {held_out_text(c.held_out_band)}"]
-            lines += [f"motor {m}'s part alone: {held_out_text(b)}" for m, b in getattr(c, "motor_bands", {}).items()]
+            lines += [f"motor {m}'s part alone: {held_out_text(b, motor=True)}"
+                      for m, b in getattr(c, "motor_bands", {}).items()]
         lines += [f"whole family, {k}: {p[0]:.5g} ± {p[1]:.2g}" for k, p in list(v.params.items())[:6]]
         rep.card(effect_label(v), lines, "ok")
 
 
-def held_out_text(b) -> str:
+def held_out_text(b, motor: bool = False) -> str:
     """The calibrated held-out test in words: the observed share of the held-out excess the effect removes,
-    the band it would have were it the truth and the band of a structure of the same size outside it."""
-    return (f"removes {_pct(b.observed)} of the held-out excess; were it the truth {_pct(b.candidate[0])}–"
-            f"{_pct(b.candidate[2])} (5–95 %, needs {_pct(b.need)}), a structure of its size outside it "
-            f"{_pct(b.alternative[0])}–{_pct(b.alternative[2])}: "
-            + ("consistent with it and not with the alternative" if b.earned else
-               "not consistent with it" if not b.consistent else "not told apart from the alternative"))
+    the band it would have were it the truth and the band of a structure of the same size outside it; for
+    one motor's part (``motor``) whether it differs from zero (diagnose._attribute_motors)."""
+    text = (f"removes {_pct(b.observed)} of the held-out excess; were it the truth {_pct(b.candidate[0])}–"
+            f"{_pct(b.candidate[2])} (5–95 %" + ("" if motor else f", needs {_pct(b.need)}")
+            + f"), a structure of its size outside it {_pct(b.alternative[0])}–{_pct(b.alternative[2])}: ")
+    if motor:
+        return text + ("differs from zero" if b.beyond_alternative and b.candidate[0] > 0 else "consistent with zero")
+    return text + ("consistent with it and not with the alternative" if b.earned else
+                   "not consistent with it" if not b.consistent else "not told apart from the alternative")
 
 
 def motor_line(name: str, m: dict) -> str:
