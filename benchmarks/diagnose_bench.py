@@ -24,8 +24,15 @@ whose named set is the case's vocabulary names, "unexplained w/ correlate" the r
 a context the structure follows, "per-motor CI hits" the per-motor 95 % intervals (and eccentricity phases)
 holding the truth.
 
+Issue 31 (xsim only, :func:`xsim_ecc_campaign`): eccentricity of 0.01-0.03 deg with arbitrary phases on one
+or both motors (drawn) at 128 and 48 poses, and eccentricity on one motor with a creeping drift on the other;
+"named on its motors" counts the runs that name every effect of the case on exactly the motors that carry
+it. Every run records each candidate's calibrated held-out test (``held_out_test``, per motor
+``held_out_test_per_motor``). Acceptance figures use seeds not tuned on (``--first-seed 5000``; the
+tuning used 1-10).
+
 Run: python benchmarks/diagnose_bench.py [--seeds 20] [--null-seeds 100] [--poses 128] [--jobs 2]
-     [--source twin|xsim|both] [--cases A,B] [--campaign-size]
+     [--source twin|xsim|both] [--cases A,B] [--first-seed 1000] [--campaign-size]
 """
 
 from __future__ import annotations
