@@ -237,9 +237,9 @@ class _Problem:
         self.fits: dict[frozenset, tuple[IdentResult, Linearization | None]] = {}
         #: weighted-Bonferroni weights of the candidates (:func:`alpha_weights`, set by the scoreboard)
         self.weights: dict[str, float] = {n: 1.0 for n in self.candidates}
-        #: per candidate: mean noncentrality of its typical-size instances beyond the baseline and the
-        #: conditional information it came from (set by the scoreboard, :func:`_typical_factor`)
-        self.typical_nc: dict[str, tuple[float, np.ndarray]] = {}
+        #: per candidate: its typical-size instances (prior units, one a row) and the conditional information
+        #: beyond the baseline they are measured with (set by the scoreboard, :func:`_typical_factor`)
+        self.typical_nc: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def level(self, name: str, in_play: list[str]) -> float:
         """The level ``name`` is tested at among the candidates ``in_play``: its share of ``alpha``."""
@@ -893,10 +893,12 @@ def _earned_on_held_out(pb: _Problem, named: list[str], res: IdentResult, lin: L
     the same size outside it would give (:func:`pmcal.calib.ocpm.held_out_test.held_out_test`: a parametric
     bootstrap on the same poses, linearised at the named fit; the observed share at or above the
     candidate-true 5 % quantile and above the alternative's 95 % quantile). The candidate-true requirement
-    is the higher of the 5 % quantiles in the named model and with the candidate alone beside the baseline
-    (what the other named effects take of it is not excused: a tracker range error held out by passive-limb
-    geometry and thermal expansion together, thermal 0.47 against a joint band from 0.36), at most
-    ``min_held_out_measured`` (0.75; :attr:`HeldOutBand.need`). How much of a true effect
+    is the highest of the 5 % quantiles in the named model, with the candidate alone beside the baseline
+    (what other named effects take of it is not excused) and, where the share is measured clearly, at a
+    typical size if the fit is smaller (:func:`_typical_factor`: a tracker range error held out by
+    passive-limb geometry and thermal expansion together leaves thermal 0.47 against a band from 0.36 at
+    its fitted 11e-6/K, what a true small thermal expansion would leave too, but 0.98 at a typical
+    23e-6/K), at most ``min_held_out_measured`` (0.75; :attr:`HeldOutBand.need`). How much of a true effect
     survives held out depends on how much of it the geometry absorbs: a 0.02 deg eccentricity leaves
     0.5-0.8 with 0.01 mm noise (cross-sim), an effect the geometry cannot absorb 0.95-1.0; a fixed share
     (0.75 before issue 31) threw the eccentricity away to keep a tracker range error (shares 0.68-0.96 of
