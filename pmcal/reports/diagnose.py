@@ -138,7 +138,7 @@ def held_out_text(b, motor: bool = False) -> str:
             f"{_pct(b.candidate[2])} (5–95 %" + ("" if motor else f", needs {_pct(b.need)}")
             + f"), a structure of its size outside it {_pct(b.alternative[0])}–{_pct(b.alternative[2])}: ")
     if motor:
-        return text + ("differs from zero" if b.beyond_alternative and b.candidate[0] > 0 else "consistent with zero")
+        return text + ("differs from zero" if b.beyond_alternative else "consistent with zero")
     return text + ("consistent with it and not with the alternative" if b.earned else
                    "not consistent with it" if not b.consistent else "not told apart from the alternative")
 
