@@ -13,7 +13,9 @@ linear in the data, so every draw costs a few matrix products and no factorisati
 
 - **candidate true**: the data are the named model at its fit plus Gaussian noise of the estimated size
   (whitened: unit variance); each draw is re-identified in every fold with and without the effect and its
-  share measured. The observed share must lie at or above the ``CANDIDATE_QUANTILE`` (5 %) quantile;
+  share measured. The observed share must lie at or above the ``CANDIDATE_QUANTILE`` (5 %) quantile
+  (:attr:`HeldOutBand.need`: also with the effect alone beside the baseline and at a typical size where
+  the caller asks, capped by ``ceiling``);
 - **alternative**: no such effect, but a structure of the same size as what the effect explains on all
   poses (its in-sample chi-square improvement) along the direction the named model's own residual takes
   over the poses, with what the model and the effect can absorb on all poses taken out of it: an effect
@@ -21,8 +23,12 @@ linear in the data, so every draw costs a few matrix products and no factorisati
   meet by chance alignment within the folds. The observed share must exceed its ``ALTERNATIVE_QUANTILE``
   (95 %) quantile.
 
+The statistic compared is the effect's held-out improvement ``S_without - S_with`` over the campaign's
+held-out excess ``max(S_without - E, |S_without - S_with|, sqrt(2 n))`` (n held-out rows), one denominator
+for the data and every draw: the held-out share wherever that lies in 0..1.
+
 Units: the data are whitened (residual / sigma, dimensionless); shares are dimensionless fractions of the
-held-out excess over the noise (0..1).
+held-out excess over the noise (0..1; a draw's statistic may fall outside it).
 """
 
 from __future__ import annotations
