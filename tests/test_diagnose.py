@@ -420,6 +420,13 @@ def test_cli_diagnose_writes_json_report_and_model(tmp_path, capsys, backlash_cs
     assert {c["name"] for c in doc["candidates"]} == set(EFFECT_NAMES)
     html = (rep / "index.html").read_text()
     assert html.count("data:image/png;base64,") >= 5 and "Scoreboard" in html and "Added-variable" in html
+    # the calibrated held-out test (issue 31): the named effect's bands in the JSON, the card and the table
+    test = next(c for c in doc["candidates"] if c["name"] == "backlash")["held_out_test"]
+    assert test["consistent"] and test["beyond_alternative"] and test["draws"] == 400
+    floors = [test["candidate_true"][0]] + [v for v in (test["alone_5"], test["typical_5"]) if v is not None]
+    assert test["need"] == min(max(floors), 0.75) <= test["observed"]
+    assert test["alternative"][2] < test["observed"] and "per_motor" in str(doc) and doc["named"][0]["motors"]
+    assert "held-out test: removes" in html and "[alternative 5–95 %]" in html
     params = json.loads((rep / "params.json").read_text())
     assert "backlash" in params["effects"] and params["params"]["L1.dtheta"] != 0.0
     assert json.loads((rep / "diagnosis.json").read_text()) == doc

@@ -41,6 +41,8 @@ class Candidate:
     cv_folds: int = 0
     held_out_share: float = float("nan")  # share of the held-out structure beyond the noise it removes
     transfer_share: float = float("nan")  # the same with whole workspace regions held out
+    held_out_band: object = None          # held_out_test.HeldOutBand: the share's bands if true / if not
+    motor_bands: dict = field(default_factory=dict)   # motor -> HeldOutBand of that motor's part alone
     detectable_90: float = float("nan")   # smallest size detected with probability 0.9 (value's unit)
     verdict: str = "not tested"
     fix: str = ""
@@ -124,6 +126,8 @@ class Diagnosis:
                           "delta_chi2": _num(c.delta_chi2), "directions": _num(c.nu), "F": _num(c.F),
                           "share_of_structure": _num(c.share), "held_out_share": _num(c.held_out_share),
                           "transfer_share": _num(c.transfer_share),
+                          "held_out_test": c.held_out_band.to_json() if c.held_out_band is not None else None,
+                          "held_out_test_per_motor": {str(m): b.to_json() for m, b in c.motor_bands.items()},
                           "detectable_at_90": _num(c.detectable_90),
                           "p_value": _num(c.p_value), "threshold": _num(c.threshold),
                           "value": val(c.value) if c.value else None, "cv_folds_selected": c.cv_folds,

@@ -145,18 +145,21 @@ def _summary(name: str, keys: list[str], x: np.ndarray, motors: tuple[int, ...] 
 
 
 def effect_value(name: str, keys: list[str], x: np.ndarray, cov: np.ndarray, time_unit: str = "h",
-                 t_rel: np.ndarray | None = None, dtemp: np.ndarray | None = None) -> EffectValue:
+                 t_rel: np.ndarray | None = None, dtemp: np.ndarray | None = None,
+                 motors: tuple[int, ...] | None = None) -> EffectValue:
     """Value, 95 % interval (delta method), plausibility and size of an effect's fitted parameters
     (internal units, covariance ``cov``). ``t_rel`` (N,): each pose's time since the first in ``time_unit``
     (needed by the drift: its campaign-mean rate and the check :func:`drift_reversal`) and ``dtemp`` (N,) K
-    its temperature above 20 degC (None: not recorded)."""
+    its temperature above 20 degC (None: not recorded). ``motors``, if given, are the motors that carry a
+    per-motor effect (the diagnosis' own per-motor test) instead of those of :func:`per_motor_values`."""
     info = VOCABULARY[name]
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     params = {k: (_interface(k, v), _interface(k, s)) for k, v, s in zip(keys, x, std)}
     if name == "zero_offset_drift" and t_rel is None:
         raise ValueError("zero_offset_drift: its value needs each pose's time since the first (t_rel)")
     t_end = float(np.max(t_rel)) if t_rel is not None and np.size(t_rel) else 0.0
-    per_motor, motors = per_motor_values(name, x, cov, t_end) if len(keys) == len(info.keys) else ([], ())
+    per_motor, carry = per_motor_values(name, x, cov, t_end) if len(keys) == len(info.keys) else ([], ())
+    motors = tuple(motors) if motors is not None and per_motor else carry
     f0, s_f = _delta(lambda v: _summary(name, keys, v, motors or (1, 2), t_end), x, cov)
     if name == "zero_offset_drift" and per_motor and f0 > 0:    # each motor's allowance through the RMS
         on = [per_motor[m - 1] for m in (motors or (1, 2))]

@@ -121,8 +121,26 @@ def verdict_cards(rep: Report, d) -> None:
                 f"{k} {p[0]:.5g} ± {p[1]:.2g}" for k, p in v.member_params.items())
                 + (" 1/K" if v.name == "thermal_expansion" else "")]
         lines += [motor_line(v.name, m) for m in v.per_motor]
+        c = d.candidates.get(v.name)
+        if c is not None and c.held_out_band is not None:
+            lines += [f"held-out test: {held_out_text(c.held_out_band)}"]
+            lines += [f"motor {m}'s part alone: {held_out_text(b, motor=True)}"
+                      for m, b in getattr(c, "motor_bands", {}).items()]
         lines += [f"whole family, {k}: {p[0]:.5g} ± {p[1]:.2g}" for k, p in list(v.params.items())[:6]]
         rep.card(effect_label(v), lines, "ok")
+
+
+def held_out_text(b, motor: bool = False) -> str:
+    """The calibrated held-out test in words: the observed share of the held-out excess the effect removes,
+    the band it would have were it the truth and the band of a structure of the same size outside it; for
+    one motor's part (``motor``) whether it differs from zero (diagnose._attribute_motors)."""
+    text = (f"removes {_pct(b.observed)} of the held-out excess; were it the truth {_pct(b.candidate[0])}–"
+            f"{_pct(b.candidate[2])} (5–95 %" + ("" if motor else f", needs {_pct(b.need)}")
+            + f"), a structure of its size outside it {_pct(b.alternative[0])}–{_pct(b.alternative[2])}: ")
+    if motor:
+        return text + ("differs from zero" if b.beyond_alternative else "consistent with zero")
+    return text + ("consistent with it and not with the alternative" if b.earned else
+                   "not consistent with it" if not b.consistent else "not told apart from the alternative")
 
 
 def motor_line(name: str, m: dict) -> str:
@@ -140,6 +158,15 @@ def motor_line(name: str, m: dict) -> str:
     return text
 
 
+def _held_out_cell(c) -> str:
+    """The scoreboard cell of the calibrated held-out test (shares in %), "–" when it did not run."""
+    b = c.held_out_band
+    if b is None:
+        return "–"
+    return (f"{100 * b.observed:.0f} [{100 * b.candidate[0]:.0f}–{100 * b.candidate[2]:.0f}] "
+            f"[{100 * b.alternative[0]:.0f}–{100 * b.alternative[2]:.0f}]")
+
+
 def scoreboard(rep: Report, d) -> None:
     rep.heading("Scoreboard of the candidate effects")
     rep.paragraph("Every effect of the vocabulary, tested against the baseline (and the effects already "
@@ -147,7 +174,7 @@ def scoreboard(rep: Report, d) -> None:
                   "absorb; power = chance to detect a typical size with this campaign; the test is a "
                   "pose-clustered Wald test (F) at the candidate's threshold (weighted Bonferroni); share = part of the structure left "
                   "beyond the noise that the effect explains (shown for significant candidates only: p below the threshold); folds = cross-validation folds whose own "
-                  "selection picked it.", "note")
+                  "selection picked it; held-out = the calibrated held-out test of a name (the improvement on held-out poses as a share of the held-out excess over the noise, with its 5–95 % band were the effect the truth and that of a structure of the same size outside it; a name needs the first and more than the second, docs/diagnose.md).", "note")
     folds = len(np.unique(d.folds))
     rows = []
     for c in d.candidates.values():
@@ -155,9 +182,11 @@ def scoreboard(rep: Report, d) -> None:
         val = "–" if v is None else f"{_f(v.value)} [{_f(v.interval[0])}, {_f(v.interval[1])}] {v.unit}"
         rows.append([c.name if v is None else effect_label(v), _layer(c.name), c.verdict, _pct(c.survival),
                      _f(c.power_typical, 2), _f(c.delta_chi2, 4), c.nu, _f(c.F, 3), _f(c.p_value, 2),
-                     _f(c.threshold, 2), _pct(c.share) if c.p_value < c.threshold else "–", val, f"{c.cv_folds}/{folds}"])
+                     _f(c.threshold, 2), _pct(c.share) if c.p_value < c.threshold else "–", val, f"{c.cv_folds}/{folds}",
+                     _held_out_cell(c)])
     rep.table(["effect", "layer", "verdict", "survival", "power", "Δχ²", "dir.", "F", "p", "threshold",
-               "share", "value [95 %]", "folds"], rows, left_cols=3)
+               "share", "value [95 %]", "folds", "held-out: observed [if true 5–95 %] [alternative 5–95 %]"],
+              rows, left_cols=3)
     reasons = [f"{c.name}: {c.reason}" for c in d.candidates.values() if c.reason]
     if reasons:
         rep.card("Why", reasons)
