@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.common import print_table, write_json  # noqa: E402
 from pmcal.bridge.ads import AdsLink, set_adslib_log_level  # noqa: E402
 from pmcal.bridge.ads_mock import AdsMockPlc  # noqa: E402
-from pmcal.apps.plc_loop import DEFAULT_GRID, run_loop  # noqa: E402
+from pmcal.apps.ocpm.plc_loop import DEFAULT_GRID, run_loop  # noqa: E402
 from pmcal.bridge.modbus import ModbusLink  # noqa: E402
 from pmcal.bridge.modbus_mock import ModbusMockPlc  # noqa: E402
 from pmcal.bridge.transfer import push  # noqa: E402
@@ -170,12 +170,12 @@ def accuracy(grids=ACCURACY_GRIDS, n_poses: int = 40, n_heldout: int = 48, workd
     import json
     import tempfile
 
-    from pmcal.apps.plc_loop import measure, plc_commands
+    from pmcal.apps.ocpm.plc_loop import measure, plc_commands
     from pmcal.bridge.plc_types import LOOKUP_WRITES, PUSH_WRITES
     from pmcal.cli import main as cli
     from pmcal.mechanism.ocpm.config import default_geometry
-    from pmcal.twin.campaign import plan_orientations
-    from pmcal.twin.machine import Twin
+    from pmcal.twin.ocpm.campaign import plan_orientations
+    from pmcal.twin.ocpm.machine import Twin
     from pmcal.twin.tracker import LaserTracker
 
     geom = default_geometry()

@@ -5,7 +5,7 @@ sizes, stiffness ratio 1000), a 48-pose campaign of the dedicated twin (theta <=
 0.01 mm), 24 held-out orientations. Two paths on the same measurements:
 
 - **dedicated**: :func:`pmcal.calib.ocpm.fullchain.identify_full` on the twin's
-  :class:`pmcal.twin.forward.FullChainModel` (its own error vocabulary and sensitivities), compensation by
+  :class:`pmcal.twin.ocpm.forward.FullChainModel` (its own error vocabulary and sensitivities), compensation by
   :func:`pmcal.calib.ocpm.fullchain.chain_commands_deg`;
 - **generic**: :func:`pmcal.calib.closed_chain.identify_chain` on
   :class:`pmcal.twin.closed_chain.ClosedChainTwin` of ``mjcf/ocpm_2dof/chain`` (the same MJCF described as
@@ -37,10 +37,10 @@ from pmcal.mechanism.ocpm.params import errors_and_ratio, random_errors  # noqa:
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion  # noqa: E402
 from pmcal.mjcf import machine_dir  # noqa: E402
 from pmcal.threads import apply_blas_policy  # noqa: E402
-from pmcal.twin.campaign import plan_campaign, run_campaign  # noqa: E402
+from pmcal.twin.ocpm.campaign import plan_campaign, run_campaign  # noqa: E402
 from pmcal.twin.closed_chain import ClosedChainTwin  # noqa: E402
-from pmcal.twin.forward import FullChainModel  # noqa: E402
-from pmcal.twin.machine import Twin  # noqa: E402
+from pmcal.twin.ocpm.forward import FullChainModel  # noqa: E402
+from pmcal.twin.ocpm.machine import Twin  # noqa: E402
 from pmcal.twin.tracker import LaserTracker  # noqa: E402
 
 SIGMA = 0.01

@@ -3,7 +3,7 @@
 For each case (every effect of the vocabulary at a realistic size, no effect with Gaussian and with
 heavy-tailed noise, two effects at once, an effect outside the vocabulary) and each seed: a campaign on
 the twin with random geometric errors (limbs 1-2, SS) and the hidden effect(s)
-(:func:`pmcal.apps.effect_scenarios.hidden_effect_campaign`: the ``pmcal twin plan --for-diagnosis``
+(:func:`pmcal.apps.ocpm.effect_scenarios.hidden_effect_campaign`: the ``pmcal twin plan --for-diagnosis``
 campaign, 128 poses up to 80 deg in random time order, each motor approaching from the side of its last
 move, payloads 0/10 kg in blocks of 32 rows, warm-up then cool-down 18 -> 28 -> 18 degC, sigma 0.01 mm,
 logged without approach columns), diagnosed without being told (sigma given).
@@ -12,7 +12,7 @@ With ``--source xsim`` (or ``both``) the campaigns come from the independent sim
 ``tests/crosssim`` instead (shares no code with pmcal; its own forms of every effect: thermal expansion of
 the links only, backlash from the move order, exponential drift creep, eccentricity with random phase),
 logged in time order as a CSV without approach columns (warm-up then cool-down 18 -> 28 -> 18 degC,
-payloads 0/10 kg in blocks of 32 rows) and read back with :func:`pmcal.io_ocpm.read_measurements`; those
+payloads 0/10 kg in blocks of 32 rows) and read back with :func:`pmcal.ocpm.io.read_measurements`; those
 rows are labelled ``xsim``.
 
 Forms (issue of per-part, per-motor and out-of-vocabulary effects): thermal expansion by part (aluminium
@@ -76,8 +76,8 @@ PARTS = {"cranks": 23e-6, "couplers": 23e-6, "strut": 12e-6, "base": 12e-6, "pla
 
 def twin_effects(case: str, seed: int, hours: float):
     """The twin's effects of a form case (None: the realistic sizes of the case's names on both motors)."""
-    from pmcal.apps.effect_scenarios import REALISTIC
-    from pmcal.twin.effects import Effects
+    from pmcal.apps.ocpm.effect_scenarios import REALISTIC
+    from pmcal.twin.ocpm.effects import Effects
 
     one = seed % 2                                       # the motor that carries a one-motor effect
     if case == "backlash (one motor)":
@@ -198,8 +198,8 @@ def within_interval(d, twin, name: str, span_h: tuple[float, float]) -> bool:
 
 def run_one(job: tuple[str, int, int]) -> dict:
     from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose, limit_blas_threads
-    from pmcal.twin.effect_model import EffectChainModel
-    from pmcal.apps import effect_scenarios as effects
+    from pmcal.twin.ocpm.effect_model import EffectChainModel
+    from pmcal.apps.ocpm import effect_scenarios as effects
 
     limit_blas_threads(1)
     case, seed, n, source = job
@@ -315,8 +315,8 @@ def run_xsim(case: str, seed: int, n: int) -> dict:
     import tempfile
 
     from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose
-    from pmcal.io_ocpm import read_measurements
-    from pmcal.twin.effect_model import EffectChainModel
+    from pmcal.ocpm.io import read_measurements
+    from pmcal.twin.ocpm.effect_model import EffectChainModel
     from tests.crosssim.campaign import hidden_campaign, write_csv
 
     true_motors = None

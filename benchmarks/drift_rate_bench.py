@@ -38,8 +38,8 @@ FORMS = {"one motor": "one motor", "creep": None, "sine": "sine"}
 def run_one(job: tuple) -> dict:
     """One diagnosis; per motor: truth, reported mean rate, interval, rate at the first pose."""
     from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose, limit_blas_threads
-    from pmcal.io_ocpm import read_measurements
-    from pmcal.twin.effect_model import EffectChainModel
+    from pmcal.ocpm.io import read_measurements
+    from pmcal.twin.ocpm.effect_model import EffectChainModel
     from benchmarks.diagnose_bench import xsim_mean_rates
     from tests.crosssim.campaign import hidden_campaign, write_csv
 

@@ -27,13 +27,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.common import print_table, write_json  # noqa: E402
 from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full, chain_commands_deg  # noqa: E402
 from pmcal.mechanism.ocpm.params import errors_and_ratio  # noqa: E402
-from pmcal.twin.forward import FullChainModel  # noqa: E402
+from pmcal.twin.ocpm.forward import FullChainModel  # noqa: E402
 from pmcal.mechanism.ocpm.kinematics import nominal_pose, real_ik_commands  # noqa: E402
 from pmcal.mechanism.ocpm.params import ErrorSet, random_errors  # noqa: E402
 from pmcal.mechanism.rigid import fit_pose  # noqa: E402
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion  # noqa: E402
-from pmcal.twin.campaign import nominal_commands, plan_campaign, run_campaign  # noqa: E402
-from pmcal.twin.machine import Twin  # noqa: E402
+from pmcal.twin.ocpm.campaign import nominal_commands, plan_campaign, run_campaign  # noqa: E402
+from pmcal.twin.ocpm.machine import Twin  # noqa: E402
 from pmcal.twin.tracker import LaserTracker  # noqa: E402
 
 SIGMA = 0.01

@@ -29,12 +29,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
-from pmcal.calibration import identify, record_document  # noqa: E402
+from pmcal.ocpm.calibration import identify, record_document  # noqa: E402
 from pmcal.history import ALPHA, compare, file_calibration, read_record  # noqa: E402
-from pmcal.io_ocpm import write_measurements  # noqa: E402
+from pmcal.ocpm.io import write_measurements  # noqa: E402
 from pmcal.mechanism.ocpm.params import random_errors  # noqa: E402
-from pmcal.twin.campaign import plan_campaign, run_campaign  # noqa: E402
-from pmcal.twin.machine import Twin  # noqa: E402
+from pmcal.twin.ocpm.campaign import plan_campaign, run_campaign  # noqa: E402
+from pmcal.twin.ocpm.machine import Twin  # noqa: E402
 from pmcal.twin.tracker import LaserTracker  # noqa: E402
 
 DENT_MM = -0.2

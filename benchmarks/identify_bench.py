@@ -103,8 +103,8 @@ def campaign_for(scenario: str, d: int):
     """Twin, errors, calibration campaign and rng of draw ``d``. A draw whose twin does not assemble at
     one of the poses (closure solve not converged: a twin limitation, reported) is replaced by the draw
     with seed + 100 (up to 5 times); the replacements are counted in the results."""
-    from pmcal.twin.campaign import plan_campaign, run_campaign
-    from pmcal.twin.machine import Twin
+    from pmcal.twin.ocpm.campaign import plan_campaign, run_campaign
+    from pmcal.twin.ocpm.machine import Twin
     from pmcal.twin.tracker import LaserTracker
 
     for attempt in range(5):
@@ -121,7 +121,7 @@ def campaign_for(scenario: str, d: int):
 
 def one_draw(args) -> dict:
     scenario, d, methods = args
-    from pmcal.twin.campaign import nominal_commands, plan_campaign
+    from pmcal.twin.ocpm.campaign import nominal_commands, plan_campaign
 
     twin, truth, meas, rng, redrawn = campaign_for(scenario, d)
     test = plan_campaign(N_TEST, THETA_MAX, seed=5000 + d)
@@ -175,7 +175,7 @@ def one_draw(args) -> dict:
 # ---------------------------------------------------------------------- pose selection study
 def designs(rng_seed: int = 3000) -> dict[str, tuple[np.ndarray, np.ndarray] | None]:
     from pmcal.calib.pose_selection import join_blocks, select_poses
-    from pmcal.twin.campaign import plan_orientations
+    from pmcal.twin.ocpm.campaign import plan_orientations
 
     ph, th = plan_orientations(600, THETA_MAX, np.random.default_rng(rng_seed))
     names = [k for k in pm.param_names() if k not in ("L1.day", "L2.dax")]
@@ -190,7 +190,7 @@ def designs(rng_seed: int = 3000) -> dict[str, tuple[np.ndarray, np.ndarray] | N
 
 def pose_draw(args) -> dict:
     d, design_set = args
-    from pmcal.twin.campaign import CampaignPlan, plan_campaign, run_campaign
+    from pmcal.twin.ocpm.campaign import CampaignPlan, plan_campaign, run_campaign
     from pmcal.twin.tracker import LaserTracker
 
     twin, truth, _, rng, _ = campaign_for("limbs12", d)

@@ -27,7 +27,7 @@ from pmcal.calib.planar.design import (boundary_positions, condition_study, opti
 from pmcal.calib.planar.identification import identify  # noqa: E402
 from pmcal.mechanism.planar.kinematics import inverse  # noqa: E402
 from pmcal.twin.planar.config import default_machine  # noqa: E402
-from pmcal.apps.planar_study import GROUPS, PAPER, evaluate_at, run_study, settings  # noqa: E402
+from pmcal.apps.planar.study import GROUPS, PAPER, evaluate_at, run_study, settings  # noqa: E402
 from pmcal.twin.planar.twin import PlanarTwin  # noqa: E402
 
 

@@ -73,16 +73,16 @@ def _policy(version: str) -> None:
 
 
 def _which() -> str:
-    import pmcal.twin.machine
+    import pmcal.twin.ocpm.machine
 
-    return str(Path(pmcal.twin.machine.__file__).resolve())
+    return str(Path(pmcal.twin.ocpm.machine.__file__).resolve())
 
 
 def measure_compensation() -> dict:
     import numpy as np
 
     try:
-        from pmcal.compensators import FullCompensation
+        from pmcal.ocpm.compensators import FullCompensation
     except ImportError:                                    # before the split
         from pmcal.apps.ocpm_full import FullCompensation
     from pmcal.mechanism.ocpm.config import default_geometry
@@ -131,8 +131,8 @@ def measure_twin() -> dict:
     import numpy as np
 
     from pmcal.mechanism.ocpm.params import random_errors
-    from pmcal.twin.campaign import nominal_commands
-    from pmcal.twin.machine import Twin
+    from pmcal.twin.ocpm.campaign import nominal_commands
+    from pmcal.twin.ocpm.machine import Twin
 
     twin = Twin(random_errors(np.random.default_rng(3), 0.5, 0.1))
     rng = np.random.default_rng(0)
@@ -158,9 +158,9 @@ def _identification(n: int = 48, repeat: int = 3) -> float:
 
     from pmcal.calib.ocpm.fullchain import identify_full
     from pmcal.mechanism.ocpm.params import random_errors
-    from pmcal.twin.campaign import plan_campaign, run_campaign
-    from pmcal.twin.forward import FullChainModel
-    from pmcal.twin.machine import Twin
+    from pmcal.twin.ocpm.campaign import plan_campaign, run_campaign
+    from pmcal.twin.ocpm.forward import FullChainModel
+    from pmcal.twin.ocpm.machine import Twin
     from pmcal.twin.tracker import LaserTracker
 
     twin = Twin(random_errors(np.random.default_rng(11), 0.5, 0.1))

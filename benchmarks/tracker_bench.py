@@ -39,9 +39,9 @@ from pmcal.calib.ocpm.tracker_design import tracker_campaign  # noqa: E402
 from pmcal.calib.ocpm.tracker_fit import identify_tracker  # noqa: E402
 from pmcal.mechanism.ocpm.params import errors_and_ratio, random_errors  # noqa: E402
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion  # noqa: E402
-from pmcal.twin.campaign import CampaignPlan, MeasurementFaults, plan_campaign, run_campaign  # noqa: E402
-from pmcal.twin.forward import FullChainModel  # noqa: E402
-from pmcal.twin.machine import Twin  # noqa: E402
+from pmcal.twin.ocpm.campaign import CampaignPlan, MeasurementFaults, plan_campaign, run_campaign  # noqa: E402
+from pmcal.twin.ocpm.forward import FullChainModel  # noqa: E402
+from pmcal.twin.ocpm.machine import Twin  # noqa: E402
 from pmcal.twin.tracker import LaserTracker, random_tracker_pose  # noqa: E402
 
 SIGMA = 0.01

@@ -19,8 +19,8 @@ from benchmarks.common import print_table, write_json  # noqa: E402
 from pmcal.mechanism.ocpm.config import MACHINE_DIR  # noqa: E402
 from pmcal.mechanism.ocpm.kinematics import nominal_ik, nominal_pose  # noqa: E402
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet, random_errors  # noqa: E402
-from pmcal.twin.machine import Twin  # noqa: E402
-from pmcal.twin.model import ModelIndex, apply_errors, load_model  # noqa: E402
+from pmcal.twin.ocpm.machine import Twin  # noqa: E402
+from pmcal.twin.ocpm.model import ModelIndex, apply_errors, load_model  # noqa: E402
 
 
 def best_of(fn, repeat=5):

@@ -1,11 +1,11 @@
 """Identification, diagnosis and compensation numerics (numpy/scipy; no MuJoCo, no CLI).
 
-No user files: calib reads and writes none of the user's files (those are :mod:`pmcal.io_ocpm`,
-:mod:`pmcal.io_planar`); it does read package data through :mod:`pmcal.mechanism` (the machine
+No user files: calib reads and writes none of the user's files (those are :mod:`pmcal.ocpm.io`,
+:mod:`pmcal.planar.io`); it does read package data through :mod:`pmcal.mechanism` (the machine
 configuration ``mjcf/<machine>/machine.toml``: default tracker noise, stiffness ratio), and the diagnosis
 inspects installed shared libraries to pin BLAS threads.
 
-The algorithms reach the physics only through :class:`pmcal.calib.forward_model.ForwardModel` objects
+The algorithms reach the physics only through :class:`pmcal.calib.ocpm.forward_model.ForwardModel` objects
 handed to them (the twin's, or any other simulator's); the machine description comes from
 :mod:`pmcal.mechanism`. Units inside: mm and radians unless a name says otherwise (``*_deg``);
 interfaces to files and users are in degrees and converted at the edge.

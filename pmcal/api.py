@@ -35,19 +35,19 @@ from pmcal.bridge.comptable import CompTable
 from pmcal.bridge.link import PlcLink
 from pmcal.bridge.transfer import PushOptions, PushReport
 from pmcal.bridge.transfer import push as _push
-from pmcal.calibration import Calibration
-from pmcal.calibration import identify as _identify_ocpm
+from pmcal.ocpm.calibration import Calibration
+from pmcal.ocpm.calibration import identify as _identify_ocpm
 from pmcal.chain_calibration import ChainCalibration
 from pmcal.errors import InputError
 from pmcal.io_chain import ChainMeasurements
 from pmcal.io_chain import read_measurements as _read_chain
-from pmcal.io_ocpm import read_measurements as _read_measurements
-from pmcal.io_planar import PlanarMeasurements
-from pmcal.io_planar import read_measurements as _read_planar
+from pmcal.ocpm.io import read_measurements as _read_measurements
+from pmcal.planar.io import PlanarMeasurements
+from pmcal.planar.io import read_measurements as _read_planar
 from pmcal.machines import Machine
 from pmcal.mechanism.ocpm.data import Measurements
-from pmcal.planar_calibration import PlanarCalibration
-from pmcal.planar_calibration import identify as _identify_planar
+from pmcal.planar.calibration import PlanarCalibration
+from pmcal.planar.calibration import identify as _identify_planar
 from pmcal.twin.planar.config import default_machine as _planar_machine
 
 __all__ = ["Calibration", "ChainCalibration", "ChainMeasurements", "CompTable", "Machine", "Measurements",
@@ -119,8 +119,8 @@ def identify(meas, **options):
     meas : Measurements, PlanarMeasurements or ChainMeasurements
         The campaign (it knows its machine).
     **options
-        ocpm_2dof: those of :func:`pmcal.calibration.identify` (``model="full"|"paper"``, ``method``,
-        ``sigma``, ``seed`` ...). planar_2dof: those of :func:`pmcal.planar_calibration.identify` (``model``,
+        ocpm_2dof: those of :func:`pmcal.ocpm.calibration.identify` (``model="full"|"paper"``, ``method``,
+        ``sigma``, ``seed`` ...). planar_2dof: those of :func:`pmcal.planar.calibration.identify` (``model``,
         ``method``, ``sigma``, ``allow_rank_deficient``). A machine folder: ``sigma_mm`` (tracker noise, mm;
         default machine.toml's).
 

@@ -10,7 +10,7 @@ Two numbers say how much a campaign determines:
   (each direction counts 1 when the data fix it, 0 when only the prior holds it), rounded, of the number
   of parameters;
 - **predicted pointing uncertainty**: the posterior covariance C propagated to the platform normal over
-  :data:`pmcal.calibration.QUALITY_GRID` (1 sigma, deg; ocpm_2dof's, :func:`pmcal.calibration.full_chain_quality`): RMS and max over the grid. The same propagation of the prior
+  :data:`pmcal.ocpm.calibration.QUALITY_GRID` (1 sigma, deg; ocpm_2dof's, :func:`pmcal.ocpm.calibration.full_chain_quality`): RMS and max over the grid. The same propagation of the prior
   (the manufacturing tolerances the machine's configuration assumes, ``docs/fullchain.md``) gives the
   **uncalibrated machine's expected pointing error**.
 

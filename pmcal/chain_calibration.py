@@ -1,5 +1,5 @@
 """A calibration of a machine described by a folder (the closed-chain core): the same calls as the
-over-constrained PM's :class:`pmcal.calibration.Calibration`, so that the library API reads the same for
+over-constrained PM's :class:`pmcal.ocpm.calibration.Calibration`, so that the library API reads the same for
 every machine (``pmcal.identify`` -> ``cal.setpoints`` -> ``cal.compensation_table`` -> ``cal.save``).
 
 The calibration owns its parameters document (docs/formats.md, "Any machine": every error's value in mm

@@ -49,7 +49,7 @@ AS_COMMENT = {"backlash": "full dead band of lost motion per motor (deg), as dia
 @dataclass
 class ExportParts:
     """What a machine's calibration puts into its exported model (each machine's code builds it:
-    :func:`chain_parts`, ``pmcal.calibration.export_parts``, ``pmcal.planar_calibration.export_parts``).
+    :func:`chain_parts`, ``pmcal.ocpm.calibration.export_parts``, ``pmcal.planar.calibration.export_parts``).
 
     ``template``: the machine's MJCF; ``toml_path``: its machine.toml; ``model``: the compiled model with the
     identified errors; ``edits``: the MJCF edits :func:`pmcal.twin.export.calibrated_xml` applies (joint refs,

@@ -1,7 +1,7 @@
 """A machine's calibration history: one JSON record per calibration in a folder, and what moved.
 
 :func:`file_calibration` files an identification's record (:func:`chain_record_document`, or ocpm_2dof's
-:func:`pmcal.calibration.record_document`) (``pmcal identify ... --history DIR``): date, the campaign
+:func:`pmcal.ocpm.calibration.record_document`) (``pmcal identify ... --history DIR``): date, the campaign
 file's SHA-256, every parameter with its standard deviation and 95 % interval, their covariance, the fit
 residual and the tracker noise. Records are never overwritten.
 
@@ -124,7 +124,7 @@ def make_record(machine: str, model: str, method: str, frame: str, campaign_path
 def file_calibration(record: dict, history_dir: str | Path) -> Path:
     """Write a calibration's record into ``history_dir`` (created if missing); never overwrites.
     ``record``: :func:`chain_record_document` (a machine folder's identification) or
-    :func:`pmcal.calibration.record_document` (ocpm_2dof's).
+    :func:`pmcal.ocpm.calibration.record_document` (ocpm_2dof's).
 
     The file is ``YYYYMMDDTHHMMSSZ-<first 8 hex of the campaign SHA-256>.json`` (``-2``, ``-3`` ... when
     taken). Returns its path.

@@ -2,13 +2,13 @@
 
 A real campaign leaves two files: the metrology package's export of named points (Spatial Analyzer's
 ASCII point export, or any CSV of named points with a column map) and the controller's log of the motor
-commands per pose. :func:`pmcal.io_ocpm.join` matches each point to a pose of the log (by the pose number in its name,
+commands per pose. :func:`pmcal.ocpm.io.join` matches each point to a pose of the log (by the pose number in its name,
 or by the nearest time stamp) and to a nest on the platform (by its target name) and returns the
 :class:`pmcal.mechanism.ocpm.data.Measurements` of the documented measurement file, with a report of every
 point it could not place; :func:`join_machine` the same for a machine folder (its N motor columns and K
 nests, :class:`pmcal.io_chain.ChainMeasurements`), both on :func:`place_points`.
 
-Units out: mm. Spatial Analyzer's export is in the working frame of the SA job; :func:`pmcal.io_ocpm.in_base_frame`
+Units out: mm. Spatial Analyzer's export is in the working frame of the SA job; :func:`pmcal.ocpm.io.in_base_frame`
 tells whether that frame is the machine's base frame (otherwise identify needs ``--frame tracker``).
 """
 
@@ -295,14 +295,14 @@ def read_controller_log(path: str | Path, motor_columns: tuple[str, ...] = OCPM_
 
 @dataclass
 class ImportResult:
-    """What :func:`pmcal.io_ocpm.join` made: the measurements, how it joined, and every point it could not place.
+    """What :func:`pmcal.ocpm.io.join` made: the measurements, how it joined, and every point it could not place.
 
     ``meas`` rows are the log's poses in log order (poses with fewer than two points left out, listed in
-    ``left_out``); ``frame`` is ``base`` or ``tracker`` (:func:`pmcal.io_ocpm.in_base_frame`, ``frame_reason`` why not
+    ``left_out``); ``frame`` is ``base`` or ``tracker`` (:func:`pmcal.ocpm.io.in_base_frame`, ``frame_reason`` why not
     the base frame); ``warnings`` one line each
     (unmatched, re-shot, ambiguous points by name and line); ``comments`` the header lines of the file."""
 
-    meas: object                    # ocpm_2dof's Measurements (pmcal.io_ocpm.join) or ChainMeasurements
+    meas: object                    # ocpm_2dof's Measurements (pmcal.ocpm.io.join) or ChainMeasurements
     frame: str
     frame_reason: str
     join: str
@@ -333,7 +333,7 @@ def compile_names(pattern: str | None) -> re.Pattern:
 
 def join_machine(export: TrackerExport, log: ControllerLog, spec, distance_from_nominal,
                  names: str | None = None, time_tolerance_s: float | None = None) -> ImportResult:
-    """:func:`pmcal.io_ocpm.join` for a machine folder (``spec``: its :class:`~pmcal.mechanism.machine_spec.MachineSpec`):
+    """:func:`pmcal.ocpm.io.join` for a machine folder (``spec``: its :class:`~pmcal.mechanism.machine_spec.MachineSpec`):
     ``log`` read with the machine's motor columns, a point's target named ``T<k>``, ``<k>`` or the nest's
     site name in machine.toml (``[tracker] targets``), poses kept with at least the targets the machine
     needs (3 when the platform pose is measured, else 1). The frame check: the export's working frame
@@ -391,7 +391,7 @@ class PlacedPoints:
 def place_points(export: TrackerExport, log: ControllerLog, nests: list[str], names: str | None,
                  time_tolerance_s: float | None, min_points: int) -> PlacedPoints:
     """Place each exported point on a pose of the log and a nest (``nests``: the nests' names in order;
-    a target label ``T<k>``, ``<k>`` or a nest's name, case-insensitive), as :func:`pmcal.io_ocpm.join` describes; poses
+    a target label ``T<k>``, ``<k>`` or a nest's name, case-insensitive), as :func:`pmcal.ocpm.io.join` describes; poses
     with fewer than ``min_points`` points are left out."""
     rx = compile_names(names)
     n_nests = len(nests)

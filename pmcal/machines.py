@@ -113,7 +113,7 @@ class Machine:
     @property
     def twin(self):
         """The closed-chain digital twin (:class:`pmcal.twin.closed_chain.ClosedChainTwin`), compiled on
-        first use. The seeded machines have their own twins (``pmcal.twin.machine``, ``pmcal.twin.planar``)."""
+        first use. The seeded machines have their own twins (``pmcal.twin.ocpm.machine``, ``pmcal.twin.planar``)."""
         if self.legacy:
             raise InputError(f"machine '{self.name}' runs on its dedicated twin, not the closed-chain one",
                              field="--machine")

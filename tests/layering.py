@@ -2,7 +2,7 @@
 
 Layers, lowest first; a module may import its own layer and the layers below it, never above. Two
 further rules: the identification layer reaches the physics only through
-:class:`pmcal.calib.forward_model.ForwardModel` (``pmcal.calib`` never imports ``pmcal.twin``), and the
+:class:`pmcal.calib.ocpm.forward_model.ForwardModel` (``pmcal.calib`` never imports ``pmcal.twin``), and the
 bridge depends on no numerics (``pmcal.bridge`` imports neither ``pmcal.calib`` nor ``pmcal.twin``).
 Imports inside functions count like any other: a lazy import may not hide a dependency.
 docs/DEVELOPING.md shows the same table.
@@ -28,7 +28,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("bridge", ("pmcal.bridge",)),
     # the application, in its own sub-layers: file formats, the library API, reports, the applications of
     # the machines (their commands' handlers and studies), the command parsers, the entry point
-    ("application: file formats", ("pmcal.io_ocpm", "pmcal.io_chain", "pmcal.io_planar", "pmcal.io_tracker")),
+    ("application: file formats", ("pmcal.ocpm.io", "pmcal.io_chain", "pmcal.planar.io", "pmcal.io_tracker")),
     ("application: library", ("pmcal",)),
     ("application: reports", ("pmcal.reports",)),
     ("application: apps", ("pmcal.apps", "pmcal.studies")),
@@ -46,16 +46,10 @@ FORBIDDEN = [
 #: The seeded machines' code ("wings"): the modules of each, by prefix. Generic modules import no wing and
 #: wings do not import each other; only the library's front door (:data:`FRONT_DOORS`) routes to them.
 WINGS: dict[str, tuple[str, ...]] = {
-    "ocpm_2dof": ("pmcal.mechanism.ocpm", "pmcal.calib.ocpm", "pmcal.calib.forward_model",
-                  *(f"pmcal.twin.{m}" for m in ("aiming", "assembly", "campaign", "dynamics", "effect_model", "effects",
-                                               "forward", "machine", "model", "sensitivity")),
-                  "pmcal.io_ocpm", "pmcal.calibration", "pmcal.compensators", "pmcal.tracker_frame",
-                  "pmcal.apps.ocpm", "pmcal.apps.ocpm_calib", "pmcal.apps.ocpm_diagnose", "pmcal.apps.ocpm_diagnose_frame",
-                  "pmcal.apps.ocpm_diagnosis_plan", "pmcal.apps.ocpm_tracker_plan", "pmcal.apps.ocpm_twin",
-                  "pmcal.apps.effect_scenarios", "pmcal.apps.plc_loop", "pmcal.reports.demo", "pmcal.reports.diagnose",
-                  "pmcal.studies.demo", "pmcal.studies.demo_tracker"),
-    "planar_2dof": ("pmcal.mechanism.planar", "pmcal.calib.planar", "pmcal.twin.planar", "pmcal.io_planar",
-                    "pmcal.planar_calibration", "pmcal.apps.planar", "pmcal.apps.planar_demo", "pmcal.apps.planar_study"),
+    "ocpm_2dof": ("pmcal.mechanism.ocpm", "pmcal.twin.ocpm", "pmcal.calib.ocpm", "pmcal.ocpm", "pmcal.apps.ocpm",
+                  "pmcal.reports.ocpm", "pmcal.studies.ocpm"),
+    "planar_2dof": ("pmcal.mechanism.planar", "pmcal.twin.planar", "pmcal.calib.planar", "pmcal.planar",
+                    "pmcal.apps.planar"),
 }
 #: The library API: ``pmcal.read_measurements(path, machine)`` and ``pmcal.identify(campaign)`` route a
 #: campaign to its machine's code, so it may import every wing.

@@ -14,11 +14,11 @@ import pytest
 import pmcal
 from pmcal.bridge.ads_mock import AdsMockPlc
 from pmcal.bridge.comptable import CompTable
-from pmcal.io_ocpm import write_measurements
+from pmcal.ocpm.io import write_measurements
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, random_errors
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
-from pmcal.twin.campaign import nominal_commands, plan_campaign, run_campaign
-from pmcal.twin.machine import Twin
+from pmcal.twin.ocpm.campaign import nominal_commands, plan_campaign, run_campaign
+from pmcal.twin.ocpm.machine import Twin
 from pmcal.twin.tracker import LaserTracker
 
 

@@ -60,11 +60,11 @@ def _folder_campaign(machine, path, seed: int = 5):
 def _ocpm_campaign(machine, path):
     """The twin with the paper's Table 2 errors, 48 poses; judged by the pointing error the twin reaches with
     the setpoints (tests/test_api.py: the noise floor is ~0.003 deg) and the table's interpolation."""
-    from pmcal.io_ocpm import write_measurements as write_ocpm
+    from pmcal.ocpm.io import write_measurements as write_ocpm
     from pmcal.mechanism.ocpm.params import PAPER_TABLE2
     from pmcal.mechanism.rotations import pointing_error, tilt_torsion
-    from pmcal.twin.campaign import nominal_commands, plan_campaign, run_campaign
-    from pmcal.twin.machine import Twin
+    from pmcal.twin.ocpm.campaign import nominal_commands, plan_campaign, run_campaign
+    from pmcal.twin.ocpm.machine import Twin
     from pmcal.twin.tracker import LaserTracker
 
     twin = Twin(PAPER_TABLE2)
@@ -132,9 +132,9 @@ def test_the_same_lines_calibrate_every_machine(name, tmp_path):
 
 
 def test_ocpm_takes_its_targets_as_one_array_like_every_machine(tmp_path):
-    from pmcal.io_ocpm import write_measurements as write_ocpm
-    from pmcal.twin.campaign import plan_campaign, run_campaign
-    from pmcal.twin.machine import Twin
+    from pmcal.ocpm.io import write_measurements as write_ocpm
+    from pmcal.twin.ocpm.campaign import plan_campaign, run_campaign
+    from pmcal.twin.ocpm.machine import Twin
     from pmcal.twin.tracker import LaserTracker
     from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 

@@ -149,7 +149,7 @@ def test_huge_inputs_are_refused_with_a_clear_message(work, capsys, tmp_path):
 
 def test_a_large_input_reports_its_steps_also_when_piped(work, capsys, tmp_path):
     """Above LONG_POSES poses identify says what it does on stderr (captured = not a terminal)."""
-    from pmcal.io_ocpm import LONG_POSES
+    from pmcal.ocpm.io import LONG_POSES
 
     big = _big_csv(work / "m.csv", tmp_path / "long.csv", LONG_POSES + 16)
     capsys.readouterr()

@@ -11,9 +11,9 @@ from pmcal.mechanism.ocpm.kinematics import nominal_ik
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.cli import main
-from pmcal.io_ocpm import write_measurements
-from pmcal.twin.campaign import plan_campaign, run_campaign
-from pmcal.twin.machine import Twin
+from pmcal.ocpm.io import write_measurements
+from pmcal.twin.ocpm.campaign import plan_campaign, run_campaign
+from pmcal.twin.ocpm.machine import Twin
 from pmcal.twin.tracker import LaserTracker
 
 
@@ -243,7 +243,7 @@ def test_evaluate_missing_params(files, tmp_path, capsys):
 
 def test_demo_small(tmp_path, monkeypatch, capsys):
     """The demo end to end with the fast methods only (the full demo: `pmcal demo`, benchmarked)."""
-    from pmcal.studies import demo as demo_study
+    from pmcal.studies.ocpm import demo as demo_study
 
     monkeypatch.setattr(demo_study.DemoStudy, "METHODS_COMPARED", ("hga", "lm", "tikhonov", "tsvd"))
     out = tmp_path / "demo"

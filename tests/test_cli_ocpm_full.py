@@ -9,9 +9,9 @@ import pytest
 from pmcal.mechanism.ocpm.params import random_errors
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
 from pmcal.cli import main
-from pmcal.io_ocpm import write_measurements
-from pmcal.twin.campaign import nominal_commands, plan_campaign, run_campaign
-from pmcal.twin.machine import Twin
+from pmcal.ocpm.io import write_measurements
+from pmcal.twin.ocpm.campaign import nominal_commands, plan_campaign, run_campaign
+from pmcal.twin.ocpm.machine import Twin
 from pmcal.twin.tracker import LaserTracker
 
 

@@ -7,8 +7,8 @@ import pytest
 
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2
 from pmcal.cli import main
-from pmcal.io_ocpm import read_measurements
-from pmcal.twin.machine import Twin
+from pmcal.ocpm.io import read_measurements
+from pmcal.twin.ocpm.machine import Twin
 
 
 def run(argv, capsys):

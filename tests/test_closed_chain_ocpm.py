@@ -1,5 +1,5 @@
 """The generic closed-chain core on the seeded over-constrained machine (ocpm_2dof's MJCF described as data,
-with compliant closures) against the machine's own, separately written twin (pmcal.twin.machine.Twin)."""
+with compliant closures) against the machine's own, separately written twin (pmcal.twin.ocpm.machine.Twin)."""
 
 import numpy as np
 import pytest
@@ -7,7 +7,7 @@ import pytest
 from pmcal.mechanism.ocpm.params import random_errors
 from pmcal.mjcf import machine_dir
 from pmcal.twin.closed_chain import ClosedChainTwin
-from pmcal.twin.machine import Twin
+from pmcal.twin.ocpm.machine import Twin
 
 @pytest.fixture(scope="module")
 def folder():

@@ -9,8 +9,8 @@ from pmcal.calib.ocpm import paper_model as pm
 from pmcal.mechanism.ocpm.kinematics import nominal_ik, nominal_pose
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
-from pmcal.twin.campaign import nominal_commands, plan_campaign, run_campaign
-from pmcal.twin.machine import Twin
+from pmcal.twin.ocpm.campaign import nominal_commands, plan_campaign, run_campaign
+from pmcal.twin.ocpm.machine import Twin
 from pmcal.twin.tracker import LaserTracker
 
 RNG = np.random.default_rng(0)

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from pmcal.calib.ocpm.fullchain import chain_commands_deg, platform_normals
-from pmcal.compensators import FullCompensation
+from pmcal.ocpm.compensators import FullCompensation
 from pmcal.mechanism.rotations import tilt_torsion
-from pmcal.twin.machine import Twin
+from pmcal.twin.ocpm.machine import Twin
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.kinematics import nominal_ik
 from pmcal.mechanism.ocpm.params import random_errors
@@ -91,9 +91,9 @@ class _NewtonOnly:
 
 def test_newton_on_the_forward_model_gives_the_same_commands():
     """The generic path (any ForwardModel) and the twin's bordered Newton agree with the tight reference."""
-    from pmcal.calib.forward_model import AimingModel
+    from pmcal.calib.ocpm.forward_model import AimingModel
     from pmcal.mechanism.ocpm.params import ErrorSet
-    from pmcal.twin.forward import FullChainModel
+    from pmcal.twin.ocpm.forward import FullChainModel
 
     d = reference(TIGHT)
     d = d[(d["stiffness_ratio"] == 1000.0) & np.isfinite(d["m1_deg"])][::9]
@@ -109,7 +109,7 @@ def test_newton_on_the_forward_model_gives_the_same_commands():
 def test_the_twin_declines_to_aim_under_gravity():
     """With gravity (or motor springs) the bordered solve does not hold: the model says so and
     chain_commands_deg runs Newton on its predictions instead."""
-    from pmcal.twin.forward import FullChainModel
+    from pmcal.twin.ocpm.forward import FullChainModel
 
     model = FullChainModel(default_geometry())
     model.twin.assembler.gravity = True

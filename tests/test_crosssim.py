@@ -31,8 +31,8 @@ def test_home_angle():
 @pytest.mark.parametrize("limbs,gravity,tol", [((1, 2), False, 0.002), ((1, 2, 3, 4), False, 0.002),
                                                ((1, 2, 3, 4), True, 0.005)])
 def test_agrees_with_twin_under_errors(limbs, gravity, tol):
-    from pmcal.twin.effects import Effects, EffectTwin
-    from pmcal.twin.machine import Twin
+    from pmcal.twin.ocpm.effects import Effects, EffectTwin
+    from pmcal.twin.ocpm.machine import Twin
 
     rng = np.random.default_rng(3)
     err = random_errors(rng, 0.5, limbs)
@@ -57,8 +57,8 @@ def test_backlash_follows_move_order():
 
 def _diagnose(tmp_path, names, seed=1, sizes=None, forms=None, truth=False):
     from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose
-    from pmcal.io_ocpm import read_measurements
-    from pmcal.twin.effect_model import EffectChainModel
+    from pmcal.ocpm.io import read_measurements
+    from pmcal.twin.ocpm.effect_model import EffectChainModel
 
     camp, _, fx = hidden_campaign(names, seed, sizes=sizes, forms=forms)
     write_csv(tmp_path / "m.csv", camp)
@@ -116,8 +116,8 @@ def test_unexplained_structure_is_characterised(tmp_path):
     """A tracker stand creeping 0.004 mm/K along x is no effect of the vocabulary: the diagnosis names
     nothing, and says the residual follows the temperature (not the time: warm-up then cool-down)."""
     from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose
-    from pmcal.io_ocpm import read_measurements
-    from pmcal.twin.effect_model import EffectChainModel
+    from pmcal.ocpm.io import read_measurements
+    from pmcal.twin.ocpm.effect_model import EffectChainModel
 
     camp, _, _ = hidden_campaign([], 5)
     camp.targets[:, :, 0] += 0.004 * (camp.temp_c - 18.0)[:, None]
@@ -165,8 +165,8 @@ def test_small_campaign_names_every_identifiable_effect(tmp_path, name):
     over-constraint and compliance are named and close the held-out gap; eccentricity is not identifiable
     there (nothing named, nothing left unexplained) and the advice says which campaign would see it."""
     from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose
-    from pmcal.io_ocpm import read_measurements
-    from pmcal.twin.effect_model import EffectChainModel
+    from pmcal.ocpm.io import read_measurements
+    from pmcal.twin.ocpm.effect_model import EffectChainModel
 
     camp, _, _ = hidden_campaign([name], 1, n=48, theta_max_deg=60)
     write_csv(tmp_path / "m.csv", camp)
@@ -218,7 +218,7 @@ def test_floor_slide_is_named_frame_drift(tmp_path):
 def test_one_motor_backlash_is_reported_per_motor(tmp_path):
     """Backlash on one motor only (the simulator's lag b from the move order): the headline names that
     motor, and each motor's full dead band 2 b lies in its 95 % interval (the other motor's 0 too)."""
-    from pmcal.reports.diagnose import effect_label
+    from pmcal.reports.ocpm.diagnose import effect_label
 
     d, fx, _ = _diagnose(tmp_path, ["backlash"], seed=1000, forms={"backlash": "one motor"}, truth=True)
     assert d.effects == ["backlash"]

@@ -1,7 +1,7 @@
 """Discrepancy diagnosis: statistics, hidden effects, no-effect data, CLI and demo (docs/diagnose.md).
 
 Campaigns come from the twin with an effect switched on at a size a real machine has and hidden from the
-diagnosis (:func:`pmcal.apps.effect_scenarios.hidden_effect_campaign`). The default suite runs one seed per case on a
+diagnosis (:func:`pmcal.apps.ocpm.effect_scenarios.hidden_effect_campaign`). The default suite runs one seed per case on a
 96-pose campaign (128 for the eccentricity) and 50 + 30 no-effect seeds on 32-pose campaigns; the rates over many seeds are in
 ``benchmarks/diagnose_bench.py`` (and the slow test at the end).
 """
@@ -17,15 +17,15 @@ from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.calib.ocpm.diagnose import DiagnoseOptions, _Problem, diagnose, limit_blas_threads
 from pmcal.calib.ocpm.noise_estimate import estimate_noise, similarity_residuals
 from pmcal.mechanism.ocpm.effects import EFFECT_NAMES, PASSIVE_KEYS, with_context
-from pmcal.twin.effect_model import EffectChainModel
+from pmcal.twin.ocpm.effect_model import EffectChainModel
 from pmcal.calib.ocpm.fullchain import FullChainOptions, identify_full
 from pmcal.calib.ocpm.linear_tests import Linearization, fit, nested_test, pose_leverage, predict
 from pmcal.mechanism.ocpm.params import is_angular, random_errors
-from pmcal.apps.ocpm_diagnose import hidden_effect_demo
+from pmcal.apps.ocpm.diagnosis import hidden_effect_demo
 from pmcal.cli import main
-from pmcal.io_ocpm import write_measurements
-from pmcal.apps.effect_scenarios import diagnosis_plan, hidden_effect_campaign
-from pmcal.twin.effects import EffectTwin, Effects, plan_effect_campaign
+from pmcal.ocpm.io import write_measurements
+from pmcal.apps.ocpm.effect_scenarios import diagnosis_plan, hidden_effect_campaign
+from pmcal.twin.ocpm.effects import EffectTwin, Effects, plan_effect_campaign
 from pmcal.twin.tracker import LaserTracker
 
 SIGMA = 0.01
@@ -171,7 +171,7 @@ def test_diagnosis_plan_covers_the_rim_outside_the_strained_wedge():
     (68..80 deg; the spiral adds its own rim poses), spread in azimuth there (every 30 deg sector outside
     the wedge holds some), none where both passive limbs are near their stretched-link singularity
     (|K / rho| > 0.88, from the limb IK), and in an order that moves every motor both ways."""
-    from pmcal.apps.ocpm_diagnosis_plan import diagnosis_campaign
+    from pmcal.apps.ocpm.diagnosis_plan import diagnosis_campaign
     from pmcal.mechanism.ocpm.kinematics import limb_ik, nominal_pose
 
     c = diagnosis_campaign(128, 80.0, 5)
@@ -343,7 +343,7 @@ def test_folds_span_the_tilt_range_and_hold_no_neighbours_out_together(tmp_path)
     neighbour angle, ~5.5 deg; ranked by tilt alone 3-13 % of the poses shared a fold with their nearest
     neighbour, the closest same-fold pairs 3-7 deg apart)."""
     from pmcal.calib.ocpm.diagnose import stratified_folds
-    from pmcal.io_ocpm import read_measurements
+    from pmcal.ocpm.io import read_measurements
     from tests.crosssim.campaign import hidden_campaign, write_csv
 
     for seed in (1001, 1013):
@@ -387,7 +387,7 @@ def test_plan_measured_on_the_twin_keeps_its_order_and_context(tmp_path, capsys)
     columns as written, 6 significant digits), and the diagnosis of the result names the hidden effect;
     an option that contradicts the plan is refused with one line and exit 2, nothing written."""
     from pmcal.csvio import read_csv
-    from pmcal.io_ocpm import read_measurements
+    from pmcal.ocpm.io import read_measurements
 
     plan, m = tmp_path / "plan.csv", tmp_path / "m.csv"
     assert main(["--quiet", "twin", "plan", "--for-diagnosis", "--poses", "64", "-o", str(plan)]) == 0

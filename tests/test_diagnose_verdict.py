@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from pmcal.apps.ocpm_diagnose import summary_line
+from pmcal.apps.ocpm.diagnosis import summary_line
 from pmcal.calib.ocpm.diagnosis_result import UNNAMED_SIGNIFICANT, Candidate, Diagnosis
 
 

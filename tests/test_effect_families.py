@@ -15,10 +15,10 @@ from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.effects import THERMAL_GROUPS, member_maps, with_context
 from pmcal.mechanism.ocpm.params import random_errors
-from pmcal.twin.campaign import nominal_commands
-from pmcal.twin.effect_model import EffectChainModel
-from pmcal.twin.effects import EffectTwin, Effects, plan_effect_campaign
-from pmcal.twin.model import MM
+from pmcal.twin.ocpm.campaign import nominal_commands
+from pmcal.twin.ocpm.effect_model import EffectChainModel
+from pmcal.twin.ocpm.effects import EffectTwin, Effects, plan_effect_campaign
+from pmcal.twin.ocpm.model import MM
 from pmcal.twin.tracker import LaserTracker
 
 SIGMA = 0.01
@@ -153,7 +153,7 @@ def test_the_simplest_member_that_fits_is_selected(name, truth, member):
 def _twin_diagnosis(effects: Effects, seed: int):
     """128 poses to 80 deg in random order with random approach, payloads 0/10 kg, a warm-up then cool-down
     18 -> 28 -> 18 degC (not monotone in time), random errors in limbs 1-2 and SS, sigma 0.01 mm."""
-    from pmcal.apps.effect_scenarios import diagnosis_plan
+    from pmcal.apps.ocpm.effect_scenarios import diagnosis_plan
 
     rng = np.random.default_rng([seed, 11])
     plan = diagnosis_plan(128, seed)
@@ -194,7 +194,7 @@ def test_twin_quadratic_drift_named_with_its_member():
 
 
 def _xsim(tmp_path, names, seed, **kw):
-    from pmcal.io_ocpm import read_measurements
+    from pmcal.ocpm.io import read_measurements
     from tests.crosssim.campaign import hidden_campaign, write_csv
 
     camp, _, _ = hidden_campaign(names, seed, **kw)

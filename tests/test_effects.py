@@ -1,4 +1,4 @@
-"""Physical effects in the twin against independent computations (twin/effects.py, docs/effects.md)."""
+"""Physical effects in the twin against independent computations (twin/ocpm/effects.py, docs/effects.md)."""
 
 import json
 
@@ -7,17 +7,17 @@ import pytest
 
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.effects import with_context
-from pmcal.twin.effect_model import EffectChainModel
+from pmcal.twin.ocpm.effect_model import EffectChainModel
 from pmcal.mechanism.ocpm.kinematics import limb_ik, nominal_fk, nominal_ik, nominal_pose
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet, is_angular, random_errors
 from pmcal.cli import main
-from pmcal.io_ocpm import read_measurements
-from pmcal.twin.dynamics import DynamicTwin
-from pmcal.apps.effect_scenarios import parse_effects
-from pmcal.twin.effects import (EffectTwin, Effects, HeavyTailedTracker, add_payload, motor_torques, nominal_commands,
+from pmcal.ocpm.io import read_measurements
+from pmcal.twin.ocpm.dynamics import DynamicTwin
+from pmcal.apps.ocpm.effect_scenarios import parse_effects
+from pmcal.twin.ocpm.effects import (EffectTwin, Effects, HeavyTailedTracker, add_payload, motor_torques, nominal_commands,
                           passive_errors, plan_effect_campaign)
-from pmcal.twin.machine import Twin
-from pmcal.twin.model import MM
+from pmcal.twin.ocpm.machine import Twin
+from pmcal.twin.ocpm.model import MM
 from pmcal.twin.tracker import LaserTracker
 
 G = default_geometry()

@@ -14,22 +14,22 @@ import mujoco
 import numpy as np
 import pytest
 
-from pmcal.calibration import identify
+from pmcal.ocpm.calibration import identify
 from pmcal.cli import main
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet
 from pmcal.mechanism.planar.kinematics import forward, mm_vector
-from pmcal.twin.assembly import BatchAssembler, Stiffness
-from pmcal.twin.campaign import plan_campaign, run_campaign
+from pmcal.twin.ocpm.assembly import BatchAssembler, Stiffness
+from pmcal.twin.ocpm.campaign import plan_campaign, run_campaign
 from pmcal.twin.export import simulate
-from pmcal.twin.forward import FullChainModel
-from pmcal.twin.machine import Twin
-from pmcal.twin.model import MM, ModelIndex
+from pmcal.twin.ocpm.forward import FullChainModel
+from pmcal.twin.ocpm.machine import Twin
+from pmcal.twin.ocpm.model import MM, ModelIndex
 from pmcal.mechanism.machine_spec import MachineSpec
 from pmcal.mjcf import machine_dir
 from pmcal.twin.closed_chain import ClosedChainTwin
 from pmcal.twin.tracker import LaserTracker
-from pmcal.io_planar import read_measurements as read_planar, read_params as read_planar_params
+from pmcal.planar.io import read_measurements as read_planar, read_params as read_planar_params
 from pmcal.twin.planar.config import default_machine
 
 TOL_MM = 1e-6

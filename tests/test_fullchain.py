@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 
 from pmcal.mechanism.ocpm.params import LOG_RATIO, errors_and_ratio
-from pmcal.twin.forward import FullChainModel
+from pmcal.twin.ocpm.forward import FullChainModel
 from pmcal.calib.ocpm.fullchain import (FullChainOptions,
                                   identify_full, chain_commands_deg)
 from pmcal.mechanism.ocpm.params import ErrorSet, all_keys, is_angular, random_errors
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
-from pmcal.twin.campaign import nominal_commands, plan_campaign, run_campaign
-from pmcal.twin.machine import Twin
-from pmcal.twin.sensitivity import target_sensitivity
+from pmcal.twin.ocpm.campaign import nominal_commands, plan_campaign, run_campaign
+from pmcal.twin.ocpm.machine import Twin
+from pmcal.twin.ocpm.sensitivity import target_sensitivity
 from pmcal.twin.tracker import LaserTracker
 
 SIGMA = 0.01

@@ -4,7 +4,7 @@ import numpy as np
 
 from pmcal.calib.identifiability import analyse, analyse_jacobian
 from pmcal.calib.ocpm import paper_model as pm
-from pmcal.twin.campaign import plan_orientations
+from pmcal.twin.ocpm.campaign import plan_orientations
 
 
 def test_synthetic_jacobian():

@@ -9,8 +9,8 @@ from pmcal.mechanism.ocpm.kinematics import nominal_pose
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet
 from pmcal.mechanism.rigid import fit_pose
 from pmcal.calib.solvers import identify
-from pmcal.twin.campaign import plan_campaign, run_campaign
-from pmcal.twin.machine import Twin
+from pmcal.twin.ocpm.campaign import plan_campaign, run_campaign
+from pmcal.twin.ocpm.machine import Twin
 from pmcal.twin.tracker import LaserTracker
 
 SIGMA = 0.01

@@ -11,14 +11,14 @@ import shutil
 import numpy as np
 import pytest
 
-from pmcal.calibration import identify
+from pmcal.ocpm.calibration import identify
 from pmcal.cli import main
-from pmcal.io_ocpm import read_measurements, write_measurements
-from pmcal.io_ocpm import join
+from pmcal.ocpm.io import read_measurements, write_measurements
+from pmcal.ocpm.io import join
 from pmcal.io_tracker import read_controller_log, read_sa_ascii
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2
-from pmcal.twin.campaign import plan_campaign, run_campaign
-from pmcal.twin.machine import Twin
+from pmcal.twin.ocpm.campaign import plan_campaign, run_campaign
+from pmcal.twin.ocpm.machine import Twin
 from pmcal.twin.tracker import LaserTracker, random_tracker_pose
 from tests.tracker_files import write_log, write_sa_export
 
@@ -248,9 +248,7 @@ def test_identifying_a_folder_machine_loads_no_seeded_machines_code(tmp_path):
                          env={**__import__("os").environ, "MUJOCO_GL": "egl"})
     rc, loaded = out.stdout.strip().splitlines()[-2:]
     assert rc == "0", out.stderr
-    seeded = {"pmcal.calibration", "pmcal.compensators", "pmcal.tracker_frame", "pmcal.io_ocpm", "pmcal.io_planar",
-              "pmcal.planar_calibration", "pmcal.calib.forward_model"} | {
-        f"pmcal.twin.{m}" for m in ("aiming", "assembly", "campaign", "dynamics", "effect_model", "effects", "forward",
-                                    "machine", "model", "sensitivity")}
-    wings = [m for m in loaded.split() if ".ocpm" in m or ".planar" in m or m in seeded]
+    from layering import wing_of
+
+    wings = [m for m in loaded.split() if wing_of(m)]
     assert not wings, wings

@@ -5,7 +5,7 @@ from layering import LAYERS, check, layer_of, modules, wing_of, wing_violations
 
 def test_every_module_has_a_layer():
     mods = modules()
-    assert "pmcal.calib.ocpm.fullchain" in mods and "pmcal.twin.forward" in mods
+    assert "pmcal.calib.ocpm.fullchain" in mods and "pmcal.twin.ocpm.forward" in mods
     assert all(layer_of(m) >= 0 for m in mods)
 
 
@@ -18,15 +18,15 @@ def test_a_reverse_import_is_caught():
     """A twin module importing the identification layer, a calib module importing the twin (even inside a
     function), and the bridge importing numerics are each reported; a downward import is not."""
     sources = {
-        "pmcal.twin.machine": "from pmcal.calib.ocpm.fullchain import identify_full\n",
-        "pmcal.calib.ocpm.fullchain": "def f():\n    from pmcal.twin.machine import Twin\n",
+        "pmcal.twin.ocpm.machine": "from pmcal.calib.ocpm.fullchain import identify_full\n",
+        "pmcal.calib.ocpm.fullchain": "def f():\n    from pmcal.twin.ocpm.machine import Twin\n",
         "pmcal.bridge.ads": "import pmcal.calib.solvers\n",
         "pmcal.mechanism.ocpm.config": "from ..rotations import tilt_torsion\nfrom pmcal.errors import InputError\n",
     }
     bad = check(sources)
     assert {(v.importer, v.imported) for v in bad} == {
-        ("pmcal.twin.machine", "pmcal.calib.ocpm.fullchain.identify_full"),
-        ("pmcal.calib.ocpm.fullchain", "pmcal.twin.machine.Twin"),
+        ("pmcal.twin.ocpm.machine", "pmcal.calib.ocpm.fullchain.identify_full"),
+        ("pmcal.calib.ocpm.fullchain", "pmcal.twin.ocpm.machine.Twin"),
         ("pmcal.bridge.ads", "pmcal.calib.solvers"),
     }
     assert [LAYERS[layer_of(m)][0] for m in ("pmcal.errors", "pmcal.mechanism.rigid", "pmcal.cli")] == [
@@ -56,14 +56,34 @@ def test_a_generic_module_importing_a_wing_is_caught():
     """A generic twin module importing ocpm_2dof's assembler (inside a function too), a planar module importing
     ocpm's, and the bridge importing ocpm's geometry are each reported; the front door routing is not."""
     sources = {
-        "pmcal.twin.closed_chain": "def f():\n    from pmcal.twin.assembly import BatchAssembler\n",
-        "pmcal.twin.planar.twin": "from pmcal.twin.machine import Twin\n",
+        "pmcal.twin.closed_chain": "def f():\n    from pmcal.twin.ocpm.assembly import BatchAssembler\n",
+        "pmcal.twin.planar.twin": "from pmcal.twin.ocpm.machine import Twin\n",
         "pmcal.bridge.nominal": "from pmcal.mechanism.ocpm.config import default_geometry\n",
-        "pmcal.api": "from pmcal.calibration import Calibration\n",
-        "pmcal.calibration": "from pmcal.history import make_record\n",
+        "pmcal.api": "from pmcal.ocpm.calibration import Calibration\n",
+        "pmcal.ocpm.calibration": "from pmcal.history import make_record\n",
     }
     assert {(v.importer, v.imported) for v in wing_violations(sources)} == {
-        ("pmcal.twin.closed_chain", "pmcal.twin.assembly.BatchAssembler"),
-        ("pmcal.twin.planar.twin", "pmcal.twin.machine.Twin"),
+        ("pmcal.twin.closed_chain", "pmcal.twin.ocpm.assembly.BatchAssembler"),
+        ("pmcal.twin.planar.twin", "pmcal.twin.ocpm.machine.Twin"),
         ("pmcal.bridge.nominal", "pmcal.mechanism.ocpm.config.default_geometry")}
     assert (wing_of("pmcal.calib.ocpm.fullchain"), wing_of("pmcal.twin.closed_chain")) == ("ocpm_2dof", None)
+
+
+def test_every_command_of_a_machine_resolves_to_its_handler_not_a_module():
+    """A wing's application package routes a command to the function of that name; a submodule named like a
+    command would shadow it once imported (the package attribute becomes the module)."""
+    import importlib
+    import types
+
+    from pmcal.commands.routing import application
+    from pmcal.machines import Machine
+
+    commands = ("twin_measure", "twin_render", "twin_plan", "identify", "compensate", "evaluate", "demo",
+                "targets", "diagnose", "export_model", "import_campaign", "loop")
+    for name in ("ocpm_2dof", "planar_2dof", "delta_3dof"):
+        app = application(Machine.builtin(name))
+        for sub in getattr(app, "__path__", None) and __import__("pkgutil").iter_modules(app.__path__) or ():
+            importlib.import_module(f"{app.__name__}.{sub.name}")      # every submodule loaded, as in a session
+        for command in commands:
+            handler = getattr(app, command, None)
+            assert handler is None or isinstance(handler, types.FunctionType), (name, command, handler)

@@ -8,10 +8,10 @@ from pmcal.mechanism.ocpm.config import MACHINE_DIR, default_geometry
 from pmcal.mechanism.ocpm.kinematics import limb_ik, nominal_ik, nominal_pose
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet, random_errors
 from pmcal.mechanism.rotations import tilt_torsion_angles
-from pmcal.twin.assembly import _ChainJacobian
-from pmcal.twin.dynamics import DynamicTwin
-from pmcal.twin.machine import Twin
-from pmcal.twin.model import MM, build_model, load_model
+from pmcal.twin.ocpm.assembly import _ChainJacobian
+from pmcal.twin.ocpm.dynamics import DynamicTwin
+from pmcal.twin.ocpm.machine import Twin
+from pmcal.twin.ocpm.model import MM, build_model, load_model
 
 G = default_geometry()
 

@@ -51,7 +51,7 @@ def test_wheel_owns_one_import_name_and_ships_its_data(wheel):
     for need in ("pmcal/mjcf/ocpm_2dof/ocpm_2dof.xml", "pmcal/mjcf/ocpm_2dof/machine.toml",
                  "pmcal/mjcf/planar_2dof/scene.xml", "pmcal/plc/POUs/FB_CompTableLookup.TcPOU",
                  "pmcal/plc/GVLs/GVL_CompTable.TcGVL", "pmcal/plc/DUTs/ST_CompTableHeader.TcDUT",
-                 "pmcal/calib/ocpm/fullchain.py", "pmcal/twin/forward.py", "pmcal/mechanism/ocpm/config.py",
+                 "pmcal/calib/ocpm/fullchain.py", "pmcal/twin/ocpm/forward.py", "pmcal/mechanism/ocpm/config.py",
                  "pmcal/bridge/plc_runtime/library.st", "pmcal/bridge/plc_runtime/compiler.py"):
         assert need in names, need
 

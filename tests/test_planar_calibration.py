@@ -10,7 +10,7 @@ from pmcal.calib.planar.identification import identify
 from pmcal.mechanism.planar.kinematics import actual_position, mm_vector
 from pmcal.mechanism.planar.noise import Noise
 from pmcal.twin.planar.config import default_machine
-from pmcal.apps.planar_study import run_study
+from pmcal.apps.planar.study import run_study
 from pmcal.twin.planar.twin import PlanarTwin
 
 M = default_machine()

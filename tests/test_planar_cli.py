@@ -10,7 +10,7 @@ from pmcal.calib.planar.identification import identify
 from pmcal.mechanism.planar.kinematics import actual_position, forward, mm_vector
 from pmcal.apps import planar as app
 from pmcal.cli import main
-from pmcal.io_planar import read_measurements
+from pmcal.planar.io import read_measurements
 from pmcal.twin.planar.config import default_machine
 from pmcal.twin.planar.twin import PlanarTwin
 

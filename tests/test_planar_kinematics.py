@@ -9,7 +9,7 @@ from pmcal.mechanism.planar.geometry import Errors, Geometry, Workspace
 from pmcal.mechanism.planar.kinematics import actual_position, forward, inverse, jacobian
 from pmcal.calib.planar.calibration import home_error, position_errors
 from pmcal.twin.planar.config import default_machine
-from pmcal.apps.planar_study import PAPER
+from pmcal.apps.planar.study import PAPER
 
 G = Geometry()
 W = Workspace()

@@ -5,7 +5,7 @@ import pytest
 
 from pmcal.calib.ocpm import paper_model as pm
 from pmcal.calib.pose_selection import condition_number, crlb_std, select_poses
-from pmcal.twin.campaign import plan_orientations
+from pmcal.twin.ocpm.campaign import plan_orientations
 
 
 def test_d_optimal_straight_line_puts_poses_at_the_ends():

@@ -11,18 +11,18 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pmcal.apps.effect_scenarios import hidden_effect_campaign
+from pmcal.apps.ocpm.effect_scenarios import hidden_effect_campaign
 from pmcal.calib.ocpm.registration import motor_axes_frame
 from pmcal.calib.ocpm.tracker_design import (candidate_orientations, design_blocks,
                                              frame_std_deg, tracker_campaign)
 from pmcal.cli import main
-from pmcal.io_ocpm import write_measurements
+from pmcal.ocpm.io import write_measurements
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.kinematics import PASSIVE_REACH, limb_ik, nominal_pose
 from pmcal.mechanism.ocpm.params import ErrorSet, random_errors
-from pmcal.twin.campaign import nominal_commands, plan_orientations
-from pmcal.twin.forward import FullChainModel
-from pmcal.twin.machine import Twin
+from pmcal.twin.ocpm.campaign import nominal_commands, plan_orientations
+from pmcal.twin.ocpm.forward import FullChainModel
+from pmcal.twin.ocpm.machine import Twin
 
 G = default_geometry()
 SIGMA = 0.01
@@ -130,7 +130,7 @@ def test_approach_inferred_from_the_whole_campaign_before_rows_are_left_out(back
     rejected outlier), in either frame."""
     from argparse import Namespace
 
-    from pmcal.apps.ocpm_diagnose_frame import frame_input
+    from pmcal.apps.ocpm.diagnose_frame import frame_input
     from pmcal.mechanism.ocpm.kinematics import HOME_BETA
 
     _, tracker, _, blocked, base_blocked, cmd = backlash
@@ -176,7 +176,7 @@ def test_diagnosis_registration_leaves_out_a_pose_outside_the_workspace(backlash
     frame part and in a warning line (piped too), never a traceback."""
     from argparse import Namespace
 
-    from pmcal.apps.ocpm_diagnose_frame import frame_input
+    from pmcal.apps.ocpm.diagnose_frame import frame_input
 
     _, tracker, _, blocked, _, _ = backlash
     lines = tracker.read_text().splitlines()

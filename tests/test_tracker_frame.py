@@ -15,13 +15,13 @@ from scipy.spatial.transform import Rotation
 from pmcal.calib.ocpm.registration import GAUGE_KEYS, rigid_fit
 from pmcal.calib.ocpm.tracker_fit import identify_tracker
 from pmcal.cli import main
-from pmcal.io_ocpm import read_measurements, write_measurements
+from pmcal.ocpm.io import read_measurements, write_measurements
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.params import random_errors
 from pmcal.mechanism.rigid import fit_pose
-from pmcal.twin.campaign import MeasurementFaults, plan_campaign, run_campaign
-from pmcal.twin.forward import FullChainModel
-from pmcal.twin.machine import Twin
+from pmcal.twin.ocpm.campaign import MeasurementFaults, plan_campaign, run_campaign
+from pmcal.twin.ocpm.forward import FullChainModel
+from pmcal.twin.ocpm.machine import Twin
 from pmcal.twin.tracker import LaserTracker, random_tracker_pose
 
 SIGMA = 0.01

@@ -26,7 +26,7 @@ import numpy as np
 from pmcal.calib.ocpm.fullchain import setpoints
 from pmcal.mechanism.ocpm.params import ErrorSet, random_errors
 from pmcal.mechanism.ocpm.config import default_geometry
-from pmcal.twin.forward import FullChainModel
+from pmcal.twin.ocpm.forward import FullChainModel
 lines = [l for l in open(sys.argv[1]).read().splitlines() if not l.startswith("#")]
 d = np.genfromtxt(lines, delimiter=",", names=True)
 geom = default_geometry()

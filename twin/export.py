@@ -1,6 +1,6 @@
 """The calibrated machine as MJCF: the machine's model file with a compiled model's geometry written in.
 
-The twins insert errors by compiled-model edits (:func:`pmcal.twin.model.apply_errors`,
+The twins insert errors by compiled-model edits (:func:`pmcal.twin.ocpm.model.apply_errors`,
 :class:`pmcal.twin.frame_errors.FrameErrors`): the compiled model holds the real machine's frames. This
 module copies them back into the machine's own MJCF text, so the exported file is the familiar model
 (classes, materials, comments, actuators kept) with only numbers changed:

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from pmcal.calib.forward_model import EffectModel
+from pmcal.calib.ocpm.forward_model import EffectModel
 from pmcal.mechanism.ocpm.config import Geometry
 from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.effects import (EFFECT_NAMES, T_REL, approach_from_order, VOCABULARY, effect_of_key,
@@ -1037,7 +1037,7 @@ def _size_notes(board: dict[str, Candidate], named: list[str]) -> list[str]:
 def diagnose(meas: Measurements, model: EffectModel, options: DiagnoseOptions | None = None,
              on_step=None) -> Diagnosis:
     """Run the diagnosis (module docstring) with the whole-chain ``model`` that carries the effect terms
-    (:class:`pmcal.twin.effect_model.EffectChainModel`). ``on_step(text)`` reports progress."""
+    (:class:`pmcal.twin.ocpm.effect_model.EffectChainModel`). ``on_step(text)`` reports progress."""
     t_start = time.perf_counter()
     limit_blas_threads()
     opt = options or DiagnoseOptions()

@@ -2,8 +2,8 @@
 
 Forward model: the pose the machine reaches for motor commands, given the full parameter set (all four
 limbs, SS, motor zero offsets, closure stiffness ratio) and the same closure-compliance physics as the
-twin: it *is* the twin's quasi-static solve (:class:`pmcal.twin.machine.Twin`) with the candidate parameters,
-differentiated analytically (:mod:`pmcal.twin.sensitivity`).
+twin: it *is* the twin's quasi-static solve (:class:`pmcal.twin.ocpm.machine.Twin`) with the candidate parameters,
+differentiated analytically (:mod:`pmcal.twin.ocpm.sensitivity`).
 
 Identification: maximum a posteriori least squares on the raw target coordinates,
 
@@ -15,7 +15,7 @@ region, analytic Jacobian). Covariance: ``(J^T J / sigma^2 + diag(1/s^2))^-1``.
 
 Compensation (:func:`chain_commands_deg`): the motor commands that make the identified machine point at
 each target orientation, solved by the model itself when it can
-(:class:`pmcal.calib.forward_model.AimingModel`), else by Newton on the forward model.
+(:class:`pmcal.calib.ocpm.forward_model.AimingModel`), else by Newton on the forward model.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_ik
 from pmcal.mechanism.ocpm.params import LOG_RATIO, ErrorSet, all_keys, is_angular
 from pmcal.mechanism.rotations import tilt_torsion
-from pmcal.calib.forward_model import AimingModel, ForwardModel
+from pmcal.calib.ocpm.forward_model import AimingModel, ForwardModel
 from pmcal.calib.solvers.result import IdentResult
 
 
@@ -61,7 +61,7 @@ class FullChainOptions:
     sigma_mm: float | None = None           # tracker noise (default machine.toml)
     max_nfev: int = 50
     #: Prior std (internal units) of keys outside the geometric vocabulary, e.g. the effect parameters
-    #: of :class:`pmcal.twin.effect_model.EffectChainModel`; their prior mean is 0.
+    #: of :class:`pmcal.twin.ocpm.effect_model.EffectChainModel`; their prior mean is 0.
     extra_prior_std: dict[str, float] = field(default_factory=dict)
     #: Start values (internal units) instead of the prior mean, e.g. a previous fit (warm start).
     x0: dict[str, float] | None = None
@@ -167,8 +167,8 @@ def chain_commands_deg(model: ForwardModel, errors: ErrorSet, phi_deg, theta_deg
     (``phi_deg``, ``theta_deg``) deg (base frame). Targets out of reach come back as NaN: outside the
     nominal workspace, not assembled by the model, or not converged.
 
-    A model that solves this directly (:class:`pmcal.calib.forward_model.AimingModel`, e.g. the twin's
-    :class:`pmcal.twin.forward.FullChainModel`) does. Otherwise: Newton on the forward model, the residual
+    A model that solves this directly (:class:`pmcal.calib.ocpm.forward_model.AimingModel`, e.g. the twin's
+    :class:`pmcal.twin.ocpm.forward.FullChainModel`) does. Otherwise: Newton on the forward model, the residual
     the platform normal's offset from the target normal in the target's tangent plane (2 equations, 2
     motors), derivatives from the implicit function theorem, stopped when the offset is below
     ``tol_deg`` or after ``max_iter`` steps. It starts from the nominal IK, vectorised across targets,

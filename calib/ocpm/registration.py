@@ -94,7 +94,7 @@ FRAME_KEYS = ("frame.rx", "frame.ry", "frame.rz", "frame.tx", "frame.ty", "frame
 
 
 class FrameCorrected:
-    """A :class:`~pmcal.calib.forward_model.ForwardModel` whose targets are carried by a small rigid
+    """A :class:`~pmcal.calib.ocpm.forward_model.ForwardModel` whose targets are carried by a small rigid
     correction of the base frame, ``y = dR(r) T + dt`` with the keys :data:`FRAME_KEYS`: the
     registration's residual uncertainty as parameters of a fit (e.g. the diagnosis baseline after a
     registration, so that an effect the registration partly absorbed is fitted with the frame, not

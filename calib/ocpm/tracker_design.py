@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pmcal.calib.forward_model import ForwardModel
+from pmcal.calib.ocpm.forward_model import ForwardModel
 from pmcal.calib.ocpm.fullchain import FullChainOptions
 from pmcal.calib.ocpm.tracker_fit import TrackerOptions, build_problem
 from pmcal.calib.pose_selection import information, select_poses

@@ -1,6 +1,6 @@
 """Whole-chain identification from real tracker data: registration, nest offsets, blocked targets, outliers.
 
-The physics is the same :class:`~pmcal.calib.forward_model.ForwardModel` as in
+The physics is the same :class:`~pmcal.calib.ocpm.forward_model.ForwardModel` as in
 :func:`pmcal.calib.ocpm.fullchain.identify_full`; what a tracker adds is applied outside it:
 
     y_ik = R_g (T_ik(x) + R_p,i  d_k) + t_g
@@ -33,7 +33,7 @@ from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.nests import shape_basis
 from pmcal.mechanism.ocpm.params import LOG_RATIO, ErrorSet, all_keys, is_angular
 from pmcal.mechanism.rigid import fit_pose
-from pmcal.calib.forward_model import ForwardModel
+from pmcal.calib.ocpm.forward_model import ForwardModel
 from pmcal.calib.ocpm.fullchain import FullChainOptions, UnassembledError
 from pmcal.calib.ocpm.registration import GAUGE_KEYS, rigid_fit
 from pmcal.calib.solvers.result import IdentResult

@@ -26,7 +26,7 @@ effect                   layer         model (per motor j = 1, 2; joint = comman
                                        the base origin O, w (rad/h) the rotation rate, t as for the drift
 =======================  ============  =================================================================
 
-The twin (:mod:`pmcal.twin.effects`) uses the same context functions to make data, with real MuJoCo physics
+The twin (:mod:`pmcal.twin.ocpm.effects`) uses the same context functions to make data, with real MuJoCo physics
 for compliance (motor springs under gravity) and thermal expansion (per-pose scaled models). The
 diagnosis (:mod:`pmcal.calib.ocpm.diagnose`) uses them as signatures: d targets / d parameter at the baseline
 fit. :class:`EffectChainModel` is the whole-chain forward model with these terms, fitted by
@@ -227,7 +227,7 @@ def thermal_delta(temp_c: np.ndarray | None) -> np.ndarray | None:
 # ---------------------------------------------------------------------------------------- families
 def thermal_group_weights(geom, errors: dict[str, float] | None = None) -> dict[str, list[tuple[str, float]]]:
     """How a unit strain of each part moves the geometric keys: part -> [(key, mm per unit strain)] (the
-    platform's target nests are not geometric keys: :class:`pmcal.twin.effect_model.EffectChainModel`
+    platform's target nests are not geometric keys: :class:`pmcal.twin.ocpm.effect_model.EffectChainModel`
     adds them). A part that expands by ``e`` changes every key ``k`` listed by ``e w_k``, ``w_k`` the
     length's current value, nominal plus ``errors`` (mm, interface keys): cranks l1, couplers l2, strut
     the SS length; base: the components of B_j about O; platform: those of A_j and of the ball-joint

@@ -1,5 +1,5 @@
 """Twin in the loop for a machine folder (``pmcal --machine DIR loop``): the task site's error (position
-in mm, orientation in deg, both for a mixed task) before and after a compensation table is pushed to a mock PLC, as :mod:`pmcal.apps.plc_loop` does for
+in mm, orientation in deg, both for a mixed task) before and after a compensation table is pushed to a mock PLC, as :mod:`pmcal.apps.ocpm.plc_loop` does for
 ocpm_2dof's pointing error.
 
 1. The folder's twin with geometric errors plays the real machine: each error drawn normal with the size

@@ -1,5 +1,5 @@
 """Twin in the loop, what every machine's loop shares: a strict mock PLC on loopback, the PLC's lookups,
-the client links, the error summaries and their printed rows. ocpm_2dof's loop: :mod:`pmcal.apps.plc_loop`;
+the client links, the error summaries and their printed rows. ocpm_2dof's loop: :mod:`pmcal.apps.ocpm.plc_loop`;
 a machine folder's: :mod:`pmcal.apps.chain_loop`.
 
 Units: deg or mm as the machine's motors and task; errors in the unit their keys name.

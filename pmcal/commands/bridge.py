@@ -5,7 +5,7 @@
   stale table (nothing written), 1 for a transfer failure, 3 when the PLC rejects the table.
 - ``pmcal mock-plc --ads|--modbus`` runs a mock PLC on 127.0.0.1 for manual trials.
 - ``pmcal plc status|verify|unlock`` asks the PLC what it runs, or frees its staging area.
-- ``pmcal loop`` puts the digital twin in the loop (see :mod:`pmcal.apps.plc_loop`; a machine folder's:
+- ``pmcal loop`` puts the digital twin in the loop (see :mod:`pmcal.apps.ocpm.plc_loop`; a machine folder's:
   :mod:`pmcal.apps.chain_loop`).
 """
 
@@ -541,7 +541,7 @@ def _stop_on_sigterm() -> list:
 
 
 def cmd_loop(args) -> int:
-    """The machine's twin loop: ocpm_2dof's (:mod:`pmcal.apps.plc_loop`), a machine folder's
+    """The machine's twin loop: ocpm_2dof's (:mod:`pmcal.apps.ocpm.plc_loop`), a machine folder's
     (:mod:`pmcal.apps.chain_loop`); planar_2dof has none."""
     from pmcal.commands.routing import dispatch
 

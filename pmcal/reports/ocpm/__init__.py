@@ -1,0 +1,1 @@
+"""ocpm_2dof's reports (demo, diagnosis)."""
