@@ -16,6 +16,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pmcal.errors import InputError
+
 _PACK = re.compile(r"\{\s*attribute\s+'pack_mode'\s*:=\s*'(\d+)'\s*\}", re.I)
 _TYPE_NAME = re.compile(r"\bTYPE\s+(\w+)", re.I)
 SUFFIXES = (".TcPOU", ".TcDUT", ".TcGVL")
@@ -38,11 +40,18 @@ class Unit:
     qualified: bool = False                        # GVL with {attribute 'qualified_only'}
 
 
+#: what a session without the PLC simulator (the ``sim`` extra: blark, the ST parser) is told
+SIMULATOR_MISSING = ("the simulated PLC (mock ADS/Modbus servers, pmcal loop) needs pmcal's PLC simulator, "
+                     "not installed here: pip install 'pmcal[sim]'")
+
+
 def _blark():
+    """blark's parser: installed with the ``sim`` extra only (a plain install talks to real PLCs, it does not
+    simulate one); without it an :class:`~pmcal.errors.InputError` says how to get it."""
     try:
         import blark.parse as bp
-    except ImportError as exc:  # pragma: no cover - blark is a dependency of the package
-        raise PlcSourceError("the PLC interpreter needs blark (pip install blark)") from exc
+    except ImportError:
+        raise InputError(SIMULATOR_MISSING) from None
     return bp
 
 
