@@ -41,38 +41,6 @@ from pmcal.option_ranges import check_ranges
 
 DEFAULT_MACHINE = machines.DEFAULT_MACHINE
 
-#: (command, attribute) of every file the commands write; folders in :data:`FOLDER_OUTPUTS`
-FILE_OUTPUTS: dict[str, tuple[str, ...]] = {
-    "identify": ("output",), "compensate": ("output", "table"), "evaluate": ("json",),
-    "diagnose": ("json",), "twin measure": ("output",), "twin plan": ("output",), "twin render": ("output",), "targets": ("output",),
-    "push": ("json", "audit"), "plc unlock": ("audit",), "loop": ("json",), "import": ("output",),
-    "export-model": ("output",), "history": ("report",),
-}
-FOLDER_OUTPUTS: dict[str, tuple[str, ...]] = {"demo": ("out",), "diagnose": ("report",)}
-#: command -> {attribute: how the user names it} of every file the command reads: no output may be one
-FILE_INPUTS: dict[str, dict[str, str]] = {
-    "identify": {"measurements": "MEAS.csv"}, "compensate": {"params": "PARAMS.json", "targets": "--targets"},
-    "evaluate": {"params": "PARAMS.json", "measurements": "MEAS.csv"},
-    "diagnose": {"measurements": "MEAS.csv", "params": "--params"},
-    "twin measure": {"targets": "--targets", "errors": "--errors"}, "twin render": {"errors": "--errors"},
-    "twin plan": {"from_diagnosis": "--from"}, "push": {"table": "TABLE"},
-    "loop": {"table": "--table", "errors": "--errors"},
-    "import": {"tracker": "TRACKER.txt", "log": "--log"}, "export-model": {"params": "PARAMS.json"},
-}
-#: (command, attribute) of a file output -> the suffixes its format may have (case-insensitive)
-OUTPUT_SUFFIXES: dict[tuple[str, str], tuple[str, ...]] = {
-    ("identify", "output"): (".json",), ("compensate", "output"): (".csv",), ("compensate", "table"): (".json",),
-    ("evaluate", "json"): (".json",), ("diagnose", "json"): (".json",), ("twin measure", "output"): (".csv",),
-    ("twin plan", "output"): (".csv",), ("twin render", "output"): (".png",), ("targets", "output"): (".csv",),
-    ("push", "json"): (".json",), ("loop", "json"): (".json",), ("import", "output"): (".csv",),
-    ("export-model", "output"): (".xml",), ("history", "report"): (".html",),
-}
-#: (command, attribute) of a file output that brings a second file beside it: (suffix of that file, module
-#: whose ``SIDE_FILE_START`` is the text such a file of pmcal's starts with: an existing file beside the
-#: output is replaced only if it is one; imported when needed, so ``--help`` does not import MuJoCo)
-COMPANIONS: dict[tuple[str, str], tuple[str, str]] = {
-    ("compensate", "table"): (".csv", "pmcal.bridge.comptable_files"), ("export-model", "output"): (".toml", "pmcal.export_model")}
-
 EPILOG = ("File formats (measurement, targets, setpoints, parameters, diagnosis JSON, compensation table): "
           "docs/formats.md. Units at every interface: mm and degrees.")
 
@@ -151,7 +119,8 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
         if register is not None:
             register(commands)
     commands.finish_all()
-    parser.set_defaults(selected_machine=selected)
+    # every command's file options with their roles, as the command declared them (commands.options.FileRole)
+    parser.set_defaults(selected_machine=selected, pmcal_files={name: cmd.files for name, cmd in record.items()})
     parser.pmcal_commands = record
     return parser
 
@@ -161,34 +130,33 @@ def _command_name(args) -> str:
     return f"{args.command} {sub}" if sub else str(args.command)
 
 
+def _files(args) -> dict:
+    """attribute -> :class:`pmcal.commands.options.FileRole` of the parsed command's file options."""
+    return getattr(args, "pmcal_files", {}).get(_command_name(args), {})
+
+
 def output_paths(args, suffixes: bool = False) -> list:
     """(option, path, is_folder) of every output the parsed command will write; with ``suffixes``,
     (option, path, is_folder, the suffixes its format may have or (), the start of a side file of pmcal's
-    or None)."""
-    name = _command_name(args)
+    or None). From the roles the command declared (``role="output"``/``"folder"``)."""
     out = []
-    for attrs, folder in ((FILE_OUTPUTS.get(name, ()), False), (FOLDER_OUTPUTS.get(name, ()), True)):
-        for attr in attrs:
-            value = getattr(args, attr, None)
-            if value is not None:            # also "": refused by the guard, not taken for "no output"
-                option = _option(attr)
-                out.append((option, str(value), folder, OUTPUT_SUFFIXES.get((name, attr), ()), None))
-                companion = COMPANIONS.get((name, attr))
-                if companion and not folder:
-                    suffix, module = companion
-                    start = importlib.import_module(module).SIDE_FILE_START if suffixes else None
-                    out.append((option, str(Path(str(value)).with_suffix(suffix)), False, (), start))
+    for attr, f in _files(args).items():
+        value = getattr(args, attr, None)
+        if f.role == "input" or value is None:      # "" is an output: refused by the guard, not taken for none
+            continue
+        folder = f.role == "folder"
+        out.append((f.label, str(value), folder, f.suffixes, None))
+        if f.companion and not folder:
+            suffix, module = f.companion
+            start = importlib.import_module(module).SIDE_FILE_START if suffixes else None
+            out.append((f.label, str(Path(str(value)).with_suffix(suffix)), False, (), start))
     return out if suffixes else [o[:3] for o in out]
 
 
-def _option(attr: str) -> str:
-    return "--" + attr.replace("_", "-") if attr != "output" else "-o"
-
-
 def input_paths(args) -> list[tuple[str, str]]:
-    """(option or argument name, path) of every file the parsed command reads."""
-    return [(label, str(getattr(args, attr))) for attr, label in FILE_INPUTS.get(_command_name(args), {}).items()
-            if getattr(args, attr, None)]
+    """(option or argument name, path) of every file the parsed command reads (``role="input"``)."""
+    return [(f.label, str(getattr(args, attr))) for attr, f in _files(args).items()
+            if f.role == "input" and getattr(args, attr, None)]
 
 
 def check_outputs(args) -> None:

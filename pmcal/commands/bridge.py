@@ -28,7 +28,7 @@ MAX_MOCK_SECONDS = 24 * 3600.0
 
 def register(sub: CommandSet) -> None:
     p = sub.add_parser("push", help="send a compensation table to the PLC (ADS or Modbus TCP)")
-    p.add_argument("table", metavar="TABLE", help="compensation table, .json or .csv")
+    p.add_argument("table", metavar="TABLE", help="compensation table, .json or .csv", role="input")
     _target_args(p)
     p.add_argument("--dry-run", action="store_true",
                    help="connect, check the interface and the table, write nothing")
@@ -39,10 +39,11 @@ def register(sub: CommandSet) -> None:
     p.add_argument("--wait-motion", type=float, default=0.0, metavar="S",
                    help="if the machine is moving (the PLC reports WAIT_MOTION/SWAP_TIMEOUT), keep the commit "
                         "up for this long, s (default 0: report it at once)")
-    p.add_argument("--audit", default=None, metavar="FILE",
+    p.add_argument("--audit", default=None, metavar="FILE", role="output",
                    help="audit log to append to (default: bridge_audit.log beside TABLE)")
     p.add_argument("--no-audit", action="store_true", help="write no audit line")
-    p.add_argument("--json", default=None, metavar="REPORT.json", help="also write the push report as JSON")
+    p.add_argument("--json", default=None, metavar="REPORT.json", help="also write the push report as JSON",
+                   role="output", suffixes=(".json",))
     p.add_argument("--force", action="store_true",
                    help="push a table made from a calibration that identify flagged not usable")
     p.set_defaults(func=cmd_push, prepare=_audit_default)
@@ -53,7 +54,7 @@ def register(sub: CommandSet) -> None:
     g.add_argument("--modbus", action="store_true", help="serve the Modbus TCP area")
     m.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
     m.add_argument("--seconds", type=float, default=600.0, help="stop after this long (default 600 s)")
-    m.add_argument("--table", default=None, metavar="TABLE", help="make this table active at start")
+    m.add_argument("--table", default=None, metavar="TABLE", help="make this table active at start", role="input")
     m.add_argument("--fault", action="append", default=[], metavar="KIND@POINT[*N]",
                    help="inject a fault, e.g. drop@mid_stage or delay@ack_wait*1 (repeatable)")
     m.add_argument("--motion-busy", action="store_true", help="the machine never stands still (no swap)")
@@ -94,7 +95,7 @@ def register(sub: CommandSet) -> None:
     st.add_argument("--json", action="store_true", help="print the status as one JSON object")
     st.set_defaults(func=cmd_plc_status)
     vf = psub.add_parser("verify", help="exit 0 if exactly TABLE is active on the PLC, 4 if not")
-    vf.add_argument("table", metavar="TABLE", help="compensation table, .json or .csv")
+    vf.add_argument("table", metavar="TABLE", help="compensation table, .json or .csv", role="input")
     _target_args(vf)
     vf.add_argument("--json", action="store_true", help="print the verdict as one JSON object")
     vf.set_defaults(func=cmd_plc_verify)
@@ -107,22 +108,24 @@ def register(sub: CommandSet) -> None:
     ul.add_argument("--wait", type=float, default=None, metavar="S",
                     help="seconds to wait for the owner's lease to end (default: the PLC's staging lease, 30 s, "
                          "plus 5 s)")
-    ul.add_argument("--audit", default="bridge_audit.log", metavar="FILE",
+    ul.add_argument("--audit", default="bridge_audit.log", metavar="FILE", role="output",
                     help="audit log to append to (default: bridge_audit.log in the current folder)")
     ul.set_defaults(func=cmd_plc_unlock)
 
     lp = sub.add_parser("loop", help="twin in the loop: pointing error before and after a push")
-    lp.add_argument("--table", default=None, metavar="TABLE",
+    lp.add_argument("--table", default=None, metavar="TABLE", role="input",
                     help="table to push (default: built from the twin's own error set, see --errors)")
     lp.add_argument("--transport", choices=("ads", "modbus"), default="ads",
                     help="mock PLC transport (default ads)")
     lp.add_argument("--preset", default="paper-table2",
                     help="error set of the virtual machine (default paper-table2)")
-    lp.add_argument("--errors", default=None, metavar="PARAMS.json", help="error set of the virtual machine")
+    lp.add_argument("--errors", default=None, metavar="PARAMS.json", help="error set of the virtual machine",
+                    role="input")
     lp.add_argument("--targets", type=int, default=24, help="number of test orientations (default 24)")
     lp.add_argument("--grid", default="73,31", metavar="NPHI,NTHETA", help="table grid (default 73,31)")
     lp.add_argument("--seed", type=int, default=1, help="random seed of orientations and tracker noise")
-    lp.add_argument("--json", default=None, metavar="OUT.json", help="write the result as JSON")
+    lp.add_argument("--json", default=None, metavar="OUT.json", help="write the result as JSON", role="output",
+                    suffixes=(".json",))
     lp.set_defaults(func=cmd_loop)
 
 

@@ -55,15 +55,15 @@ def _history(args) -> int:
 
 def register(sub: CommandSet) -> None:
     p = sub.add_parser("import", help="join a tracker export and a controller log into a measurement CSV")
-    p.add_argument("tracker", metavar="TRACKER.txt",
+    p.add_argument("tracker", metavar="TRACKER.txt", role="input",
                    help="tracker export: Spatial Analyzer's ASCII point export (names, x y z, optional tolerance, "
                         "uncertainty and time stamp; space or comma separated; '//' comments), or a CSV with "
                         "--columns; docs/formats.md")
-    p.add_argument("--log", required=True, metavar="LOG.csv",
+    p.add_argument("--log", required=True, metavar="LOG.csv", role="input",
                    help="controller log CSV: pose_id, the machine's motor columns as in its measurement file "
                         "(m1_cmd_deg, m2_cmd_deg ..., _mm for a prismatic motor), optional time_s (s), temp_c "
                         "(degC)")
-    p.add_argument("-o", "--output", required=True, metavar="MEAS.csv",
+    p.add_argument("-o", "--output", required=True, metavar="MEAS.csv", role="output", suffixes=(".csv",),
                    help="measurement CSV to write (docs/formats.md); frame and units in its '#' header")
     p.add_argument("--units", default=None, choices=["mm", "in"],
                    help="length unit of the export: mm or in (inches); default the export header's, else mm")
@@ -80,17 +80,18 @@ def register(sub: CommandSet) -> None:
     p.set_defaults(func=_import)
 
     p = sub.add_parser("export-model", help="write the calibrated machine as a MuJoCo model (MJCF)")
-    p.add_argument("params", metavar="PARAMS.json",
+    p.add_argument("params", metavar="PARAMS.json", role="input",
                    help="parameters file of identify (or params.json of 'diagnose --report DIR': adds the named "
                         "effects); docs/formats.md")
-    p.add_argument("-o", "--output", required=True, metavar="CALIBRATED.xml",
+    p.add_argument("-o", "--output", required=True, metavar="CALIBRATED.xml", role="output", suffixes=(".xml",),
+                   companion=(".toml", "pmcal.export_model"),
                    help="MJCF file to write (self-contained, SI units); a machine.toml with the calibration and "
                         "the effects MJCF cannot hold is written beside it with the suffix .toml")
     p.set_defaults(func=_export_model)
 
     p = sub.add_parser("history", help="a machine's calibrations over time: what moved since the last one")
     p.add_argument("folder", metavar="DIR", help="history folder that 'pmcal identify ... --history DIR' files into")
-    p.add_argument("--report", default=None, metavar="HISTORY.html",
+    p.add_argument("--report", default=None, metavar="HISTORY.html", role="output", suffixes=(".html",),
                    help="also write an HTML report (every parameter over time with its 95 %% band)")
     p.add_argument("--alpha", type=float, default=0.05, metavar="P",
                    help="family-wise false-flag rate of the test between the last two calibrations (default 0.05)")

@@ -20,7 +20,7 @@ def _demo_defaults(args) -> None:
 
 def register(sub: CommandSet) -> None:
     p = sub.add_parser("demo", help="the whole job on the built-in machine, no arguments needed")
-    p.add_argument("--out", default=None, metavar="DIR",
+    p.add_argument("--out", default=None, metavar="DIR", role="folder",
                    help="output folder (report, tables), replaced as a whole; default pmcal-demo, "
                         "pmcal-demo-hidden with --hidden-effect. A folder holding files pmcal did not write is refused")
     p.add_argument("--force", action="store_true",
@@ -36,8 +36,9 @@ def register(sub: CommandSet) -> None:
     p.set_defaults(func=_cmd("demo"), prepare=_demo_defaults)
 
     p = sub.add_parser("identify", help="calibrate from a measurement file")
-    p.add_argument("measurements", metavar="MEAS.csv", help="measurement CSV (columns: docs/formats.md)")
-    p.add_argument("-o", "--output", required=True, metavar="PARAMS.json", help="parameters file to write")
+    p.add_argument("measurements", metavar="MEAS.csv", help="measurement CSV (columns: docs/formats.md)", role="input")
+    p.add_argument("-o", "--output", required=True, metavar="PARAMS.json", help="parameters file to write",
+                   role="output", suffixes=(".json",))
     p.add_argument("--method", default=None,
                    help="identification method. ocpm_2dof --model paper: hga (default), ga, pso, sa, lm, "
                         "tikhonov, tsvd; --model full: the whole-chain least squares. planar_2dof: tsvd "
@@ -67,12 +68,13 @@ def register(sub: CommandSet) -> None:
     p.set_defaults(func=_cmd("identify"))
 
     p = sub.add_parser("compensate", help="corrected motor commands for target orientations")
-    p.add_argument("params", metavar="PARAMS.json", help="parameters file written by identify")
-    p.add_argument("--targets", required=False, metavar="TARGETS.csv",
+    p.add_argument("params", metavar="PARAMS.json", help="parameters file written by identify", role="input")
+    p.add_argument("--targets", required=False, metavar="TARGETS.csv", role="input",
                    help="targets CSV (phi_deg, theta_deg; planar: x_mm, y_mm); 'pmcal targets' writes one")
-    p.add_argument("-o", "--output", required=False, metavar="SETPOINTS.csv",
+    p.add_argument("-o", "--output", required=False, metavar="SETPOINTS.csv", role="output", suffixes=(".csv",),
                    help="setpoints CSV to write: the targets with m1_deg, m2_deg appended")
-    p.add_argument("--table", default=None, metavar="TABLE.json",
+    p.add_argument("--table", default=None, metavar="TABLE.json", role="output", suffixes=(".json",),
+                   companion=(".csv", "pmcal.bridge.comptable_files"),
                    help="also write the 2-D compensation table (JSON; CSV beside it)")
     p.add_argument("--grid", default=None, metavar="NPHI,NTHETA",
                    help="table grid: points in phi (0..360 deg) and theta (0..theta_max); default 73,31")
@@ -86,19 +88,21 @@ def register(sub: CommandSet) -> None:
     p.set_defaults(func=_cmd("compensate"))
 
     p = sub.add_parser("evaluate", help="pointing error of a parameter set against a measurement file")
-    p.add_argument("params", metavar="PARAMS.json", help="parameters file written by identify")
-    p.add_argument("measurements", metavar="MEAS.csv", help="measurement CSV (docs/formats.md)")
-    p.add_argument("--json", default=None, metavar="OUT.json", help="also write the result as JSON")
+    p.add_argument("params", metavar="PARAMS.json", help="parameters file written by identify", role="input")
+    p.add_argument("measurements", metavar="MEAS.csv", help="measurement CSV (docs/formats.md)", role="input")
+    p.add_argument("--json", default=None, metavar="OUT.json", help="also write the result as JSON", role="output",
+                   suffixes=(".json",))
     p.set_defaults(func=_cmd("evaluate"))
 
     p = sub.add_parser("diagnose", help="find, name and add the effect the model misses")
-    p.add_argument("measurements", metavar="MEAS.csv", help="measurement CSV (docs/formats.md)")
-    p.add_argument("--json", required=True, metavar="OUT.json", help="diagnosis JSON to write (docs/formats.md)")
-    p.add_argument("--params", default=None, metavar="P.json",
+    p.add_argument("measurements", metavar="MEAS.csv", help="measurement CSV (docs/formats.md)", role="input")
+    p.add_argument("--json", required=True, metavar="OUT.json", help="diagnosis JSON to write (docs/formats.md)",
+                   role="output", suffixes=(".json",))
+    p.add_argument("--params", default=None, metavar="P.json", role="input",
                    help="start from this parameters file (default: identify from the measurements)")
     p.add_argument("--model", default="full", choices=["full", "paper"],
                    help="baseline model: whole closed chain (full, default) or the paper's (paper)")
-    p.add_argument("--report", default=None, metavar="DIR",
+    p.add_argument("--report", default=None, metavar="DIR", role="folder",
                    help="also write an HTML report into this folder (replaced as a whole; a folder holding "
                         "files pmcal did not write is refused)")
     p.add_argument("--force", action="store_true",

@@ -10,6 +10,12 @@ refuses it as an unrecognised argument), ``-> {"help": ..., "metavar": ...}`` ch
 ``option`` any of the option's flags (``"-o"`` or ``"--output"``) or a positional's name; the key
 ``(command, "")`` rewords the command's own one-line help.
 
+An option that names a file declares its **role** where it is added (``role="input"``, ``"output"`` or
+``"folder"``; an output's ``suffixes`` and its ``companion``, the file written beside it): the command line
+derives every file check from these (:class:`FileRole`; ``pmcal.cli.check_outputs``: no output may be an
+input, an output's suffix, a side file replaced only if it is pmcal's), so a command's facts live where the
+command is declared.
+
 Example::
 
     commands = CommandSet(parser.add_subparsers(dest="command"), table={("identify", "--sigma"): HIDDEN})
@@ -21,10 +27,25 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 
 from pmcal.machines import ABSENT, HIDDEN  # noqa: F401  (the table's markers: what a machine supports)
 
 HelpTable = Mapping[tuple[str, str], "str | dict | None"]
+
+
+@dataclass(frozen=True)
+class FileRole:
+    """What a file option of a command is: ``role`` ``"input"`` (read), ``"output"`` (a file written) or
+    ``"folder"`` (a folder written); ``label`` how the user names it (a positional's metavar, else its
+    option); an output's ``suffixes`` (its format's, case-insensitive; any when empty) and ``companion``:
+    (suffix, module) of the file written beside it, whose ``SIDE_FILE_START`` is the text such a file of
+    pmcal's starts with (imported when needed, so ``--help`` does not import MuJoCo)."""
+
+    role: str
+    label: str
+    suffixes: tuple[str, ...] = ()
+    companion: tuple[str, str] | None = None
 
 
 class Command:
@@ -32,10 +53,12 @@ class Command:
     :class:`argparse.ArgumentParser` itself, ``flags`` every option string added."""
 
     def __init__(self, parser: argparse.ArgumentParser, name: str, owner: CommandSet, target=None,
-                 flags: set[str] | None = None):
+                 flags: set[str] | None = None, files: dict[str, FileRole] | None = None):
         self.parser, self.name, self.owner = parser, name, owner
         self._target = parser if target is None else target
         self.flags: set[str] = set() if flags is None else flags
+        #: attribute -> :class:`FileRole` of every file option of this command
+        self.files: dict[str, FileRole] = {} if files is None else files
 
     def _text(self, keys, default: str | None):
         table = self.owner.table
@@ -44,9 +67,11 @@ class Command:
                 return table[(self.name, key)]
         return default
 
-    def add_argument(self, *flags: str, help: str, **kwargs):
+    def add_argument(self, *flags: str, help: str, role: str | None = None, suffixes: tuple[str, ...] = (),
+                     companion: tuple[str, str] | None = None, **kwargs):
         """:meth:`argparse.ArgumentParser.add_argument` with the machine's help text; None when the option
-        is ABSENT for this machine."""
+        is ABSENT for this machine. ``role``, ``suffixes``, ``companion``: a file option's
+        :class:`FileRole`."""
         text = self._text(flags, help)
         if isinstance(text, dict):           # wording and other keywords (metavar, ...)
             kwargs = {**kwargs, **text}
@@ -54,12 +79,20 @@ class Command:
         if text == ABSENT:
             return None
         self.flags.update(flags)
-        return self._target.add_argument(*flags, help=argparse.SUPPRESS if text is HIDDEN else text, **kwargs)
+        action = self._target.add_argument(*flags, help=argparse.SUPPRESS if text is HIDDEN else text, **kwargs)
+        if role is not None:
+            if role not in ("input", "output", "folder"):
+                raise ValueError(f"unknown file role {role!r}")
+            positional = not flags[0].startswith("-")
+            label = (action.metavar or flags[0]) if positional else \
+                ("-o" if "-o" in flags and role != "input" else next(f for f in flags if f.startswith("--")))
+            self.files[action.dest] = FileRole(role, label, tuple(suffixes), companion)
+        return action
 
     def add_mutually_exclusive_group(self, **kwargs) -> Command:
         """A group whose options are added as this command's (same table, same ``flags``)."""
         group = self._target.add_mutually_exclusive_group(**kwargs)
-        return Command(self.parser, self.name, self.owner, group, self.flags)
+        return Command(self.parser, self.name, self.owner, group, self.flags, self.files)
 
     def add_subparsers(self, **kwargs) -> CommandSet:
         """Sub-commands of this command (``twin measure``): a :class:`CommandSet` named after it."""

@@ -14,5 +14,6 @@ def register(sub: CommandSet) -> None:
     p.add_argument("--theta-max", type=float, default=None, metavar="DEG",
                    help="ocpm_2dof: largest tilt, deg (default 60, at most 85)")
     p.add_argument("--seed", type=int, default=1, help="random seed of the spread (default 1)")
-    p.add_argument("-o", "--output", required=True, metavar="TARGETS.csv", help="the targets CSV to write")
+    p.add_argument("-o", "--output", required=True, metavar="TARGETS.csv", help="the targets CSV to write",
+                   role="output", suffixes=(".csv",))
     p.set_defaults(func=lambda a: dispatch("targets", a))

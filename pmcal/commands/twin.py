@@ -26,9 +26,9 @@ def register(sub: CommandSet) -> None:
     _machine_errors(m)
     m.add_argument("--poses", type=int, default=None, metavar="N",
                    help="number of poses (default: ocpm_2dof 24; planar_2dof 6, the paper's, even and >= 6)")
-    m.add_argument("--targets", default=None, metavar="TARGETS.csv",
+    m.add_argument("--targets", default=None, metavar="TARGETS.csv", role="input",
                    help="explicit target orientations (phi_deg, theta_deg) instead of planned poses")
-    m.add_argument("--plan", default=None, metavar="PLAN.csv",
+    m.add_argument("--plan", role="input", default=None, metavar="PLAN.csv",
                    help="the commands of a campaign plan ('twin plan') instead of drawn poses")
     m.add_argument("--noise", type=float, default=None, metavar="MM",
                    help="tracker noise, standard deviation per coordinate, mm (default from the machine)")
@@ -59,7 +59,7 @@ def register(sub: CommandSet) -> None:
                    help="probability that a row has one target blocked (its three cells left empty)")
     m.add_argument("--outliers", default=None, metavar="N[:MM]",
                    help="N rows with a gross error in one coordinate of one target (default 2 mm)")
-    m.add_argument("-o", "--output", required=True, metavar="MEAS.csv",
+    m.add_argument("-o", "--output", required=True, metavar="MEAS.csv", role="output", suffixes=(".csv",),
                    help="measurement CSV to write (columns: docs/formats.md)")
     m.set_defaults(func=lambda a: dispatch("twin_measure", a))
 
@@ -72,9 +72,9 @@ def register(sub: CommandSet) -> None:
     pl.add_argument("--poses", type=int, default=128, help="number of poses (default 128)")
     pl.add_argument("--theta-max", type=float, default=80.0, metavar="DEG", help="largest tilt, deg (default 80)")
     pl.add_argument("--seed", type=int, default=1, help="random seed of the poses and their order")
-    pl.add_argument("--from", dest="from_diagnosis", default=None, metavar="DIAG.json",
+    pl.add_argument("--from", dest="from_diagnosis", default=None, metavar="DIAG.json", role="input",
                     help="a diagnosis JSON: list what it could not identify and how to fix it")
-    pl.add_argument("-o", "--output", required=True, metavar="PLAN.csv",
+    pl.add_argument("-o", "--output", required=True, metavar="PLAN.csv", role="output", suffixes=(".csv",),
                     help="the campaign's command list to write (CSV: pose_id, m1_cmd_deg, m2_cmd_deg, ...)")
     pl.set_defaults(func=lambda a: dispatch("twin_plan", a))
 
@@ -84,7 +84,8 @@ def register(sub: CommandSet) -> None:
     r.add_argument("--width", type=int, default=800, metavar="PX", help="image width, pixels, 16..1280 (default 800)")
     r.add_argument("--height", type=int, default=600, metavar="PX",
                    help="image height, pixels, 16..960 (default 600)")
-    r.add_argument("-o", "--output", required=True, metavar="IMAGE.png", help="PNG file to write")
+    r.add_argument("-o", "--output", required=True, metavar="IMAGE.png", help="PNG file to write", role="output",
+                   suffixes=(".png",))
     r.set_defaults(func=_render)
 
 
@@ -93,7 +94,7 @@ def _machine_errors(p: Command) -> None:
     g.add_argument("--preset", default=None, metavar="NAME",
                    help="built-in error set: ocpm_2dof nominal (default) or paper-table2; planar_2dof nominal "
                         "or group1..group6 (the paper's error groups)")
-    g.add_argument("--errors", default=None, metavar="PARAMS.json",
+    g.add_argument("--errors", default=None, metavar="PARAMS.json", role="input",
                    help="error set of the real machine: a parameters file (docs/formats.md)")
     p.add_argument("--stiffness-ratio", type=float, default=None, metavar="RATIO",
                    help="ocpm_2dof only: actuated-closure/SS over passive-closure stiffness, > 0 (default "
