@@ -199,8 +199,8 @@ def open_link(ads: str | None = None, modbus: str | None = None, *, ams_port: in
 
 
 def push(table: CompTable | str | Path, ads: str | None = None, modbus: str | None = None, *,
-         ams_port: int | None = None, timeout_s: float = 2.0, options: PushOptions | None = None,
-         audit_path: str | Path | None = None) -> PushReport:
+         link: PlcLink | None = None, ams_port: int | None = None, timeout_s: float = 2.0,
+         options: PushOptions | None = None, audit_path: str | Path | None = None) -> PushReport:
     """Send a compensation table to the PLC and make it active (staged, checked, swapped at standstill).
 
     Parameters
@@ -209,6 +209,9 @@ def push(table: CompTable | str | Path, ads: str | None = None, modbus: str | No
         The table (validated again here) or a table file (.json or .csv).
     ads, modbus : str
         Exactly one target: ``"NETID@HOST[:PORT]"`` for TwinCAT ADS, ``"HOST:PORT"`` for Modbus TCP.
+    link : PlcLink, optional
+        Instead of a target: a link already made by :func:`open_link` (with the writes of a push, or none
+        for a dry run); the command line makes its link first to name it in its messages.
     ams_port : int, optional
         AMS port of the PLC runtime (default 851).
     timeout_s : float
@@ -229,13 +232,14 @@ def push(table: CompTable | str | Path, ads: str | None = None, modbus: str | No
     pmcal.bridge.errors.BridgeError
         The transfer failed; ``exc.report`` says how far it got. The PLC keeps a whole table.
     """
-    if (ads is None) == (modbus is None):
-        raise InputError("give exactly one PLC target: ads='NETID@HOST[:PORT]' or modbus='HOST:PORT'",
+    if (ads is None) + (modbus is None) + (link is None) != 2:
+        raise InputError("give exactly one PLC target: ads='NETID@HOST[:PORT]', modbus='HOST:PORT' or link=",
                          field="--ads")
     if not isinstance(table, CompTable):
         table = CompTable.load(table)
     table = table.validate()
     opts = options or PushOptions()
-    link = open_link(ads, modbus, ams_port=ams_port, timeout_s=timeout_s,
-                     writes=frozenset() if opts.dry_run else None)
+    if link is None:
+        link = open_link(ads, modbus, ams_port=ams_port, timeout_s=timeout_s,
+                         writes=frozenset() if opts.dry_run else None)
     return _push(link, table, opts, audit_path=audit_path)

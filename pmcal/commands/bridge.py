@@ -163,9 +163,10 @@ def make_link(args, writes=None):
 
 
 def cmd_push(args) -> int:
+    from pmcal.api import push
     from pmcal.bridge.comptable import CompTable
     from pmcal.bridge.errors import BridgeError
-    from pmcal.bridge.transfer import PushOptions, check_writable, push
+    from pmcal.bridge.transfer import PushOptions, check_writable
 
     if args.attempts < 1:
         raise InputError(f"attempts must be at least 1, got {args.attempts}", field="--attempts")
@@ -189,7 +190,7 @@ def cmd_push(args) -> int:
     options = PushOptions(attempts=args.attempts, ack_timeout_s=args.ack_timeout, dry_run=args.dry_run,
                           wait_motion_s=args.wait_motion)
     try:
-        rep = push(link, table, options, audit_path=audit)
+        rep = push(table, link=link, options=options, audit_path=audit)      # the library's pmcal.push
     except KeyboardInterrupt as exc:        # Ctrl-C, or SIGTERM (pmcal.cli.Terminated): the PLC decides the fate
         how = "terminated" if type(exc).__name__ == "Terminated" else "interrupted"
         flag = f"--{link.transport} {link.target}"
