@@ -551,13 +551,14 @@ def test_demo_of_a_folder_machine(delta, capsys):
 
 def test_demo_warns_when_compensation_is_worse_than_predicted():
     """The demo's warning lines: an error family compensated to more than 3x the identification's prediction,
-    and a failed held-out check, each in one line; nothing when the figures hold."""
+    errors no tracker reading sees that move the task, and a failed held-out check, each in one line; nothing
+    when the figures hold."""
     from types import SimpleNamespace
 
     from pmcal.studies.chain_demo import ChainDemo
 
-    def demo(after, passed):
-        return SimpleNamespace(coordinates=("x_mm", "y_mm", "rz_deg"), WORSE_THAN_PREDICTED=3.0,
+    def demo(after, passed, unseen=()):
+        return SimpleNamespace(coordinates=("x_mm", "y_mm", "rz_deg"), WORSE_THAN_PREDICTED=3.0, unseen=unseen,
                                result=SimpleNamespace(info={"held_out": {"passed": passed, "rms_mm": 0.03,
                                                                           "predicted_rms_mm": 0.01}}))
 
@@ -567,3 +568,5 @@ def test_demo_warns_when_compensation_is_worse_than_predicted():
     bad = dict(good, position_rms_after_mm=0.037)
     lines = ChainDemo.warnings(demo(0.037, False), bad)
     assert len(lines) == 2 and "9.2 times" in lines[0] and "0.0300 mm RMS where 0.0100 mm" in lines[1]
+    lines = ChainDemo.warnings(demo(0.005, True, ["effector.dx", "effector.dz"]), good)
+    assert len(lines) == 1 and lines[0].startswith("2 error(s) move the task point but no tracker reading (effector.dx")

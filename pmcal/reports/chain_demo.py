@@ -35,8 +35,12 @@ def chain_demo_report(demo) -> Report:
         *(f"Compensation at {s['held_out_targets']} held-out targets: {n} error of the true machine "
           f"{s[f'{n}_rms_before_{u}']:.4f} {u} RMS (max {s[f'{n}_max_before_{u}']:.4f}) with the nominal inverse "
           f"kinematics, {s[f'{n}_rms_after_{u}']:.4f} {u} RMS (max {s[f'{n}_max_after_{u}']:.4f}) compensated; "
-          f"the identification's covariance predicts {s[f'{n}_rms_predicted_{u}']:.4f} {u} RMS." for n, u, _, _ in fam)],
+          f"the identification predicts {s[f'{n}_rms_predicted_{u}']:.4f} {u} RMS (the posterior over every error, "
+          "propagated to the task)." for n, u, _, _ in fam)],
         css="ok" if ok else "bad")
+    warnings = demo.warnings(s)
+    if warnings:
+        rep.card("What to know", warnings, css="warn")
     try:
         png = render_machine_png(m.spec, m.twin.solve(m.twin.home_commands[None])[0], 800, 500)
         rep.image_png(png, f"{m.name} at its home keyframe (scene.xml)")

@@ -15,11 +15,15 @@ from typing import Iterable, Sequence
 
 from pmcal.fileio import atomic_write
 
+#: a table with more columns than this is set in smaller type (and scrolls inside the page if still too wide)
+DENSE_COLUMNS = 10
+
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em auto;max-width:1100px;
 color:#1d2430;line-height:1.45;padding:0 1em}
 h1{border-bottom:3px solid #2b6cb0;padding-bottom:.2em}h2{margin-top:1.8em;color:#2b6cb0}
-table{border-collapse:collapse;margin:.8em 0;font-size:.92em}
+table{border-collapse:collapse;margin:.8em 0;font-size:.92em}.wide{overflow-x:auto;max-width:100%}
+table.dense{font-size:.78em}table.dense th,table.dense td{padding:.2em .35em}
 th,td{border:1px solid #cbd5e0;padding:.25em .6em;text-align:right}th{background:#edf2f7}
 td.l,th.l{text-align:left}.note{color:#4a5568;font-size:.92em}
 .card{border:1px solid #cbd5e0;border-radius:8px;padding:.6em 1em;margin:.6em 0;background:#f7fafc}
@@ -71,7 +75,9 @@ class Report:
                           for i, v in enumerate(row))
             body.append(f"<tr>{tds}</tr>")
         cap = f"<caption>{html.escape(caption)}</caption>" if caption else ""
-        self.parts.append(f"<table>{cap}<thead><tr>{th}</tr></thead><tbody>{''.join(body)}</tbody></table>")
+        dense = ' class="dense"' if len(header) > DENSE_COLUMNS else ""      # a wide table: smaller type
+        self.parts.append(f'<div class="wide"><table{dense}>{cap}<thead><tr>{th}</tr></thead>'
+                          f"<tbody>{''.join(body)}</tbody></table></div>")
 
     def figure(self, fig, caption: str = "", dpi: int = 110) -> None:
         """Embed a matplotlib figure as a base64 PNG and close it."""

@@ -17,7 +17,7 @@ import numpy as np
 from pmcal import progress
 from pmcal.calib.closed_chain import compensate_targets
 from pmcal.chain import (campaign, compensation_table, identify, params_document, plan, random_errors,
-                         sample_targets, table_refusal)
+                         sample_targets, table_refusal, unseen_task_errors)
 from pmcal.fileio import atomic_directory, write_json
 from pmcal.io_chain import write_measurements, write_plan, write_setpoints, write_targets
 from pmcal.mechanism.task_space import error_families, position_distance, rms, task_difference
@@ -39,7 +39,8 @@ class ChainDemo:
     PLC (:class:`pmcal.bridge.comptable.CompTable`; None when the machine gets none, ``table_note`` says
     why). inside : the held-out targets inside its grid. error_table : (inside, C) the true machine's error
     driven by the controller's nominal inverse kinematics plus the table's correction (the PLC's lookup).
-    timings : s per step.
+    timings : s per step. unseen : errors that move the task point but no tracker reading
+    (:func:`pmcal.chain.unseen_task_errors`).
     """
 
     machine: object
@@ -59,6 +60,7 @@ class ChainDemo:
     inside: np.ndarray | None = None
     error_table: np.ndarray | None = None
     timings: dict = field(default_factory=dict)
+    unseen: list = field(default_factory=list)
 
     @property
     def coordinates(self) -> tuple[str, ...]:
@@ -100,7 +102,8 @@ class ChainDemo:
     def warnings(self, summary: dict | None = None) -> list[str]:
         """What the demo must say besides its figures: an error family compensated to more than
         :data:`WORSE_THAN_PREDICTED` times what the identification predicted (the model misses something
-        the twin has: the calibration would not hold on the machine either), a failed held-out check."""
+        the twin has: the calibration would not hold on the machine either), errors the tracker cannot see
+        that move the task point (:func:`pmcal.chain.unseen_task_errors`), a failed held-out check."""
         s = summary or self.summary()
         out = []
         for name, u, _, _ in error_families(self.coordinates):
@@ -109,6 +112,11 @@ class ChainDemo:
                 out.append(f"the compensated {name} error, {after:.4f} {u} RMS, is {after / predicted:.1f} times "
                            f"what the identification predicts ({predicted:.4f} {u}): the model misses something "
                            "the machine has (see the report's residuals)")
+        unseen = self.unseen
+        if unseen:
+            out.append(f"{len(unseen)} error(s) move the task point but no tracker reading ({', '.join(unseen[:4])}"
+                       f"{', ...' if len(unseen) > 4 else ''}): no compensation corrects them; the prediction counts "
+                       "them at their [errors] size (put a nest on that part, or [errors] exclude it)")
         held = self.result.info.get("held_out") or {}
         if held.get("passed") is False:
             out.append(f"the identification does not predict poses it did not fit: {held['rms_mm']:.4f} mm RMS "
@@ -183,7 +191,7 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
     demo = ChainDemo(machine=machine, seed=seed, truth=truth, design=design, meas=meas, result=res, task=task,
                      commands_nominal=nominal, commands_compensated=compensated, error_nominal=err_nominal,
                      error_compensated=err_comp, predicted=predicted, table=table, table_note=note, inside=inside,
-                     error_table=err_table, timings=timings)
+                     error_table=err_table, timings=timings, unseen=unseen_task_errors(machine, res))
     if out is not None:
         spec = machine.spec
         write_plan(out / "plan.csv", spec, design.commands, [f"pmcal demo: D-optimal plan, seed {seed}"])
