@@ -34,10 +34,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
 from pmcal.bridge.ads import AdsLink, set_adslib_log_level  # noqa: E402
-from pmcal.bridge.ads_mock import AdsMockPlc  # noqa: E402
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc  # noqa: E402
 from pmcal.apps.ocpm.plc_loop import DEFAULT_GRID, run_loop  # noqa: E402
 from pmcal.bridge.modbus import ModbusLink  # noqa: E402
-from pmcal.bridge.modbus_mock import ModbusMockPlc  # noqa: E402
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc  # noqa: E402
 from pmcal.bridge.transfer import push  # noqa: E402
 from pmcal.bridge.comptable import CompTable  # noqa: E402
 from pmcal.mechanism.ocpm.kinematics import nominal_ik  # noqa: E402

@@ -45,12 +45,12 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
 from pmcal.bridge.ads import AdsLink, set_adslib_log_level  # noqa: E402
-from pmcal.bridge.ads_mock import AdsMockPlc  # noqa: E402
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc  # noqa: E402
 from pmcal.bridge.comptable import CompTable  # noqa: E402
 from pmcal.bridge.errors import BridgeError  # noqa: E402
-from pmcal.bridge.faults import Fault, Kind, Point  # noqa: E402
+from pmcal.bridge.simulator.faults import Fault, Kind, Point  # noqa: E402
 from pmcal.bridge.modbus import ModbusLink  # noqa: E402
-from pmcal.bridge.modbus_mock import ModbusMockPlc  # noqa: E402
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc  # noqa: E402
 from pmcal.bridge.transfer import push  # noqa: E402
 from pmcal.errors import InputError  # noqa: E402
 from pmcal.mechanism.ocpm.kinematics import nominal_ik  # noqa: E402

@@ -1,4 +1,4 @@
-"""Cost of the shipped ST per task cycle, as the interpreter (bridge/plc_runtime) counts and times it.
+"""Cost of the shipped ST per task cycle, as the interpreter (bridge/simulator/plc_runtime) counts and times it.
 
 For a commit of a 37 x 13 and a 100 x 100 table (nominal-IK reference, the project's default) and of a
 Delta-shaped 13 x 13 x 9 table (3 motors, corrections to the controller's IK) on a PLC configured for
@@ -8,7 +8,7 @@ F_CompTableNominalIk, bytes copied (MEMCPY / struct assignment) and CRC bytes; t
 time: CPU per idle cycle (median), CPU of the whole commit (process time,
 so other load on the machine does not count). The cold-start compile (blark parse) is not included.
 Then the task's modelled time per cycle on the slowest CX5100/CX5200-class CPU (cost model with its
-sources: bridge/plc_runtime/cost_model.py): the worst and the median cycle of the commit in µs against the
+sources: bridge/simulator/plc_runtime/cost_model.py): the worst and the median cycle of the commit in µs against the
 share of the 1 ms cycle the table manager may take (TASK_SHARE).
 
 Run: python benchmarks/plc_runtime_bench.py [--idle 2000] [--json PATH]
@@ -26,8 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
 
-from pmcal.bridge.plc_runtime import PlcTwin  # noqa: E402
-from pmcal.bridge.plc_runtime.cost_model import CX_SLOWEST, TASK_SHARE  # noqa: E402
+from pmcal.bridge.simulator.plc_runtime import PlcTwin  # noqa: E402
+from pmcal.bridge.simulator.plc_runtime.cost_model import CX_SLOWEST, TASK_SHARE  # noqa: E402
 from tests.bridge_fixtures import commit_on_twin, delta_correction_table, make_table  # noqa: E402
 
 IK = "F_CompTableNominalIk"
@@ -79,7 +79,7 @@ def main() -> None:
     print_table("Commit of a table on the interpreted ST (per task cycle: the largest)", keys,
                 [[r[k] for k in keys] for r in rows])
     keys = ["grid", "max_cpu_cycles", "worst_cycle_us", "median_cycle_us", "share_us", "within_share"]
-    print_table(f"Modelled task time per cycle on {CX_SLOWEST.name} (bridge/plc_runtime/cost_model.py)", keys,
+    print_table(f"Modelled task time per cycle on {CX_SLOWEST.name} (bridge/simulator/plc_runtime/cost_model.py)", keys,
                 [[r[k] for k in keys] for r in rows])
     print(f"\nidle cycle (PRG_CompTable, no commit, no lookup): {idle_us:.1f} us CPU (median of {args.idle})")
     write_json("plc_runtime_bench", {"commit": rows, "idle_cycle_cpu_us": idle_us, "cpu_model": CX_SLOWEST.name,

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from pmcal.bridge.comptable import Axis, CompTable, Motor
-from pmcal.bridge.plc_runtime.cost_model import TASK_SHARE
+from pmcal.bridge.simulator.plc_runtime.cost_model import TASK_SHARE
 from pmcal.mechanism.ocpm.kinematics import nominal_ik
 
 MOTOR_LIMITS_DEG = (-120.0, 60.0)
@@ -87,7 +87,7 @@ def modbus_link(mock, **kwargs):
 @pytest.fixture
 def ads_plc():
     from pmcal.bridge.ads import set_adslib_log_level
-    from pmcal.bridge.ads_mock import AdsMockPlc
+    from pmcal.bridge.simulator.ads_mock import AdsMockPlc
 
     set_adslib_log_level(4)
     with running(AdsMockPlc(lifetime_s=120.0)) as plc:
@@ -96,7 +96,7 @@ def ads_plc():
 
 @pytest.fixture
 def modbus_plc():
-    from pmcal.bridge.modbus_mock import ModbusMockPlc
+    from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 
     with running(ModbusMockPlc(lifetime_s=120.0)) as plc:
         yield plc

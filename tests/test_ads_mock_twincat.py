@@ -21,9 +21,9 @@ import pytest
 from pyads import constants
 from pyads.pyads_ex import adsSumReadBytes, adsSumWriteBytes
 
-from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
 from pmcal.bridge.errors import InterfaceError
-from pmcal.bridge.faults import Fault, Kind, Point
+from pmcal.bridge.simulator.faults import Fault, Kind, Point
 from pmcal.bridge.plc_types import SHADOW_LREALS, Header, shadow_rows
 from pmcal.bridge.transfer import push
 from tests.bridge_fixtures import ads_link, ads_plc, ads_state_code, during_restart, make_table, running  # noqa: F401 (fixture)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import pmcal
-from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
 from pmcal.bridge.comptable import CompTable
 from pmcal.ocpm.io import write_measurements
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, random_errors

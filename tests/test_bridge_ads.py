@@ -14,9 +14,9 @@ from pyads import constants
 
 from pmcal.bridge.ads import AdsLink
 from pmcal.bridge.ads_map import AdsMap, AdsTarget
-from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
 from pmcal.bridge.errors import AckTimeout, InterfaceError, LinkError, WriteNotAllowed
-from pmcal.bridge.faults import Fault, Kind, Point
+from pmcal.bridge.simulator.faults import Fault, Kind, Point
 from pmcal.bridge.plc_types import (HEADER_SIZE, LOOKUP_WRITES, PUSH_WRITES, SHADOW_SIZE, SYMBOLS, Header,
                               LookupResult, State, Status, Symbol, shadow_rows)
 from pmcal.bridge.transfer import PushOptions, push

@@ -9,9 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from pmcal.bridge.ads_mock import AdsMockPlc
-from pmcal.bridge.faults import Fault, Kind, Point
-from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.faults import Fault, Kind, Point
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 from pmcal.cli import main
 from tests.bridge_fixtures import ROOT_DIR, make_table, running
 

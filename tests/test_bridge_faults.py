@@ -12,10 +12,10 @@ from dataclasses import replace
 
 import pytest
 
-from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
 from pmcal.bridge.errors import BridgeError, DeviceError, InterfaceError, LinkError, Rejected
-from pmcal.bridge.faults import Fault, Kind, Point
-from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.faults import Fault, Kind, Point
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 from pmcal.bridge.plc_types import Status
 from pmcal.bridge.transfer import PushOptions, push
 from tests.bridge_fixtures import TIMEOUT_S, ads_link, make_table, modbus_link, running

@@ -14,10 +14,10 @@ import time
 
 import pytest
 
-from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
 from pmcal.bridge.errors import AckTimeout, Rejected
-from pmcal.bridge.modbus_mock import ModbusMockPlc
-from pmcal.bridge.plc_runtime import PlcTwin
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import COMMIT_TIMEOUT_S, State, Status, done_value
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.cli import main

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
 from pmcal.apps.ocpm.plc_loop import DEFAULT_GRID, compensation_table, run_loop
-from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 from pmcal.mechanism.ocpm.config import default_geometry
 from pmcal.mechanism.ocpm.params import PAPER_TABLE2, ErrorSet
 from pmcal.cli import main

@@ -16,10 +16,10 @@ import struct
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
 from pmcal.bridge.errors import LinkError
 from pmcal.bridge.ads_map import AdsMap
-from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 from tests.bridge_fixtures import ads_link, ads_state_code, running
 
 

@@ -11,10 +11,10 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from pmcal.bridge.errors import DeviceError, InterfaceError, LinkError, WriteNotAllowed
-from pmcal.bridge.faults import Fault, Kind, Point
+from pmcal.bridge.simulator.faults import Fault, Kind, Point
 from pmcal.bridge.modbus import ModbusLink, parse_host_port
 from pmcal.bridge.modbus_map import FC16_MAX, ModbusMap, from_registers, to_registers
-from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 from pmcal.bridge.plc_types import HEADER_SIZE, LOOKUP_WRITES, SHADOW_SIZE, Header, LookupResult, shadow_rows
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.errors import InputError

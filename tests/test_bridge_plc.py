@@ -19,7 +19,7 @@ from pmcal.bridge.comptable import FORMAT_VERSION, NAXES_MAX, NMOTOR_MAX, NVALUE
 from pmcal.bridge import plc_types
 from pmcal.bridge.modbus_map import MAGIC, PAGE_LOAD, PAGE_STORE, ModbusMap
 from pmcal.bridge.nominal import NominalReference
-from pmcal.bridge.plc_runtime import PlcTwin
+from pmcal.bridge.simulator.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import (SYMBOLS, Header, LookupIn, LookupOut, LookupResult, State, Status,
                               done_value, shadow_rows)
 from tests.bridge_fixtures import make_table

@@ -9,8 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from pmcal.bridge.ads_mock import AdsMockPlc
-from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 from pmcal.bridge.plc_types import LOOKUP_WRITES, LookupResult, Status
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.errors import InputError

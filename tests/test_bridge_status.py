@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from pmcal.bridge.ads_mock import AdsMockPlc
-from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 from pmcal.cli import main
 from tests.bridge_fixtures import make_table, running
 

@@ -27,8 +27,8 @@ import pytest
 
 from pmcal.apps.chain_loop import (PUSHED_VERSION, TARGET_SEED, calibrate, grid_targets, nominal_table,
                                    run_chain_loop)
-from pmcal.bridge.ads_mock import AdsMockPlc
-from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 from pmcal.cli import main
 from pmcal.machines import Machine
 from pmcal.mjcf import machine_dir

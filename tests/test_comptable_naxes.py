@@ -15,7 +15,7 @@ import pytest
 from scipy.interpolate import RegularGridInterpolator
 
 from pmcal.bridge.comptable import NVALUES_MAX, Axis, CompTable, Motor
-from pmcal.bridge.plc_runtime import PlcTwin
+from pmcal.bridge.simulator.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import LOOKUP_WRITES, Header, LookupIn, LookupOut, LookupResult, Status
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.errors import InputError

@@ -87,3 +87,17 @@ def test_every_command_of_a_machine_resolves_to_its_handler_not_a_module():
         for command in commands:
             handler = getattr(app, command, None)
             assert handler is None or isinstance(handler, types.FunctionType), (name, command, handler)
+
+
+def test_the_table_contract_and_the_library_do_not_need_the_simulated_plc():
+    """pmcal.bridge without its simulator (the table, the clients, the transfer), the file formats and the
+    library import nothing of pmcal.bridge.simulator (the ``sim`` extra): a plain install pushes to real PLCs."""
+    from layering import imports_of
+
+    bad = []
+    for mod, path in modules().items():
+        contract = mod.startswith("pmcal.bridge") and not mod.startswith("pmcal.bridge.simulator")
+        if contract or layer_of(mod) in (layer_of("pmcal.api"), layer_of("pmcal.io_chain")):
+            bad += [(mod, imp) for imp, _ in imports_of(mod, path.read_text(encoding="utf-8"))
+                    if imp.startswith("pmcal.bridge.simulator")]
+    assert not bad, bad

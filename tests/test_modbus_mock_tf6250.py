@@ -13,8 +13,8 @@ import time
 
 from pymodbus.client import ModbusTcpClient
 
-from pmcal.bridge.faults import Fault, Kind, Point
-from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.faults import Fault, Kind, Point
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 from tests.bridge_fixtures import during_restart, running
 
 BASE = 0x3000

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 from pmcal.cli import main
 from tests.bridge_fixtures import running
 from tests.conftest import run_quietly_in

@@ -52,13 +52,13 @@ def test_wheel_owns_one_import_name_and_ships_its_data(wheel):
                  "pmcal/mjcf/planar_2dof/scene.xml", "pmcal/plc/POUs/FB_CompTableLookup.TcPOU",
                  "pmcal/plc/GVLs/GVL_CompTable.TcGVL", "pmcal/plc/DUTs/ST_CompTableHeader.TcDUT",
                  "pmcal/calib/ocpm/fullchain.py", "pmcal/twin/ocpm/forward.py", "pmcal/mechanism/ocpm/config.py",
-                 "pmcal/bridge/plc_runtime/library.st", "pmcal/bridge/plc_runtime/compiler.py"):
+                 "pmcal/bridge/simulator/plc_runtime/library.st", "pmcal/bridge/simulator/plc_runtime/compiler.py"):
         assert need in names, need
 
 
 SNIPPET = """
 import pmcal
-from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
 meas = pmcal.read_measurements("m.csv")
 cal = pmcal.identify(meas)
 m = cal.setpoints([0.0, 90.0], [10.0, 30.0])

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from pmcal.bridge.modbus_mock import ModbusMockPlc
-from pmcal.bridge.plc_runtime.source import SIMULATOR_MISSING
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.plc_runtime.source import SIMULATOR_MISSING
 from tests.bridge_fixtures import running
 
 ROOT = Path(__file__).resolve().parent.parent

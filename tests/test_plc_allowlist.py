@@ -147,7 +147,7 @@ def test_the_project_opens_with_a_task_that_calls_prg_comptable():
     """plc/PlcTask.TcTTO (a task object as XAE writes it: cycle time in microseconds, priority, the POU
     calls in order) runs PRG_CompTable first, then the sample motion code, every 1 ms; each call names a
     PROGRAM of plc/, and the interpreter's task (PlcRuntime) calls PRG_CompTable the same way."""
-    from pmcal.bridge.plc_runtime import PlcRuntime
+    from pmcal.bridge.simulator.plc_runtime import PlcRuntime
 
     task = ET.parse(PLC / "PlcTask.TcTTO").getroot().find("Task")
     calls = [c.findtext("Name") for c in task.findall("PouCall")]
@@ -160,7 +160,7 @@ def test_the_project_opens_with_a_task_that_calls_prg_comptable():
     assert rt.cycle_s == int(task.findtext("CycleTime")) * 1e-6 and rt.run(3) == 3
     # the save runs in its own task, slower and of lower priority (a higher number), as the interpreter
     # runs it (every SAVE_EVERY task cycles, after the task)
-    from pmcal.bridge.plc_runtime.runtime import SAVE_EVERY, SAVE_PROGRAM
+    from pmcal.bridge.simulator.plc_runtime.runtime import SAVE_EVERY, SAVE_PROGRAM
 
     save = ET.parse(PLC / "PersistTask.TcTTO").getroot().find("Task")
     assert [c.findtext("Name") for c in save.findall("PouCall")] == [SAVE_PROGRAM]

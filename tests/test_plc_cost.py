@@ -1,4 +1,4 @@
-"""The per-cycle cost model of the interpreted ST (bridge/plc_runtime/cost_model.py): what it charges for
+"""The per-cycle cost model of the interpreted ST (bridge/simulator/plc_runtime/cost_model.py): what it charges for
 a piece of ST is what its operations cost by hand from the table of costs, and the shipped ST's busiest
 commit cycle stays within its share of a 1 ms task on the slowest CX5100/CX5200-class CPU, while a
 budget four times the shipped one does not (so the check can fail)."""
@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from pmcal.bridge.plc_runtime import PlcRuntime, PlcTwin, compile_files
+from pmcal.bridge.simulator.plc_runtime import PlcRuntime, PlcTwin, compile_files
 from pmcal.bridge.plc_types import Status
-from pmcal.bridge.plc_runtime.cost_model import COSTS, CX_SLOWEST, TASK_SHARE
+from pmcal.bridge.simulator.plc_runtime.cost_model import COSTS, CX_SLOWEST, TASK_SHARE
 from tests.bridge_fixtures import commit_on_twin, delta_correction_table, make_table
 
 SHARE_US = TASK_SHARE * 1000.0           # of a 1 ms cycle

@@ -13,7 +13,7 @@ import time
 import pytest
 
 from pmcal.bridge.errors import BridgeError
-from pmcal.bridge.plc_runtime import PlcTwin
+from pmcal.bridge.simulator.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import Header, State, Status, done_value, shadow_rows
 from pmcal.bridge.transfer import PushOptions, push
 from pmcal.errors import InputError
@@ -25,8 +25,8 @@ FORMER, NEW = 0x8F0F0001, 0x8E0E0002
 
 
 def _mock(transport: str):
-    from pmcal.bridge.ads_mock import AdsMockPlc
-    from pmcal.bridge.modbus_mock import ModbusMockPlc
+    from pmcal.bridge.simulator.ads_mock import AdsMockPlc
+    from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 
     twin = PlcTwin(staging_lease_s=LEASE_S, commit_timeout_s=20.0)
     return (AdsMockPlc if transport == "ads" else ModbusMockPlc)(twin, lifetime_s=120.0)

@@ -21,7 +21,7 @@ import pytest
 
 from pmcal.bridge import plc_types
 from pmcal.bridge.comptable import CORRECTION_ABS_MAX, Axis, CompTable, Motor
-from pmcal.bridge.plc_runtime import PlcTwin
+from pmcal.bridge.simulator.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import Header, LookupIn, LookupOut, LookupResult, State, Status, shadow_rows
 from tests.bridge_fixtures import INTERFACE_COPIES, make_table
 

@@ -20,8 +20,8 @@ import pyads
 import pytest
 
 from pmcal.bridge.comptable import Axis, CompTable, Motor
-from pmcal.bridge.plc_runtime import PlcRuntime, PlcTwin
-from pmcal.bridge.plc_runtime.comptable_plc import machine_constants
+from pmcal.bridge.simulator.plc_runtime import PlcRuntime, PlcTwin
+from pmcal.bridge.simulator.plc_runtime.comptable_plc import machine_constants
 from pmcal.bridge.plc_types import (SHADOW_SIZE, Header, LookupIn, LookupOut, LookupResult, State, Status,
                                    shadow_rows)
 from tests.bridge_fixtures import make_table, raw_commit, running
@@ -134,8 +134,8 @@ CASES = [pytest.param(_corrections, Status.KIND_MISMATCH, id="correction table t
 
 
 def _mock(transport: str):
-    from pmcal.bridge.ads_mock import AdsMockPlc
-    from pmcal.bridge.modbus_mock import ModbusMockPlc
+    from pmcal.bridge.simulator.ads_mock import AdsMockPlc
+    from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 
     return (AdsMockPlc if transport == "ads" else ModbusMockPlc)(lifetime_s=120.0)
 

@@ -15,10 +15,10 @@ import json
 
 import pytest
 
-from pmcal.bridge.ads_mock import AdsMockPlc
+from pmcal.bridge.simulator.ads_mock import AdsMockPlc
 from pmcal.bridge.errors import StagingBusy
-from pmcal.bridge.modbus_mock import ModbusMockPlc
-from pmcal.bridge.plc_runtime import PlcTwin
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import Header, State, Status, done_value, shadow_rows
 from pmcal.bridge.transfer import PushOptions, push
 from tests.bridge_fixtures import ads_link, make_table, modbus_link, running, wait_state

@@ -10,7 +10,7 @@ from __future__ import annotations
 import pytest
 
 from pmcal.bridge import plc_types
-from pmcal.bridge.plc_runtime import PlcTwin
+from pmcal.bridge.simulator.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import Header, State, Status, done_value, shadow_rows
 from tests.bridge_fixtures import make_table
 
@@ -125,8 +125,8 @@ ROLLBACK = 0x80C0FFEE
 
 
 def _mock(transport: str):
-    from pmcal.bridge.ads_mock import AdsMockPlc
-    from pmcal.bridge.modbus_mock import ModbusMockPlc
+    from pmcal.bridge.simulator.ads_mock import AdsMockPlc
+    from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
     from tests.bridge_fixtures import ads_link, modbus_link
 
     mock = (AdsMockPlc if transport == "ads" else ModbusMockPlc)(lifetime_s=120.0, restart_s=0.3, boot_s=0.1)
@@ -196,8 +196,8 @@ def _hidden_copy(tmp_path):
 
 
 def _twin_of(folder=None) -> PlcTwin:
-    from pmcal.bridge.plc_runtime import PlcRuntime, compile_project
-    from pmcal.bridge.plc_runtime.comptable_plc import machine_constants
+    from pmcal.bridge.simulator.plc_runtime import PlcRuntime, compile_project
+    from pmcal.bridge.simulator.plc_runtime.comptable_plc import machine_constants
 
     program = compile_project(folder)
     return PlcTwin(runtime=PlcRuntime(program, constants=machine_constants("ocpm_2dof", 2, False)))
@@ -219,7 +219,7 @@ def test_hidden_variables_are_no_ads_symbols_and_retain_differs_from_persistent(
     """The remanence table of PlcRuntime (Infosys tc3_plc_intro, Remanent variables): RETAIN survives a
     restart and a power cut (NovRam) but not a Reset cold or a download; PERSISTENT survives all four; a
     hidden PERSISTENT variable survives none (and has no symbol); only Reset origin clears PERSISTENT."""
-    from pmcal.bridge.plc_runtime import PlcRuntime, compile_files
+    from pmcal.bridge.simulator.plc_runtime import PlcRuntime, compile_files
 
     st = tmp_path / "remanent.st"
     st.write_text("""VAR_GLOBAL
@@ -264,8 +264,8 @@ def test_the_save_goes_to_the_runtimes_own_port(port, survives):
     """A second PLC runtime (AMS port 852): PRG_CompTableSave.nPlcPort = 0 (the default) saves this
     runtime's persistent data (TwinCAT_SystemInfoVarList._AppInfo.AdsPort); the former hard-coded 851
     saves the first runtime's data instead, answers OK, and a power cut brings the old table back."""
-    from pmcal.bridge.plc_runtime import PlcRuntime
-    from pmcal.bridge.plc_runtime.comptable_plc import machine_constants
+    from pmcal.bridge.simulator.plc_runtime import PlcRuntime
+    from pmcal.bridge.simulator.plc_runtime.comptable_plc import machine_constants
 
     rt = PlcRuntime(constants=machine_constants("ocpm_2dof", 2, False), ams_port=852, other_ports=(851,))
     twin = PlcTwin(runtime=rt)

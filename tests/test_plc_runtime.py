@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 
 from pmcal.bridge import plc_types
-from pmcal.bridge.plc_runtime import PlcRuntime, compile_files, compile_project
-from pmcal.bridge.plc_runtime.cost_model import COSTS
-from pmcal.bridge.plc_runtime.compiler import PlcCompileError
+from pmcal.bridge.simulator.plc_runtime import PlcRuntime, compile_files, compile_project
+from pmcal.bridge.simulator.plc_runtime.cost_model import COSTS
+from pmcal.bridge.simulator.plc_runtime.compiler import PlcCompileError
 
 PLC = Path(__file__).resolve().parent.parent / "plc"
 

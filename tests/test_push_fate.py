@@ -11,8 +11,8 @@ import subprocess
 import sys
 import time
 
-from pmcal.bridge.faults import Fault, FaultPlan, Kind, Point
-from pmcal.bridge.modbus_mock import ModbusMockPlc
+from pmcal.bridge.simulator.faults import Fault, FaultPlan, Kind, Point
+from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc
 from pmcal.cli import main
 from tests.bridge_fixtures import ROOT_DIR, make_table, running
 

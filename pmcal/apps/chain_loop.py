@@ -197,7 +197,7 @@ class ChainLoopResult:
 
 def run_chain_loop(mock, machine, cal: LoopCalibration, *, n_targets: int = DEFAULT_TARGETS, seed: int = 1,
                    link_factory=None) -> ChainLoopResult:
-    """Run the loop against a started mock PLC (:class:`pmcal.bridge.ads_mock.AdsMockPlc` or Modbus):
+    """Run the loop against a started mock PLC (:class:`pmcal.bridge.simulator.ads_mock.AdsMockPlc` or Modbus):
     seed it with :func:`nominal_table`, measure ``n_targets`` held-out targets (:func:`grid_targets`, from
     ``seed + TARGET_SEED``) driven by the PLC's lookups, push ``cal.table``, measure them again, and once
     more driven by the identified machine's inverse kinematics. ``link_factory(mock, writes)`` makes the

@@ -68,8 +68,8 @@ def default_links(mock, writes):
 
 @contextmanager
 def loopback_mock(transport: str, lifetime_s: float = 600.0):
-    """A strict mock PLC (:class:`pmcal.bridge.ads_mock.AdsMockPlc` or
-    :class:`pmcal.bridge.modbus_mock.ModbusMockPlc`, ``transport`` ``"ads"`` or ``"modbus"``) started on
+    """A strict mock PLC (:class:`pmcal.bridge.simulator.ads_mock.AdsMockPlc` or
+    :class:`pmcal.bridge.simulator.modbus_mock.ModbusMockPlc`, ``transport`` ``"ads"`` or ``"modbus"``) started on
     127.0.0.1 for the loop, stopped after it; AdsLib's and pymodbus' own logging silenced (one line per
     failure)."""
     from pmcal.bridge.ads import set_adslib_log_level
@@ -77,9 +77,9 @@ def loopback_mock(transport: str, lifetime_s: float = 600.0):
     set_adslib_log_level(4)
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     if transport == "ads":
-        from pmcal.bridge.ads_mock import AdsMockPlc as Mock
+        from pmcal.bridge.simulator.ads_mock import AdsMockPlc as Mock
     else:
-        from pmcal.bridge.modbus_mock import ModbusMockPlc as Mock
+        from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc as Mock
     with Mock(lifetime_s=lifetime_s) as mock:
         yield mock
 

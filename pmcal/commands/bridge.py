@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from pmcal.bridge.mock import RESTART_S
+from pmcal.bridge.simulator.mock import RESTART_S
 from pmcal.commands.options import Command, CommandSet
 from pmcal.errors import InputError
 from pmcal.fileio import atomic_write
@@ -439,7 +439,7 @@ def _check_port_free(port: int) -> None:
 
 def cmd_mock_plc(args) -> int:
     from pmcal.bridge.comptable import CompTable
-    from pmcal.bridge.faults import Fault
+    from pmcal.bridge.simulator.faults import Fault
 
     if not 0 < args.seconds <= MAX_MOCK_SECONDS:
         raise InputError(f"seconds must be in (0, {MAX_MOCK_SECONDS:g}]", field="--seconds")
@@ -471,14 +471,14 @@ def cmd_mock_plc(args) -> int:
     seed = CompTable.load(args.table).validate() if args.table else None
     _quiet_libraries()
     if args.ads:
-        from pmcal.bridge.ads_mock import AdsMockPlc as Mock
+        from pmcal.bridge.simulator.ads_mock import AdsMockPlc as Mock
     else:
-        from pmcal.bridge.modbus_mock import ModbusMockPlc as Mock
+        from pmcal.bridge.simulator.modbus_mock import ModbusMockPlc as Mock
     extra = {"routes": args.route} if args.ads and args.route else {}
     if args.plc_motors is not None and not 0 <= args.plc_motors <= 6:
         raise InputError(f"must be 0..6, got {args.plc_motors}", field="--plc-motors")
     from pmcal.bridge.nominal import REFERENCE_CONTROLLER
-    from pmcal.bridge.plc_runtime import PlcTwin
+    from pmcal.bridge.simulator.plc_runtime import PlcTwin
 
     # what the mock PLC accepts: the options, else the --table's, else the selected machine's table
     # (a folder with a [table]: its name, motors and kind), else the OCPM's

@@ -116,7 +116,7 @@ def measure(twin, tracker, commands_deg: np.ndarray, phi_deg: np.ndarray, theta_
 def run_loop(mock, errors: dict | ErrorSet, table: CompTable | None = None, *, n_targets: int = 24,
              grid: tuple[int, int] = DEFAULT_GRID, seed: int = 1, sigma_mm: float | None = None,
              link_factory=None) -> LoopResult:
-    """Run the loop against a started mock PLC (:class:`pmcal.bridge.ads_mock.AdsMockPlc` or Modbus).
+    """Run the loop against a started mock PLC (:class:`pmcal.bridge.simulator.ads_mock.AdsMockPlc` or Modbus).
 
     ``errors``: the twin's real geometric errors (interface keys, mm and deg, or an ErrorSet);
     ``table``: what to push (default: the whole-chain compensation of ``errors`` on ``grid``).

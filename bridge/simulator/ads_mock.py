@@ -30,9 +30,9 @@ Codes", texts as in ``pyads.errorcodes``):
 - **Write protection** only where the GVL declares it (``{attribute 'symbol' := 'read'}``: 0x704).
   Otherwise a write to a PLC-owned variable is accepted, as TwinCAT does, and lasts until the PLC
   task next writes it (its next cycle).
-- fault injection per :mod:`pmcal.bridge.faults` (including ``busy``: 0x708 device busy).
+- fault injection per :mod:`pmcal.bridge.simulator.faults` (including ``busy``: 0x708 device busy).
 - the task behind it is the ST of plc/ itself, interpreted cycle by cycle
-  (:class:`pmcal.bridge.plc_runtime.PlcTwin`); a trapped FPU exception stops the PLC (ADS state STOP).
+  (:class:`pmcal.bridge.simulator.plc_runtime.PlcTwin`); a trapped FPU exception stops the PLC (ADS state STOP).
 
 Each mock has its own AMS NetID (two endpoints with one NetID in one process fail with error 1286).
 """
@@ -54,8 +54,8 @@ from pyads.testserver.handler import AbstractHandler, AmsPacket, AmsResponseData
 from pyads.testserver.testserver import AdsClientConnection
 
 from pmcal.bridge.ads_map import AdsMap, AdsTarget, read_only_symbols, struct_members
-from pmcal.bridge.faults import Kind, Point
-from pmcal.bridge.mock import LOOPBACK, MockPlc
+from pmcal.bridge.simulator.faults import Kind, Point
+from pmcal.bridge.simulator.mock import LOOPBACK, MockPlc
 from pmcal.bridge.plc_types import SYMBOLS, Symbol, is_token
 
 _NO_REPLY = "no-reply"

@@ -14,8 +14,8 @@ from __future__ import annotations
 import threading
 import time
 
-from pmcal.bridge.faults import FaultPlan
-from pmcal.bridge.plc_runtime import PlcTwin
+from pmcal.bridge.simulator.faults import FaultPlan
+from pmcal.bridge.simulator.plc_runtime import PlcTwin
 
 LOOPBACK = "127.0.0.1"
 #: seconds a CX without the PLC takes from power-on (or a restart) to a running PLC task
@@ -25,7 +25,7 @@ BOOT_S = 1.0
 
 
 class MockPlc:
-    """Base of :class:`pmcal.bridge.ads_mock.AdsMockPlc` and :class:`pmcal.bridge.modbus_mock.ModbusMockPlc`."""
+    """Base of :class:`pmcal.bridge.simulator.ads_mock.AdsMockPlc` and :class:`pmcal.bridge.simulator.modbus_mock.ModbusMockPlc`."""
 
     transport = ""
 

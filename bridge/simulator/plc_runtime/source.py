@@ -1,7 +1,7 @@
 """Reading TwinCAT 3 sources (.TcPOU, .TcDUT, .TcGVL and plain .st) with blark into one list of items.
 
 blark (https://github.com/klauer/blark) parses the ST inside the XML wrappers; its transformed
-dataclasses (``blark.transform``) are what :mod:`pmcal.bridge.plc_runtime.compiler` reads. A
+dataclasses (``blark.transform``) are what :mod:`pmcal.bridge.simulator.plc_runtime.compiler` reads. A
 METHOD written after its FUNCTION_BLOCK (plain .st, or a <Method> element of a .TcPOU) is attached
 to that function block; the pragma ``{attribute 'pack_mode' := 'N'}`` is read from the raw text
 (blark keeps pragmas out of the tree).

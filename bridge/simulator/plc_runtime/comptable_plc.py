@@ -1,6 +1,6 @@
 """The compensation-table PLC as the mocks and tests see it: :class:`PlcTwin`, the project's own ST
 (``plc/``: PRG_CompTable with FB_CompTableManager, FB_CompTableCheck, FB_CompTableLookup) running on
-:class:`~pmcal.bridge.plc_runtime.runtime.PlcRuntime`.
+:class:`~pmcal.bridge.simulator.plc_runtime.runtime.PlcRuntime`.
 
 The symbols of GVL_CompTable are exchanged as bytes under the keys of
 :data:`pmcal.bridge.plc_types.SYMBOLS` (the bytes are the PLC memory itself, in the DUTs' layout);
@@ -16,7 +16,7 @@ import numpy as np
 
 from pmcal.bridge.comptable import CompTable
 from pmcal.bridge.nominal import NominalReference
-from pmcal.bridge.plc_runtime.runtime import PlcRuntime
+from pmcal.bridge.simulator.plc_runtime.runtime import PlcRuntime
 from pmcal.bridge.plc_types import SYMBOL, Header, PlcState, shadow_rows, used_values
 
 GVL = "GVL_CompTable"

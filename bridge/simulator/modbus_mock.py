@@ -23,10 +23,10 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from pmcal.bridge.faults import Kind, Point
-from pmcal.bridge.mock import MockPlc
+from pmcal.bridge.simulator.faults import Kind, Point
+from pmcal.bridge.simulator.mock import MockPlc
 from pmcal.bridge.modbus_map import FC3_MAX, FC16_MAX, ModbusMap
-from pmcal.bridge.plc_runtime import PlcTwin
+from pmcal.bridge.simulator.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import is_token
 
 _FC_READ = (3, 4, 23)

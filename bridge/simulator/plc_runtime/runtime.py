@@ -19,11 +19,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from pmcal.bridge.plc_runtime.builtins import PlcException, crc16_ccitt, make_helpers
-from pmcal.bridge.plc_runtime.compiler import Compiler, Program
-from pmcal.bridge.plc_runtime.cost_model import CX_SLOWEST, CpuModel
-from pmcal.bridge.plc_runtime.datatypes import DType, strides
-from pmcal.bridge.plc_runtime.source import parse_files, project_files
+from pmcal.bridge.simulator.plc_runtime.builtins import PlcException, crc16_ccitt, make_helpers
+from pmcal.bridge.simulator.plc_runtime.compiler import Compiler, Program
+from pmcal.bridge.simulator.plc_runtime.cost_model import CX_SLOWEST, CpuModel
+from pmcal.bridge.simulator.plc_runtime.datatypes import DType, strides
+from pmcal.bridge.simulator.plc_runtime.source import parse_files, project_files
 
 LIBRARY = Path(__file__).with_name("library.st")
 #: the project's save program and its task's cycle in task cycles (plc/PersistTask.TcTTO: 10 ms at 1 ms)
@@ -151,7 +151,7 @@ class PlcRuntime:
         ``calls_last``/``calls_max`` count calls per POU.
     task_us_last, task_us_max : float
         The task's own time (without the background PersistTask, which runs in a task of its own) in
-        the last cycle and the most since start, µs on ``cpu`` (bridge/plc_runtime/cost_model.py).
+        the last cycle and the most since start, µs on ``cpu`` (bridge/simulator/plc_runtime/cost_model.py).
 
     Examples
     --------

@@ -60,9 +60,9 @@ UNION, enums (qualified values, base type), ARRAY (multi-dimensional, ARRAY OF A
 STRING(n), POINTER TO, REFERENCE TO; statements :=, REF=, IF/ELSIF/ELSE, CASE (values, ranges,
 enum values), FOR (constant BY), WHILE, REPEAT, EXIT, RETURN, calls with named/positional inputs
 and ``=>`` outputs; the operators and library functions listed in
-:data:`pmcal.bridge.plc_runtime.builtins.BUILTINS` (each with its Beckhoff document), R_TRIG,
+:data:`pmcal.bridge.simulator.plc_runtime.builtins.BUILTINS` (each with its Beckhoff document), R_TRIG,
 F_TRIG, TON, AXIS_REF (Status read from :attr:`PlcRuntime.motion_idle`), FB_WritePersistentData.
-Not supported (a :class:`~pmcal.bridge.plc_runtime.compiler.PlcCompileError` names the POU):
+Not supported (a :class:`~pmcal.bridge.simulator.plc_runtime.compiler.PlcCompileError` names the POU):
 EXTENDS/IMPLEMENTS, interfaces, properties, actions, CONTINUE, JMP, VAR_INST, VAR_STAT, RETAIN or
 PERSISTENT outside a GVL, string functions (LEN, CONCAT...), recursion (frames are static),
 the address of a scalar function local whose address is never taken with ADR (it lives in a Python
@@ -78,13 +78,13 @@ assignment), bytes run through a CRC; calls per POU (``calls_last``/``calls_max`
 
 Example
 -------
->>> from pmcal.bridge.plc_runtime import PlcTwin        # doctest: +SKIP
+>>> from pmcal.bridge.simulator.plc_runtime import PlcTwin        # doctest: +SKIP
 >>> plc = PlcTwin(); plc.cycle(); plc.state.cycle         # doctest: +SKIP
 1
 """
 
-from pmcal.bridge.plc_runtime.builtins import PlcException
-from pmcal.bridge.plc_runtime.runtime import PlcFault, PlcRuntime, compile_files, compile_project
-from pmcal.bridge.plc_runtime.comptable_plc import PlcTwin  # noqa: E402  (needs the runtime)
+from pmcal.bridge.simulator.plc_runtime.builtins import PlcException
+from pmcal.bridge.simulator.plc_runtime.runtime import PlcFault, PlcRuntime, compile_files, compile_project
+from pmcal.bridge.simulator.plc_runtime.comptable_plc import PlcTwin  # noqa: E402  (needs the runtime)
 
 __all__ = ["PlcException", "PlcFault", "PlcRuntime", "PlcTwin", "compile_files", "compile_project"]

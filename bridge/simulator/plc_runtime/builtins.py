@@ -28,7 +28,7 @@ import zlib
 from dataclasses import dataclass
 from typing import Callable
 
-from pmcal.bridge.plc_runtime.datatypes import ELEMENTARY, DType, elementary
+from pmcal.bridge.simulator.plc_runtime.datatypes import ELEMENTARY, DType, elementary
 
 
 class PlcException(Exception):
@@ -54,7 +54,7 @@ class Builtin:
 
 
 def _real_arg(c, node, pre, check=True):
-    from pmcal.bridge.plc_runtime.compiler import ANYINT, PlcCompileError
+    from pmcal.bridge.simulator.plc_runtime.compiler import ANYINT, PlcCompileError
     e = c.expr(node, pre)
     if e.t.kind == "real":
         return f"_nan({e.code})" if e.arith and check else e.code
@@ -73,7 +73,7 @@ def _args(positional, named, names):
 
 def _math1(pyfn):
     def comp(c, positional, named, pre):
-        from pmcal.bridge.plc_runtime.compiler import LREAL, E
+        from pmcal.bridge.simulator.plc_runtime.compiler import LREAL, E
         (x,) = _args(positional, named, ["IN"])
         c.math_calls += 1
         # no NaN check of the argument: a NaN argument gives a NaN result, checked where it goes
@@ -83,7 +83,7 @@ def _math1(pyfn):
 
 def _math2(pyfn):
     def comp(c, positional, named, pre):
-        from pmcal.bridge.plc_runtime.compiler import LREAL, E
+        from pmcal.bridge.simulator.plc_runtime.compiler import LREAL, E
         a, b = _args(positional, named, ["IN1", "IN2"])
         c.math_calls += 1
         return E(f"{pyfn}({_real_arg(c, a, pre)}, {_real_arg(c, b, pre)})", LREAL, arith=True)
@@ -91,7 +91,7 @@ def _math2(pyfn):
 
 
 def _abs(c, positional, named, pre):
-    from pmcal.bridge.plc_runtime.compiler import E
+    from pmcal.bridge.simulator.plc_runtime.compiler import E
     (x,) = _args(positional, named, ["IN"])
     e = c.expr(x, pre)
     if e.t.kind == "real":
@@ -101,7 +101,7 @@ def _abs(c, positional, named, pre):
 
 def _minmax(fn):
     def comp(c, positional, named, pre):
-        from pmcal.bridge.plc_runtime.compiler import E, _wider
+        from pmcal.bridge.simulator.plc_runtime.compiler import E, _wider
         es = [c.expr(x, pre) for x in positional]
         if any(e.t.kind == "real" for e in es):
             t = next(e.t for e in es if e.t.kind == "real")
@@ -114,7 +114,7 @@ def _minmax(fn):
 
 
 def _limit(c, positional, named, pre):
-    from pmcal.bridge.plc_runtime.compiler import E, _wider
+    from pmcal.bridge.simulator.plc_runtime.compiler import E, _wider
     mn, x, mx = [c.expr(a, pre) for a in _args(positional, named, ["MN", "IN", "MX"])]
     if any(e.t.kind == "real" for e in (mn, x, mx)):
         return E(f"_minr(_maxr({x.code}, {mn.code}), {mx.code})", x.t, arith=x.arith)
@@ -122,13 +122,13 @@ def _limit(c, positional, named, pre):
 
 
 def _sel(c, positional, named, pre):
-    from pmcal.bridge.plc_runtime.compiler import E
+    from pmcal.bridge.simulator.plc_runtime.compiler import E
     g, a, b = [c.expr(x, pre) for x in _args(positional, named, ["G", "IN0", "IN1"])]
     return E(f"({b.code} if {g.code} else {a.code})", a.t, arith=a.arith or b.arith)
 
 
 def _mux(c, positional, named, pre):
-    from pmcal.bridge.plc_runtime.compiler import E
+    from pmcal.bridge.simulator.plc_runtime.compiler import E
     k, *ins = [c.expr(x, pre) for x in positional]
     return E(f"({', '.join(e.code for e in ins)},)[_ix({k.code}, 0, {len(ins) - 1})]", ins[0].t,
              arith=any(e.arith for e in ins))
@@ -136,7 +136,7 @@ def _mux(c, positional, named, pre):
 
 def _trunc(tname):
     def comp(c, positional, named, pre):
-        from pmcal.bridge.plc_runtime.compiler import E
+        from pmcal.bridge.simulator.plc_runtime.compiler import E
         (x,) = _args(positional, named, ["IN"])
         t = elementary(tname)
         return E(t.wrap_code(f"_toint({_real_arg(c, x, pre)})"), t)
@@ -146,7 +146,7 @@ def _trunc(tname):
 def _shift(kind):
     """SHL/SHR/ROL/ROR on the bit width of IN's type (Infosys TC3 PLC, Bit-shift operators)."""
     def comp(c, positional, named, pre):
-        from pmcal.bridge.plc_runtime.compiler import ANYINT, PlcCompileError, E
+        from pmcal.bridge.simulator.plc_runtime.compiler import ANYINT, PlcCompileError, E
         x, n = [c.expr(a, pre) for a in _args(positional, named, ["IN", "N"])]
         t = x.t if x.t is not ANYINT else elementary("DWORD")
         if t.kind not in ("int", "enum"):
@@ -166,13 +166,13 @@ def _shift(kind):
 
 
 def _adr(c, positional, named, pre):
-    from pmcal.bridge.plc_runtime.compiler import POINTER, E
+    from pmcal.bridge.simulator.plc_runtime.compiler import POINTER, E
     (x,) = positional or list(named.values())
     return E(c.address_of(x, pre), POINTER)
 
 
 def _sizeof(c, positional, named, pre):
-    from pmcal.bridge.plc_runtime.compiler import E
+    from pmcal.bridge.simulator.plc_runtime.compiler import E
     (x,) = positional or list(named.values())
     if type(x).__name__ == "SimpleVariable" and c.lookup(str(x.name)) and c.lookup(str(x.name))[0] == "type":
         size = c.lookup(str(x.name))[1].size
@@ -189,7 +189,7 @@ def _sizeof(c, positional, named, pre):
 def _call(pyname, names, ret, mathy=False, sim=False):
     """A library function called with its inputs in ``names`` order (named or positional)."""
     def comp(c, positional, named, pre):
-        from pmcal.bridge.plc_runtime.compiler import PlcCompileError, E
+        from pmcal.bridge.simulator.plc_runtime.compiler import PlcCompileError, E
         vals = _args(positional, named, names)
         if len(vals) != len(names):
             raise PlcCompileError(f"{c.pou.name}: {pyname} needs {', '.join(names)}")
@@ -258,7 +258,7 @@ BUILTINS: dict[str, Builtin] = {
 def conversion(c, name: str, positional, pre):
     """``<SRC>_TO_<DST>`` and ``TO_<DST>``: integers wrap, reals round to nearest-even into integers
     (TRUNC truncates), LREAL_TO_REAL rounds to single precision; NaN/inf into an integer stop the task."""
-    from pmcal.bridge.plc_runtime.compiler import ANYINT, PlcCompileError, E
+    from pmcal.bridge.simulator.plc_runtime.compiler import ANYINT, PlcCompileError, E
     up = name.upper()
     dst_name = up.split("TO_")[-1]
     if dst_name not in ELEMENTARY and dst_name not in ("BOOL",):

@@ -20,10 +20,10 @@ import ast
 import math
 from dataclasses import dataclass, field
 
-from pmcal.bridge.plc_runtime.cost_model import COSTS
-from pmcal.bridge.plc_runtime.datatypes import (ELEMENTARY, DType, PlcTypeError, array_type, elementary,
+from pmcal.bridge.simulator.plc_runtime.cost_model import COSTS
+from pmcal.bridge.simulator.plc_runtime.datatypes import (ELEMENTARY, DType, PlcTypeError, array_type, elementary,
                                                 enum_type, layout, pointer_type, string_type, strides)
-from pmcal.bridge.plc_runtime.source import PlcSourceError, Unit
+from pmcal.bridge.simulator.plc_runtime.source import PlcSourceError, Unit
 
 
 class PlcCompileError(PlcSourceError):
@@ -623,7 +623,7 @@ class Compiler:
     # ================================================================== code generation
     def _generate(self) -> None:
         out = self.out
-        out.append("# generated from TwinCAT ST by pmcal.bridge.plc_runtime.compiler; do not edit")
+        out.append("# generated from TwinCAT ST by pmcal.bridge.simulator.plc_runtime.compiler; do not edit")
         for key, (value, t, py) in self.prog.constants.items():
             out.append(f"{py} = {value!r}")
         for pou in list(self._all_pous()):
@@ -1350,7 +1350,7 @@ class Compiler:
         params = list(node.parameters or [])
         if nkind == "SimpleVariable":
             name = str(name_node.name)
-            from pmcal.bridge.plc_runtime.builtins import BUILTINS
+            from pmcal.bridge.simulator.plc_runtime.builtins import BUILTINS
             if name.upper() in BUILTINS or _is_conversion(name):
                 return self._builtin(name.upper(), params, pre)
             owner = self.pou.parent if self.pou.kind == "method" else self.pou
@@ -1516,7 +1516,7 @@ class Compiler:
             pre.append(lv.write(f"(not {src})" if inverted else src))
 
     def _builtin(self, name: str, params, pre) -> E:
-        from pmcal.bridge.plc_runtime.builtins import BUILTINS, conversion
+        from pmcal.bridge.simulator.plc_runtime.builtins import BUILTINS, conversion
         args = {}
         positional = []
         for p in params:
@@ -1689,7 +1689,7 @@ def _is_conversion(name: str) -> bool:
 
 
 def _const_eval(code: str):
-    from pmcal.bridge.plc_runtime import builtins as b
+    from pmcal.bridge.simulator.plc_runtime import builtins as b
     try:
         return eval(code, b.namespace_for_constants())  # noqa: S307 - our own generated arithmetic
     except Exception:   # division by zero etc.: left to run time
