@@ -861,14 +861,7 @@ class Compiler:
             self._line(ctl.write(ctl.t.wrap_code(f"{ctl.read()} + {step.const}")), indent + 1)
         elif kind == "WhileStatement":
             self._line("while True:", indent)
-            c0 = self.cost
-            c = self.cond(s.expression, pre)
-            self._emit(pre, indent + 1)
-            self._charge(self.cost - c0 + COSTS["loop"], indent + 1)
-            self.cost = c0
-            self._line(f"if not {c}:", indent + 1)
-            self._charge(COSTS["branch"], indent + 2)
-            self._line("break", indent + 2)
+            self._loop_exit(s.expression, pre, indent + 1, when_true=False)
             self.loop_depth += 1
             self._block(s.statements, indent + 1, ret)
             self.loop_depth -= 1
@@ -877,14 +870,7 @@ class Compiler:
             self.loop_depth += 1
             self._block(s.statements, indent + 1, ret)
             self.loop_depth -= 1
-            c0 = self.cost
-            c = self.cond(s.expression, pre)
-            self._emit(pre, indent + 1)
-            self._charge(self.cost - c0 + COSTS["loop"], indent + 1)
-            self.cost = c0
-            self._line(f"if {c}:", indent + 1)
-            self._charge(COSTS["branch"], indent + 2)
-            self._line("break", indent + 2)
+            self._loop_exit(s.expression, pre, indent + 1, when_true=True)
         elif kind == "ReturnStatement":
             self._line(ret, indent)
         elif kind == "ExitStatement":
@@ -913,6 +899,18 @@ class Compiler:
                 self._if(rest, else_clause, indent + 1, ret)
             else:
                 self._block(else_clause.statements, indent + 1, ret)
+
+    def _loop_exit(self, expression, pre: list, indent: int, when_true: bool) -> None:
+        """A loop's test (WHILE: leave when false; REPEAT ... UNTIL: leave when true): its cost and the
+        predicted back edge each pass, the misprediction when it leaves."""
+        c0 = self.cost
+        c = self.cond(expression, pre)
+        self._emit(pre, indent)
+        self._charge(self.cost - c0 + COSTS["loop"], indent)
+        self.cost = c0
+        self._line(f"if {c}:" if when_true else f"if not {c}:", indent)
+        self._charge(COSTS["branch"], indent + 1)
+        self._line("break", indent + 1)
 
     def _charge(self, cycles: int, indent: int) -> None:
         """Add ``cycles`` of the cost model (cost_model.COSTS) to the cycle's work where this line runs."""
