@@ -23,16 +23,19 @@ from pathlib import Path
 import numpy as np
 
 from pmcal.bridge.comptable import CompTable
-from pmcal.campaign_quality import refuse_unusable
+from pmcal.calibration_document import CalibrationDocument
 from pmcal.chain import (campaign_quality, compensate, compensation_table, identify as identify_errors,
                          params_document, table_refusal)
 from pmcal.errors import InputError
-from pmcal.fileio import check_output, write_json
 from pmcal.io_chain import ChainMeasurements, read_params
 
 
+#: the campaign that fixes a calibration flagged not usable (named by refusals)
+CAMPAIGN_FIX = "measure poses spread over the workspace ('pmcal twin plan' plans them)"
+
+
 @dataclass
-class ChainCalibration:
+class ChainCalibration(CalibrationDocument):
     """The identified machine of a folder: its errors and the document that records them.
 
     Attributes
@@ -49,30 +52,12 @@ class ChainCalibration:
     document: dict
     path: str = ""
 
-    @property
-    def params(self) -> dict[str, float]:
-        """Every error considered, ``{key: value}`` in its unit (mm or deg): the identified machine."""
-        return {k: float(v) for k, v in self.document["params"].items()}
-
-    @property
-    def quality(self) -> dict:
-        """The campaign's and the fit's quality (``usable``, ``why``, rank, outliers, held-out check)."""
-        return dict(self.document.get("quality") or {})
-
-    @property
-    def usable(self) -> bool:
-        return self.quality.get("usable", True) is not False
-
-    def _check_usable(self, force: bool) -> None:
-        refuse_unusable(self.document, self.path or self.machine.name, force,
-                        "measure poses spread over the workspace ('pmcal twin plan' plans them)")
-
     def setpoints(self, targets, *, force: bool = False) -> np.ndarray:
         """Motor commands (n, M) (deg revolute, mm prismatic) that put the task point at ``targets`` (n, C),
         in the task's coordinates and units (machine.toml ``[task]``: mm and deg), by the identified
         machine's inverse kinematics. Refused (InputError) for a calibration flagged not usable unless
         ``force``; an unreachable target is an InputError naming its row."""
-        self._check_usable(force)
+        self.refuse_unusable(force, self.machine.name, CAMPAIGN_FIX)
         task = np.atleast_2d(np.asarray(targets, float))
         width = len(self.machine.spec.task.coordinates)
         if task.shape[1] != width:
@@ -89,19 +74,8 @@ class ChainCalibration:
         why = table_refusal(self.machine)
         if why:
             raise InputError(why, field="compensation_table")
-        self._check_usable(force)
+        self.refuse_unusable(force, self.machine.name, CAMPAIGN_FIX)
         return compensation_table(self.machine, self.params, int(version), grid, absolute=absolute)
-
-    def to_document(self) -> dict:
-        """The parameters document (a copy)."""
-        return dict(self.document)
-
-    def save(self, path: str | Path) -> Path:
-        """Write the parameters JSON (what ``pmcal --machine DIR identify`` writes), atomically, after the
-        output guard (:func:`pmcal.fileio.check_output`); returns the path."""
-        check_output(path, suffixes=(".json",))
-        write_json(path, self.document)
-        return Path(path)
 
     @classmethod
     def load(cls, path: str | Path, machine) -> ChainCalibration:

@@ -26,10 +26,10 @@ import numpy as np
 from pmcal.calib.closed_chain import compensate_targets, identify_chain, reading_covariance
 from pmcal.calib.planar.identification import METHODS, MODELS, system
 from pmcal.calib.planar.identification import identify as identify_linear
-from pmcal.campaign_quality import judge, refuse_unusable
+from pmcal.calibration_document import CalibrationDocument
+from pmcal.campaign_quality import judge
 from pmcal.errors import InputError
 from pmcal.export_model import ExportParts, frame_parts
-from pmcal.fileio import check_output, write_json
 from pmcal.planar.io import MECHANISM, PlanarMeasurements, params_document, read_params
 from pmcal.mechanism.machine_spec import MachineSpec
 from pmcal.mechanism.planar.chain import PlanarChainModel
@@ -78,7 +78,7 @@ def rank_deficiency(geom, meas: PlanarMeasurements, model: str, doc: dict) -> st
 
 
 @dataclass
-class PlanarCalibration:
+class PlanarCalibration(CalibrationDocument):
     """The identified planar robot: its parameters document and what the identification found.
 
     Attributes
@@ -96,24 +96,14 @@ class PlanarCalibration:
     deficient: str = ""
     path: str = ""
 
-    @property
-    def params(self) -> dict[str, float]:
-        """The identified errors ``{key: value}``, mm and deg (keys: :mod:`pmcal.mechanism.planar.geometry`)."""
-        return {k: float(v) for k, v in self.document["params"].items()}
-
-    @property
-    def usable(self) -> bool:
-        q = self.document.get("quality")
-        return not (isinstance(q, dict) and q.get("usable") is False)
-
     def setpoints(self, targets, *, force: bool = False) -> np.ndarray:
         """Motor commands (n, 2) deg that bring the identified machine's platform to ``targets`` (n, 2):
         ``x_mm, y_mm`` in the seed frame (the identified machine's inverse kinematics, the zero offsets taken
         off). InputError for a calibration flagged not usable (unless ``force``) or a target out of reach."""
         errors = Errors.from_interface(self.params)
-        refuse_unusable(self.document, self.path or MECHANISM, force,
-                        fix=f"measure at least {2 * len(errors.as_internal())} positions spread over the workspace "
-                            "('pmcal --machine planar_2dof twin measure --poses 24')")
+        self.refuse_unusable(force, MECHANISM,
+                             f"measure at least {2 * len(errors.as_internal())} positions spread over the workspace "
+                             "('pmcal --machine planar_2dof twin measure --poses 24')")
         r = np.atleast_2d(np.asarray(targets, float))
         if r.ndim != 2 or r.shape[1] != 2:
             raise InputError(f"targets need 2 columns (x_mm, y_mm), got shape {r.shape}", field="targets")
@@ -127,16 +117,6 @@ class PlanarCalibration:
     def compensation_table(self, *args, **kwargs):
         """planar_2dof has no PLC table (offline compensation of target lists only): InputError."""
         raise InputError("compensation tables are not available for planar_2dof", field="--table")
-
-    def to_document(self) -> dict:
-        return dict(self.document)
-
-    def save(self, path: str | Path) -> Path:
-        """Write the parameters JSON (what ``pmcal --machine planar_2dof identify`` writes), atomically,
-        after the output guard (:func:`pmcal.fileio.check_output`); returns the path."""
-        check_output(path, suffixes=(".json",))
-        write_json(path, self.document)
-        return Path(path)
 
     @classmethod
     def load(cls, path: str | Path) -> PlanarCalibration:
