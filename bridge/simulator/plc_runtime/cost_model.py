@@ -78,14 +78,10 @@ class CpuModel:
     name: str
     clock_hz: float
 
-    def cycles(self, work: dict) -> float:
-        """Clock cycles of a task's work: ``work['cpu_cycles']`` (the statements' operations) plus the
-        bytes copied and CRC'd at :data:`COPY_BYTES_PER_CYCLE`."""
-        return work["cpu_cycles"] + (work["bytes_copied"] + work["crc_bytes"]) / COPY_BYTES_PER_CYCLE
-
-    def micros(self, work: dict) -> float:
-        """The task's time for ``work`` in µs on this CPU."""
-        return self.cycles(work) / self.clock_hz * 1e6
+    def micros(self, cpu_cycles: float, bytes_moved: float) -> float:
+        """The task's time in µs on this CPU for ``cpu_cycles`` of its statements' operations (the work counter
+        ``cpu_cycles``) and ``bytes_moved`` bytes copied and CRC'd at :data:`COPY_BYTES_PER_CYCLE`."""
+        return (cpu_cycles + bytes_moved / COPY_BYTES_PER_CYCLE) / self.clock_hz * 1e6
 
 
 #: the slowest CPU of the CX5100/CX5200 families (CX5220: Atom E3930, 1.3 GHz, Goldmont)

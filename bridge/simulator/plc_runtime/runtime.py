@@ -247,7 +247,7 @@ class PlcRuntime:
             try:
                 for fn, addr in self._task:
                     fn(addr)
-                self.task_us_last = self.cpu.micros(dict(zip(WORK, work)))
+                self.task_us_last = self.cpu.micros(work[4], work[2] + work[3])   # cpu_cycles; copied + CRC bytes
                 self.task_us_max = max(self.task_us_max, self.task_us_last)
                 for fn, addr, every in self._background:
                     if self.cycles % every == every - 1:
