@@ -372,7 +372,7 @@ def unseen_task_errors(machine, result, poses: int = 8) -> list[str]:
     return [k for k, b, m in zip(keys, blind, moved) if b and m]
 
 
-def params_document(machine, result, source: str | None = None) -> dict:
+def params_document(machine, result, source: str | None = None, unseen: list[str] | None = None) -> dict:
     """The parameters JSON of an identification (docs/formats.md, "Any machine"): ``params`` every error
     considered (mm / deg; the identified machine: each base value spread over the errors it regroups,
     :func:`pmcal.calib.closed_chain.spread_map`), ``units``, the base parameters (``identifiable``), their
@@ -380,7 +380,8 @@ def params_document(machine, result, source: str | None = None) -> dict:
     the order of ``identifiable``), ``prior_covariance`` (the ``[errors]`` prior carried onto the base
     parameters, same order) and ``crlb`` (data alone), what each base value
     estimates (``combinations``), what the data cannot see (``unidentifiable``), ``weak`` ones, fit
-    quality; ``unseen_by_tracker``: errors that move the task point but no reading (:func:`unseen_task_errors`)."""
+    quality; ``unseen_by_tracker``: errors that move the task point but no reading (:func:`unseen_task_errors`;
+    ``unseen`` when already found)."""
     units = dict(zip(machine.twin.error_keys, machine.twin.error_units()))
     return {
         "mechanism": machine.name, "model": "closed_chain", "method": "lm+tikhonov",
@@ -397,7 +398,7 @@ def params_document(machine, result, source: str | None = None) -> dict:
         "n_poses": int(result.n_poses), "source": source, "success": bool(result.success),
         "loops": loop_summary(machine.twin), "held_out": dict(result.info["held_out"]),
         "beyond_prior": list(result.info["beyond_prior"]),
-        "unseen_by_tracker": unseen_task_errors(machine, result),
+        "unseen_by_tracker": unseen_task_errors(machine, result) if unseen is None else list(unseen),
         "message": result.message,
     }
 

@@ -198,7 +198,7 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
         write_measurements(out / "measurements.csv", spec, meas, [
             f"pmcal demo: machine {machine.name}, random errors of machine.toml's sizes, seed {seed}",
             "true errors (mm, deg): " + ", ".join(f"{k}={v:.6g}" for k, v in truth.items())])
-        write_json(out / "params.json", params_document(machine, res, "measurements.csv"))
+        write_json(out / "params.json", params_document(machine, res, "measurements.csv", demo.unseen))
         write_targets(out / "targets.csv", spec, task, [f"pmcal demo: held-out targets, seed {seed + 1000}"])
         write_setpoints(out / "setpoints.csv", spec, task, compensated,
                         ["pmcal demo: compensated commands (identified model's inverse kinematics)"])
