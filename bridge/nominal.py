@@ -27,14 +27,13 @@ Units: angles in degrees at the interface, mm for lengths.
 from __future__ import annotations
 
 import math
-import re
 import struct
 import zlib
 from dataclasses import dataclass
 
 import numpy as np
 
-from pmcal.plc import ROOT as PLC_ROOT
+from pmcal.plc import constant as plc_constant
 
 #: nReference codes of ST_CompTableHeader
 REFERENCE_NONE = 0
@@ -48,16 +47,6 @@ HALF_PI = 1.5707963267948966   # the ST constant (math.pi / 2)
 #: GVL_CompTableParam.ANGLE_ABS_MAX (deg) and RHO_MIN_MM (mm)
 ANGLE_ABS_MAX_DEG = 1.0e6
 RHO_MIN_MM = 1.0e-6
-
-
-def plc_constant(name: str) -> float:
-    """A numeric constant of the shipped PLC project's ``GVL_CompTableParam`` (``plc/GVLs``), e.g.
-    ``REF_A_MM``."""
-    text = (PLC_ROOT / "GVLs" / "GVL_CompTableParam.TcGVL").read_text(encoding="utf-8")
-    found = re.search(rf"^\s*{re.escape(name)}\s*:\s*\w+\s*:=\s*([^;]+);", text, re.M)
-    if found is None:
-        raise KeyError(f"GVL_CompTableParam has no constant {name}")
-    return float(found[1].strip())
 
 
 def atan2_st(y: float, x: float) -> float:
@@ -96,7 +85,7 @@ class NominalReference:
         """The shipped PLC project's reference geometry: ``GVL_CompTableParam.REF_*`` of ``plc/`` (the other
         side of the contract; equal to ocpm_2dof's nominal geometry of ``mjcf/ocpm_2dof/machine.toml``,
         which tests/test_comptable.py checks)."""
-        return cls(*(plc_constant(f"REF_{k.upper()}") for k in cls.KEYS))
+        return cls(*(float(plc_constant(f"REF_{k.upper()}")) for k in cls.KEYS))
 
     def as_dict(self) -> dict:
         return {"kind": "nominal_ik", **{k: float(getattr(self, k)) for k in self.KEYS}}

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 import pmcal.plc
+from pmcal.plc import constant as plc_constant
 
 PLC = Path(pmcal.plc.__file__).parent
 DOCS = Path(__file__).resolve().parent.parent / "docs"
@@ -18,11 +19,6 @@ DOCS = Path(__file__).resolve().parent.parent / "docs"
 def _enum(name: str) -> dict[int, str]:
     text = (PLC / "DUTs" / f"{name}.TcDUT").read_text(encoding="utf-8")
     return {int(v): k for k, v in re.findall(r"^\s*(\w+)\s*:=\s*(\d+)", text, re.M)}
-
-
-def _constant(name: str) -> str:
-    text = (PLC / "GVLs" / "GVL_CompTableParam.TcGVL").read_text(encoding="utf-8")
-    return re.search(rf"^\s*{name}\s*:\s*\w+\s*:=\s*([^;]+);", text, re.M)[1].strip()
 
 
 def _table_rows(text: str) -> dict[int, str]:
@@ -44,7 +40,7 @@ def test_every_manager_state_is_documented():
 
 
 def test_versions_and_sizes_named_in_the_docs_are_the_plcs():
-    interface, fmt = _constant("INTERFACE_VERSION"), _constant("FORMAT_VERSION")
+    interface, fmt = plc_constant("INTERFACE_VERSION"), plc_constant("FORMAT_VERSION")
     bridge = (DOCS / "bridge.md").read_text(encoding="utf-8")
     assert f"interface version ({interface})" in bridge
     readme = (PLC / "README.md").read_text(encoding="utf-8")
@@ -61,7 +57,7 @@ def test_the_modbus_register_range_in_the_docs_is_the_areas():
     """ST_CompTableModbusArea: aWindow at register 384, WINDOW_LREALS LREALs of 4 registers each."""
     area = (PLC / "DUTs" / "ST_CompTableModbusArea.TcDUT").read_text(encoding="utf-8")
     window_at = int(re.search(r"aWindow\s*:.*//\s*(\d+)", area)[1])
-    window = int(_constant("WINDOW_LREALS"))
+    window = int(plc_constant("WINDOW_LREALS"))
     registers = window_at + 4 * window
     text = (DOCS / "commissioning.md").read_text(encoding="utf-8")
     assert f"registers 16#3000 … 16#{0x3000 + registers - 1:X} ({registers:,} registers".replace(",", " ") in text
