@@ -87,13 +87,14 @@ def _finish_command(cmd) -> None:
 
 def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
     """The ``pmcal`` parser for ``machine`` (a built-in name or a machine folder): its commands' options
-    worded for that machine (its application's ``option_help``), options it does not have hidden or
-    absent. ``parser.pmcal_commands`` maps every full command name to its
+    worded for that machine (its application's ``option_help``), the options it does not have (their
+    ``kinds=``) refused. ``parser.pmcal_commands`` maps every full command name to its
     :class:`pmcal.commands.options.Command`; ``selected_machine`` in the parsed namespace is the
     :class:`pmcal.machines.Machine`."""
     selected = machines.resolve(machine)
     parser = OneLineParser(
-        prog="pmcal",
+        # the machine in every usage line and in the '--help' hint of a usage error: the help that applies
+        prog="pmcal" if machine == DEFAULT_MACHINE else f"pmcal --machine {machine}",
         description="Calibrate parallel mechanisms against a MuJoCo digital twin and push the "
                     "compensation to the PLC. Units at every interface: mm and degrees.",
         epilog=EPILOG)
@@ -111,7 +112,7 @@ def build_parser(machine: str = DEFAULT_MACHINE) -> argparse.ArgumentParser:
     record: dict = {}
     describe = "" if selected.name == DEFAULT_MACHINE else f"(machine {selected.name}) "
     commands = CommandSet(parser.add_subparsers(dest="command", metavar="COMMAND"), option_help(selected),
-                          record, _finish_command, describe=describe)
+                          record, selected.spec.kind, selected.name, _finish_command, describe=describe)
     import pmcal.commands as command_modules
     for info in sorted(pkgutil.iter_modules(command_modules.__path__), key=lambda i: i.name):
         module = importlib.import_module(f"pmcal.commands.{info.name}")

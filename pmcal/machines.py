@@ -1,7 +1,6 @@
 """Registry of machines: a built-in name (a folder under ``mjcf/``) or any folder holding ``<name>.xml``
 and ``machine.toml``, and the name of the application module that implements its commands (imported by
-:mod:`pmcal.commands.routing`, the layer above). Also the markers a machine's table of option help uses to
-say what it supports (:data:`HIDDEN`, :data:`ABSENT`; :mod:`pmcal.commands.options`).
+:mod:`pmcal.commands.routing`, the layer above).
 """
 
 from __future__ import annotations
@@ -26,10 +25,6 @@ LEGACY_APPS: dict[str, str] = {
 GENERIC_APP = "pmcal.apps.chain"
 #: the configuration file of a machine folder
 TOML_NAME = "machine.toml"
-#: a machine's option-help table value: the option is accepted but not listed in ``--help``
-HIDDEN = None
-#: a machine's option-help table value: the option does not exist for this machine
-ABSENT = "<absent>"
 
 
 def builtin_names() -> list[str]:

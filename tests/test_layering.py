@@ -37,13 +37,13 @@ def test_the_application_sub_layers_point_one_way_too():
     """An application module (a handler) importing the command parsers, the library importing an
     application, and a file format importing the library are each reported."""
     sources = {
-        "pmcal.apps.chain": "from pmcal.commands.options import ABSENT\n",
+        "pmcal.apps.chain": "from pmcal.commands.options import KIND_NAMES\n",
         "pmcal.machines": "def f():\n    import pmcal.apps.chain\n",
         "pmcal.io_chain": "from pmcal.chain import identify\n",
         "pmcal.commands.routing": "from pmcal.apps import chain\n",
     }
     assert {(v.importer, v.imported) for v in check(sources)} == {
-        ("pmcal.apps.chain", "pmcal.commands.options.ABSENT"), ("pmcal.machines", "pmcal.apps.chain"),
+        ("pmcal.apps.chain", "pmcal.commands.options.KIND_NAMES"), ("pmcal.machines", "pmcal.apps.chain"),
         ("pmcal.io_chain", "pmcal.chain.identify")}
 
 

@@ -10,22 +10,8 @@ from __future__ import annotations
 
 import importlib
 
-from pmcal.machines import ABSENT
 from pmcal.io_chain import setpoint_columns
 
-#: options of the seeded machines' commands that a machine folder does not have (argparse refuses them)
-_NOT_HERE = {
-    "twin measure": ("--preset", "--servo-noise", "--theta-max", "--no-random-approach", "--effect",
-                     "--payload", "--temperature", "--shuffle", "--tracker-pose", "--nest-error", "--blocked",
-                     "--outliers", "--stiffness-ratio"),
-    "twin render": ("--preset", "--stiffness-ratio"),
-    "twin plan": ("--for-diagnosis", "--frame", "--theta-max", "--from"),
-    "demo": ("--full", "--hidden-effect"),
-    "identify": ("--model", "--method", "--seed", "--allow-rank-deficient", "--frame", "--nest-tolerance",
-                 "--robust"),
-    "targets": ("--theta-max",),
-    "diagnose": ("--model", "--frame", "--nest-tolerance", "--params", "--report", "--force"),
-}
 #: choices of ``twin measure --errors`` besides a parameters file
 ERROR_CHOICES = ("random", "none")
 #: defaults of the commands
@@ -40,11 +26,12 @@ def command_defaults(machine) -> dict:
 
 def option_help(machine) -> dict:
     """The command line's wording for ``machine`` (:mod:`pmcal.commands.options`): its columns, units and
-    defaults from its machine.toml; the seeded machines' options it does not have left out."""
+    defaults from its machine.toml (the seeded machines' options it does not have say so where they are
+    added: their ``kinds``)."""
     spec = machine.spec
     task = ", ".join(spec.task.coordinates)
     motors = ", ".join(setpoint_columns(spec))
-    table = {(cmd, opt): ABSENT for cmd, opts in _NOT_HERE.items() for opt in opts}
+    table = {}
     sigma = f"{spec.sigma_mm:g} mm from machine.toml [tracker] sigma_mm"
     table.update({
         ("twin measure", "--errors"): {
@@ -91,7 +78,6 @@ def option_help(machine) -> dict:
         ("loop", "--seed"): "random seed of the errors, the planned campaign and its noise (as 'demo --seed'), "
                             "and of the held-out targets and the tracker's noise on them (default 1)",
         ("loop", "--json"): "write the summary as JSON (rms/max before/after/direct, push, grid, timings)",
-        ("loop", "--preset"): ABSENT, ("loop", "--table"): ABSENT,
     })
     table.update({
         ("twin render", "--pose"): {

@@ -113,11 +113,11 @@ def register(sub: CommandSet) -> None:
     ul.set_defaults(func=cmd_plc_unlock)
 
     lp = sub.add_parser("loop", help="twin in the loop: pointing error before and after a push")
-    lp.add_argument("--table", default=None, metavar="TABLE", role="input",
+    lp.add_argument("--table", default=None, metavar="TABLE", role="input", kinds=("ocpm_2dof",),
                     help="table to push (default: built from the twin's own error set, see --errors)")
     lp.add_argument("--transport", choices=("ads", "modbus"), default="ads",
                     help="mock PLC transport (default ads)")
-    lp.add_argument("--preset", default="paper-table2",
+    lp.add_argument("--preset", default="paper-table2", kinds=("ocpm_2dof",),
                     help="error set of the virtual machine (default paper-table2)")
     lp.add_argument("--errors", default=None, metavar="PARAMS.json", help="error set of the virtual machine",
                     role="input")

@@ -2,13 +2,14 @@
 
 Each command module's ``register(commands)`` adds its parsers with :meth:`CommandSet.add_parser` and
 their options with :meth:`Command.add_argument`, exactly as with argparse, giving the generic help
-text. The selected machine's application module supplies a table of help texts (``option_help``,
-see :mod:`pmcal.machines`): ``(command, option) -> text`` rewords an option for that machine,
-``-> HIDDEN`` keeps it accepted but out of ``--help``, ``-> ABSENT`` leaves it out (argparse then
-refuses it as an unrecognised argument), ``-> {"help": ..., "metavar": ...}`` changes further keywords of
-``add_argument``. ``command`` is the full command name (``"twin measure"``),
-``option`` any of the option's flags (``"-o"`` or ``"--output"``) or a positional's name; the key
-``(command, "")`` rewords the command's own one-line help.
+text. An option that only some machines have says which where it is added: ``kinds=`` the
+``[machine] kind`` values of machine.toml that have it (``"ocpm_2dof"``, ``"planar_2dof"``, ``"chain"``: every
+machine folder); on any other machine the option is refused, in one line naming the machine and the kinds
+that have it (exit 2), and it is not in ``--help``. The selected machine's application module supplies a table
+of help texts (``option_help``): ``(command, option) -> text`` rewords an option for that machine,
+``-> {"help": ..., "metavar": ..., "default": ...}`` changes further keywords of ``add_argument``.
+``command`` is the full command name (``"twin measure"``), ``option`` any of the option's flags (``"-o"`` or
+``"--output"``) or a positional's name; the key ``(command, "")`` rewords the command's own one-line help.
 
 An option that names a file declares its **role** where it is added (``role="input"``, ``"output"`` or
 ``"folder"``; an output's ``suffixes`` and its ``companion``, the file written beside it): the command line
@@ -18,9 +19,11 @@ command is declared.
 
 Example::
 
-    commands = CommandSet(parser.add_subparsers(dest="command"), table={("identify", "--sigma"): HIDDEN})
+    commands = CommandSet(parser.add_subparsers(dest="command"), table={("identify", "--sigma"): "noise, mm"},
+                          record={}, kind="chain", machine="my_delta")
     p = commands.add_parser("identify", help="calibrate")
-    p.add_argument("--sigma", type=float, help="tracker noise, mm")    # accepted, not listed
+    p.add_argument("--sigma", type=float, help="tracker noise")             # worded "noise, mm" here
+    p.add_argument("--robust", action="store_true", help="robust fit", kinds=("ocpm_2dof",))  # refused here
 """
 
 from __future__ import annotations
@@ -29,9 +32,28 @@ import argparse
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from pmcal.machines import ABSENT, HIDDEN  # noqa: F401  (the table's markers: what a machine supports)
+from pmcal.mechanism.machine_spec import LEGACY_KINDS
 
-HelpTable = Mapping[tuple[str, str], "str | dict | None"]
+HelpTable = Mapping[tuple[str, str], "str | dict"]
+#: every ``[machine] kind`` an option's ``kinds=`` may name
+KINDS = ("chain",) + tuple(LEGACY_KINDS)
+#: how a message names the machines of a ``[machine] kind``
+KIND_NAMES = {"chain": "machine folders"}
+
+
+class NotForThisMachine(argparse.Action):
+    """An option the selected machine does not have (its ``kinds=``): taking it is a usage error naming the
+    machine and the kinds that have it. It takes the values the option would (``nargs``), so the message is
+    about the option, not about a value left over."""
+
+    def __init__(self, option_strings, dest, machine: str = "", kinds: tuple[str, ...] = (), **kwargs):
+        self.machine, self.kinds = machine, kinds
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        names = [KIND_NAMES.get(k, k) for k in self.kinds]
+        parser.error(f"{option_string} is not an option of machine {self.machine}: only "
+                     f"{' and '.join(names)} {'have' if len(names) > 1 or names[0].endswith('s') else 'has'} it")
 
 
 @dataclass(frozen=True)
@@ -68,18 +90,24 @@ class Command:
         return default
 
     def add_argument(self, *flags: str, help: str, role: str | None = None, suffixes: tuple[str, ...] = (),
-                     companion: tuple[str, str] | None = None, **kwargs):
-        """:meth:`argparse.ArgumentParser.add_argument` with the machine's help text; None when the option
-        is ABSENT for this machine. ``role``, ``suffixes``, ``companion``: a file option's
-        :class:`FileRole`."""
+                     companion: tuple[str, str] | None = None, kinds: tuple[str, ...] | None = None, **kwargs):
+        """:meth:`argparse.ArgumentParser.add_argument` with the machine's help text. ``kinds``: the
+        ``[machine] kind`` values that have this option (default: every machine); on another machine the
+        option is refused (:class:`NotForThisMachine`) and None is returned. ``role``, ``suffixes``,
+        ``companion``: a file option's :class:`FileRole`."""
+        if kinds is not None and not set(kinds) <= set(KINDS):
+            raise ValueError(f"unknown machine kind in {kinds!r} (known: {', '.join(KINDS)})")
+        if kinds is not None and self.owner.kind not in kinds:
+            nargs = 0 if kwargs.get("action") in ("store_true", "store_false") else kwargs.get("nargs")
+            self._target.add_argument(*flags, action=NotForThisMachine, nargs=nargs, help=argparse.SUPPRESS,
+                                      default=argparse.SUPPRESS, machine=self.owner.machine, kinds=tuple(kinds))
+            return None
         text = self._text(flags, help)
         if isinstance(text, dict):           # wording and other keywords (metavar, ...)
             kwargs = {**kwargs, **text}
             text = kwargs.pop("help", help)
-        if text == ABSENT:
-            return None
         self.flags.update(flags)
-        action = self._target.add_argument(*flags, help=argparse.SUPPRESS if text is HIDDEN else text, **kwargs)
+        action = self._target.add_argument(*flags, help=text, **kwargs)
         if role is not None:
             if role not in ("input", "output", "folder"):
                 raise ValueError(f"unknown file role {role!r}")
@@ -98,7 +126,7 @@ class Command:
         """Sub-commands of this command (``twin measure``): a :class:`CommandSet` named after it."""
         kwargs.setdefault("parser_class", type(self.parser))
         o = self.owner
-        return CommandSet(self.parser.add_subparsers(**kwargs), o.table, o.record, o.finish,
+        return CommandSet(self.parser.add_subparsers(**kwargs), o.table, o.record, o.kind, o.machine, o.finish,
                           prefix=f"{self.name} ", describe=o.describe)
 
     def set_defaults(self, **kwargs) -> None:
@@ -106,12 +134,15 @@ class Command:
 
 
 class CommandSet:
-    """The sub-commands of one parser level. ``record`` collects every command by full name
-    (``"twin measure"``) in order of creation; ``finish`` runs on each once all are registered."""
+    """The sub-commands of one parser level for one machine: ``kind`` its ``[machine] kind`` (which options
+    it has), ``machine`` its name (in messages), ``table`` its wording (:data:`HelpTable`). ``record``
+    collects every command by full name (``"twin measure"``) in order of creation; ``finish`` runs on each
+    once all are registered."""
 
-    def __init__(self, action, table: HelpTable, record: dict[str, Command],
+    def __init__(self, action, table: HelpTable, record: dict[str, Command], kind: str, machine: str,
                  finish: Callable[[Command], None] | None = None, prefix: str = "", describe: str = ""):
         self.action, self.table, self.record, self.finish = action, table, record, finish
+        self.kind, self.machine = kind, machine
         self.prefix, self.describe = prefix, describe
 
     def add_parser(self, name: str, **kwargs) -> Command:

@@ -8,12 +8,8 @@ from __future__ import annotations
 
 import importlib
 
-from pmcal.machines import ABSENT, HIDDEN
-
 #: this machine's wording of the commands' options (:mod:`pmcal.commands.options`)
 OPTION_HELP = {
-    ("twin measure", "--plan"): ABSENT, ("compensate", "--absolute"): ABSENT,
-    ("twin measure", "--servo-noise"): HIDDEN, ("identify", "--allow-rank-deficient"): HIDDEN,
     ("twin measure", "--poses"): "number of poses, 1..2000 (default 24)",
     ("identify", "--model"): "error model: whole closed chain (full, default) or the paper's per-limb real "
                              "IK (paper)",
@@ -21,6 +17,8 @@ OPTION_HELP = {
                               "tikhonov, tsvd; --model full the whole-chain least squares",
     ("twin measure", "--preset"): "built-in error set: nominal (default) or paper-table2",
     ("twin render", "--preset"): "built-in error set: nominal (default) or paper-table2",
+    ("demo", "--out"): "output folder (report, tables), replaced as a whole; default pmcal-demo, "
+                       "pmcal-demo-hidden with --hidden-effect. A folder holding files pmcal did not write is refused",
 }
 
 #: command -> module that implements it (a function of the same name taking the parsed arguments)

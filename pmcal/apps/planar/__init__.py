@@ -12,20 +12,11 @@ import math
 
 import numpy as np
 
-from pmcal.machines import ABSENT, HIDDEN
 from pmcal.errors import InputError, RunError, for_option
 from pmcal.option_ranges import parse_task_pose
 
 #: this machine's wording of the commands' options (:mod:`pmcal.commands.options`)
 OPTION_HELP = {
-    ("twin measure", "--plan"): ABSENT, ("compensate", "--absolute"): ABSENT,
-    **{("twin measure", o): HIDDEN for o in ("--stiffness-ratio", "--effect", "--payload", "--temperature",
-                                              "--shuffle", "--seconds-per-pose", "--theta-max",
-                                              "--no-random-approach", "--tracker-pose", "--nest-error",
-                                              "--blocked", "--outliers")},
-    **{("identify", o): HIDDEN for o in ("--frame", "--nest-tolerance", "--robust")},
-    ("twin render", "--stiffness-ratio"): HIDDEN, ("compensate", "--table"): HIDDEN,
-    ("compensate", "--grid"): HIDDEN, ("compensate", "--table-version"): HIDDEN,
     ("twin measure", "--poses"): "number of positions on the workspace boundary, even, 6..2000 (default 6, "
                                  "the paper's)",
     ("twin measure", "--noise"): "linear-scale noise, standard deviation, mm (default the paper's eq. 34)",
@@ -38,7 +29,6 @@ OPTION_HELP = {
                              "12 (full; rank 9, see --allow-rank-deficient)",
     ("identify", "--method"): "tsvd (default, eq. 29), ls (eq. 25) or gls (whitened TSVD)",
     ("identify", "--sigma"): "linear-scale noise, mm (default the paper's eq. 34)",
-    ("identify", "--seed"): HIDDEN,
     ("compensate", "--targets"): "targets CSV: x_mm, y_mm ('pmcal --machine planar_2dof targets' writes "
                                  "one)",
     ("compensate", "-o"): "setpoints CSV to write: the targets with theta1_deg, theta2_deg appended",
@@ -72,8 +62,6 @@ def _machine():
 def identify(args) -> int:
     """``pmcal --machine planar_2dof identify MEAS.csv -o PARAMS.json [--model full|chain] [--method tsvd|ls|gls]``:
     :func:`pmcal.planar.calibration.identify`, its document written, one line printed."""
-    if getattr(args, "history", None):
-        raise InputError("--history files ocpm_2dof calibrations only", field="--history")
     from pmcal.planar.io import read_measurements
     from pmcal.planar.calibration import identify as run
 
@@ -109,8 +97,6 @@ def compensate(args) -> int:
     from pmcal.planar.io import read_targets, write_setpoints
     from pmcal.planar.calibration import PlanarCalibration
 
-    if getattr(args, "table", None) or getattr(args, "grid", None):
-        raise InputError("compensation tables are not available for planar_2dof", field="--table")
     if not getattr(args, "targets", None) or not getattr(args, "output", None):
         raise InputError("planar_2dof needs --targets TARGETS.csv and -o SETPOINTS.csv", field="--targets")
     cal = PlanarCalibration.load(args.params)
@@ -189,8 +175,6 @@ def targets(args) -> int:
 
     if not 2 <= args.count <= 100_000:
         raise InputError(f"count must be 2..100000, got {args.count}", field="--count")
-    if args.theta_max is not None:
-        raise InputError("--theta-max is for ocpm_2dof; planar targets are positions", field="--theta-max")
     machine = _machine()
     r = boundary_positions(machine.workspace, (args.count + 1) // 2)[: args.count]
     write_csv(args.output, ["x_mm", "y_mm"], ([f"{x:.4f}", f"{y:.4f}"] for x, y in r),

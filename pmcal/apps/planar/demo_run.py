@@ -117,8 +117,6 @@ def demo(args) -> int:
     from pmcal.apps.planar.study import GROUPS, PAPER, evaluate_at, run_study, settings
     from pmcal.twin.planar.twin import PlanarTwin, commands_for, measure
 
-    if getattr(args, "hidden_effect", None):
-        raise InputError("hidden effects are not available for planar_2dof", field="--hidden-effect")
     runs = int(getattr(args, "runs", None) or DEFAULT_RUNS)
     seed = int(getattr(args, "seed", 1))
     draw = bool(getattr(args, "picture", True))
