@@ -301,12 +301,30 @@ def _main(argv: list[str] | None = None) -> int:
         print(f"pmcal: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     except Exception as exc:         # noqa: BLE001 -- last resort: one line, never a traceback
+        stop = _interruption(exc)
+        if stop is not None:         # Ctrl-C inside an extension's import: MuJoCo re-raises it as ImportError
+            print("pmcal: terminated; nothing half-written" if isinstance(stop, Terminated)
+                  else "pmcal: interrupted; nothing half-written", file=sys.stderr)
+            return TERMINATED_STATUS if isinstance(stop, Terminated) else 130
         if verbose:
             import traceback
             traceback.print_exc()
         print(f"pmcal: failed: {type(exc).__name__}: {exc} (a bug: please report it with --verbose output)",
               file=sys.stderr)
         return 1
+
+
+def _interruption(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C (or SIGTERM) that caused ``exc``, if one did: an extension module whose initialisation is
+    interrupted (``import mujoco`` takes a second) raises ``ImportError: initialization failed`` from the
+    KeyboardInterrupt, which is the user's stop, not a bug."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def _name_other_machine(exc: InputError, args) -> InputError:
