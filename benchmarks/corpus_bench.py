@@ -26,8 +26,8 @@ from pmcal.cli import main as pmcal_main  # noqa: E402
 
 CORPUS = Path(__file__).resolve().parent.parent / "tests" / "corpus"
 
-#: closed-chain MJCF models found in public repositories but not in the corpus: no licence file (all rights
-#: reserved), so they cannot be committed. Kept here so that a licence added upstream can be picked up.
+#: closed-chain models (MJCF, URDF, SDF) found in public repositories but not in the corpus: no licence file (all
+#: rights reserved), so they cannot be committed. Kept here so that a licence added upstream can be picked up.
 NOT_LICENSED = {
     "delta with ball-joint rods and a gripper (onshape-to-robot)":
         "github.com/jurmy24/delta-simulation simulation/delta-robot/robot.xml @0f8b393e",
@@ -38,6 +38,14 @@ NOT_LICENSED = {
     "spherical parallel manipulator (onshape-to-robot)":
         "github.com/Rhoban/placo-examples models/spm/robot.xml @3edf600f",
     "planar five-bar": "github.com/TumAro/5_bar five_bar.xml @61c3afe3",
+    # issue 34 item 8, second search (kinds (a)-(c) still missing; none permissively licensed)
+    "spatial delta, ball-jointed parallelogram rods (Gazebo SDF, closed natively)":
+        "github.com/ArchiRob/delta_2 gazebo/models/delta_robot/model.sdf @0ae32d86: no licence file; package.xml "
+        "says Apache 2.0 but was copied from ROBOTIS's dynamixel-workbench template (its URLs too), not a grant; "
+        "upstream github.com/lachie-aerialrobotics/delta_2 @672af412 has no delta model and no licence file either",
+    "spatial delta with universal-joint legs (URDF, loops closed in PyBullet code)":
+        "github.com/RicoJia/Omnid_Project omnid/urdf/delta_robot_pybullet.urdf @f9c3c21d: no licence file; "
+        "package.xml says only 'BSD' (no clause, no copyright holder)",
 }
 
 
