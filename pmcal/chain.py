@@ -354,8 +354,11 @@ def unseen_task_errors(machine, result, poses: int = 8) -> list[str]:
     """Errors that move the task point but that the campaign's readings do not see: the data leave them at
     their prior (:attr:`~pmcal.calib.closed_chain.ChainIdentResult.error_covariance`), so no compensation
     corrects them (a task site on a body no tracker nest sits on, e.g. a CAD export's end-effector frame).
-    Named when, at their prior size, they move the task point by more than the tracker noise somewhere
-    among ``poses`` commands drawn over the workspace. Empty without a prior."""
+    Named when, at their prior size and somewhere among ``poses`` commands drawn over the workspace, they
+    move the task point by more than the tracker noise and no reading by more than the noise (a reading
+    relative to a reference pose: its change from the first pose). An error the readings see only in a
+    combination with others (a coupler's offset beside a motor zero) also stays at its prior, but the
+    combination is identified and the task sees the same one: it is not named. Empty without a prior."""
     if result.error_covariance is None:
         return []
     keys = list(result.params)
@@ -364,12 +367,17 @@ def unseen_task_errors(machine, result, poses: int = 8) -> list[str]:
     blind = np.sqrt(np.clip(np.diag(result.error_covariance), 0.0, None)) > UNSEEN_FRACTION * prior
     if not blind.any():
         return []
-    J = twin.task_jacobian(twin.sample_commands(poses, np.random.default_rng(0)), result.params, keys)
+    commands = twin.sample_commands(poses, np.random.default_rng(0))
+    J = twin.task_jacobian(commands, result.params, keys)
     coords = machine.spec.task.coordinates
     limit = np.array([result.sigma_mm if c.endswith("_mm") else np.rad2deg(result.sigma_mm / UNSEEN_ARM_MM)
                       for c in coords])
     moved = (np.nanmax(np.abs(J) * prior, axis=0) > limit[:, None]).any(axis=0)
-    return [k for k, b, m in zip(keys, blind, moved) if b and m]
+    O = twin.observation_jacobian(commands, result.params, keys)               # (N, R, P) mm per key unit
+    if twin.reading_reference is not None:
+        O = O - O[:1]
+    seen = np.nanmax(np.abs(O) * prior, axis=(0, 1)) > result.sigma_mm
+    return [k for k, b, m, v in zip(keys, blind, moved, seen) if b and m and not v]
 
 
 def params_document(machine, result, source: str | None = None, unseen: list[str] | None = None) -> dict:
