@@ -25,7 +25,7 @@ of at most 10 % of their ranges. An over-constrained loop (a planar loop closed 
 carrying an out-of-plane error, a parallelogram's second rod, a closing hinge made of two ``connect``s)
 cannot close exactly: the least-squares solution is kept when the joints can reduce its gap no further
 (the gap's part in the range of the closure Jacobian below 1e-5 mm) and the gap left, taken up by the
-joints' play, is below :data:`PLAY` mm. A site-based ``weld``: the distance vector (mm) and the rotation vector
+joints' play, is below :data:`PLAY` mm or :data:`PLAY_FRACTION` of the machine's size, the larger. A site-based ``weld``: the distance vector (mm) and the rotation vector
 between the two site frames (mrad); body-based welds are not simulated (no corpus model has one). A ``joint`` equality
 (coupled drivers) is a residual row ``q1 - q1_0 - poly(q2 - q2_0)`` (rad).
 
@@ -45,7 +45,9 @@ from scipy.spatial.transform import Rotation
 POSITION = ("x_mm", "y_mm", "z_mm")
 SUBSTEP = 0.1
 PLAY = 10.0         # mm: the largest gap an over-constrained loop may leave to the joints' play (random
-#                     0.1 deg tilts over the five-bar's 0.9 m loop leave up to 6 mm out of its plane)
+#                     0.1 deg tilts over the five-bar's 0.9 m loop leave up to 6 mm out of its plane) ...
+PLAY_FRACTION = 0.01  # ... or this fraction of the machine's size (its bodies' extent at home), if larger: a
+#                     4 m four-bar's 0.3 deg axis tilts leave up to 13 mm
 
 
 class SimMachine:
@@ -80,6 +82,10 @@ class SimMachine:
         home = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, mach.get("home", "home"))
         self.home = m.key_qpos[home].copy() if home >= 0 else m.qpos0.copy()
         self.home_cmd = self.commands_of(self.home)
+        self.data.qpos[:] = self.home
+        mujoco.mj_kinematics(m, self.data)
+        extent = np.ptp(self.data.xpos[1:], axis=0) * 1e3 if m.nbody > 1 else np.zeros(3)
+        self.play = max(PLAY, PLAY_FRACTION * float(np.linalg.norm(extent)))     # mm
         self.home = self._close(self.home)
         self.target_ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, t) for t in self.targets]
         self.task_id = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, self.task_site)
@@ -198,7 +204,7 @@ class SimMachine:
             return q
         J = sol.jac                                                # over-constrained: what can the joints still move?
         movable = J @ np.linalg.lstsq(J, gap, rcond=None)[0] if J.size else np.zeros_like(gap)
-        if np.max(np.abs(movable)) > 1e-5 or np.max(np.abs(gap)) > PLAY:
+        if np.max(np.abs(movable)) > 1e-5 or np.max(np.abs(gap)) > self.play:
             return np.full(m.nq, np.nan)
         return q
 
