@@ -35,6 +35,7 @@ import numpy as np
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write, check_output
 from pmcal.io_chain import read_params as read_chain_params
+from pmcal.twin.closed_chain import REDUNDANT_NUMERIC
 from pmcal.twin.export import calibrated_xml
 
 #: What the machine.toml written beside a calibrated MJCF starts with: an existing file of that name is
@@ -120,10 +121,13 @@ def frame_parts(twin, spec, params: dict):
     shift = twin.errors.zero_offset * twin.motor_unit                  # SI, per motor
     qpos[twin.motor_qadr] -= shift
     refs = {mot.joint: float(m.qpos0[a] - d) for mot, a, d in zip(spec.motors, twin.motor_qadr, shift) if d}
+    # an over-constrained loop: which equations the joints' play takes up stays the design's (the twin of the
+    # exported model reads it back instead of finding it at its own, error-tilted home)
+    custom = {REDUNDANT_NUMERIC: twin.redundant_directions.ravel()} if len(twin.redundant_directions) else {}
     if spec.home is None:                       # the default configuration: written as a 'home' keyframe
-        return m, dict(joint_ref=refs, keyframe=("home", qpos, np.zeros(m.nu)))
+        return m, dict(joint_ref=refs, keyframe=("home", qpos, np.zeros(m.nu)), custom=custom)
     key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, spec.home)
-    return m, dict(joint_ref=refs, keyframe=(spec.home, qpos, m.key_ctrl[key].copy()))
+    return m, dict(joint_ref=refs, keyframe=(spec.home, qpos, m.key_ctrl[key].copy()), custom=custom)
 
 
 def chain_parts(params_path: str, machine) -> ExportParts:

@@ -163,14 +163,20 @@ def _source(name: str) -> Path:
     return CORPUS / name if (CORPUS / name).is_dir() else machine_dir(name)
 
 
-@pytest.mark.parametrize("name", ["delta_3dof", "hexapod_6dof", "reachy_mini"])
+#: every corpus model pmcal takes (the gripper is refused at load, tests/test_corpus.py)
+CORPUS_MODELS = sorted(p.name for p in CORPUS.iterdir() if (p / "machine.toml").is_file() and p.name != "robotiq_2f85")
+
+
+@pytest.mark.parametrize("name", ["delta_3dof", "hexapod_6dof", *CORPUS_MODELS])
 def test_folder_machine_export_is_the_identified_machine(name, tmp_path, capsys):
     """``pmcal --machine DIR export-model`` on a copy of a folder machine (its MJCF places bodies and sites
     in ``<frame>`` elements; the hexapod's motors are prismatic): with random errors on every frame and
     motor zero, the exported MJCF, read by plain MuJoCo at the twin's assembled configuration (motor joints
-    at command - zero), closes every loop (equality residuals ~0) and puts the tracker nests where the twin
-    with those errors puts them; and as a folder of its own (the exported TOML as machine.toml) its error-free
-    twin is the identified machine at fresh poses."""
+    at command - zero), closes every loop (equality residuals ~0; an over-constrained loop, a planar one closed
+    by a 3-D connect, keeps the gap its out-of-plane errors leave, as the real part's strain does) and puts the
+    tracker nests where the twin with those errors puts them (1e-6 mm); and as a folder of its own (the
+    exported TOML as machine.toml) its error-free twin is the identified machine at fresh poses. Every corpus
+    model MuJoCo loads (issue 34)."""
     import shutil
 
     from pmcal.chain import random_errors
@@ -199,12 +205,16 @@ def test_folder_machine_export_is_the_identified_machine(name, tmp_path, capsys)
         d.qpos[twin.motor_qadr] -= shift
         mujoco.mj_forward(m, d)
         eq = d.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY
-        assert np.abs(d.efc_pos[eq]).max() < 1e-9                       # m: every loop closed
+        if not len(twin.redundant_directions):      # an over-constrained loop keeps the gap its errors leave
+            assert np.abs(d.efc_pos[eq]).max() < 1e-9                   # m: every loop closed
         assert np.abs(d.site_xpos[sites] - ni).max() < 1e-9             # m: the nests where the twin has them
     (out.parent / "calibrated.toml").rename(out.parent / "machine.toml")
     again = Machine.from_folder(out.parent)
     fresh = twin.sample_commands(12, rng)
-    assert np.abs(again.twin.targets(fresh, None) - twin.targets(fresh, truth)).max() < 1e-6    # mm
+    # a ball-ball rod's free spin, which the errors couple to the nests (gepetto_wl16: 0.1 mm/rad), sits where
+    # each solve's path leaves it: the same machine up to far less than the tracker noise
+    tol = 1e-6 if not twin.n_free else mach.spec.sigma_mm
+    assert np.abs(again.twin.targets(fresh, None) - twin.targets(fresh, truth)).max() < tol    # mm
 
 
 def _tetrahedron_stl(path: Path, size_m: float = 0.01) -> None:

@@ -77,6 +77,10 @@ from pmcal.twin.closures import compile_with_site_closures
 from pmcal.twin.frame_errors import DEG, MM, FrameErrors
 from pmcal.twin.overconstraint import redundant_directions
 
+#: custom numeric of an exported model: the redundant closure directions of the machine it was calibrated
+#: from (rows of ``n_equations`` numbers, :meth:`ClosedChainTwin._read_redundancy`)
+REDUNDANT_NUMERIC = "pmcal_redundant_directions"
+
 _OBJ = mujoco.mjtObj
 _EQ = mujoco.mjtEq
 _JNT = mujoco.mjtJoint
@@ -151,6 +155,7 @@ class ClosedChainTwin:
         self._read_closures()
         self._read_sites()
         self.home_qpos = self._read_home()
+        self._read_redundancy()
         self._check_mobility()
         # Under frames = "all" the closure sites carry errors; the tracker nests do not (they define the
         # moving frames they sit on: their coordinates there come from a CMM or the drawing), nor does the
@@ -163,19 +168,42 @@ class ClosedChainTwin:
         self._warm_cmd = np.zeros((0, self.n_motors))
         self._warm_qpos = np.zeros((0, m.nq))
         self.home_commands = self._commands_of(self.home_qpos[None])[0]
-        self._read_redundancy()
         self._read_task_frame()
 
     def _read_redundancy(self) -> None:
         """The closure equations' redundant directions at ``home`` (:mod:`pmcal.twin.overconstraint`), and
-        without ``[closures]`` compliance the projection that closes the loops along the others only."""
-        jp, jr = self._kin(self.home_qpos, closure_only=True)
-        C = self._closure(jp, jr)[1][: self.n_equations]
-        D = redundant_directions(C[:, self.passive])
+        without ``[closures]`` compliance the projection that closes the loops along the others only.
+
+        A model pmcal exported (``export-model``) carries the directions of the machine it was calibrated
+        from in the custom numeric :data:`REDUNDANT_NUMERIC`: which of a loop's equations its joints' play
+        takes up is the design's, not the errors'. Its geometry holds the identified errors, which tilt a
+        planar loop's axes out of parallel, so at its own home the directions would differ (a rigid tilted
+        four-bar does not move at all), and the exported machine would not be the identified one."""
+        stored = mujoco.mj_name2id(self.model, _OBJ.mjOBJ_NUMERIC, REDUNDANT_NUMERIC)
+        if stored >= 0:
+            D = self._stored_redundancy(stored)
+        else:
+            jp, jr = self._kin(self.home_qpos, closure_only=True)
+            C = self._closure(jp, jr)[1][: self.n_equations]
+            D = redundant_directions(C[:, self.passive])
         #: (n_redundant, n_equations) unit rows: equation combinations no joint motion changes at home
         self.redundant_directions = D
         if len(D) and not self.spec.closures:
             self._keep = np.eye(self.n_equations) - D.T @ D
+
+    def _stored_redundancy(self, index: int) -> np.ndarray:
+        """The redundant directions (n, n_equations) of the custom numeric ``index``; InputError naming the
+        file when they do not fit this model's closures."""
+        m = self.model
+        adr, size = int(m.numeric_adr[index]), int(m.numeric_size[index])
+        data = np.array(m.numeric_data[adr: adr + size], float)
+        D = data.reshape(-1, self.n_equations) if self.n_equations and size % self.n_equations == 0 else None
+        if D is None or not np.allclose(D @ D.T, np.eye(len(D)), atol=1e-6):
+            raise InputError(f"custom numeric {REDUNDANT_NUMERIC} holds {size} numbers, not orthonormal rows of "
+                             f"this model's {self.n_equations} closure equations (written by export-model for "
+                             "the model it exported; remove it to have them found at home)", file=self._file,
+                             field=REDUNDANT_NUMERIC)
+        return D
 
     #: Closure residual (m) up to which the model's default configuration counts as closed when there is no
     #: ``home`` keyframe (a CAD export's rounding: 1e-7 m on Reachy Mini); it is then assembled exactly.
@@ -199,8 +227,12 @@ class ClosedChainTwin:
         return q
 
     #: Relative size (of the largest singular value) below which a direction of the passive dofs counts as
-    #: free of the closures, and motion (m per unit, of the nests or the task site) above which it matters.
-    FREE_RTOL, FREE_MOVES_M = 1e-9, 1e-9
+    #: free of the closures, and motion (m per unit, of the nests or the task site) above which it matters:
+    #: FREE_MOVES_M, or FREE_MOVES_SHARE of the machine's size (its bodies' extent at home) if larger. A
+    #: missing motor moves the nests by about a link's length per radian; a ball-ball rod's free spin moves
+    #: them not at all on the drawing, and by about the size of the geometric errors per radian on a machine
+    #: whose joint axes the errors moved (a calibrated model, export-model: 0.1 mm/rad on gepetto_wl16).
+    FREE_RTOL, FREE_MOVES_M, FREE_MOVES_SHARE = 1e-9, 1e-9, 0.01
 
     def _check_mobility(self) -> None:
         """InputError naming the joints when, at ``home``, the closures leave a direction of the passive dofs
@@ -213,12 +245,17 @@ class ClosedChainTwin:
         _, sv, vt = np.linalg.svd(Cp, full_matrices=True)
         rank = int(np.sum(sv > self.FREE_RTOL * max(sv.max(initial=0.0), 1e-30)))
         free = vt[rank:].T                                              # (npassive, nfree)
+        #: passive directions the closures leave free at home (a ball-ball rod's spin): every solve leaves
+        #: them where they are, so where a calibrated model's errors couple them to the nests, slightly
+        #: (0.1 mm/rad), the nests depend on the path a solve took, by far less than the tracker noise
+        self.n_free = int(free.shape[1])
         if not free.size:
             return
         seen = np.concatenate([np.arange(self._n_closure_points, len(self.points))])
         moves = np.concatenate([jp[seen][..., self.passive], jr[seen][..., self.passive]]).reshape(-1, len(self.passive))
         motion = moves @ free                                            # (rows, nfree)
-        if np.max(np.abs(motion), initial=0.0) <= self.FREE_MOVES_M:
+        extent = float(np.linalg.norm(np.ptp(self.data.xpos[1:], axis=0))) if self.model.nbody > 1 else 0.0
+        if np.max(np.abs(motion), initial=0.0) <= max(self.FREE_MOVES_M, self.FREE_MOVES_SHARE * extent):
             return
         u, _, _ = np.linalg.svd(motion.T @ motion)
         direction = free @ u[:, 0]                                       # the free direction that moves most

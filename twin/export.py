@@ -219,8 +219,11 @@ def calibrated_xml(template: str | Path, model: mujoco.MjModel, *, header: list[
         if cu is None:
             cu = ET.Element("custom")
             root.insert(_index_before(root, ("worldbody", "asset")), cu)
-        for name, data in custom.items():
-            ET.SubElement(cu, "numeric", name=name, data=numbers(data))
+        for name, data in custom.items():          # a numeric of the template's own (a re-export): replaced
+            num = next((n for n in cu.iter("numeric") if n.get("name") == name), None)
+            if num is None:
+                num = ET.SubElement(cu, "numeric", name=name)
+            num.set("data", numbers(data))
     ET.indent(tree, space="  ")
     body = ET.tostring(root, encoding="unicode")
     text = "\n".join(line.replace("--", "- -") for line in header)
