@@ -481,8 +481,13 @@ class ClosedChainTwin:
         if with_jac and self._weld.any():
             w1, w2 = self._c1[self._weld], self._c2[self._weld]
             J.append((jr[:, w1] - jr[:, w2]).reshape(A, -1, nv))
-        r = self._project(r * self._sqrt_w)
-        J = self._project(np.concatenate(J, axis=1) * self._sqrt_w[:, None]) if with_jac else None
+        r = r * self._sqrt_w
+        if with_jac:
+            J = np.concatenate(J, axis=1) * self._sqrt_w[:, None]
+            keep = self._local_keep(J[..., self.passive])
+            r, J = self._project(r, keep), self._project(J, keep)
+        else:
+            r, J = self._project(r, self._keep), None
         if len(self._spring_dof) or len(self._cpl_q1):
             rj, Jj = self._joint_rows(qpos, with_jac)
             r = np.concatenate([r, rj], axis=1)
@@ -499,9 +504,36 @@ class ClosedChainTwin:
             r.append(_rotation_error(sm[:, w1].reshape(-1, 3, 3), sm[:, w2].reshape(-1, 3, 3)).reshape(len(sp), -1))
         return np.concatenate(r, axis=1)
 
-    def _project(self, rows: np.ndarray) -> np.ndarray:
-        """Weighted closure rows (A, n_eq, ...) without their redundant directions (:meth:`_read_redundancy`)."""
-        return rows if self._keep is None else np.einsum("ij,aj...->ai...", self._keep, rows)
+    def _local_keep(self, Cp: np.ndarray) -> np.ndarray | None:
+        """The projections (A, n_eq, n_eq) of the weighted closure rows off their redundant directions at A
+        configurations, from the closure Jacobian's passive columns ``Cp`` (A, n_eq, npassive): the left
+        singular directions of its ``len(redundant_directions)`` smallest singular values (the redundant
+        directions found at ``home``, followed to this configuration and to these errors). None without
+        redundancy or with ``[closures]`` compliance (:meth:`_read_redundancy`).
+
+        Projecting at each configuration rather than with ``home``'s directions makes the assembly the
+        joints' best closure wherever the machine is: the gap left is the part of the loop's misfit no joint
+        motion changes (the part its play or strain takes). The identified errors tilt a planar loop's axes;
+        home's directions then leave part of the gap to the joints at other poses, forward and inverse
+        kinematics settle on two different compromises (ToddlerBot's neck: 0.005-0.015 deg apart, more than
+        its calibration's predicted error) and the twin and a least-squares simulator disagree."""
+        if self._keep is None:
+            return None
+        n_red = len(self.redundant_directions)
+        ok = np.isfinite(Cp).all(axis=(1, 2))
+        keep = np.broadcast_to(np.eye(Cp.shape[1]), (len(Cp),) + (Cp.shape[1],) * 2).copy()
+        if ok.any():
+            U = np.linalg.svd(Cp[ok], full_matrices=True)[0][..., -n_red:]          # (n, n_eq, n_red)
+            keep[ok] -= U @ np.swapaxes(U, 1, 2)
+        return keep
+
+    @staticmethod
+    def _project(rows: np.ndarray, keep: np.ndarray | None) -> np.ndarray:
+        """Weighted closure rows (A, n_eq, ...) without their redundant directions: ``keep`` (n_eq, n_eq) or
+        per configuration (A, n_eq, n_eq) (:meth:`_local_keep`); None leaves them."""
+        if keep is None:
+            return rows
+        return np.einsum("ij,aj...->ai..." if keep.ndim == 2 else "aij,aj...->ai...", keep, rows)
 
     def _newton_batch(self, Q: np.ndarray, tol: np.ndarray, goals: np.ndarray | None = None) -> np.ndarray:
         """Assemble the configurations ``Q`` (A, nq) in place with the motor joints held (or, with task
@@ -519,7 +551,9 @@ class ClosedChainTwin:
         cols = self.passive if goals is None else np.arange(nv)
         tp = self._task_p
         need_jr = weld or (goals is not None and not all(c in POSITION for c in self.spec.task.coordinates))
-        two_pass = rigid and goals is None
+        # residuals first, Jacobians only for the poses not yet met; not with redundant loops, whose residual
+        # is projected with the Jacobian of each configuration (:meth:`_local_keep`)
+        two_pass = rigid and goals is None and self._keep is None
         for _ in range(self.MAX_ITER):
             if not active.size:
                 break
@@ -841,7 +875,9 @@ class ClosedChainTwin:
         Ce = np.concatenate([dP[:, self._c1] - dP[:, self._c2],
                              dW[:, self._c1[self._weld]] - dW[:, self._c2[self._weld]]],
                             axis=1).reshape(N, -1, len(keys))
-        C, Ce = self._project(C * self._sqrt_w[:, None]), self._project(Ce * self._sqrt_w[:, None])   # weights
+        C, Ce = C * self._sqrt_w[:, None], Ce * self._sqrt_w[:, None]                                  # weights
+        keep = self._local_keep(C[..., self.passive])
+        C, Ce = self._project(C, keep), self._project(Ce, keep)
         if len(self._spring_dof) or len(self._cpl_q1):                    # joint springs and equalities
             Cs = np.zeros((N, len(self._spring_dof) + len(self._cpl_q1), nv))
             ok = np.isfinite(kin.qpos).all(axis=1)

@@ -12,8 +12,9 @@ prior to absorb whatever else the model misses (a planar five-bar fitted out-of-
 against a 0.1 deg prior and compensated worse than uncompensated).
 
 The twin therefore closes its loops only along their independent directions when machine.toml gives no
-``[closures]`` compliance (:func:`redundant_directions` at ``home``; the residual is projected off the
-redundant ones, which the real joints' play takes): an error that only strains a loop moves nothing the
+``[closures]`` compliance (how many: :func:`redundant_directions` at ``home``; which, at each configuration:
+the closure Jacobian's smallest singular directions there; the residual is projected off them, the real
+joints' play takes that part): an error that only strains a loop moves nothing the
 tracker sees (identification lists it as having no effect), one that also tilts a link moves the nests
 as it does on the machine. With ``[closures]`` stiffness the strain is modelled instead, by the weights.
 :func:`loop_redundancy` reports the count, the directions in words, and each error's *strain*: the share of
