@@ -43,6 +43,7 @@ class Candidate:
     transfer_share: float = float("nan")  # the same with whole workspace regions held out
     held_out_band: object = None          # held_out_test.HeldOutBand: the share's bands if true / if not
     motor_bands: dict = field(default_factory=dict)   # motor -> HeldOutBand of that motor's part alone
+    motor_p_values: dict = field(default_factory=dict)  # motor -> p of that motor's part in the named model
     detectable_90: float = float("nan")   # smallest size detected with probability 0.9 (value's unit)
     verdict: str = "not tested"
     fix: str = ""
@@ -128,6 +129,7 @@ class Diagnosis:
                           "transfer_share": _num(c.transfer_share),
                           "held_out_test": c.held_out_band.to_json() if c.held_out_band is not None else None,
                           "held_out_test_per_motor": {str(m): b.to_json() for m, b in c.motor_bands.items()},
+                          "p_value_per_motor": {str(m): _num(p) for m, p in c.motor_p_values.items()},
                           "detectable_at_90": _num(c.detectable_90),
                           "p_value": _num(c.p_value), "threshold": _num(c.threshold),
                           "value": val(c.value) if c.value else None, "cv_folds_selected": c.cv_folds,
