@@ -80,6 +80,8 @@ def verdict(row: dict) -> tuple[str, float | None]:
         return "not simulated", None
     if row.get("stage") != "done":
         return "refused", None
+    if "reference_failure" in row:
+        return "no reference", None
     fams = [k.replace("_after_", "_%s_") for k in row if "_after_" in k]
     ratio = max(row[f % "after"] / row[f % "reference"] for f in fams)
     if not row.get("usable", True):
