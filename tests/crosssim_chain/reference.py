@@ -10,8 +10,8 @@ directions move the nests by far less than the tracker noise: a fit of those is 
 delta, singular values of 1e-9 of the largest, millimetres of task error). So the fit runs in the row space that
 the data determine: the directions of the SVD of the scaled nest Jacobian at the nominal machine whose singular
 value (the nests' displacement norm, mm, for a move of one prior size) is at least the tracker's sigma (their
-noise-fitted part then below one prior size); the others stay at their zero start (truncated-SVD least squares,
-the minimum-norm choice of the brief).
+noise-fitted part then below one prior size); the others stay at their zero start (truncated-SVD least squares:
+the minimum-norm solution, what the data cannot tell apart left at zero).
 
 **Cost made affordable, without changing what is computed.**
 
@@ -22,9 +22,12 @@ the minimum-norm choice of the brief).
   pose's closed configuration q, the partial derivatives at fixed q of the nests F and the loop gaps G with
   respect to a parameter (central differences of the model recompiled with that parameter moved, the
   simulator's own ``_compile``; no closure solve) and with respect to the joints (central differences of q);
-  then ``dF/dp = F_p - F_free pinv(G_free) G_p`` (the free joints follow the closure, least squares where the
-  loop is over-constrained). A motor's zero is a motor-joint move. Compared with finite differences through
-  full closure solves in the test.
+  then ``dF/dp = F_p - F_free pinv(G_free) G_p`` (the free joints follow the closure). A motor's zero is a
+  motor-joint move. Exact where the loops close; where a loop is over-constrained (its gap left to play: the
+  five-bar, the delta, the ToddlerBot neck) the closure is a least-squares solution and this derivative misses
+  the gap's curvature term (0.1 % on the five-bar's tilts, 20 % on the neck's motor columns): there the
+  optimiser runs on it and the converged point gets one Gauss-Newton step with the exact Jacobian (central
+  differences through the closure, warm-started), kept if it lowers the cost (``polish_cost_change``).
 
 **Compensation.** Per target, ``least_squares`` of the simulator's task (with the fitted errors) minus the
 target over the motor commands, from the controller's nominal IK commands; the commands are then driven on the
@@ -219,7 +222,7 @@ noise (the row-space floor, see the module's doc). Returns {errors, rank,
         return np.array([_outputs(sim, qi, "nests")[1] for qi in q])
 
     sim, q = at(np.zeros(len(keys)))
-    J0 = jacobian(sim, q, keys, commands=commands) * s
+    J0 = jacobian(sim, q, keys) * s
     _, sv, Vt = np.linalg.svd(J0, full_matrices=False)
     rank = int(np.sum(sv >= sigma_mm))
     V = Vt[:rank].T                                            # the row space: what the nests see
