@@ -72,6 +72,7 @@ def reference_fit(folder: Path, sim: SimMachine, design_commands, qs, nests, sig
     diff = task_difference(tasks_at(sim, reference.close_from(sim, q_nominal, commands)), task, coords)
     return {"reference_rank": ref["rank"], "reference_params": ref["n_params"], "reference_nfev": ref["nfev"],
             "reference_status": ref["status"], "reference_rms_residual_mm": ref["rms_residual_mm"],
+            "reference_polish_cost_change": ref["polish_cost_change"],
             "reference_inverse_max_residual": float(np.nanmax(np.abs(reached))),
             "reference_fit_s": t_fit, "reference_s": time.perf_counter() - t0}, diff
 
