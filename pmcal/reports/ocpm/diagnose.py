@@ -11,6 +11,8 @@ temperature or payload column, or one value for every pose) gets no panel; a not
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from pmcal.mechanism.ocpm.effects import VOCABULARY
@@ -126,6 +128,10 @@ def verdict_cards(rep: Report, d) -> None:
             lines += [f"held-out test: {held_out_text(c.held_out_band)}"]
             lines += [f"motor {m}'s part alone: {held_out_text(b, motor=True)}"
                       for m, b in getattr(c, "motor_bands", {}).items()]
+        if c is not None:
+            lines += [f"motor {m}'s part in the named model: p = {p:.2g} (nested test; below the naming level "
+                      f"over the motors it carries the effect even where its held-out test cannot tell)"
+                      for m, p in getattr(c, "motor_p_values", {}).items() if p is not None and math.isfinite(p)]
         lines += [f"whole family, {k}: {p[0]:.5g} ± {p[1]:.2g}" for k, p in list(v.params.items())[:6]]
         rep.card(effect_label(v), lines, "ok")
 
