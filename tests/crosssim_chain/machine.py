@@ -247,9 +247,13 @@ class SimMachine:
                 continue
             self.data.qpos[:] = q
             mujoco.mj_kinematics(self.model, self.data)
-            p = self.data.site_xpos[self.task_id] * 1000.0
-            R = self.data.site_xmat[self.task_id].reshape(3, 3)
-            rz, ry, rx = Rotation.from_matrix(R).as_euler("ZYX", degrees=True)
-            vals = dict(x_mm=p[0], y_mm=p[1], z_mm=p[2], rx_deg=rx, ry_deg=ry, rz_deg=rz)
-            out.append([vals[c] for c in self.coordinates])
+            out.append(self.task_here())
         return np.array(out)
+
+    def task_here(self) -> np.ndarray:
+        """Task coordinates (C,) of the configuration whose kinematics ran last (as :meth:`task`)."""
+        p = self.data.site_xpos[self.task_id] * 1000.0
+        R = self.data.site_xmat[self.task_id].reshape(3, 3)
+        rz, ry, rx = Rotation.from_matrix(R).as_euler("ZYX", degrees=True)
+        vals = dict(x_mm=p[0], y_mm=p[1], z_mm=p[2], rx_deg=rx, ry_deg=ry, rz_deg=rz)
+        return np.array([vals[c] for c in self.coordinates])

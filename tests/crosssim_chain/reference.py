@@ -43,7 +43,6 @@ import copy
 import mujoco
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from .machine import SimMachine
 
@@ -76,21 +75,12 @@ def close_from(sim: SimMachine, q_start: np.ndarray, commands: np.ndarray) -> np
     return out
 
 
-def task_of(sim: SimMachine, q: np.ndarray) -> np.ndarray:
-    """Task coordinates (C,) at configuration ``q`` (as :meth:`SimMachine.task`), kinematics already run."""
-    d = sim.data
-    p = d.site_xpos[sim.task_id] * 1000.0
-    rz, ry, rx = Rotation.from_matrix(d.site_xmat[sim.task_id].reshape(3, 3)).as_euler("ZYX", degrees=True)
-    vals = dict(x_mm=p[0], y_mm=p[1], z_mm=p[2], rx_deg=rx, ry_deg=ry, rz_deg=rz)
-    return np.array([vals[c] for c in sim.coordinates])
-
-
 def _outputs(sim: SimMachine, q: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
     """(gaps, outputs) at ``q``: outputs the nests (K*3,) mm or the task (C,)."""
     g = sim._gaps(q)                                           # runs the kinematics
     if what == "nests":
         return g, sim.data.site_xpos[sim.target_ids].ravel() * 1000.0
-    return g, task_of(sim, q)
+    return g, sim.task_here()
 
 
 def _wrap(d: np.ndarray, sim: SimMachine, what: str) -> np.ndarray:
