@@ -214,9 +214,8 @@ def main(argv: list[str] | None = None) -> int:
         previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return _main(argv)
-    except Terminated:                  # between the command's own handlers
-        print("pmcal: terminated; nothing half-written", file=sys.stderr)
-        return TERMINATED_STATUS
+    except Terminated as stop:          # between the command's own handlers
+        return _stopped(stop)
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
@@ -284,12 +283,8 @@ def _main(argv: list[str] | None = None) -> int:
     except RunError as exc:
         print(f"pmcal: failed: {exc}", file=sys.stderr)
         return 1
-    except Terminated:
-        print("pmcal: terminated; nothing half-written", file=sys.stderr)
-        return TERMINATED_STATUS
-    except KeyboardInterrupt:
-        print("pmcal: interrupted; nothing half-written", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as stop:    # Ctrl-C, or SIGTERM (Terminated)
+        return _stopped(stop)
     except MemoryError:
         print("pmcal: failed: out of memory (input too large?)", file=sys.stderr)
         return 1
@@ -303,15 +298,22 @@ def _main(argv: list[str] | None = None) -> int:
     except Exception as exc:         # noqa: BLE001 -- last resort: one line, never a traceback
         stop = _interruption(exc)
         if stop is not None:         # Ctrl-C inside an extension's import: MuJoCo re-raises it as ImportError
-            print("pmcal: terminated; nothing half-written" if isinstance(stop, Terminated)
-                  else "pmcal: interrupted; nothing half-written", file=sys.stderr)
-            return TERMINATED_STATUS if isinstance(stop, Terminated) else 130
+            return _stopped(stop)
         if verbose:
             import traceback
             traceback.print_exc()
         print(f"pmcal: failed: {type(exc).__name__}: {exc} (a bug: please report it with --verbose output)",
               file=sys.stderr)
         return 1
+
+
+def _stopped(stop: KeyboardInterrupt) -> int:
+    """The line and exit status of a command stopped by Ctrl-C (130) or SIGTERM (:class:`Terminated`, 143)."""
+    if isinstance(stop, Terminated):
+        print("pmcal: terminated; nothing half-written", file=sys.stderr)
+        return TERMINATED_STATUS
+    print("pmcal: interrupted; nothing half-written", file=sys.stderr)
+    return 130
 
 
 def _interruption(exc: BaseException) -> KeyboardInterrupt | None:
