@@ -125,9 +125,10 @@ def frame_parts(twin, spec, params: dict):
     # exported model reads it back instead of finding it at its own, error-tilted home)
     custom = {REDUNDANT_NUMERIC: twin.redundant_directions.ravel()} if len(twin.redundant_directions) else {}
     if spec.home is None:                       # the default configuration: written as a 'home' keyframe
-        return m, dict(joint_ref=refs, keyframe=("home", qpos, np.zeros(m.nu)), custom=custom)
-    key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, spec.home)
-    return m, dict(joint_ref=refs, keyframe=(spec.home, qpos, m.key_ctrl[key].copy()), custom=custom)
+        keyframe = ("home", qpos, np.zeros(m.nu))
+    else:
+        keyframe = (spec.home, qpos, m.key_ctrl[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, spec.home)].copy())
+    return m, dict(joint_ref=refs, keyframe=keyframe, custom=custom)
 
 
 def chain_parts(params_path: str, machine) -> ExportParts:
