@@ -150,7 +150,10 @@ class ClosedChainTwin:
         m = self.model
         self.data = mujoco.MjData(m)
         self._file = str(spec.model_path)
-        self._keep = None              # projection of the closure rows off their redundant directions, or None
+        # home's projection of the closure rows off their redundant directions, or None (no redundancy, or
+        # [closures] compliance); solves project at each configuration (_local_keep), this one serves a
+        # residual without its Jacobian (at home)
+        self._keep = None
         self._read_motors()
         self._read_closures()
         self._read_sites()
