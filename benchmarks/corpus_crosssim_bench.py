@@ -16,7 +16,10 @@ tracker's sigma per prior size stay at zero), then the held-out targets compensa
 commands of the simulator with the fitted errors, from the nominal IK) and driven on the simulator: ``reference``,
 in the families and units of ``after``. Full nonlinear, not linearised: warm-started closures and a Jacobian by
 the implicit-function theorem (the closure's partials at fixed joints, no closure solve per parameter) make it
-seconds to minutes per seed. ``ratio`` = after / reference (the worst family); ``verdict``: ``ok`` (ratio <= 1.5),
+seconds to minutes per seed. ``bayes``: the same with every error and the simulator's own prior (the
+distribution its errors are drawn from), the posterior mode: the best a calibration can do on average knowing
+that distribution, a yardstick for whether a per-seed ratio is the estimator's or the campaign's. ``ratio`` =
+after / reference (the worst family); ``verdict``: ``ok`` (ratio <= 1.5),
 ``above 1.5x``, ``WORSE`` (identify exited 0 and after > before in a family), or ``refused`` (the model refused at
 load, identify exit != 0, quality ``usable`` false, or compensation refused; with its reason).
 
@@ -58,11 +61,13 @@ def tasks_at(sim: SimMachine, qs: np.ndarray) -> np.ndarray:
 
 
 def reference_fit(folder: Path, sim: SimMachine, design_commands, qs, nests, sigma_mm, task, nominal, q_nominal,
-                  coords) -> tuple[dict, np.ndarray]:
-    """The plain least-squares reference in the simulator's own errors (see the module's doc): ({figures},
+                  coords, prior: bool = False) -> tuple[dict, np.ndarray]:
+    """The plain least-squares reference in the simulator's own errors (see the module's doc), or with
+    ``prior`` the Bayes reference (the posterior mode under the simulator's own error distribution): ({figures},
     task differences (N, C) at the held-out targets driven with its commands on the simulator ``sim``)."""
+    name = "bayes" if prior else "reference"
     t0 = time.perf_counter()
-    ref = reference.fit(SimMachine(folder), design_commands, nests, qs, sigma_mm)
+    ref = reference.fit(SimMachine(folder), design_commands, nests, qs, sigma_mm, prior=prior)
     t_fit = time.perf_counter() - t0
     fitted = reference.variant(SimMachine(folder), ref["errors"])
     commands = reference.inverse(fitted, task, nominal, q_nominal)
@@ -70,11 +75,11 @@ def reference_fit(folder: Path, sim: SimMachine, design_commands, qs, nests, sig
     # driven on the simulator: its closure from its own configurations at the nominal commands (the same
     # assembly as sim.task's from home, which costs 20 s per seed on the WL16)
     diff = task_difference(tasks_at(sim, reference.close_from(sim, q_nominal, commands)), task, coords)
-    return {"reference_rank": ref["rank"], "reference_params": ref["n_params"], "reference_nfev": ref["nfev"],
-            "reference_status": ref["status"], "reference_rms_residual_mm": ref["rms_residual_mm"],
-            "reference_polish_cost_change": ref["polish_cost_change"],
-            "reference_inverse_max_residual": float(np.nanmax(np.abs(reached))),
-            "reference_fit_s": t_fit, "reference_s": time.perf_counter() - t0}, diff
+    return {f"{name}_rank": ref["rank"], f"{name}_params": ref["n_params"], f"{name}_nfev": ref["nfev"],
+            f"{name}_status": ref["status"], f"{name}_rms_residual_mm": ref["rms_residual_mm"],
+            f"{name}_polish_cost_change": ref["polish_cost_change"],
+            f"{name}_inverse_max_residual": float(np.nanmax(np.abs(reached))),
+            f"{name}_fit_s": t_fit, f"{name}_s": time.perf_counter() - t0}, diff
 
 
 def verdict(row: dict) -> tuple[str, float | None]:
@@ -140,12 +145,15 @@ def run(folder: Path, seed: int, tmp: Path) -> dict:
     q_nominal = sim.solve(nominal)
     before = task_difference(tasks_at(sim, q_nominal), task, coords)
     after = task_difference(sim.task(commands), task, coords)
-    try:
-        figures, ref = reference_fit(folder, sim, design.commands, qs, nests, machine.spec.sigma_mm, task, nominal,
-                                     q_nominal, coords)
-    except Exception as exc:                                   # noqa: BLE001 - a benchmark row, not a crash
-        figures, ref = {"reference_failure": repr(exc)}, np.full_like(after, np.nan)
-    row.update(figures)
+    diffs = {}
+    for prior in (False, True):
+        name = "bayes" if prior else "reference"
+        try:
+            figures, diffs[name] = reference_fit(folder, sim, design.commands, qs, nests, machine.spec.sigma_mm,
+                                                 task, nominal, q_nominal, coords, prior=prior)
+        except Exception as exc:                               # noqa: BLE001 - a benchmark row, not a crash
+            figures, diffs[name] = {f"{name}_failure": repr(exc)}, np.full_like(after, np.nan)
+        row.update(figures)
     # the prediction as the demo makes it (ChainIdentResult.predicted_task_std: the posterior over every error,
     # propagated to the task), from the same identification through the API (the command line's, deterministic)
     res = identify(machine, read_measurements(str(csv), machine.spec))
@@ -155,11 +163,38 @@ def run(folder: Path, seed: int, tmp: Path) -> dict:
         row[f"{name}_before_{unit}"] = rms(size(before, coords))
         row[f"{name}_after_{unit}"] = rms(size(after, coords))
         row[f"{name}_predicted_{unit}"] = rms(np.sqrt(np.sum(predicted[:, idx] ** 2, axis=1)))
-        row[f"{name}_reference_{unit}"] = rms(size(ref, coords))
+        row[f"{name}_reference_{unit}"] = rms(size(diffs["reference"], coords))
+        row[f"{name}_bayes_{unit}"] = rms(size(diffs["bayes"], coords))
     row["stage"] = "done"
     row["wall_s"] = time.perf_counter() - t0
     row["simulate_identify_s"] = t_sim
     return row
+
+
+def summary(runs: list[dict]) -> dict:
+    """Per model, over its completed seeds, in the first family's units: the RMS of the compensated error
+    (``after``), of the plain least-squares reference's and of the Bayes reference's, and their ratios. Where one
+    weakly seen direction dominates the task error (gepetto_delta: one direction carries 98 % of the predicted
+    variance, the nests see a prior-sized move of it at 0.4 sigma), one campaign's figure is a draw of about
+    one degree of freedom for every estimator: per seed the truncated fit beats the Bayes-optimal one by more
+    than 1.5x in about one campaign in six, while its RMS over seeds is larger. The RMS over seeds is what an
+    estimator can be held to; the per-seed ratios stay in the rows."""
+    out = {}
+    for name in dict.fromkeys(r["model"] for r in runs):
+        done = [r for r in runs if r["model"] == name and r.get("stage") == "done"]
+        fam = next((k.replace("_after_", "_%s_") for r in done for k in r if "_after_" in k), None)
+        if fam is None:
+            out[name] = {"done": 0}
+            continue
+
+        def rms_of(what: str) -> float:
+            return float(np.sqrt(np.nanmean([r.get(fam % what, np.nan) ** 2 for r in done])))
+
+        a, ref, bay = rms_of("after"), rms_of("reference"), rms_of("bayes")
+        out[name] = {"done": len(done), "family": fam % "rms", "after": a, "reference": ref, "bayes": bay,
+                     "after_over_reference": a / ref, "after_over_bayes": a / bay, "bayes_over_reference": bay / ref,
+                     "seeds_above_ratio": sum(1 for r in done if (r.get("ratio") or 0) > RATIO)}
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -176,16 +211,26 @@ def main(argv: list[str] | None = None) -> int:
         fam = "position_%s_mm" if "position_after_mm" in r else "orientation_%s_deg"
         deg = "orientation_%s_deg" if fam.startswith("position") else "none%s"
         rows.append([name, seed, r["stage"], r.get(fam % "before", ""), r.get(fam % "after", ""),
-                     r.get(fam % "reference", ""), r.get(fam % "predicted", ""), r.get(deg % "before", ""),
+                     r.get(fam % "reference", ""), r.get(fam % "bayes", ""), r.get(fam % "predicted", ""), r.get(deg % "before", ""),
                      r.get(deg % "after", ""), r.get(deg % "reference", ""),
                      "" if r["ratio"] is None else r["ratio"], r["verdict"], r.get("chi2_per_dof", ""),
                      len(r.get("warnings", [])), r.get("failure", "")[:90]])
     print_table("corpus on the second simulator (tests/crosssim_chain): task error at held-out targets, "
                 "position mm (orientation deg where the task has angles; an orientation-only task's in the first "
                 "columns), reference = plain least squares in the simulator's own errors",
-                ["model", "seed", "stage", "before", "after", "reference", "predicted", "before deg", "after deg",
+                ["model", "seed", "stage", "before", "after", "reference", "bayes", "predicted", "before deg", "after deg",
                  "reference deg", "ratio", "verdict", "chi2/dof", "warnings", "failure"], rows)
-    write_json("corpus_crosssim_bench", {"poses": POSES, "held_out": HELD_OUT, "runs": runs}, args.json)
+    per_model = summary(runs)
+    print_table(f"per model over its seeds: RMS of the compensated error, of the plain least-squares reference and "
+                f"of the Bayes reference (the posterior mode under the simulator's own error distribution); "
+                f"seeds above {RATIO}x the reference",
+                ["model", "seeds", "after", "reference", "bayes", "after/reference", "after/bayes",
+                 "bayes/reference", f"seeds > {RATIO}x"],
+                [[m, s["done"], s.get("after", ""), s.get("reference", ""), s.get("bayes", ""),
+                  s.get("after_over_reference", ""), s.get("after_over_bayes", ""), s.get("bayes_over_reference", ""),
+                  s.get("seeds_above_ratio", "")] for m, s in per_model.items()])
+    write_json("corpus_crosssim_bench", {"poses": POSES, "held_out": HELD_OUT, "runs": runs, "per_model": per_model},
+               args.json)
     return 0
 
 

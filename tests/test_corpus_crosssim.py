@@ -11,7 +11,8 @@ parameterisation and loop solver, nothing of pmcal).
 - The benchmark's reference (tests/crosssim_chain/reference.py: a plain least-squares fit in the simulator's own
   errors): its implicit-function Jacobian equals finite differences through the simulator's closure where the
   loops close; on a noise-free campaign whose errors lie in the fitted row space it reproduces the nests and its
-  compensation puts the true simulator's task on the targets.
+  compensation puts the true simulator's task on the targets. Its Bayes variant (every error with the
+  simulator's own prior) is the linear posterior mean in the linear regime.
 """
 
 import numpy as np
@@ -137,3 +138,34 @@ def test_reference_fit_recovers_noise_free_errors():
     assert np.abs(before).max() > 0.1                           # the errors move the task: a real check
     cmd = reference.inverse(reference.variant(sim0, ref["errors"]), targets, nominal, q_nominal)
     assert np.abs(task_difference(sim.task(cmd), targets, sim.coordinates)).max() < 1e-4
+
+
+def test_bayes_reference_is_the_posterior_mean():
+    """The benchmark's Bayes reference (``reference.fit(prior=True)``: every error of the simulator with its own
+    prior): on an 8-pose noisy campaign of the four-bar with errors a tenth of the toml's sizes (the linear
+    regime), the fitted errors equal the linear posterior mean ``(A'A + I)^-1 A'y`` computed here from the
+    simulator's Jacobian (to 1e-3 prior sizes, against errors of 0.1), and they differ from the truncated plain
+    fit in the directions it leaves at zero: the prior, not the truncation, sets them."""
+    from tests.crosssim_chain import reference
+
+    name = "drake_four_bar"
+    machine = Machine.from_folder(CORPUS / name)
+    sigma = machine.spec.sigma_mm
+    rng = np.random.default_rng(11)
+    commands = machine.twin.sample_commands(8, rng)
+    sim0 = SimMachine(CORPUS / name)
+    keys, s = sim0.error_keys, reference.sizes(sim0)
+    q0 = sim0.solve(commands)
+    A = reference.jacobian(sim0, q0, keys, commands=commands) * s / sigma
+    sim = SimMachine(CORPUS / name, dict(zip(keys, 0.1 * s * rng.normal(size=len(keys)))))
+    qs = sim.solve(commands)
+    noise = rng.normal(0.0, sigma, (len(qs), len(sim.target_ids), 3))
+    nests = np.array([sim._sites(q, sim.target_ids) for q in qs]) + noise
+    y = (nests.ravel() - np.array([sim0._sites(q, sim0.target_ids) for q in q0]).ravel()) / sigma
+    expected = np.linalg.solve(A.T @ A + np.eye(len(keys)), A.T @ y)
+    fitted = reference.fit(sim0, commands, nests, qs, sigma, max_nfev=6, prior=True)["errors"]
+    bayes = np.array([fitted[k] for k in keys]) / s
+    np.testing.assert_allclose(bayes, expected, rtol=0, atol=1e-3)
+    fitted = reference.fit(sim0, commands, nests, qs, sigma, max_nfev=6)["errors"]
+    plain = np.array([fitted[k] for k in keys]) / s
+    assert np.max(np.abs(bayes - plain)) > 0.01

@@ -189,12 +189,15 @@ def sizes(sim: SimMachine) -> np.ndarray:
 
 
 def fit(sim0: SimMachine, commands: np.ndarray, measured: np.ndarray, q_start: np.ndarray, sigma_mm: float,
-        max_nfev: int = 20) -> dict:
+        max_nfev: int = 20, prior: bool = False) -> dict:
     """Plain least squares of ``sim0``'s errors (from zero; ``sim0`` is the nominal simulator) to the nests
     ``measured`` (N, K, 3) mm at ``commands`` (N, M). ``q_start`` (N, nq): configurations near the solution
     to warm-start the closures (any assembled configurations of the same branch); ``sigma_mm`` the tracker's
-noise (the row-space floor, see the module's doc). Returns {errors, rank,
-    n_params, nfev, njev, cost, rms_residual_mm, q}."""
+noise (the row-space floor, see the module's doc). ``prior``: instead of the truncated row space, every
+    error with the simulator's own prior (normal, the toml's sizes: the distribution its random errors are
+    drawn from), the posterior mode (maximum a posteriori, the Bayes-optimal estimate in the linear regime):
+    what the best any calibration can do on average, knowing the true error distribution. Returns {errors,
+    rank, n_params, nfev, njev, cost, rms_residual_mm, q}."""
     keys, s = sim0.error_keys, sizes(sim0)
     measured = np.asarray(measured, float).reshape(len(commands), -1)
     state = {"q": np.asarray(q_start, float), "cache": {}}
@@ -215,17 +218,18 @@ noise (the row-space floor, see the module's doc). Returns {errors, rank,
     J0 = jacobian(sim, q, keys) * s
     _, sv, Vt = np.linalg.svd(J0, full_matrices=False)
     rank = int(np.sum(sv >= sigma_mm))
-    V = Vt[:rank].T                                            # the row space: what the nests see
+    V = np.eye(len(keys)) if prior else Vt[:rank].T            # the row space: what the nests see
+    weight = sigma_mm if prior else 0.0                        # prior rows: x (prior sizes) against the noise
 
     def residual(z):
         sim, q = at(V @ z)
-        return (nests(sim, q) - measured).ravel()
+        return np.concatenate([(nests(sim, q) - measured).ravel(), weight * z])
 
     def jac(z):
         sim, q = at(V @ z)
-        return (jacobian(sim, q, keys) * s) @ V
+        return np.vstack([(jacobian(sim, q, keys) * s) @ V, weight * np.eye(V.shape[1])])
 
-    sol = least_squares(residual, np.zeros(rank), jac=jac, method="trf", x_scale=1.0, ftol=1e-10, xtol=1e-10,
+    sol = least_squares(residual, np.zeros(V.shape[1]), jac=jac, method="trf", x_scale=1.0, ftol=1e-10, xtol=1e-10,
                         gtol=1e-10, max_nfev=max_nfev)
     z, r = sol.x, residual(sol.x)
     polish = None
@@ -234,7 +238,7 @@ noise (the row-space floor, see the module's doc). Returns {errors, rank,
         # with the exact one (central differences through the closure) from the converged point, kept if it
         # lowers the cost
         sim, q = at(V @ z)
-        Jb = (jacobian(sim, q, keys, commands=commands) * s) @ V
+        Jb = np.vstack([(jacobian(sim, q, keys, commands=commands) * s) @ V, weight * np.eye(V.shape[1])])
         z2 = z - np.linalg.lstsq(Jb, r, rcond=None)[0]
         r2 = residual(z2)
         polish = float(0.5 * (r2 @ r2) - 0.5 * (r @ r))
@@ -242,6 +246,7 @@ noise (the row-space floor, see the module's doc). Returns {errors, rank,
             z, r = z2, r2
     x = V @ z
     sim, q = at(x)
+    r = r[:measured.size]                                      # the nests' residuals, without the prior rows
     return {"errors": dict(zip(keys, s * x)), "rank": rank, "n_params": len(keys), "nfev": int(sol.nfev),
             "njev": int(sol.njev), "cost": float(0.5 * r @ r), "rms_residual_mm": float(np.sqrt(np.mean(r ** 2))),
             "status": int(sol.status), "polish_cost_change": polish, "singular_values": sv, "q": q}
