@@ -48,6 +48,18 @@ NOT_LICENSED = {
     "spatial delta with universal-joint legs (URDF, loops closed in PyBullet code)":
         "github.com/RicoJia/Omnid_Project omnid/urdf/delta_robot_pybullet.urdf @f9c3c21d: no licence file; "
         "package.xml says only 'BSD' (no clause, no copyright holder)",
+    # issue 34 item 8, third search (added: drake_strandbeest, gepetto_digit, and kinds (b), (c) from licensed
+    # kinematics code, nopour_3rrr and rotator_spm; kind (a) still missing)
+    "spatial delta, universal-jointed parallelogram rods (ROS URDF xacro for Gazebo)":
+        "github.com/serrauvic/ros_delta_robot delta_robot_support/urdf/delta_robot.urdf @318b962f: no licence "
+        "file; package.xml says only 'BSD' (catkin's template tag: no clause, no copyright holder)",
+    "3-DOF spherical parallel manipulator (ROS 2 URDF xacro for RViz)":
+        "github.com/wei-hsuan-cheng/cga_ik config/spm_3dof.urdf.xacro @012cce7d: no licence file (package.xml "
+        "says only 'MIT', no copyright holder); and not a mechanism: every link hangs on a floating joint "
+        "(a TF puppet), no joints or closures to convert",
+    "planar 3-RRR parallel manipulator (Simscape/SolidWorks)":
+        "github.com/nhuthinh04/Parallel_robot_3RRR simscape/rrr.slx @15da134f: no licence file; Simulink and "
+        "SolidWorks files only, no URDF/SDF/MJCF",
 }
 
 

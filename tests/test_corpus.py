@@ -167,3 +167,22 @@ def test_an_error_seen_only_beside_a_motor_zero_is_not_called_unseen():
     assert np.sqrt(res.error_covariance[i, i]) > 0.95 * prior[i], "at its prior, as the warning's first test asks"
     assert "B.dz" not in unseen_task_errors(machine, res)
     assert unseen_task_errors(machine, res) == []
+
+
+def test_transcribed_spherical_manipulator_agrees_with_its_source():
+    """rotator_spm was transcribed from the Rotator's kinematics module (JimBlaney/rotator src/rotator/math_utils.py,
+    README.md there): pmcal's inverse kinematics of the model gives the servo angles the module's
+    ``solve_positions(az, el)`` gives (N, E, S; printed by it to 0.01 deg) for the plate tilted by ``90 - el``
+    about the horizontal axis at ``az + 90`` deg (its ``quat_rotation_matrix(-az, el)``)."""
+    from scipy.spatial.transform import Rotation
+
+    source = {(0, 70): (-9.51, -7.42, 14.5), (45, 75): (-2.67, -8.39, 1.96), (200, 80): (4.41, 5.33, -3.9),
+              (300, 72): (-9.28, 6.15, 11.49), (120, 78): (7.45, -3.72, -6.46)}
+    rows = []
+    for az, el in source:
+        axis = np.array([np.cos(np.radians(90.0 - az)), np.sin(np.radians(90.0 - az)), 0.0])
+        R = Rotation.from_rotvec(np.radians(90.0 - el) * axis).as_matrix()
+        rz, ry, rx = Rotation.from_matrix(R).as_euler("ZYX", degrees=True)
+        rows.append([rx, ry, rz])
+    twin = Machine.from_folder(CORPUS / "rotator_spm").twin
+    np.testing.assert_allclose(twin.inverse(np.array(rows)), np.array(list(source.values())), atol=0.006)
