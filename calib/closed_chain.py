@@ -560,7 +560,8 @@ def held_out_check(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior_preci
     rms, predicted = sigma * np.sqrt(sq / n), sigma * np.sqrt(var / n)
     p = float(stats.chi2.sf(chi2, n))
     return {"folds": k, "rms_mm": float(rms), "predicted_rms_mm": float(predicted), "chi2_per_dof": chi2 / n,
-            "p_value": p, "passed": not (p < HELD_OUT_P and rms > HELD_OUT_RATIO * predicted)}
+            "p_value": p,
+            "passed": bool(np.isfinite(chi2)) and not (p < HELD_OUT_P and rms > HELD_OUT_RATIO * predicted)}
 
 
 def _spd_inverse(M: np.ndarray) -> np.ndarray:

@@ -135,6 +135,9 @@ def _fit_reasons(fit: dict) -> list[str]:
     does not predict poses it did not fit (:func:`chain_quality`)."""
     out = []
     per_dof = fit["chi2"] / fit["dof"]
+    if not np.isfinite(per_dof):
+        return ["the fit's residual is not a number: the identified machine does not assemble at every measured "
+                "pose (a campaign near a singularity, or on another assembly branch than the model's home)"]
     if per_dof > FIT_CHI2_PER_DOF and stats.chi2.sf(fit["chi2"], fit["dof"]) < FIT_P:
         out.append(f"the fit stops above the noise floor: {fit['residual_rms_mm']:.4f} mm rms left, chi2/dof "
                    f"{per_dof:.2f} for the tracker noise of {fit['sigma_mm']:g} mm (a wrong sigma_mm, an error "

@@ -176,6 +176,28 @@ def test_held_out_check_is_an_exact_refit_of_a_linear_model():
     np.testing.assert_allclose(r[rows] + G @ r[rows], y[rows] - A[rows] @ xf, atol=1e-10)
 
 
+def test_a_fit_whose_residual_is_not_a_number_is_not_usable():
+    """A pose the identified machine does not assemble leaves a NaN residual (a near-singular planar 3-RRR,
+    helper's seed 3: "residual nan mm rms, chi2/dof nan; usable", exit 0). NaN compares false with every limit,
+    so both checks passed it: the held-out check now fails and the quality names why."""
+    from pmcal.calib.closed_chain import held_out_check
+    from pmcal.campaign_quality import chain_quality
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(60, 6))
+    r = rng.normal(size=60)
+    groups = np.repeat(np.arange(20), 3)
+    assert held_out_check(A, r, groups, np.eye(6), 0.01)["passed"] is True
+    r[33] = np.nan
+    held = held_out_check(A, r, groups, np.eye(6), 0.01)
+    assert held["passed"] is False
+    fit = {"chi2": float("nan"), "dof": 54.0, "residual_rms_mm": float("nan"), "sigma_mm": 0.01, "held_out": held}
+    q = chain_quality(26, 26, 48, 48, 9, [], fit)
+    assert q["usable"] is False and "not a number" in q["why"]
+    fit_ok = {"chi2": 50.0, "dof": 54.0, "residual_rms_mm": 0.0096, "sigma_mm": 0.01, "held_out": None}
+    assert chain_quality(26, 26, 48, 48, 9, [], fit_ok)["usable"] is True
+
+
 def test_held_out_check_passes_a_right_model_and_fails_a_missing_effect(twin, campaign):
     """The Delta's campaign: the fit predicts its held-out poses to the noise (passed). The same machine with
     an effect the geometry does not hold (a sag of the platform growing with the square of motor 1's angle,
