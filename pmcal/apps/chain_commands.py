@@ -125,6 +125,9 @@ def identify(args) -> int:
                          f"({', '.join(unseen[:4])}{', ...' if len(unseen) > 4 else ''}): the compensation cannot "
                          "correct them (the predicted task error counts them at their [errors] size); put a nest "
                          "on that part, or list it under [errors] exclude if its geometry is known")
+    dominant = doc["dominant_task_uncertainty"]
+    if dominant and not set(dominant["errors"]) & set(unseen):
+        progress.warning(dominant_line(dominant, len(meas)))
     if not quality["usable"]:
         progress.warning(f"calibration not usable: {quality['why']}; compensate and push refuse it without --force "
                          "('pmcal twin plan' with this --machine plans a campaign)")
@@ -146,6 +149,18 @@ def file_history(machine, res, basis, campaign: str, folder: str) -> None:
         return
     record = chain_record_document(res, campaign, machine.name)
     print(f"pmcal: wrote {file_calibration(record, folder)}")
+
+
+def dominant_line(d: dict, n_poses: int) -> str:
+    """The warning for a barely seen combination of errors that carries the predicted task error
+    (:func:`pmcal.chain.dominant_task_uncertainty`)."""
+    parts = ", ".join(f"{k} {v:+.2f}" for k, v in d["errors"].items())
+    halve = f"about {d['poses_to_halve']:.0f}" if d["poses_to_halve"] else "no number of poses"
+    return (f"one combination of errors carries {100 * d['share']:.0f} % of the predicted task error "
+            f"({d['std']:.2g} of {d['total']:.2g} {d['unit']} RMS; {parts}, per [errors] size) and the {n_poses} "
+            f"poses see it at {d['seen_sigma']:.2f} tracker sigma: more poses like them gain slowly ({halve} to "
+            "halve it); a tracker target nearer the task point, or off the line or plane of the present ones, "
+            "would see it")
 
 
 def identify_warnings(res, n_poses: int, outliers: bool = False) -> list[str]:
