@@ -429,6 +429,18 @@ def dominant_task_uncertainty(machine, result, n_poses: int, poses: int = 8) -> 
             "errors": {keys[i]: float(u[i]) for i in top}}
 
 
+def dominant_line(d: dict, n_poses: int) -> str:
+    """The warning for a barely seen combination of errors that carries the predicted task error
+    (:func:`dominant_task_uncertainty`), after ``n_poses`` poses."""
+    parts = ", ".join(f"{k} {v:+.2f}" for k, v in d["errors"].items())
+    halve = f"about {d['poses_to_halve']:.0f}" if d["poses_to_halve"] else "no number of poses"
+    return (f"one combination of errors carries {100 * d['share']:.0f} % of the predicted task error "
+            f"({d['std']:.2g} of {d['total']:.2g} {d['unit']} RMS; {parts}, per [errors] size) and the {n_poses} "
+            f"poses see it at {d['seen_sigma']:.2f} tracker sigma: more poses like them gain slowly ({halve} to "
+            "halve it); a tracker target nearer the task point, or off the line or plane of the present ones, "
+            "would see it")
+
+
 def params_document(machine, result, source: str | None = None, unseen: list[str] | None = None) -> dict:
     """The parameters JSON of an identification (docs/formats.md, "Any machine"): ``params`` every error
     considered (mm / deg; the identified machine: each base value spread over the errors it regroups,

@@ -557,14 +557,16 @@ def test_demo_of_a_folder_machine(delta, capsys):
 
 def test_demo_warns_when_compensation_is_worse_than_predicted():
     """The demo's warning lines: an error family compensated to more than 3x the identification's prediction,
-    errors no tracker reading sees that move the task, and a failed held-out check, each in one line; nothing
-    when the figures hold."""
+    errors no tracker reading sees that move the task, a barely seen combination of errors that carries the
+    predicted task error (unless those errors are already named unseen), and a failed held-out check, each in one
+    line; nothing when the figures hold."""
     from types import SimpleNamespace
 
     from pmcal.studies.chain_demo import ChainDemo
 
-    def demo(after, passed, unseen=()):
+    def demo(after, passed, unseen=(), dominant=None):
         return SimpleNamespace(coordinates=("x_mm", "y_mm", "rz_deg"), WORSE_THAN_PREDICTED=3.0, unseen=unseen,
+                               dominant=dominant, meas=[None] * 48,
                                result=SimpleNamespace(info={"held_out": {"passed": passed, "rms_mm": 0.03,
                                                                           "predicted_rms_mm": 0.01}}))
 
@@ -576,6 +578,14 @@ def test_demo_warns_when_compensation_is_worse_than_predicted():
     assert len(lines) == 2 and "9.2 times" in lines[0] and "0.0300 mm RMS where 0.0100 mm" in lines[1]
     lines = ChainDemo.warnings(demo(0.005, True, ["effector.dx", "effector.dz"]), good)
     assert len(lines) == 1 and lines[0].startswith("2 error(s) move the task point but no tracker reading (effector.dx")
+    dominant = {"share": 0.96, "std": 0.017, "total": 0.0174, "unit": "mm", "seen_sigma": 0.31,
+                "poses_to_halve": 1661.0, "errors": {"eff.dry": 0.59, "effector.dry": -0.4}}
+    lines = ChainDemo.warnings(demo(0.005, True, dominant=dominant), good)
+    assert len(lines) == 1 and lines[0].startswith("one combination of errors carries 96 % of the predicted task "
+                                                   "error (0.017 of 0.017 mm RMS; eff.dry +0.59, effector.dry -0.40")
+    assert "48 poses see it at 0.31 tracker sigma" in lines[0] and "about 1661 to halve it" in lines[0]
+    # already named as unseen: said once
+    assert len(ChainDemo.warnings(demo(0.005, True, ["eff.dry"], dominant), good)) == 1
 
 
 def test_ctrl_c_during_an_extension_import_is_an_interruption_not_a_bug(monkeypatch, capsys, tmp_path):

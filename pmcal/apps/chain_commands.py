@@ -15,8 +15,8 @@ from pmcal.apps import error_stats
 from pmcal.apps.chain import ERROR_CHOICES, command_defaults
 from pmcal.campaign_quality import refuse_unusable, save_table
 from pmcal.chain import (campaign, campaign_quality, check_assembles, compensate as commands_for, compensation_table,
-                         identify as run_identification, params_document, reference_basis, residuals, sample_targets,
-                         table_refusal)
+                         dominant_line, identify as run_identification, params_document, reference_basis, residuals,
+                         sample_targets, table_refusal)
 from pmcal.csvio import LONG_POSES
 from pmcal.errors import InputError, for_option
 from pmcal.fileio import read_json, write_json
@@ -149,18 +149,6 @@ def file_history(machine, res, basis, campaign: str, folder: str) -> None:
         return
     record = chain_record_document(res, campaign, machine.name)
     print(f"pmcal: wrote {file_calibration(record, folder)}")
-
-
-def dominant_line(d: dict, n_poses: int) -> str:
-    """The warning for a barely seen combination of errors that carries the predicted task error
-    (:func:`pmcal.chain.dominant_task_uncertainty`)."""
-    parts = ", ".join(f"{k} {v:+.2f}" for k, v in d["errors"].items())
-    halve = f"about {d['poses_to_halve']:.0f}" if d["poses_to_halve"] else "no number of poses"
-    return (f"one combination of errors carries {100 * d['share']:.0f} % of the predicted task error "
-            f"({d['std']:.2g} of {d['total']:.2g} {d['unit']} RMS; {parts}, per [errors] size) and the {n_poses} "
-            f"poses see it at {d['seen_sigma']:.2f} tracker sigma: more poses like them gain slowly ({halve} to "
-            "halve it); a tracker target nearer the task point, or off the line or plane of the present ones, "
-            "would see it")
 
 
 def identify_warnings(res, n_poses: int, outliers: bool = False) -> list[str]:

@@ -16,8 +16,8 @@ import numpy as np
 
 from pmcal import progress
 from pmcal.calib.closed_chain import compensate_targets
-from pmcal.chain import (campaign, compensation_table, identify, params_document, plan, random_errors,
-                         sample_targets, table_refusal, unseen_task_errors)
+from pmcal.chain import (campaign, compensation_table, dominant_line, dominant_task_uncertainty, identify,
+                         params_document, plan, random_errors, sample_targets, table_refusal, unseen_task_errors)
 from pmcal.fileio import atomic_directory, write_json
 from pmcal.io_chain import write_measurements, write_plan, write_setpoints, write_targets
 from pmcal.mechanism.task_space import error_families, position_distance, rms, task_difference
@@ -40,7 +40,8 @@ class ChainDemo:
     why). inside : the held-out targets inside its grid. error_table : (inside, C) the true machine's error
     driven by the controller's nominal inverse kinematics plus the table's correction (the PLC's lookup).
     timings : s per step. unseen : errors that move the task point but no tracker reading
-    (:func:`pmcal.chain.unseen_task_errors`).
+    (:func:`pmcal.chain.unseen_task_errors`). dominant : the barely seen combination of errors that carries
+    the predicted task error, or None (:func:`pmcal.chain.dominant_task_uncertainty`).
     """
 
     machine: object
@@ -61,6 +62,7 @@ class ChainDemo:
     error_table: np.ndarray | None = None
     timings: dict = field(default_factory=dict)
     unseen: list = field(default_factory=list)
+    dominant: dict | None = None
 
     @property
     def coordinates(self) -> tuple[str, ...]:
@@ -103,7 +105,9 @@ class ChainDemo:
         """What the demo must say besides its figures: an error family compensated to more than
         :data:`WORSE_THAN_PREDICTED` times what the identification predicted (the model misses something
         the twin has: the calibration would not hold on the machine either), errors the tracker cannot see
-        that move the task point (:func:`pmcal.chain.unseen_task_errors`), a failed held-out check."""
+        that move the task point (:func:`pmcal.chain.unseen_task_errors`), a barely seen combination of errors
+        that carries the predicted task error (:func:`pmcal.chain.dominant_task_uncertainty`), a failed held-out
+        check."""
         s = summary or self.summary()
         out = []
         for name, u, _, _ in error_families(self.coordinates):
@@ -117,6 +121,8 @@ class ChainDemo:
             out.append(f"{len(unseen)} error(s) move the task point but no tracker reading ({', '.join(unseen[:4])}"
                        f"{', ...' if len(unseen) > 4 else ''}): no compensation corrects them; the prediction counts "
                        "them at their [errors] size (put a nest on that part, or [errors] exclude it)")
+        if self.dominant and not set(self.dominant["errors"]) & set(unseen):
+            out.append(dominant_line(self.dominant, len(self.meas)))
         held = self.result.info.get("held_out") or {}
         if held.get("passed") is False:
             out.append(f"the identification does not predict poses it did not fit: {held['rms_mm']:.4f} mm RMS "
@@ -191,7 +197,8 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
     demo = ChainDemo(machine=machine, seed=seed, truth=truth, design=design, meas=meas, result=res, task=task,
                      commands_nominal=nominal, commands_compensated=compensated, error_nominal=err_nominal,
                      error_compensated=err_comp, predicted=predicted, table=table, table_note=note, inside=inside,
-                     error_table=err_table, timings=timings, unseen=unseen_task_errors(machine, res))
+                     error_table=err_table, timings=timings, unseen=unseen_task_errors(machine, res),
+                     dominant=dominant_task_uncertainty(machine, res, len(meas)))
     if out is not None:
         spec = machine.spec
         write_plan(out / "plan.csv", spec, design.commands, [f"pmcal demo: D-optimal plan, seed {seed}"])
