@@ -399,8 +399,8 @@ def dominant_task_uncertainty(machine, result, n_poses: int, poses: int = 8) -> 
     of the same kind halve it (``n_poses (3 + 4 I) / I``); ``errors`` its four largest components (key, weight
     per prior size). gepetto_delta (tests/corpus): the nests and the task point on one body, a rotation about
     the line through the two nests: 92 % of 0.019 mm, seen at 0.26 sigma, about 2300 poses to halve. None
-    without a prior or when no direction dominates so."""
-    if result.error_covariance is None:
+    without a prior (or a finite posterior) or when no direction dominates so."""
+    if result.error_covariance is None or not np.isfinite(result.error_covariance).all():
         return None
     keys = list(result.params)
     twin = machine.twin
