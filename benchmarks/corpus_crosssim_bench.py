@@ -211,15 +211,15 @@ def main(argv: list[str] | None = None) -> int:
         fam = "position_%s_mm" if "position_after_mm" in r else "orientation_%s_deg"
         deg = "orientation_%s_deg" if fam.startswith("position") else "none%s"
         rows.append([name, seed, r["stage"], r.get(fam % "before", ""), r.get(fam % "after", ""),
-                     r.get(fam % "reference", ""), r.get(fam % "bayes", ""), r.get(fam % "predicted", ""), r.get(deg % "before", ""),
-                     r.get(deg % "after", ""), r.get(deg % "reference", ""),
+                     r.get(fam % "reference", ""), r.get(fam % "bayes", ""), r.get(fam % "predicted", ""),
+                     r.get(deg % "before", ""), r.get(deg % "after", ""), r.get(deg % "reference", ""),
                      "" if r["ratio"] is None else r["ratio"], r["verdict"], r.get("chi2_per_dof", ""),
                      len(r.get("warnings", [])), r.get("failure", "")[:90]])
     print_table("corpus on the second simulator (tests/crosssim_chain): task error at held-out targets, "
                 "position mm (orientation deg where the task has angles; an orientation-only task's in the first "
                 "columns), reference = plain least squares in the simulator's own errors",
-                ["model", "seed", "stage", "before", "after", "reference", "bayes", "predicted", "before deg", "after deg",
-                 "reference deg", "ratio", "verdict", "chi2/dof", "warnings", "failure"], rows)
+                ["model", "seed", "stage", "before", "after", "reference", "bayes", "predicted", "before deg",
+                 "after deg", "reference deg", "ratio", "verdict", "chi2/dof", "warnings", "failure"], rows)
     per_model = summary(runs)
     print_table(f"per model over its seeds: RMS of the compensated error, of the plain least-squares reference and "
                 f"of the Bayes reference (the posterior mode under the simulator's own error distribution); "

@@ -44,7 +44,8 @@ POSES, HELD_OUT, RATIO, SET = 48, 24, 1.5, 5
 
 def linear_machine(folder: Path) -> dict:
     """The simulator's nominal derivatives: nests (N*K*3, P) per prior size in sigma units, task at the
-    held-out targets (HELD_OUT, C, P) per prior size, and the first task family's coordinate indices."""
+    held-out targets (HELD_OUT, C', P) per prior size in the first task family's coordinates C', that family's
+    name and unit, and the number of errors."""
     machine = Machine.from_folder(folder)
     sim = SimMachine(folder)
     design = plan(machine, POSES, seed=1)

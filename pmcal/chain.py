@@ -386,20 +386,21 @@ def unseen_task_errors(machine, result, poses: int = 8) -> list[str]:
 DOMINANT_SHARE, DOMINANT_SEEN_SIGMA = 0.5, 1.0
 
 
-def dominant_task_uncertainty(machine, result, n_poses: int, poses: int = 8) -> dict | None:
+def dominant_task_uncertainty(machine, result, n_poses: int, samples: int = 8) -> dict | None:
     """The combination of errors that carries most of the predicted task error, when the campaign barely sees
-    it: ``{share, std, total, unit, seen_sigma, poses_to_halve, errors}`` or None.
+    it: ``{share, std, total, unit, seen_sigma, poses, poses_to_halve, errors}`` or None.
 
     The posterior over every error (:attr:`~pmcal.calib.closed_chain.ChainIdentResult.error_covariance`),
     whitened by the prior sizes, propagated to the task's first family (position mm, else orientation deg)
-    over ``poses`` commands drawn over the workspace: its eigen-directions split the predicted task variance.
+    over ``samples`` commands drawn over the workspace: its eigen-directions split the predicted task variance.
     The largest is named when it carries at least :data:`DOMINANT_SHARE` of it and the campaign sees a
     prior-sized move of it at less than :data:`DOMINANT_SEEN_SIGMA` tracker sigma (``seen_sigma``, from its
-    posterior variance ``1 / (1 + I)``). ``std`` its task RMS of ``total``; ``poses_to_halve`` how many poses
-    of the same kind halve it (``n_poses (3 + 4 I) / I``); ``errors`` its four largest components (key, weight
-    per prior size). gepetto_delta (tests/corpus): the nests and the task point on one body, a rotation about
-    the line through the two nests: 92 % of 0.019 mm, seen at 0.26 sigma, about 2300 poses to halve. None
-    without a prior (or a finite posterior) or when no direction dominates so."""
+    posterior variance ``1 / (1 + I)``, over the campaign's ``n_poses`` poses, ``poses``). ``std`` its task
+    RMS of ``total``; ``poses_to_halve`` how many poses of the same kind halve it (``n_poses (3 + 4 I) / I``);
+    ``errors`` its four largest components (key, weight per prior size). gepetto_delta (tests/corpus): the nests
+    and the task point on one body, a rotation about the line through the two nests: 92 % of 0.019 mm, seen at
+    0.26 sigma, about 2300 poses to halve. None without a prior (or a finite posterior) or when no direction
+    dominates so."""
     if result.error_covariance is None or not np.isfinite(result.error_covariance).all():
         return None
     keys = list(result.params)
@@ -408,7 +409,7 @@ def dominant_task_uncertainty(machine, result, n_poses: int, poses: int = 8) -> 
     coords = machine.spec.task.coordinates
     _, unit, members, _ = error_families(coords)[0]
     idx = [i for i, c in enumerate(coords) if c in members]
-    commands = twin.sample_commands(poses, np.random.default_rng(0))
+    commands = twin.sample_commands(samples, np.random.default_rng(0))
     J = np.nan_to_num(twin.task_jacobian(commands, result.params, keys)[:, idx, :]).reshape(-1, len(keys)) * size
     post = result.error_covariance / np.outer(size, size)                  # posterior in prior sizes
     ev, vecs = np.linalg.eigh(post)
@@ -424,24 +425,27 @@ def dominant_task_uncertainty(machine, result, n_poses: int, poses: int = 8) -> 
         return None
     top = np.argsort(-np.abs(u))[:4]
     return {"share": float(w[k] / w.sum()), "std": float(np.sqrt(w[k])), "total": float(np.sqrt(w.sum())),
-            "unit": unit, "seen_sigma": float(np.sqrt(info)),
+            "unit": unit, "seen_sigma": float(np.sqrt(info)), "poses": int(n_poses),
             "poses_to_halve": float(n_poses * (3.0 + 4.0 * info) / info) if info > 0 else None,
             "errors": {keys[i]: float(u[i]) for i in top}}
 
 
-def dominant_line(d: dict, n_poses: int) -> str:
+def dominant_line(d: dict | None, unseen=()) -> str | None:
     """The warning for a barely seen combination of errors that carries the predicted task error
-    (:func:`dominant_task_uncertainty`), after ``n_poses`` poses."""
+    (:func:`dominant_task_uncertainty`), or None: none, or its errors already named as ``unseen`` by the
+    tracker (:func:`unseen_task_errors`, said once)."""
+    if not d or set(d["errors"]) & set(unseen):
+        return None
     parts = ", ".join(f"{k} {v:+.2f}" for k, v in d["errors"].items())
     halve = f"about {d['poses_to_halve']:.0f}" if d["poses_to_halve"] else "no number of poses"
     return (f"one combination of errors carries {100 * d['share']:.0f} % of the predicted task error "
-            f"({d['std']:.2g} of {d['total']:.2g} {d['unit']} RMS; {parts}, per [errors] size) and the {n_poses} "
+            f"({d['std']:.2g} of {d['total']:.2g} {d['unit']} RMS; {parts}, per [errors] size) and the {d['poses']} "
             f"poses see it at {d['seen_sigma']:.2f} tracker sigma: more poses like them gain slowly ({halve} to "
             "halve it); a tracker target nearer the task point, or off the line or plane of the present ones, "
             "would see it")
 
 
-def params_document(machine, result, source: str | None = None, unseen: list[str] | None = None) -> dict:
+def params_document(machine, result, source: str | None = None) -> dict:
     """The parameters JSON of an identification (docs/formats.md, "Any machine"): ``params`` every error
     considered (mm / deg; the identified machine: each base value spread over the errors it regroups,
     :func:`pmcal.calib.closed_chain.spread_map`), ``units``, the base parameters (``identifiable``), their
@@ -449,8 +453,8 @@ def params_document(machine, result, source: str | None = None, unseen: list[str
     the order of ``identifiable``), ``prior_covariance`` (the ``[errors]`` prior carried onto the base
     parameters, same order) and ``crlb`` (data alone), what each base value
     estimates (``combinations``), what the data cannot see (``unidentifiable``), ``weak`` ones, fit
-    quality; ``unseen_by_tracker``: errors that move the task point but no reading (:func:`unseen_task_errors`;
-    ``unseen`` when already found)."""
+    quality; ``unseen_by_tracker``: errors that move the task point but no reading (:func:`unseen_task_errors`);
+    ``dominant_task_uncertainty`` (:func:`dominant_task_uncertainty`)."""
     units = dict(zip(machine.twin.error_keys, machine.twin.error_units()))
     return {
         "mechanism": machine.name, "model": "closed_chain", "method": "lm+tikhonov",
@@ -467,7 +471,7 @@ def params_document(machine, result, source: str | None = None, unseen: list[str
         "n_poses": int(result.n_poses), "source": source, "success": bool(result.success),
         "loops": loop_summary(machine.twin), "held_out": dict(result.info["held_out"]),
         "beyond_prior": list(result.info["beyond_prior"]),
-        "unseen_by_tracker": unseen_task_errors(machine, result) if unseen is None else list(unseen),
+        "unseen_by_tracker": unseen_task_errors(machine, result),
         "dominant_task_uncertainty": dominant_task_uncertainty(machine, result, int(result.n_poses)),
         "message": result.message,
     }

@@ -566,7 +566,7 @@ def test_demo_warns_when_compensation_is_worse_than_predicted():
 
     def demo(after, passed, unseen=(), dominant=None):
         return SimpleNamespace(coordinates=("x_mm", "y_mm", "rz_deg"), WORSE_THAN_PREDICTED=3.0, unseen=unseen,
-                               dominant=dominant, meas=[None] * 48,
+                               dominant=dominant,
                                result=SimpleNamespace(info={"held_out": {"passed": passed, "rms_mm": 0.03,
                                                                           "predicted_rms_mm": 0.01}}))
 
@@ -578,7 +578,7 @@ def test_demo_warns_when_compensation_is_worse_than_predicted():
     assert len(lines) == 2 and "9.2 times" in lines[0] and "0.0300 mm RMS where 0.0100 mm" in lines[1]
     lines = ChainDemo.warnings(demo(0.005, True, ["effector.dx", "effector.dz"]), good)
     assert len(lines) == 1 and lines[0].startswith("2 error(s) move the task point but no tracker reading (effector.dx")
-    dominant = {"share": 0.96, "std": 0.017, "total": 0.0174, "unit": "mm", "seen_sigma": 0.31,
+    dominant = {"share": 0.96, "std": 0.017, "total": 0.0174, "unit": "mm", "seen_sigma": 0.31, "poses": 48,
                 "poses_to_halve": 1661.0, "errors": {"eff.dry": 0.59, "effector.dry": -0.4}}
     lines = ChainDemo.warnings(demo(0.005, True, dominant=dominant), good)
     assert len(lines) == 1 and lines[0].startswith("one combination of errors carries 96 % of the predicted task "

@@ -125,9 +125,9 @@ def identify(args) -> int:
                          f"({', '.join(unseen[:4])}{', ...' if len(unseen) > 4 else ''}): the compensation cannot "
                          "correct them (the predicted task error counts them at their [errors] size); put a nest "
                          "on that part, or list it under [errors] exclude if its geometry is known")
-    dominant = doc["dominant_task_uncertainty"]
-    if dominant and not set(dominant["errors"]) & set(unseen):
-        progress.warning(dominant_line(dominant, len(meas)))
+    dominant = dominant_line(doc["dominant_task_uncertainty"], unseen)
+    if dominant:
+        progress.warning(dominant)
     if not quality["usable"]:
         progress.warning(f"calibration not usable: {quality['why']}; compensate and push refuse it without --force "
                          "('pmcal twin plan' with this --machine plans a campaign)")

@@ -16,8 +16,8 @@ import numpy as np
 
 from pmcal import progress
 from pmcal.calib.closed_chain import compensate_targets
-from pmcal.chain import (campaign, compensation_table, dominant_line, dominant_task_uncertainty, identify,
-                         params_document, plan, random_errors, sample_targets, table_refusal, unseen_task_errors)
+from pmcal.chain import (campaign, compensation_table, dominant_line, identify, params_document, plan, random_errors,
+                         sample_targets, table_refusal)
 from pmcal.fileio import atomic_directory, write_json
 from pmcal.io_chain import write_measurements, write_plan, write_setpoints, write_targets
 from pmcal.mechanism.task_space import error_families, position_distance, rms, task_difference
@@ -121,8 +121,9 @@ class ChainDemo:
             out.append(f"{len(unseen)} error(s) move the task point but no tracker reading ({', '.join(unseen[:4])}"
                        f"{', ...' if len(unseen) > 4 else ''}): no compensation corrects them; the prediction counts "
                        "them at their [errors] size (put a nest on that part, or [errors] exclude it)")
-        if self.dominant and not set(self.dominant["errors"]) & set(unseen):
-            out.append(dominant_line(self.dominant, len(self.meas)))
+        dominant = dominant_line(self.dominant, unseen)
+        if dominant:
+            out.append(dominant)
         held = self.result.info.get("held_out") or {}
         if held.get("passed") is False:
             out.append(f"the identification does not predict poses it did not fit: {held['rms_mm']:.4f} mm RMS "
@@ -194,18 +195,19 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
         err_comp = task_difference(twin.forward(compensated, truth), task, coords)
         predicted = res.predicted_task_std(twin.task_jacobian(compensated, res.params, list(res.params)))
         done("evaluate")
+    doc = params_document(machine, res, "measurements.csv")       # what the demo says of the result, as identify
     demo = ChainDemo(machine=machine, seed=seed, truth=truth, design=design, meas=meas, result=res, task=task,
                      commands_nominal=nominal, commands_compensated=compensated, error_nominal=err_nominal,
                      error_compensated=err_comp, predicted=predicted, table=table, table_note=note, inside=inside,
-                     error_table=err_table, timings=timings, unseen=unseen_task_errors(machine, res),
-                     dominant=dominant_task_uncertainty(machine, res, len(meas)))
+                     error_table=err_table, timings=timings, unseen=doc["unseen_by_tracker"],
+                     dominant=doc["dominant_task_uncertainty"])
     if out is not None:
         spec = machine.spec
         write_plan(out / "plan.csv", spec, design.commands, [f"pmcal demo: D-optimal plan, seed {seed}"])
         write_measurements(out / "measurements.csv", spec, meas, [
             f"pmcal demo: machine {machine.name}, random errors of machine.toml's sizes, seed {seed}",
             "true errors (mm, deg): " + ", ".join(f"{k}={v:.6g}" for k, v in truth.items())])
-        write_json(out / "params.json", params_document(machine, res, "measurements.csv", demo.unseen))
+        write_json(out / "params.json", doc)
         write_targets(out / "targets.csv", spec, task, [f"pmcal demo: held-out targets, seed {seed + 1000}"])
         write_setpoints(out / "setpoints.csv", spec, task, compensated,
                         ["pmcal demo: compensated commands (identified model's inverse kinematics)"])
