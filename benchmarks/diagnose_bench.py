@@ -32,7 +32,7 @@ it. Every run records each candidate's calibrated held-out test (``held_out_test
 tuning used 1-10).
 
 Run: python benchmarks/diagnose_bench.py [--seeds 20] [--null-seeds 100] [--poses 128] [--jobs 2]
-     [--source twin|xsim|both] [--cases A,B] [--first-seed 1000] [--campaign-size]
+     [--source twin|xsim|both] [--xsim-poses uniform|plan] [--cases A,B] [--first-seed 1000] [--campaign-size]
 """
 
 from __future__ import annotations
@@ -196,15 +196,15 @@ def within_interval(d, twin, name: str, span_h: tuple[float, float]) -> bool:
     return bool((lo is None or lo <= t) and (hi is None or t <= hi))
 
 
-def run_one(job: tuple[str, int, int]) -> dict:
+def run_one(job: tuple[str, int, int, str, str]) -> dict:
     from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose, limit_blas_threads
     from pmcal.twin.ocpm.effect_model import EffectChainModel
     from pmcal.apps.ocpm import effect_scenarios as effects
 
     limit_blas_threads(1)
-    case, seed, n, source = job
+    case, seed, n, source, poses = job
     if source == "xsim":
-        return run_xsim(case, seed, n)
+        return run_xsim(case, seed, n, poses)
     names, n_case, ecc, theta_max = CASES[case]
     if ecc is not None:
         effects.REALISTIC["encoder_eccentricity"] = ecc
@@ -286,12 +286,16 @@ def _common(d, names: list[str]) -> dict:
             "parts": {v.name: v.parts for v in d.named if v.parts}}
 
 
-def xsim_ecc_campaign(seed: int, n: int, drift: bool):
+def xsim_ecc_campaign(seed: int, n: int, drift: bool, poses: str = "uniform"):
     """Issue 31's eccentricity campaigns on the independent simulator: amplitude uniform in 0.01-0.03 deg
     and an arbitrary phase per motor that carries it, on one motor (drawn) or both (drawn); with ``drift``
     on one motor only, the other motor carries a creeping zero-offset drift of the realistic rate (sign
-    drawn). Returns (campaign, effects, true motors per effect name)."""
-    from tests.crosssim.campaign import REALISTIC, SimEffects, plan, random_errors, simulate
+    drawn). ``poses``: "uniform", orientations drawn uniformly over the 80-deg cap (a user's own campaign);
+    "plan", the orientations of ``pmcal twin plan --for-diagnosis`` (:func:`effects.diagnosis_plan` of the
+    seed, in its order), measured by the same simulator with the same time, temperature and payload columns
+    and the same random stream. Returns (campaign, effects, true motors per effect name)."""
+    from pmcal.apps.ocpm import effect_scenarios as effects
+    from tests.crosssim.campaign import REALISTIC, Campaign, SimEffects, nominal_ik, plan, random_errors, simulate
 
     rng = np.random.default_rng([seed, 31])
     err = random_errors(rng)
@@ -307,11 +311,16 @@ def xsim_ecc_campaign(seed: int, n: int, drift: bool):
                          for m in range(2))
         motors["zero_offset_drift"] = [2 - one]
     c = plan(n, 80.0, rng)
+    if poses == "plan":
+        d = effects.diagnosis_plan(n, seed, 80.0)
+        cmd = np.array([nominal_ik(a, b)[:2] for a, b in zip(d.phi_deg, d.theta_deg)])
+        c = Campaign(d.phi_deg, d.theta_deg, cmd, c.time_s, c.temp_c, c.payload_kg)
     return simulate(c, err, fx, SIGMA, rng), fx, motors
 
 
-def run_xsim(case: str, seed: int, n: int) -> dict:
-    """One diagnosis of a campaign from the independent simulator, written and read back as a CSV."""
+def run_xsim(case: str, seed: int, n: int, poses: str = "uniform") -> dict:
+    """One diagnosis of a campaign from the independent simulator, written and read back as a CSV (``poses``:
+    issue 31's eccentricity campaigns only, :func:`xsim_ecc_campaign`)."""
     import tempfile
 
     from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose
@@ -322,7 +331,7 @@ def run_xsim(case: str, seed: int, n: int) -> dict:
     true_motors = None
     if case in XSIM_ECC:
         n_case, drift = XSIM_ECC[case]
-        camp, fx, true_motors = xsim_ecc_campaign(seed, n_case or n, drift)
+        camp, fx, true_motors = xsim_ecc_campaign(seed, n_case or n, drift, poses)
     else:
         camp, _, fx = hidden_campaign(XSIM_CASES[case], seed, n, forms=XSIM_FORMS.get(case))
     with tempfile.TemporaryDirectory() as tmp:
@@ -414,6 +423,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="JSON output (default benchmarks/results/diagnose_bench.json)")
     ap.add_argument("--source", choices=("twin", "xsim", "both"), default="twin",
                     help="campaigns from the twin, the independent simulator tests/crosssim, or both")
+    ap.add_argument("--xsim-poses", choices=("uniform", "plan"), default="uniform",
+                    help="issue 31's eccentricity cases on the independent simulator: poses drawn uniformly over "
+                         "the cap (a user's own campaign) or those of pmcal twin plan --for-diagnosis")
     ap.add_argument("--partial", type=int, default=0, metavar="K",
                     help="write the runs so far to the JSON every K runs (summarise them with --summarise)")
     ap.add_argument("--summarise", metavar="JSON", default=None,
@@ -435,7 +447,7 @@ def main(argv=None) -> int:
     for source in (("twin", "xsim") if args.source == "both" else (args.source,)):
         table = CASES if source == "twin" else XSIM_CASES
         cases = [c for c in args.cases.split(",") if c in table] if args.cases else list(table)
-        jobs += [(c, s, args.poses, source) for c in cases
+        jobs += [(c, s, args.poses, source, args.xsim_poses) for c in cases
                  for s in range(args.first_seed, args.first_seed + (args.null_seeds if c.startswith("none") else args.seeds))]
     t0 = time.perf_counter()
     with Pool(args.jobs) as pool:
@@ -447,15 +459,16 @@ def main(argv=None) -> int:
                   f"{r['gap_before']:.4f} -> {r['gap_after']:.4f} mm ({r['runtime_s']:.1f} s)      ",
                   end="", flush=True)
             if args.partial and i % args.partial == 0 and i < len(jobs):   # a long run stopped early keeps its rows
-                write_json("diagnose_bench", {"poses": args.poses, "sigma_mm": SIGMA, "partial": f"{i}/{len(jobs)}",
-                                              "runs": rows}, args.out)
+                write_json("diagnose_bench", {"poses": args.poses, "xsim_poses": args.xsim_poses, "sigma_mm": SIGMA,
+                                              "partial": f"{i}/{len(jobs)}", "runs": rows}, args.out)
     print()
     header = HEADER
     table = summarise(rows)
     print_table(f"Discrepancy diagnosis, {args.poses} poses, sigma {SIGMA} mm", header, table)
     if coverage(rows):
         print_table("Per-motor 95 % intervals", COVERAGE_HEADER, coverage(rows))
-    write_json("diagnose_bench", {"poses": args.poses, "sigma_mm": SIGMA, "wall_s": time.perf_counter() - t0,
+    write_json("diagnose_bench", {"poses": args.poses, "xsim_poses": args.xsim_poses, "sigma_mm": SIGMA,
+                                  "wall_s": time.perf_counter() - t0,
                                   "header": header, "table": table, "coverage": coverage(rows), "runs": rows},
                args.out)
     return 0
@@ -468,7 +481,8 @@ def campaign_size(args) -> int:
     from pmcal.mechanism.ocpm.effects import VOCABULARY
 
     sources = ("twin", "xsim") if args.source == "both" else (args.source,)
-    jobs = [("none", s, n, src) for src in sources for n in (48, 128) for s in range(1000, 1000 + args.seeds)]
+    jobs = [("none", s, n, src, "uniform") for src in sources for n in (48, 128)
+            for s in range(1000, 1000 + args.seeds)]
     t0 = time.perf_counter()
     with Pool(args.jobs) as pool:
         rows = list(pool.imap_unordered(run_one, jobs) if args.jobs > 1 else map(run_one, jobs))

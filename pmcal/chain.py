@@ -388,7 +388,7 @@ DOMINANT_SHARE, DOMINANT_SEEN_SIGMA = 0.5, 1.0
 
 def dominant_task_uncertainty(machine, result, n_poses: int, samples: int = 8) -> dict | None:
     """The combination of errors that carries most of the predicted task error, when the campaign barely sees
-    it: ``{share, std, total, unit, seen_sigma, poses, poses_to_halve, errors}`` or None.
+    it: ``{share, std, total, unit, seen_sigma, poses, poses_to_halve, errors, suggested_nest}`` or None.
 
     The posterior over every error (:attr:`~pmcal.calib.closed_chain.ChainIdentResult.error_covariance`),
     whitened by the prior sizes, propagated to the task's first family (position mm, else orientation deg)
@@ -399,8 +399,9 @@ def dominant_task_uncertainty(machine, result, n_poses: int, samples: int = 8) -
     RMS of ``total``; ``poses_to_halve`` how many poses of the same kind halve it (``n_poses (3 + 4 I) / I``);
     ``errors`` its four largest components (key, weight per prior size). gepetto_delta (tests/corpus): the nests
     and the task point on one body, a rotation about the line through the two nests: 92 % of 0.019 mm, seen at
-    0.26 sigma, about 2300 poses to halve. None without a prior (or a finite posterior) or when no direction
-    dominates so."""
+    0.26 sigma, about 2300 poses to halve. ``suggested_nest``: where one more tracker nest would see it
+    (:func:`suggest_nest`; gepetto_delta: 4 mm off the nests' line on the effector, 0.018 -> 0.0024 mm). None
+    without a prior (or a finite posterior) or when no direction dominates so."""
     if result.error_covariance is None or not np.isfinite(result.error_covariance).all():
         return None
     keys = list(result.params)
@@ -427,7 +428,49 @@ def dominant_task_uncertainty(machine, result, n_poses: int, samples: int = 8) -
     return {"share": float(w[k] / w.sum()), "std": float(np.sqrt(w[k])), "total": float(np.sqrt(w.sum())),
             "unit": unit, "seen_sigma": float(np.sqrt(info)), "poses": int(n_poses),
             "poses_to_halve": float(n_poses * (3.0 + 4.0 * info) / info) if info > 0 else None,
-            "errors": {keys[i]: float(u[i]) for i in top}}
+            "errors": {keys[i]: float(u[i]) for i in top},
+            "suggested_nest": suggest_nest(machine, result, commands, J, post, u, n_poses)}
+
+
+#: candidate nest positions per body axis (a grid over the bounding box of the body's geoms)
+NEST_GRID = 5
+
+
+def suggest_nest(machine, result, commands, J_task, post, u, n_poses: int) -> dict | None:
+    """Where one more tracker nest would see the barely seen combination ``u`` (prior-size units) of
+    :func:`dominant_task_uncertainty` best: ``{body, position_mm, seen_sigma, total}`` or None.
+
+    Candidates: a :data:`NEST_GRID` ^3 grid over the bounding box of the geoms of each body that carries a
+    tracker nest or the task site (body frame, mm). Each candidate's readings over ``commands`` (exact
+    derivatives of a point fixed on the body, :meth:`~pmcal.twin.closed_chain.ClosedChainTwin.body_point_jacobian`)
+    are added to the posterior ``post`` (prior-size units) as ``n_poses`` poses of that kind would add them;
+    the one that leaves the smallest predicted task error (``J_task``: the task's first family per prior size,
+    rows over ``commands``) is returned with that error (``total``, the family's unit, RMS) and how many
+    tracker sigma the campaign would then see a prior-sized move of ``u`` at (``seen_sigma``). None for a
+    distance reading (no nest to add)."""
+    twin = machine.twin
+    if machine.spec.measure == "distance":
+        return None
+    keys = list(result.params)
+    size = twin.prior_std(keys)
+    model = twin.model
+    bodies = list(dict.fromkeys(int(model.site_bodyid[s]) for s in [*twin.target_sites, twin.task_site]))
+    precision = np.linalg.inv(post)
+    scale = n_poses / len(commands) / result.sigma_mm ** 2
+    best = None
+    for body in bodies:
+        lo, hi = twin.body_bounds_mm(body)
+        grid = np.array(list(itertools.product(*[np.linspace(a, b, NEST_GRID) for a, b in zip(lo, hi)])))
+        Jp = np.nan_to_num(twin.body_point_jacobian(commands, body, grid, result.params, keys)) * size
+        for q, p in enumerate(grid):
+            A = Jp[:, q].reshape(-1, len(keys))
+            new = np.linalg.inv(precision + scale * A.T @ A)
+            total = float(np.sqrt(np.einsum("ij,jk,ik->", J_task, new, J_task) / len(commands)))
+            if best is None or total < best["total"]:
+                seen = max(1.0 / float(u @ new @ u) - 1.0, 0.0)
+                best = {"body": model.body(body).name, "position_mm": [round(float(v), 1) for v in p],
+                        "seen_sigma": float(np.sqrt(seen)), "total": total}
+    return best
 
 
 def dominant_line(d: dict | None, unseen=()) -> str | None:
@@ -438,11 +481,19 @@ def dominant_line(d: dict | None, unseen=()) -> str | None:
         return None
     parts = ", ".join(f"{k} {v:+.2f}" for k, v in d["errors"].items())
     halve = f"about {d['poses_to_halve']:.0f}" if d["poses_to_halve"] else "no number of poses"
-    return (f"one combination of errors carries {100 * d['share']:.0f} % of the predicted task error "
+    line = (f"one combination of errors carries {100 * d['share']:.0f} % of the predicted task error "
             f"({d['std']:.2g} of {d['total']:.2g} {d['unit']} RMS; {parts}, per [errors] size) and the {d['poses']} "
             f"poses see it at {d['seen_sigma']:.2f} tracker sigma: more poses like them gain slowly ({halve} to "
             "halve it); a tracker target nearer the task point, or off the line or plane of the present ones, "
             "would see it")
+    nest = d.get("suggested_nest")
+    if nest:
+        x, y, z = nest["position_mm"]
+        where = (f"at ({x:g}, {y:g}, {z:g}) mm in body '{nest['body']}' would see it at {nest['seen_sigma']:.1f} "
+                 f"tracker sigma, predicted task error {nest['total']:.2g} {d['unit']} RMS")
+        line += (f": one more nest {where}" if nest["seen_sigma"] >= DOMINANT_SEEN_SIGMA else
+                 f"; no one nest on the bodies that carry the nests or the task site sees it well (the best, {where})")
+    return line
 
 
 def params_document(machine, result, source: str | None = None) -> dict:

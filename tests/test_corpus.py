@@ -197,6 +197,52 @@ def test_a_barely_seen_combination_that_carries_the_task_error_is_named(tmp_path
     assert json.loads(p_json.read_text())["dominant_task_uncertainty"] is None
 
 
+def test_the_suggested_nest_is_where_a_real_nest_would_see_the_hidden_combination(tmp_path):
+    """identify's barely seen combination on gepetto_delta comes with where one more nest would see it
+    (``suggested_nest``). The suggestion is checked two ways that do not use its own arithmetic: a site put
+    there in the model reads, by the twin's implicit-function derivatives of a real site, what the rigid-body
+    field of the suggestion said it would (to 1e-6 mm per unit); and the second simulator's own linearised machine with
+    that third nest (its parameters, its Jacobian, its 48-pose plan and held-out targets) leaves a Bayes RMS
+    within 35 % of the suggestion's predicted error (8 workspace commands against a 48-pose plan: a few tens
+    of percent), a small fraction of the two-nest machine's."""
+    import shutil
+
+    from benchmarks.crosssim_seed_spread import linear_machine, spread
+    from pmcal.chain import dominant_task_uncertainty, identify
+
+    folder = CORPUS / "gepetto_delta"
+    machine = Machine.from_folder(folder)
+    m_csv = tmp_path / "m.csv"
+    assert main(["--machine", str(folder), "twin", "measure", "--poses", "48", "--seed", "2", "-o", str(m_csv)]) == 0
+    result = identify(machine, read_measurements(m_csv, machine.spec))
+    d = dominant_task_uncertainty(machine, result, 48)
+    nest = d["suggested_nest"]
+    assert nest["body"] == "eff" and nest["seen_sigma"] > 3.0 and nest["total"] < 0.25 * d["total"]
+
+    three = tmp_path / "three_nests"
+    shutil.copytree(folder, three)
+    xml = three / "gepetto_delta.xml"
+    x, y, z = (v / 1000.0 for v in nest["position_mm"])
+    text = xml.read_text()
+    line = next(ln for ln in text.splitlines() if 'name="nest2"' in ln)
+    xml.write_text(text.replace(line, line + f'\n<site name="nest3" pos="{x} {y} {z}" size="0.002"/>'))
+    toml = three / "machine.toml"
+    toml.write_text(toml.read_text().replace('targets = ["nest1", "nest2"]', 'targets = ["nest1", "nest2", "nest3"]'))
+    with_nest = Machine.from_folder(three)
+    assert with_nest.spec.targets[-1] == "nest3"
+    twin, keys = machine.twin, list(result.params)
+    commands = twin.sample_commands(6, np.random.default_rng(5))
+    body = twin.model.body("eff").id
+    field = twin.body_point_jacobian(commands, body, np.array([nest["position_mm"]]), result.params, keys)[:, 0]
+    real = with_nest.twin.jacobian(commands, result.params, keys)[:, 2]
+    np.testing.assert_allclose(field, real, rtol=0.0, atol=1e-6)
+
+    independent = spread(linear_machine(three), 400)["bayes_rms"]
+    two_nests = spread(linear_machine(folder), 400)["bayes_rms"]
+    assert 0.65 * independent < nest["total"] < 1.35 * independent
+    assert independent < 0.25 * two_nests
+
+
 def test_transcribed_spherical_manipulator_agrees_with_its_source():
     """rotator_spm was transcribed from the Rotator's kinematics module (JimBlaney/rotator src/rotator/math_utils.py,
     README.md there): pmcal's inverse kinematics of the model gives the servo angles the module's

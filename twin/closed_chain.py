@@ -865,6 +865,39 @@ class ClosedChainTwin:
                     out[n, ang] = D @ Rf @ drot[n, tp]
         return out
 
+    def body_bounds_mm(self, body: int) -> tuple[np.ndarray, np.ndarray]:
+        """The bounding box (lo, hi) (3,) mm in ``body``'s frame of its geoms (meshes included), or of its
+        sites widened by 10 mm when it has no geom: where a tracker nest can sit on it."""
+        m = self.model
+        corners = []
+        for g in np.flatnonzero(m.geom_bodyid == body):
+            R = np.empty(9)
+            mujoco.mju_quat2Mat(R, m.geom_quat[g])
+            half = m.geom_aabb[g, 3:]
+            box = m.geom_aabb[g, :3] + np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * half
+            corners.append(m.geom_pos[g] + box @ R.reshape(3, 3).T)
+        if not corners:
+            pts = m.site_pos[m.site_bodyid == body]
+            return pts.min(0) / MM - 10.0, pts.max(0) / MM + 10.0
+        pts = np.vstack(corners)
+        return pts.min(0) / MM, pts.max(0) / MM
+
+    def body_point_jacobian(self, commands, body: int, points_mm: np.ndarray,
+                            params: Mapping[str, float] | None = None, keys: list[str] | None = None) -> np.ndarray:
+        """Exact d position / d errors (N, Q, 3, P), mm per key unit, world frame, of points fixed on ``body``
+        (a body id carrying one of the twin's sites: a tracker target, a closure site or the task site) at
+        ``points_mm`` (Q, 3) mm in the body's frame: where a tracker nest mounted there would move. A rigid
+        body's field, ``d x_p = d x_s + d w x (x_p - x_s)``, from a site ``s`` on it (:meth:`jacobian`'s
+        derivatives). NaN rows where the chain cannot assemble."""
+        on = [i for i, s in enumerate(self.points) if self.model.site_bodyid[s] == body]
+        if not on:
+            raise ValueError(f"body {body} carries none of the twin's sites")
+        kin, dpos, drot = self._point_jacobians(commands, params, keys)
+        i = on[0]
+        x = kin.xpos[:, body, None] + np.einsum("nab,qb->nqa", kin.xmat[:, body], np.asarray(points_mm) * MM)
+        r = x - kin.site_xpos[:, i, None]                                          # (N, Q, 3) m
+        return (dpos[:, i, None] + np.cross(drot[:, i, None], r[..., None], axis=2)) / MM
+
     def _point_jacobians(self, commands, params, keys):
         """Kinematics at the assembled commands and the total derivatives (N, npoints, 3, P) of every
         point's position (m) and orientation (rad) per key unit: the IFT of the module docstring."""
