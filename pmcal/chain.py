@@ -454,8 +454,8 @@ def suggest_nest(machine, result, commands, J_task, post, u, n_poses: int) -> di
     keys = list(result.params)
     size = twin.prior_std(keys)
     model = twin.model
-    bodies = list(dict.fromkeys(int(model.site_bodyid[s]) for s in [*twin.target_sites, twin.task_site]))
-    precision = np.linalg.inv(post)
+    bodies = [b for b in dict.fromkeys(int(model.site_bodyid[s]) for s in [*twin.target_sites, twin.task_site])
+              if b != 0]                                                   # a nest on the world sees nothing
     scale = n_poses / len(commands) / result.sigma_mm ** 2
     best = None
     for body in bodies:
@@ -463,9 +463,10 @@ def suggest_nest(machine, result, commands, J_task, post, u, n_poses: int) -> di
         grid = np.array(list(itertools.product(*[np.linspace(a, b, NEST_GRID) for a, b in zip(lo, hi)])))
         Jp = np.nan_to_num(twin.body_point_jacobian(commands, body, grid, result.params, keys)) * size
         for q, p in enumerate(grid):
-            A = Jp[:, q].reshape(-1, len(keys))
-            new = np.linalg.inv(precision + scale * A.T @ A)
-            total = float(np.sqrt(np.einsum("ij,jk,ik->", J_task, new, J_task) / len(commands)))
+            A = Jp[:, q].reshape(-1, len(keys))                           # its readings' rows (Woodbury update)
+            K = A @ post
+            new = post - K.T @ np.linalg.solve(np.eye(len(A)) / scale + K @ A.T, K)
+            total = float(np.sqrt(max(np.einsum("ij,jk,ik->", J_task, new, J_task), 0.0) / len(commands)))
             if best is None or total < best["total"]:
                 seen = max(1.0 / float(u @ new @ u) - 1.0, 0.0)
                 best = {"body": model.body(body).name, "position_mm": [round(float(v), 1) for v in p],
