@@ -62,7 +62,7 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     sigma_mm : tracker noise, 1 sigma per coordinate, mm (default machine.toml's).
     task : (n, C) explicit targets in the machine's task coordinates instead of drawn poses.
     commands, pose_id : (n, M) explicit commands (a plan, :func:`plan`) and their ids, instead of drawn
-        poses; every one must assemble on the erroneous machine.
+        poses.
     seconds_per_pose : time between poses, s (the ``time_s`` column).
     source : the file ``task`` came from (for messages).
 
@@ -74,7 +74,9 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     -------
     (measurements, truth) : the measured targets (mm, base frame) and the error set measured. A pose the
     erroneous machine cannot assemble, or assembles on another branch than the nominal machine's (a target
-    more than :data:`PLAUSIBLE_TARGET_MM` from the nominal one), is replaced by a further draw.
+    more than :data:`PLAUSIBLE_TARGET_MM` from the nominal one), is replaced by a further draw; one of
+    explicit ``task`` or ``commands`` is left out with a warning naming it, as a real campaign skips a pose the
+    machine does not reach (a :class:`RunError` when more than half are).
     """
     twin = machine.twin
     rng = np.random.default_rng(seed)
@@ -97,8 +99,8 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     distance = machine.spec.measure == "distance"
 
     def measured(cmd):
-        """The rows of ``cmd`` the erroneous machine assembles on the nominal one's branch, and their
-        readings (distance machines: the distances, noise-free; the readings are taken below)."""
+        """The rows of ``cmd`` the erroneous machine assembles on the nominal one's branch (a mask), and
+        their readings (distance machines: the distances, noise-free; the readings are taken below)."""
         held = cmd + rng.normal(0.0, motor_sigma, cmd.shape) if motor_sigma.any() else cmd
         if distance:
             y = twin.observe(held, truth)
@@ -106,34 +108,47 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
         else:
             y = twin.measure(held, truth, rng, sigma)
             ok = (distance_from_nominal(machine, cmd, y) <= PLAUSIBLE_TARGET_MM).all(axis=1)
-        return cmd[ok], y[ok]
+        return ok, y[ok]
 
     got, wanted = [], len(commands)
     with progress.progress(total=len(commands), desc="measuring", unit="pose") as bar:
         for start in range(0, len(commands), _CHUNK):
             got.append(measured(commands[start:start + _CHUNK]))
             bar.update(min(_CHUNK, wanted - start))
-    commands, y = (np.concatenate(v) for v in zip(*got))
+    kept = np.concatenate([ok for ok, _ in got])
+    commands, y = commands[kept], np.concatenate([v for _, v in got])
     short = wanted - len(commands)
-    if short and explicit:
-        raise RunError(f"{short} of the {'targets' if task is not None else 'planned poses'} cannot be assembled "
-                       "on the erroneous machine (on the nominal machine's branch)")
+    ids = None
+    if explicit:                   # the given poses: one the erroneous machine does not reach is left out
+        given = list(pose_id) if pose_id is not None else [f"P{i + 1}" for i in range(wanted)]
+        ids = [i for i, k in zip(given, kept) if k]
+        lost = [i for i, k in zip(given, kept) if not k]
+        what = "targets" if task is not None else "planned poses"
+        if 2 * short > wanted:
+            raise RunError(f"{short} of the {wanted} {what} cannot be assembled on the erroneous machine (on the "
+                           "nominal machine's branch): its errors are too large for this workspace")
+        if short:
+            progress.warning(f"{short} of the {wanted} {what} cannot be assembled on the erroneous machine (on the "
+                             "nominal machine's branch) and are left out, as a real campaign skips a pose the "
+                             f"machine does not reach: {', '.join(lost[:8])}{' ...' if short > 8 else ''}")
+        short = 0
     for _ in range(20):
         if short <= 0:
             break
-        cmd, more = measured(twin.sample_commands(short, rng))
-        commands, y = np.concatenate([commands, cmd]), np.concatenate([y, more])
-        short -= len(cmd)
+        ok, more = measured(cmd := twin.sample_commands(short, rng))
+        commands, y = np.concatenate([commands, cmd[ok]]), np.concatenate([y, more])
+        short -= int(ok.sum())
     if short > 0:
         raise RunError(f"the erroneous machine assembles too few of the drawn poses ({short} missing)")
     n = len(commands)
+    if ids is None:
+        ids = list(pose_id) if pose_id is not None else [f"P{i + 1}" for i in range(n)]
     readings = None
     if distance:
         D = reading_operator(n, machine.spec.reference)
         readings = np.full(n, np.nan)
         readings[1:] = D @ y[:, 0] + rng.normal(0.0, sigma, n - 1)
         y = np.zeros((n, 0, 3))
-    ids = list(pose_id) if pose_id is not None else [f"P{i + 1}" for i in range(n)]
     meas = ChainMeasurements(pose_id=ids, commands=commands, targets=y,
                              time_s=np.arange(n) * float(seconds_per_pose), readings=readings, machine=machine)
     return meas, truth

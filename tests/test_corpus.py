@@ -260,3 +260,23 @@ def test_transcribed_spherical_manipulator_agrees_with_its_source():
         rows.append([rx, ry, rz])
     twin = Machine.from_folder(CORPUS / "rotator_spm").twin
     np.testing.assert_allclose(twin.inverse(np.array(rows)), np.array(list(source.values())), atol=0.006)
+
+
+def test_a_planned_pose_the_erroneous_machine_does_not_reach_is_left_out_with_its_name(capsys):
+    """A real campaign skips a pose the machine does not reach and measures the rest; so does the twin's campaign
+    at explicit commands (the demo's plan, ``twin measure --commands``): the 3-RRR does not close at two of six
+    commands (a motor turned 150 deg further), which are left out with a warning naming them, the others measured
+    under their own ids. More than half unreachable is an error: the errors do not fit the workspace."""
+    from pmcal.chain import campaign
+    from pmcal.errors import RunError
+
+    machine = Machine.from_folder(CORPUS / "nopour_3rrr")
+    commands = machine.twin.sample_commands(6, np.random.default_rng(0))
+    commands[[1, 4]] += 150.0
+    meas, _ = campaign(machine, 6, seed=1, commands=commands, pose_id=list("abcdef"))
+    assert list(meas.pose_id) == ["a", "c", "d", "f"]
+    np.testing.assert_array_equal(meas.commands, commands[[0, 2, 3, 5]])
+    assert "2 of the 6 planned poses cannot be assembled" in capsys.readouterr().err.replace("\n", " ")
+    commands[[0, 2]] += 150.0
+    with pytest.raises(RunError, match="4 of the 6 planned poses"):
+        campaign(machine, 6, seed=1, commands=commands)
