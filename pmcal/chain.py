@@ -57,7 +57,9 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     machine : :class:`pmcal.machines.Machine` (not a seeded one).
     poses : number of poses; their commands are drawn over the workspace box of machine.toml (the nominal
         machine's inverse kinematics, as a controller would), unless ``task`` is given.
-    seed : seed of the errors, the commands and the tracker noise, drawn in this order.
+    seed : seed of the errors, the commands and the tracker noise, drawn in this order (the errors are drawn
+        even when ``errors`` gives them: the noise of a seed never repeats that seed's error draw, so a caller
+        that drew its errors with ``random_errors(machine, default_rng(seed))`` gets noise independent of them).
     errors : ``"random"`` (:func:`random_errors`), ``"none"``, or an error set ``{key: value}``.
     sigma_mm : tracker noise, 1 sigma per coordinate, mm (default machine.toml's).
     task : (n, C) explicit targets in the machine's task coordinates instead of drawn poses.
@@ -80,8 +82,9 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     """
     twin = machine.twin
     rng = np.random.default_rng(seed)
+    drawn = random_errors(machine, rng)       # always drawn: the noise never repeats a seed's error draw
     if isinstance(errors, str):
-        truth = random_errors(machine, rng) if errors == "random" else {}
+        truth = drawn if errors == "random" else {}
     else:
         truth = dict(errors)
     sigma = twin.sigma_mm if sigma_mm is None else float(sigma_mm)

@@ -85,8 +85,10 @@ def test_a_moved_error_shows_in_its_combinations(filed, capsys):
     for n in holds:                                                # within the noise + 2nd order (0.01 mm)
         assert abs(changes[n].estimate - expected[n]) < 4 * changes[n].estimate_std + 0.01, n
     # other flags are the dent's second-order effects on the other combinations (the regrouping of each
-    # is exact at the nominal machine only): a few, each far below the dent
-    assert all(abs(changes[n].estimate) < 0.01 for n in flagged - holds), flagged - holds
+    # is exact at the nominal machine only): a few, each consistent with no move (noise + 2nd order), far
+    # below the dent
+    assert all(abs(changes[n].estimate) < 4 * changes[n].estimate_std + 0.01 for n in flagged - holds), \
+        {n: (changes[n].estimate, changes[n].estimate_std) for n in flagged - holds}
     capsys.readouterr()
     assert main(["history", str(tmp / "H")]) == 0
     moved = [line for line in capsys.readouterr().out.splitlines() if line.startswith("moved:")]
