@@ -315,3 +315,40 @@ END_PROGRAM
 """
     rt = run_st(tmp_path, src)
     assert (rt.read_value("MAIN.r1"), rt.read_value("MAIN.r2"), rt.read_value("MAIN.o")) == (5, 12, 12)
+
+
+#: two enums, the first declared strict (as plc/DUTs/E_CompTable*), the second not
+ENUMS = """
+{attribute 'qualified_only'}
+{attribute 'strict'}
+TYPE E_Strict :
+(
+    A := 0,
+    B := 1
+) INT;
+END_TYPE
+
+{attribute 'qualified_only'}
+TYPE E_Loose :
+(
+    X := 0,
+    Y := 1
+) INT;
+END_TYPE
+"""
+
+
+@pytest.mark.parametrize("strict, loose", [("e := 1;", "f := 1;"), ("e := n;", "f := n;"),
+                                           ("e := E_Loose.X;", "f := E_Loose.X;"), ("n := e + 1;", "n := f + 1;"),
+                                           ("e := f;", "f := g;")])
+def test_a_strict_enum_takes_only_its_own_values(tmp_path, strict, loose):
+    """Infosys tc3_plc_intro, Attribute 'strict' (/content/1033/tc3_plc_intro/3363142027.html): arithmetic
+    with a strict enum, a constant that is not one of its values, or a value of another type assigned to
+    it are compile errors in TwinCAT; the interpreter refuses them too. The same on a plain enum compiles."""
+    path = tmp_path / "strict.st"
+    decl = "e : E_Strict; f : E_Loose; g : E_Loose := E_Loose.Y; n : INT := 1;"
+    path.write_text(ENUMS + f"PROGRAM MAIN\nVAR\n{decl}\nEND_VAR\n{strict}\nEND_PROGRAM\n")
+    with pytest.raises(PlcCompileError, match="strict enum"):
+        compile_files([path], cache=False)
+    rt = run_st(tmp_path, ENUMS + f"PROGRAM MAIN\nVAR\n{decl}\nEND_VAR\ne := E_Strict.B;\n{loose}\nEND_PROGRAM\n")
+    assert rt.read_value("MAIN.e") == 1

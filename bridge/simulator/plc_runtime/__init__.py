@@ -56,7 +56,9 @@ Supported ST subset
 PROGRAM, FUNCTION_BLOCK (VAR_INPUT/OUTPUT/IN_OUT/VAR, initial values), FUNCTION (with VAR_OUTPUT),
 METHOD (return value, VAR_INPUT/IN_OUT/VAR, implicit THIS), VAR CONSTANT, GVLs (qualified access,
 CONSTANT, PERSISTENT), located variables ``AT %MBn`` (the %M area), STRUCT with ``pack_mode``,
-UNION, enums (qualified values, base type), ARRAY (multi-dimensional, ARRAY OF ARRAY, of structs),
+UNION, enums (qualified values, base type; ``{attribute 'strict'}`` enforced: no arithmetic on such an
+enum, no other constant and no value of another type assigned to it, as TwinCAT's compile errors),
+ARRAY (multi-dimensional, ARRAY OF ARRAY, of structs),
 STRING(n), POINTER TO, REFERENCE TO; statements :=, REF=, IF/ELSIF/ELSE, CASE (values, ranges,
 enum values), FOR (constant BY), WHILE, REPEAT, EXIT, RETURN, calls with named/positional inputs
 and ``=>`` outputs; the operators and library functions listed in

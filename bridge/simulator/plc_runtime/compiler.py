@@ -209,6 +209,11 @@ class Program:
 NO_SYMBOL_ATTRIBUTES = frozenset({"hide", "tc_no_symbol", "tcnosymbol"})
 
 
+#: what TwinCAT refuses for an enum declared {attribute 'strict'} (compile errors)
+STRICT_RULE = ("strict enum: no arithmetic with it, no other constant, no value of another type "
+               "(Infosys tc3_plc_intro, Attribute 'strict', /content/1033/tc3_plc_intro/3363142027.html)")
+
+
 def _no_symbol(decl) -> bool:
     """The declaration carries an attribute that suppresses its ADS symbol (see NO_SYMBOL_ATTRIBUTES)."""
     meta = getattr(decl, "meta", None)
@@ -312,7 +317,7 @@ class Compiler:
                     nxt = int(self.const_value(v.value, base))
                 values[str(v.name).split(".")[-1].lower()] = nxt
                 nxt += 1
-            return enum_type(name, base, values)
+            return enum_type(name, base, values, strict=name in u.strict)
         if kind == "StructureTypeDeclaration":
             if decl.extends is not None:
                 raise PlcCompileError(f"{name}: EXTENDS is not supported")
@@ -974,6 +979,8 @@ class Compiler:
             raise PlcCompileError(f"{self.pou.name}: implicit conversion {e.t.name} -> {t.name} (use {e.t.name}_TO_{t.name})")
         if t.kind == "bool":
             return e.code
+        if t.kind == "enum" and t.strict and e.t is not t:
+            raise PlcCompileError(f"{self.pou.name}: {e.t.name} assigned to {t.name}, a {STRICT_RULE}")
         if t.kind in ("int", "enum", "pointer", "reference"):
             if e.t.kind == "real":
                 raise PlcCompileError(f"{self.pou.name}: implicit conversion {e.t.name} -> {t.name}")
@@ -1315,6 +1322,9 @@ class Compiler:
             py = {"=": "==", "<>": "!="}.get(op, op)
             code = f"({a.code} {py} {b.code})"
             return E(code, BOOL, const=eval(code, {}) if const else _NOCONST)
+        strict = next((x.t for x in (a, b) if x.t.kind == "enum" and x.t.strict), None)
+        if strict is not None:
+            raise PlcCompileError(f"{self.pou.name}: {op} on {strict.name}, a {STRICT_RULE}")
         real = a.t.kind == "real" or b.t.kind == "real"
         if real:
             t = LREAL if (a.t.name == "LREAL" or b.t.name == "LREAL" or a.t is ANYINT or b.t is ANYINT) else REAL
