@@ -352,3 +352,27 @@ def test_a_strict_enum_takes_only_its_own_values(tmp_path, strict, loose):
         compile_files([path], cache=False)
     rt = run_st(tmp_path, ENUMS + f"PROGRAM MAIN\nVAR\n{decl}\nEND_VAR\ne := E_Strict.B;\n{loose}\nEND_PROGRAM\n")
     assert rt.read_value("MAIN.e") == 1
+
+
+def test_not_complements_the_whole_x64_register_until_stored(tmp_path):
+    """On x64 TwinCAT computes intermediate results in 64-bit registers and truncates them to their type only
+    when they are stored (Infosys tc3_plc_intro, Operators, /content/1033/tc3_plc_intro/2528853899.html; the
+    comparison case in Static Analysis SA0066, /content/1033/te1200_tc3_plcstaticanalysis/20911281419.html):
+    NOT of a zero-extended UDINT or WORD has its upper bits set, so it never equals a UDINT or WORD, while the
+    stored NOT, and a XOR of two values of the type, are exact. A signed value is sign-extended: NOT i = -i - 1."""
+    rt = run_st(tmp_path, """
+PROGRAM MAIN
+VAR
+    u : UDINT := 16#80000001;  c : UDINT := 16#7FFFFFFE;  s : UDINT;  w : WORD := 16#FFFF;  i : INT := 5;
+    bEq, bXor, bWord, bStored, bInt : BOOL;
+END_VAR
+s := NOT u;
+bEq := c = NOT u;
+bXor := (c XOR u) = 16#FFFFFFFF;
+bWord := NOT w = 0;
+bStored := c = s;
+bInt := NOT i = -6;
+END_PROGRAM
+""")
+    v = {k: rt.read_value(f"MAIN.{k}") for k in ("s", "bEq", "bXor", "bWord", "bStored", "bInt")}
+    assert v == dict(s=0x7FFFFFFE, bEq=False, bXor=True, bWord=False, bStored=True, bInt=True)

@@ -209,6 +209,9 @@ class Program:
 NO_SYMBOL_ATTRIBUTES = frozenset({"hide", "tc_no_symbol", "tcnosymbol"})
 
 
+#: register width of the x64 target: TwinCAT computes every intermediate integer result in it and truncates it
+#: to its type only when it is stored (Infosys tc3_plc_intro, Operators, /content/1033/tc3_plc_intro/2528853899.html)
+REGISTER_BITS = 64
 #: what TwinCAT refuses for an enum declared {attribute 'strict'} (compile errors)
 STRICT_RULE = ("strict enum: no arithmetic with it, no other constant, no value of another type "
                "(Infosys tc3_plc_intro, Attribute 'strict', /content/1033/tc3_plc_intro/3363142027.html)")
@@ -1276,8 +1279,11 @@ class Compiler:
         if op == "NOT":
             if e.t.kind == "bool":
                 return E(f"(not {e.code})", BOOL, const=(not e.const) if e.const is not _NOCONST else _NOCONST)
-            mask = (1 << e.t.bits) - 1
-            return E(f"({e.code} ^ {mask:#x})", e.t)
+            if e.t is ANYINT or e.t.bits >= REGISTER_BITS:
+                return E(f"({e.code} ^ {(1 << e.t.bits) - 1:#x})", e.t)
+            # x64: the whole 64-bit register is complemented and not truncated to the type until stored
+            # (a signed value is sign-extended, so ~x; an unsigned one zero-extended, so its upper bits turn 1)
+            return E(f"(~{e.code})" if e.t.signed else f"({e.code} ^ {(1 << REGISTER_BITS) - 1:#x})", e.t)
         if op == "-":
             const = -e.const if e.const is not _NOCONST else _NOCONST
             out = E(f"(-{e.code})", e.t, e.arith, const)
