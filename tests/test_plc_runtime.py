@@ -376,3 +376,29 @@ END_PROGRAM
 """)
     v = {k: rt.read_value(f"MAIN.{k}") for k in ("s", "bEq", "bXor", "bWord", "bStored", "bInt")}
     assert v == dict(s=0x7FFFFFFE, bEq=False, bXor=True, bWord=False, bStored=True, bInt=True)
+
+
+@pytest.mark.parametrize("pack, size", [("0", 8), ("1", 8), ("2", 10), ("4", 12), ("8", 12)])
+def test_pack_mode_sizes_of_the_infosys_sample(tmp_path, pack, size):
+    """Infosys' pack_mode sample (CX7000 Attribute 'pack_mode', /content/1033/cx7000/10697920651.html, and
+    tc3_plc_intro /content/1033/tc3_plc_intro/2529746059.html): BYTE, DINT, BYTE, INT gives SIZEOF 8 with
+    pack mode 0 (no gaps, as 1), 10 with 2, 12 with 4 and 8."""
+    rt = run_st(tmp_path, f"""
+{{attribute 'pack_mode' := '{pack}'}}
+TYPE str_Test :
+STRUCT
+    byTest1 : BYTE;
+    iTest   : DINT;
+    byTest2 : BYTE;
+    nValue  : INT;
+END_STRUCT
+END_TYPE
+
+PROGRAM MAIN
+VAR
+    st : str_Test;  n : UDINT;
+END_VAR
+n := SIZEOF(st);
+END_PROGRAM
+""")
+    assert rt.read_value("MAIN.n") == size

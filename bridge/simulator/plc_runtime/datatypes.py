@@ -130,7 +130,10 @@ def enum_type(name: str, base: DType, values: dict, strict: bool = False) -> DTy
 
 
 def layout(name: str, kind: str, members: list[tuple[str, DType]], pack: int = 8) -> DType:
-    """A struct / union / fb type from its members in declaration order."""
+    """A struct / union / fb type from its members in declaration order. ``pack``: the pack mode; 0 packs
+    without gaps as 1 does (Infosys tc3_plc_intro, Attribute 'pack_mode',
+    https://infosys.beckhoff.com/content/1033/tc3_plc_intro/2529746059.html: 0 'aligned', no gaps)."""
+    pack = max(pack, 1)
     offs, at, align = {}, 0, 1
     for mname, t in members:
         a = min(t.align, pack)
