@@ -317,6 +317,17 @@ END_PROGRAM
     assert (rt.read_value("MAIN.r1"), rt.read_value("MAIN.r2"), rt.read_value("MAIN.o")) == (5, 12, 12)
 
 
+@pytest.mark.parametrize("expression", ["r MOD 2.0", "i MOD r", "7.5 MOD 2"])
+def test_mod_takes_integers_only(tmp_path, expression):
+    """Infosys tc3_plc_intro, MOD (/content/1033/tc3_plc_intro/2528880779.html): permitted data types are the
+    integer and bit-string types only; a REAL operand is compile error C0208 ('MOD' is not defined for 'REAL')."""
+    path = tmp_path / "mod.st"
+    path.write_text(f"PROGRAM MAIN\nVAR\n r : LREAL := 7.5; i : DINT := 7; x : LREAL;\nEND_VAR\nx := {expression};\n"
+                    "END_PROGRAM\n")
+    with pytest.raises(PlcCompileError, match="MOD takes integers only"):
+        compile_files([path], cache=False)
+
+
 #: two enums, the first declared strict (as plc/DUTs/E_CompTable*), the second not
 ENUMS = """
 {attribute 'qualified_only'}

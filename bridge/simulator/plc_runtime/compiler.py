@@ -1341,7 +1341,10 @@ class Compiler:
         elif op == "/":
             code = f"({a.code} / {b.code})" if real else f"_idiv({a.code}, {b.code})"
         elif op == "MOD":
-            code = f"_fmod({a.code}, {b.code})" if real else f"_imod({a.code}, {b.code})"
+            if real:                # TwinCAT: C0208 'MOD' is not defined for 'REAL' (ANY_INT operands only)
+                raise PlcCompileError(f"{self.pou.name}: MOD of {a.t.name} and {b.t.name}: MOD takes integers only "
+                                      "(Infosys tc3_plc_intro, MOD, /content/1033/tc3_plc_intro/2528880779.html)")
+            code = f"_imod({a.code}, {b.code})"
         elif op == "**":
             self.math_calls += 1
             code = f"_expt({a.code}, {b.code})"
