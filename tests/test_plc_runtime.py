@@ -413,3 +413,48 @@ n := SIZEOF(st);
 END_PROGRAM
 """)
     assert rt.read_value("MAIN.n") == size
+
+
+#: a function block and a program whose members other POUs write (MAIN)
+OWNERS = """
+FUNCTION_BLOCK FB_Owner
+VAR_INPUT
+    bIn : BOOL;
+END_VAR
+VAR_OUTPUT
+    bOut : BOOL;
+END_VAR
+VAR
+    bLocal : BOOL;
+END_VAR
+bOut := bIn;
+END_FUNCTION_BLOCK
+
+PROGRAM PRG_Owner
+VAR_INPUT
+    bIn : BOOL;
+END_VAR
+VAR
+    bLocal : BOOL;
+    fb : FB_Owner;
+END_VAR
+END_PROGRAM
+"""
+
+
+@pytest.mark.parametrize("statement, allowed", [
+    ("fb.bIn := TRUE;", True), ("PRG_Owner.bIn := TRUE;", True), ("PRG_Owner.fb.bIn := TRUE;", True),
+    ("fb.bLocal := TRUE;", False), ("fb.bOut := TRUE;", False), ("PRG_Owner.bLocal := TRUE;", False),
+    ("GVL.gFb.bLocal := TRUE;", False), ("GVL.gFb.bIn := TRUE;", True)])
+def test_only_inputs_are_written_from_outside(tmp_path, statement, allowed):
+    """TwinCAT reports a write from outside to a program's or function block's own variable (VAR, VAR_OUTPUT)
+    as a compile error; inputs may be written (Infosys Static Analysis SA0102,
+    /content/1033/te1200_tc3_plcstaticanalysis/20911240331.html)."""
+    path = tmp_path / "access.st"
+    path.write_text(OWNERS + "{attribute 'qualified_only'}\nVAR_GLOBAL\n    gFb : FB_Owner;\nEND_VAR\n"
+                    f"PROGRAM MAIN\nVAR\n    fb : FB_Owner;\nEND_VAR\n{statement}\nEND_PROGRAM\n")
+    if allowed:
+        compile_files([path], cache=False)
+    else:
+        with pytest.raises(PlcCompileError, match="written from outside"):
+            compile_files([path], cache=False)

@@ -209,6 +209,9 @@ class Program:
 NO_SYMBOL_ATTRIBUTES = frozenset({"hide", "tc_no_symbol", "tcnosymbol"})
 
 
+#: the library POUs written in ST (Tc2_* models and hardware hooks, not project code): they may reach into
+#: the internals of the library FBs they model (AXIS_REF), which project ST may not
+LIBRARY_FILE = "library.st"
 #: register width of the x64 target: TwinCAT computes every intermediate integer result in it and truncates it
 #: to its type only when it is stored (Infosys tc3_plc_intro, Operators, /content/1033/tc3_plc_intro/2528853899.html)
 REGISTER_BITS = 64
@@ -791,6 +794,7 @@ class Compiler:
         if kind == "AssignmentStatement":
             e = self.expr(s.expression, pre)
             for target in s.variables:
+                self._check_write_access(target)
                 lv = self.lvalue(target, pre)
                 self._emit(pre, indent)
                 pre = []
@@ -961,6 +965,40 @@ class Compiler:
                 self._line(lv.write(tmp), indent)
             return
         self._line(lv.write(self.coerce(e, t)), indent)
+
+    def _check_write_access(self, target) -> None:
+        """Refuse an assignment from outside to a program's or FB instance's own variable (VAR, VAR_OUTPUT,
+        ...): TwinCAT reports it as a compile error and lets only the inputs be written (Infosys Static
+        Analysis SA0102, /content/1033/te1200_tc3_plcstaticanalysis/20911240331.html: "TwinCAT determines
+        external write access operations to local variables of programs or function blocks as compilation
+        errors"). The member selected from the innermost instance on the path is the one written."""
+        if type(target).__name__ != "MultiElementVariable" or self.pou.unit.file == LIBRARY_FILE:
+            return
+        found = self.lookup(str(target.name.name))
+        if found is None or found[0] not in ("pou", "var", "global", "gvl"):
+            return
+        t = found[1].itype if found[0] == "pou" else None if found[0] == "gvl" else found[1].t
+        written = None
+        for el in target.elements:
+            if type(el).__name__ != "FieldSelector":
+                t = t.elem if t is not None and t.kind == "array" else None
+                continue
+            name = str(el.field.name)
+            if t is None and found[0] == "gvl":
+                gv = self.prog.gvls[found[1]].get(name.lower())
+                t = gv.t if gv is not None else None
+                continue
+            if t is None or t.kind not in ("fb", "program", "struct", "union"):
+                return
+            if t.kind in ("fb", "program"):
+                written = t.pou.vars.get(name.lower())
+                written = (t.pou, written) if written is not None else None
+            m = _member(t, name)
+            t = m[1] if m is not None else None
+        if written is not None and written[1].block != "VAR_INPUT" and written[0] not in (self.pou, self.pou.parent):
+            owner, v = written
+            raise PlcCompileError(f"{self.pou.name}: {owner.name}.{v.name} ({v.block}) is written from outside: "
+                                  "TwinCAT lets only inputs be written (Infosys SA0102)")
 
     def _string_src(self, e: E) -> str:
         if e.const is not _NOCONST:
