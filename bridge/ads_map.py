@@ -67,34 +67,46 @@ _ELEMENTARY = {"BOOL": 1, "BYTE": 1, "SINT": 1, "USINT": 1, "WORD": 2, "INT": 2,
 
 def struct_members(type_name: str) -> dict[str, tuple[int, int, str]] | None:
     """Members of a DUT of the shipped PLC sources: lower-case name -> (byte offset, size, type), or None
-    if ``type_name`` is not a struct there. Follows ``pack_mode`` (1: packed; otherwise natural
-    alignment, at most 8), nested structs, enums (their base type), ``STRING(n)`` and one-dimensional
-    arrays with literal bounds. Nested members come as ``outer.inner``.
+    if ``type_name`` is not a struct there. Follows ``pack_mode`` and TwinCAT 3's natural alignment
+    (Infosys tc3_plc_intro, Alignment, https://infosys.beckhoff.com/content/1033/tc3_plc_intro/3539428491.html),
+    nested structs, enums (their base type), ``STRING(n)`` and one-dimensional arrays with literal bounds.
+    Nested members come as ``outer.inner``.
     """
+    layout = _struct_layout(type_name)
+    return None if layout is None else layout[0]
+
+
+def _struct_layout(type_name: str) -> tuple[dict, int, int] | None:
+    """(members, size, alignment) of a struct DUT. A member of alignment a (an elementary type: its size; a
+    struct: its largest member's) sits at a multiple of min(a, pack mode) (default 8; 0 and 1: no gaps); the
+    struct's alignment is the largest of these and its size a multiple of it (so arrays of it stay
+    aligned)."""
     text = _dut_text(type_name)
     if text is None or not re.search(r"\bSTRUCT\b", text):
         return None
-    packed = re.search(r"'pack_mode'\s*:=\s*'1'", text) is not None
+    m = re.search(r"'pack_mode'\s*:=\s*'(\d+)'", text)
+    pack = max(int(m[1]), 1) if m else 8
     body = re.sub(r"//[^\n]*|\(\*.*?\*\)", "", text.split("STRUCT", 1)[1].rsplit("END_STRUCT", 1)[0], flags=re.S)
-    out, offset = {}, 0
+    out, offset, struct_align = {}, 0, 1
     for name, st_type in re.findall(r"(\w+)\s*:\s*([^;:=]+?)\s*(?::=[^;]*)?;", body):
         size, align, inner = _type_size(st_type.strip())
         if size is None:
             return None
-        if not packed:
-            offset = -(-offset // align) * align
+        align = min(align, pack)
+        struct_align = max(struct_align, align)
+        offset = -(-offset // align) * align
         out[name.lower()] = (offset, size, st_type.strip())
         for sub, (o, n, t) in (inner or {}).items():
             out[f"{name.lower()}.{sub}"] = (offset + o, n, t)
         offset += size
-    return out
+    return out, -(-offset // struct_align) * struct_align, struct_align
 
 
 def _type_size(st_type: str) -> tuple[int | None, int, dict | None]:
     """(size, alignment, members) of a member type."""
     upper = st_type.upper()
     if upper in _ELEMENTARY:
-        return _ELEMENTARY[upper], min(_ELEMENTARY[upper], 8), None
+        return _ELEMENTARY[upper], _ELEMENTARY[upper], None
     m = re.fullmatch(r"STRING\s*\(\s*(\d+)\s*\)", st_type, re.I)
     if m:
         return int(m[1]) + 1, 1, None
@@ -102,16 +114,15 @@ def _type_size(st_type: str) -> tuple[int | None, int, dict | None]:
     if m:
         size, align, _ = _type_size(m[3].strip())
         return (None if size is None else size * (int(m[2]) - int(m[1]) + 1)), align, None
-    members = struct_members(st_type)
-    if members is not None:
-        top = [v for k, v in members.items() if "." not in k]
-        end = max(o + n for o, n, _ in top) if top else 0
-        return end, 8, members
+    layout = _struct_layout(st_type)
+    if layout is not None:
+        members, size, align = layout
+        return size, align, members
     text = _dut_text(st_type)
     if text is not None:                          # an enum: its base type after the closing bracket
         m = re.search(r"\)\s*(\w+)\s*;", text)
-        base = (m[1] if m else "INT").upper()
-        return _ELEMENTARY.get(base, 2), min(_ELEMENTARY.get(base, 2), 8), None
+        size = _ELEMENTARY.get((m[1] if m else "INT").upper(), 2)
+        return size, size, None
     return None, 1, None
 
 

@@ -266,3 +266,33 @@ def test_the_bridge_releases_every_handle_it_took(ads_plc):
         with pytest.raises(InterfaceError, match="stLookupOut"):
             push(ads_link(plc), make_table(version=1))
         assert plc.handles == {}
+
+
+def _entries(blob: bytes):
+    """AdsSymbolEntry records of a 16#F00B upload, each cut at its entryLength."""
+    pos = 0
+    while pos < len(blob):
+        length = struct.unpack_from("<I", blob, pos)[0]
+        yield blob[pos:pos + length]
+        pos += length
+
+
+def test_symbol_entries_hold_what_their_flags_announce(conn):
+    """An AdsSymbolEntry (TcAdsDef.h) is entryLength, group, offset, size, data type, flags, the lengths of
+    name, type and comment, the three NUL-terminated texts and then, when flags has ADSSYMBOLFLAG_TYPEGUID
+    (16#8, which TwinCAT 3 sets on PLC symbols), the 16-byte type GUID: a client that reads the GUID must
+    find it inside the entry, by upload (16#F00B) and by name (16#F009)."""
+    count, total = struct.unpack("<II", conn.read(constants.ADSIGRP_SYM_UPLOADINFO, 0, ctypes.c_ubyte * 8,
+                                                  return_ctypes=True))
+    blob = bytes(conn.read(constants.ADSIGRP_SYM_UPLOAD, 0, ctypes.c_ubyte * total, return_ctypes=True))
+    wire = SHADOW.encode() + b"\0"
+    by_name = bytes(conn.read_write(constants.ADSIGRP_SYM_INFOBYNAMEEX, 0, ctypes.c_ubyte * 512, wire,
+                                    ctypes.c_ubyte * len(wire), return_ctypes=True, check_length=False))
+    entries = list(_entries(blob)) + [by_name[:struct.unpack_from("<I", by_name)[0]]]
+    assert len(entries) == count + 1
+    for entry in entries:
+        flags = struct.unpack_from("<I", entry, 20)[0]
+        name_len, type_len, comment_len = struct.unpack_from("<HHH", entry, 24)
+        end = 30 + name_len + 1 + type_len + 1 + comment_len + 1
+        assert entry[30 + name_len] == 0 and entry[31 + name_len + type_len] == 0
+        assert len(entry) >= end + (16 if flags & constants.ADSSYMBOLFLAG_TYPEGUID else 0)

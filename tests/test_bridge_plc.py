@@ -319,6 +319,28 @@ def test_st_structs_have_the_bridge_byte_layout():
     assert packed[192:196] == bytes([4, 3, 2, 1]) and Header.unpack(packed).table_version == 0x01020304
 
 
+#: two DUTs without pack_mode (TwinCAT 3's default, 8): an inner struct of alignment 4 and size 8 (5 bytes of
+#: members, 3 of tail padding), an outer one around it
+_NATURAL_DUTS = {
+    "ST_Inner": "TYPE ST_Inner :\nSTRUCT\n\tn : DINT;\n\tb : BYTE;\nEND_STRUCT\nEND_TYPE\n",
+    "ST_Outer": "TYPE ST_Outer :\nSTRUCT\n\ta : BYTE;\n\tst : ST_Inner;\n\tc : BYTE;\n\tf : LREAL;\n"
+                "\tw : ARRAY[0..1] OF ST_Inner;\nEND_STRUCT\nEND_TYPE\n",
+}
+
+
+def test_struct_members_follow_natural_alignment(monkeypatch):
+    """Struct members the ADS mock serves by name (``GVL.st.member``) lie where TwinCAT 3 puts them (Infosys
+    tc3_plc_intro, Alignment, /content/1033/tc3_plc_intro/3539428491.html): a struct sits at a multiple of
+    its largest member (ST_Inner: 4) and takes a multiple of it (8, not 5), worked out by hand:
+    a 0, st 4 (st.n 4, st.b 8), c 12, f 16, w 24 (w[1] at 32), size 40. The shipped DUTs are pack_mode 1."""
+    from pmcal.bridge import ads_map
+
+    monkeypatch.setattr(ads_map, "_dut_text", _NATURAL_DUTS.get)
+    m = ads_map.struct_members("ST_Outer")
+    assert {k: v[0] for k, v in m.items()} == {"a": 0, "st": 4, "st.n": 4, "st.b": 8, "c": 12, "f": 16, "w": 24}
+    assert (m["st"][1], m["w"][1]) == (8, 16)
+
+
 def test_st_modbus_area_matches_the_register_map():
     rmap = ModbusMap()
     off = {k: v // 2 for k, v in _offsets("ST_CompTableModbusArea").items()}

@@ -83,3 +83,29 @@ def test_a_busy_server_answers_exception_6():
             assert not c.read_holding_registers(BASE, count=5, device_id=1).isError()
         finally:
             c.close()
+
+
+def test_only_holding_registers_reach_the_m_area():
+    """TF6250's default mapping (Infosys, TF6250 "Default Configuration",
+    /content/1033/tf6250_tc3_modbus_tcp/192746507.html) puts only holding registers 16#3000..16#5FFF on
+    %M: input registers, coils and discrete inputs at the same addresses are other ADS areas (%I, %QX,
+    %IX), never ST_CompTableModbusArea. A coil write there must not flip a bit of the area, an input
+    register read must not return it; a function TF6250 lacks (FC 22, mask write) is exception 1."""
+    with running(ModbusMockPlc(lifetime_s=30.0)) as plc:
+        c = ModbusTcpClient("127.0.0.1", port=plc.port, timeout=1, retries=0)
+        assert c.connect()
+        try:
+            magic = c.read_holding_registers(BASE, count=1, device_id=1).registers[0]
+            assert magic == 0x504D
+            for rr in (c.read_input_registers(BASE, count=1, device_id=1),
+                       c.read_coils(BASE, count=16, device_id=1),
+                       c.read_discrete_inputs(BASE, count=16, device_id=1),
+                       c.write_coil(BASE, True, device_id=1),
+                       c.write_coils(BASE, [True] * 8, device_id=1)):
+                assert rr.isError() and rr.exception_code == 2, rr
+            rr = c.mask_write_register(address=BASE, and_mask=0, or_mask=0xFFFF, device_id=1)
+            assert rr.isError() and rr.exception_code == 1
+            assert c.read_holding_registers(BASE, count=1, device_id=1).registers == [0x504D]
+            assert not c.write_register(COMMIT, 0, device_id=1).isError()          # FC 6 reaches %M
+        finally:
+            c.close()

@@ -315,3 +315,146 @@ END_PROGRAM
 """
     rt = run_st(tmp_path, src)
     assert (rt.read_value("MAIN.r1"), rt.read_value("MAIN.r2"), rt.read_value("MAIN.o")) == (5, 12, 12)
+
+
+@pytest.mark.parametrize("expression", ["r MOD 2.0", "i MOD r", "7.5 MOD 2"])
+def test_mod_takes_integers_only(tmp_path, expression):
+    """Infosys tc3_plc_intro, MOD (/content/1033/tc3_plc_intro/2528880779.html): permitted data types are the
+    integer and bit-string types only; a REAL operand is compile error C0208 ('MOD' is not defined for 'REAL')."""
+    path = tmp_path / "mod.st"
+    path.write_text(f"PROGRAM MAIN\nVAR\n r : LREAL := 7.5; i : DINT := 7; x : LREAL;\nEND_VAR\nx := {expression};\n"
+                    "END_PROGRAM\n")
+    with pytest.raises(PlcCompileError, match="MOD takes integers only"):
+        compile_files([path], cache=False)
+
+
+#: two enums, the first declared strict (as plc/DUTs/E_CompTable*), the second not
+ENUMS = """
+{attribute 'qualified_only'}
+{attribute 'strict'}
+TYPE E_Strict :
+(
+    A := 0,
+    B := 1
+) INT;
+END_TYPE
+
+{attribute 'qualified_only'}
+TYPE E_Loose :
+(
+    X := 0,
+    Y := 1
+) INT;
+END_TYPE
+"""
+
+
+@pytest.mark.parametrize("strict, loose", [("e := 1;", "f := 1;"), ("e := n;", "f := n;"),
+                                           ("e := E_Loose.X;", "f := E_Loose.X;"), ("n := e + 1;", "n := f + 1;"),
+                                           ("e := f;", "f := g;")])
+def test_a_strict_enum_takes_only_its_own_values(tmp_path, strict, loose):
+    """Infosys tc3_plc_intro, Attribute 'strict' (/content/1033/tc3_plc_intro/3363142027.html): arithmetic
+    with a strict enum, a constant that is not one of its values, or a value of another type assigned to
+    it are compile errors in TwinCAT; the interpreter refuses them too. The same on a plain enum compiles."""
+    path = tmp_path / "strict.st"
+    decl = "e : E_Strict; f : E_Loose; g : E_Loose := E_Loose.Y; n : INT := 1;"
+    path.write_text(ENUMS + f"PROGRAM MAIN\nVAR\n{decl}\nEND_VAR\n{strict}\nEND_PROGRAM\n")
+    with pytest.raises(PlcCompileError, match="strict enum"):
+        compile_files([path], cache=False)
+    rt = run_st(tmp_path, ENUMS + f"PROGRAM MAIN\nVAR\n{decl}\nEND_VAR\ne := E_Strict.B;\n{loose}\nEND_PROGRAM\n")
+    assert rt.read_value("MAIN.e") == 1
+
+
+def test_not_complements_the_whole_x64_register_until_stored(tmp_path):
+    """On x64 TwinCAT computes intermediate results in 64-bit registers and truncates them to their type only
+    when they are stored (Infosys tc3_plc_intro, Operators, /content/1033/tc3_plc_intro/2528853899.html; the
+    comparison case in Static Analysis SA0066, /content/1033/te1200_tc3_plcstaticanalysis/20911281419.html):
+    NOT of a zero-extended UDINT or WORD has its upper bits set, so it never equals a UDINT or WORD, while the
+    stored NOT, and a XOR of two values of the type, are exact. A signed value is sign-extended: NOT i = -i - 1."""
+    rt = run_st(tmp_path, """
+PROGRAM MAIN
+VAR
+    u : UDINT := 16#80000001;  c : UDINT := 16#7FFFFFFE;  s : UDINT;  w : WORD := 16#FFFF;  i : INT := 5;
+    bEq, bXor, bWord, bStored, bInt : BOOL;
+END_VAR
+s := NOT u;
+bEq := c = NOT u;
+bXor := (c XOR u) = 16#FFFFFFFF;
+bWord := NOT w = 0;
+bStored := c = s;
+bInt := NOT i = -6;
+END_PROGRAM
+""")
+    v = {k: rt.read_value(f"MAIN.{k}") for k in ("s", "bEq", "bXor", "bWord", "bStored", "bInt")}
+    assert v == dict(s=0x7FFFFFFE, bEq=False, bXor=True, bWord=False, bStored=True, bInt=True)
+
+
+@pytest.mark.parametrize("pack, size", [("0", 8), ("1", 8), ("2", 10), ("4", 12), ("8", 12)])
+def test_pack_mode_sizes_of_the_infosys_sample(tmp_path, pack, size):
+    """Infosys' pack_mode sample (CX7000 Attribute 'pack_mode', /content/1033/cx7000/10697920651.html, and
+    tc3_plc_intro /content/1033/tc3_plc_intro/2529746059.html): BYTE, DINT, BYTE, INT gives SIZEOF 8 with
+    pack mode 0 (no gaps, as 1), 10 with 2, 12 with 4 and 8."""
+    rt = run_st(tmp_path, f"""
+{{attribute 'pack_mode' := '{pack}'}}
+TYPE str_Test :
+STRUCT
+    byTest1 : BYTE;
+    iTest   : DINT;
+    byTest2 : BYTE;
+    nValue  : INT;
+END_STRUCT
+END_TYPE
+
+PROGRAM MAIN
+VAR
+    st : str_Test;  n : UDINT;
+END_VAR
+n := SIZEOF(st);
+END_PROGRAM
+""")
+    assert rt.read_value("MAIN.n") == size
+
+
+#: a function block and a program whose members other POUs write (MAIN)
+OWNERS = """
+FUNCTION_BLOCK FB_Owner
+VAR_INPUT
+    bIn : BOOL;
+END_VAR
+VAR_OUTPUT
+    bOut : BOOL;
+END_VAR
+VAR
+    bLocal : BOOL;
+END_VAR
+bOut := bIn;
+END_FUNCTION_BLOCK
+
+PROGRAM PRG_Owner
+VAR_INPUT
+    bIn : BOOL;
+END_VAR
+VAR
+    bLocal : BOOL;
+    fb : FB_Owner;
+END_VAR
+END_PROGRAM
+"""
+
+
+@pytest.mark.parametrize("statement, allowed", [
+    ("fb.bIn := TRUE;", True), ("PRG_Owner.bIn := TRUE;", True), ("PRG_Owner.fb.bIn := TRUE;", True),
+    ("fb.bLocal := TRUE;", False), ("fb.bOut := TRUE;", False), ("PRG_Owner.bLocal := TRUE;", False),
+    ("GVL.gFb.bLocal := TRUE;", False), ("GVL.gFb.bIn := TRUE;", True)])
+def test_only_inputs_are_written_from_outside(tmp_path, statement, allowed):
+    """TwinCAT reports a write from outside to a program's or function block's own variable (VAR, VAR_OUTPUT)
+    as a compile error; inputs may be written (Infosys Static Analysis SA0102,
+    /content/1033/te1200_tc3_plcstaticanalysis/20911240331.html)."""
+    path = tmp_path / "access.st"
+    path.write_text(OWNERS + "{attribute 'qualified_only'}\nVAR_GLOBAL\n    gFb : FB_Owner;\nEND_VAR\n"
+                    f"PROGRAM MAIN\nVAR\n    fb : FB_Owner;\nEND_VAR\n{statement}\nEND_PROGRAM\n")
+    if allowed:
+        compile_files([path], cache=False)
+    else:
+        with pytest.raises(PlcCompileError, match="written from outside"):
+            compile_files([path], cache=False)

@@ -46,6 +46,7 @@ import socket
 import struct
 import threading
 import time
+import uuid
 from dataclasses import dataclass, field
 
 from pyads import constants
@@ -521,14 +522,19 @@ def _accesses(cmd: int, data: bytes):
 
 
 def _symbol_info(region: Region) -> bytes:
-    """ADS symbol information (AdsSymbolEntry) of a region, as TwinCAT 3 answers 16#F009."""
+    """ADS symbol information (AdsSymbolEntry) of a region, as TwinCAT 3 answers 16#F009 (and 16#F00B per
+    symbol): the fixed fields, name, type and comment (each NUL-terminated), then, as the flags say
+    ``ADSSYMBOLFLAG_TYPEGUID`` (16#8), the 16-byte GUID of the data type (here derived from its
+    name)."""
     type_name = region.sym.st_type if region.whole else region.st_type
     name = region.name.encode()
     st_type = type_name.encode()
     ads_type = _ADS_TYPES.get(type_name.upper(), constants.ADST_REAL64 if type_name.upper().endswith("LREAL")
                               else constants.ADST_BIGTYPE)
-    body = struct.pack("<IIIIIHHH", IG_PLC_DATA, region.offset, region.size, ads_type, 0x8, len(name),
-                       len(st_type), 0) + name + b"\0" + st_type + b"\0" + b"\0"
+    body = struct.pack("<IIIIIHHH", IG_PLC_DATA, region.offset, region.size, ads_type,
+                       constants.ADSSYMBOLFLAG_TYPEGUID, len(name), len(st_type), 0)
+    body += name + b"\0" + st_type + b"\0" + b"\0"
+    body += uuid.uuid5(uuid.NAMESPACE_URL, f"pmcal:plc-type:{type_name.upper()}").bytes_le
     return struct.pack("<I", 4 + len(body)) + body
 
 

@@ -1,9 +1,12 @@
 """A mock TwinCAT PLC over Modbus TCP: a pymodbus server (SimDevice) in front of the PLC twin.
 
 The SimDevice's holding registers stand for the TF6250 mapping of ``stMbArea AT %MB0``: they are the
-PLC's %M memory itself (:class:`ModbusArea`), and the ST of plc/ (FB_CompTableModbus, called by
-PRG_CompTable with ``bUseModbus``) copies the bridge's inputs into GVL_CompTable, serves a page request
-and copies the PLC's outputs back, every task cycle.
+PLC's %M memory itself (:class:`ModbusArea`). Only the holding-register functions (FC 3, 6, 16, 23) reach
+it, as with TF6250's default mapping: coils, discrete inputs and input registers (FC 1, 2, 4, 5, 15) are
+other ADS areas there (%QX, %IX, the %I image), which this mock PLC does not have (exception 2), and a
+function TF6250 does not implement (e.g. FC 22) answers exception 1. The ST of plc/ (FB_CompTableModbus,
+called by PRG_CompTable with ``bUseModbus``) copies the bridge's inputs into GVL_CompTable, serves a page
+request and copies the PLC's outputs back, every task cycle.
 Every register of the mapped area can be written, as on TF6250 (the PLC overwrites its own outputs in
 its next cycle). While the PLC is stopped the registers stay readable and writable but nothing moves
 (the task does not run); while the runtime boots after a restart, requests answer exception 4
@@ -29,7 +32,14 @@ from pmcal.bridge.modbus_map import FC3_MAX, FC16_MAX, ModbusMap
 from pmcal.bridge.simulator.plc_runtime import PlcTwin
 from pmcal.bridge.plc_types import is_token
 
-_FC_READ = (3, 4, 23)
+_FC_READ = (3, 23)
+#: function codes of the TwinCAT Modbus TCP server (Infosys TcModbusSrv, https://infosys.beckhoff.com/content/1033/
+#: tcmodbussrv/11379410187.html; FC 8, diagnostics, is answered by pymodbus itself): any other is exception 1
+TF6250_FUNCTIONS = (1, 2, 3, 4, 5, 6, 15, 16, 23)
+#: the holding-register functions: with TF6250's default mapping only these reach the %M area (16#3000..16#5FFF
+#: -> index group 16#4020); coils and discrete inputs are %QX/%IX bits, input registers the %I image (Infosys
+#: TF6250 "Default Configuration", https://infosys.beckhoff.com/content/1033/tf6250_tc3_modbus_tcp/192746507.html)
+FC_HOLDING = (3, 6, 16, 23)
 
 
 class ModbusArea:
@@ -125,6 +135,8 @@ class ModbusMockPlc(MockPlc):
         at = address - start
         if self.booting():          # TF6250 runs, the PLC runtime does not yet: its ADS access fails
             return ExcCodes.DEVICE_FAILURE
+        if fc not in FC_HOLDING:    # another Modbus area (this PLC has no I/O image there), or no TF6250 function
+            return ExcCodes.ILLEGAL_ADDRESS if fc in TF6250_FUNCTIONS else ExcCodes.ILLEGAL_FUNCTION
         self.count(write=values is not None)
         with self.twin.lock:
             point = self.area.point(fc, off, count, values)

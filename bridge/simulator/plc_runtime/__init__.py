@@ -26,7 +26,9 @@ TwinCAT semantics modelled, and where they come from
 - **Overflow does not stop** (overflow is not among the default exceptions above): the result is
   +-inf, as IEEE-754 with the overflow exception masked. ``PlcRuntime(trap_overflow=True)`` stops.
 - **Integers wrap** to the width of the variable they are stored in (two's complement, SINT..LINT,
-  USINT..ULINT, BYTE..LWORD); intermediate results are exact (as in a 64-bit register), conversions
+  USINT..ULINT, BYTE..LWORD); intermediate results are exact, as in the x64 target's 64-bit registers,
+  and are truncated only when stored (Infosys tc3_plc_intro, Operators): ``NOT`` of a UDINT or WORD has
+  its upper register bits set, so ``a = NOT b`` is FALSE (write ``(a XOR b) = 16#FFFFFFFF``); conversions
   ``*_TO_*`` wrap, real-to-integer conversions round to nearest even, TRUNC truncates toward zero.
 - **Short-circuit**: AND/OR/XOR evaluate both operands (IEC 61131-3); AND_THEN/OR_ELSE short-circuit.
 - **TIME** is an unsigned 32-bit count of milliseconds; ``TIME()`` in TON reads the **simulated
@@ -56,7 +58,9 @@ Supported ST subset
 PROGRAM, FUNCTION_BLOCK (VAR_INPUT/OUTPUT/IN_OUT/VAR, initial values), FUNCTION (with VAR_OUTPUT),
 METHOD (return value, VAR_INPUT/IN_OUT/VAR, implicit THIS), VAR CONSTANT, GVLs (qualified access,
 CONSTANT, PERSISTENT), located variables ``AT %MBn`` (the %M area), STRUCT with ``pack_mode``,
-UNION, enums (qualified values, base type), ARRAY (multi-dimensional, ARRAY OF ARRAY, of structs),
+UNION, enums (qualified values, base type; ``{attribute 'strict'}`` enforced: no arithmetic on such an
+enum, no other constant and no value of another type assigned to it, as TwinCAT's compile errors),
+ARRAY (multi-dimensional, ARRAY OF ARRAY, of structs),
 STRING(n), POINTER TO, REFERENCE TO; statements :=, REF=, IF/ELSIF/ELSE, CASE (values, ranges,
 enum values), FOR (constant BY), WHILE, REPEAT, EXIT, RETURN, calls with named/positional inputs
 and ``=>`` outputs; the operators and library functions listed in

@@ -301,7 +301,7 @@ def crc32_ieee(data: bytes, crc: int = 0) -> int:
 
 def namespace_for_constants() -> dict:
     """Names available when folding constant expressions at compile time."""
-    return {"_idiv": _idiv, "_imod": _imod, "_fmod": math.fmod, "_expt": math.pow, "math": math}
+    return {"_idiv": _idiv, "_imod": _imod, "_expt": math.pow, "math": math}
 
 
 def _idiv(a: int, b: int) -> int:
@@ -493,7 +493,7 @@ def make_helpers(rt) -> dict:
         helpers[f"_P{fmt}"] = s.pack_into
         if s.size > 1:
             helpers[f"_M{fmt}"] = memoryview(mem).cast(fmt)     # aligned access (len(mem) % 8 == 0)
-    helpers.update(math=math, mem=mem, _W=work, _fmod=math.fmod, _idiv=_idiv, _imod=_imod,
+    helpers.update(math=math, mem=mem, _W=work, _idiv=_idiv, _imod=_imod,
                    _sim_time=lambda: rt.clock_ms & 0xFFFFFFFF, _sim_axis_idle=lambda: bool(rt.motion_idle),
                    _sim_persistent_cycles=lambda: rt.persistent_write_cycles,
                    _sim_persistent_save=rt.mark_persistent_saved, _sim_ads_port=lambda: rt.ams_port,

@@ -209,6 +209,17 @@ class Program:
 NO_SYMBOL_ATTRIBUTES = frozenset({"hide", "tc_no_symbol", "tcnosymbol"})
 
 
+#: the library POUs written in ST (Tc2_* models and hardware hooks, not project code): they may reach into
+#: the internals of the library FBs they model (AXIS_REF), which project ST may not
+LIBRARY_FILE = "library.st"
+#: register width of the x64 target: TwinCAT computes every intermediate integer result in it and truncates it
+#: to its type only when it is stored (Infosys tc3_plc_intro, Operators, /content/1033/tc3_plc_intro/2528853899.html)
+REGISTER_BITS = 64
+#: what TwinCAT refuses for an enum declared {attribute 'strict'} (compile errors)
+STRICT_RULE = ("strict enum: no arithmetic with it, no other constant, no value of another type "
+               "(Infosys tc3_plc_intro, Attribute 'strict', /content/1033/tc3_plc_intro/3363142027.html)")
+
+
 def _no_symbol(decl) -> bool:
     """The declaration carries an attribute that suppresses its ADS symbol (see NO_SYMBOL_ATTRIBUTES)."""
     meta = getattr(decl, "meta", None)
@@ -312,7 +323,7 @@ class Compiler:
                     nxt = int(self.const_value(v.value, base))
                 values[str(v.name).split(".")[-1].lower()] = nxt
                 nxt += 1
-            return enum_type(name, base, values)
+            return enum_type(name, base, values, strict=name in u.strict)
         if kind == "StructureTypeDeclaration":
             if decl.extends is not None:
                 raise PlcCompileError(f"{name}: EXTENDS is not supported")
@@ -783,6 +794,7 @@ class Compiler:
         if kind == "AssignmentStatement":
             e = self.expr(s.expression, pre)
             for target in s.variables:
+                self._check_write_access(target)
                 lv = self.lvalue(target, pre)
                 self._emit(pre, indent)
                 pre = []
@@ -954,6 +966,40 @@ class Compiler:
             return
         self._line(lv.write(self.coerce(e, t)), indent)
 
+    def _check_write_access(self, target) -> None:
+        """Refuse an assignment from outside to a program's or FB instance's own variable (VAR, VAR_OUTPUT,
+        ...): TwinCAT reports it as a compile error and lets only the inputs be written (Infosys Static
+        Analysis SA0102, /content/1033/te1200_tc3_plcstaticanalysis/20911240331.html: "TwinCAT determines
+        external write access operations to local variables of programs or function blocks as compilation
+        errors"). The member selected from the innermost instance on the path is the one written."""
+        if type(target).__name__ != "MultiElementVariable" or self.pou.unit.file == LIBRARY_FILE:
+            return
+        found = self.lookup(str(target.name.name))
+        if found is None or found[0] not in ("pou", "var", "global", "gvl"):
+            return
+        t = found[1].itype if found[0] == "pou" else None if found[0] == "gvl" else found[1].t
+        written = None
+        for el in target.elements:
+            if type(el).__name__ != "FieldSelector":
+                t = t.elem if t is not None and t.kind == "array" else None
+                continue
+            name = str(el.field.name)
+            if t is None and found[0] == "gvl":
+                gv = self.prog.gvls[found[1]].get(name.lower())
+                t = gv.t if gv is not None else None
+                continue
+            if t is None or t.kind not in ("fb", "program", "struct", "union"):
+                return
+            if t.kind in ("fb", "program"):
+                written = t.pou.vars.get(name.lower())
+                written = (t.pou, written) if written is not None else None
+            m = _member(t, name)
+            t = m[1] if m is not None else None
+        if written is not None and written[1].block != "VAR_INPUT" and written[0] not in (self.pou, self.pou.parent):
+            owner, v = written
+            raise PlcCompileError(f"{self.pou.name}: {owner.name}.{v.name} ({v.block}) is written from outside: "
+                                  "TwinCAT lets only inputs be written (Infosys SA0102)")
+
     def _string_src(self, e: E) -> str:
         if e.const is not _NOCONST:
             return repr(e.const)
@@ -974,6 +1020,8 @@ class Compiler:
             raise PlcCompileError(f"{self.pou.name}: implicit conversion {e.t.name} -> {t.name} (use {e.t.name}_TO_{t.name})")
         if t.kind == "bool":
             return e.code
+        if t.kind == "enum" and t.strict and e.t is not t:
+            raise PlcCompileError(f"{self.pou.name}: {e.t.name} assigned to {t.name}, a {STRICT_RULE}")
         if t.kind in ("int", "enum", "pointer", "reference"):
             if e.t.kind == "real":
                 raise PlcCompileError(f"{self.pou.name}: implicit conversion {e.t.name} -> {t.name}")
@@ -1269,8 +1317,11 @@ class Compiler:
         if op == "NOT":
             if e.t.kind == "bool":
                 return E(f"(not {e.code})", BOOL, const=(not e.const) if e.const is not _NOCONST else _NOCONST)
-            mask = (1 << e.t.bits) - 1
-            return E(f"({e.code} ^ {mask:#x})", e.t)
+            if e.t is ANYINT or e.t.bits >= REGISTER_BITS:
+                return E(f"({e.code} ^ {(1 << e.t.bits) - 1:#x})", e.t)
+            # x64: the whole 64-bit register is complemented and not truncated to the type until stored
+            # (a signed value is sign-extended, so ~x; an unsigned one zero-extended, so its upper bits turn 1)
+            return E(f"(~{e.code})" if e.t.signed else f"({e.code} ^ {(1 << REGISTER_BITS) - 1:#x})", e.t)
         if op == "-":
             const = -e.const if e.const is not _NOCONST else _NOCONST
             out = E(f"(-{e.code})", e.t, e.arith, const)
@@ -1315,6 +1366,9 @@ class Compiler:
             py = {"=": "==", "<>": "!="}.get(op, op)
             code = f"({a.code} {py} {b.code})"
             return E(code, BOOL, const=eval(code, {}) if const else _NOCONST)
+        strict = next((x.t for x in (a, b) if x.t.kind == "enum" and x.t.strict), None)
+        if strict is not None:
+            raise PlcCompileError(f"{self.pou.name}: {op} on {strict.name}, a {STRICT_RULE}")
         real = a.t.kind == "real" or b.t.kind == "real"
         if real:
             t = LREAL if (a.t.name == "LREAL" or b.t.name == "LREAL" or a.t is ANYINT or b.t is ANYINT) else REAL
@@ -1325,7 +1379,10 @@ class Compiler:
         elif op == "/":
             code = f"({a.code} / {b.code})" if real else f"_idiv({a.code}, {b.code})"
         elif op == "MOD":
-            code = f"_fmod({a.code}, {b.code})" if real else f"_imod({a.code}, {b.code})"
+            if real:                # TwinCAT: C0208 'MOD' is not defined for 'REAL' (ANY_INT operands only)
+                raise PlcCompileError(f"{self.pou.name}: MOD of {a.t.name} and {b.t.name}: MOD takes integers only "
+                                      "(Infosys tc3_plc_intro, MOD, /content/1033/tc3_plc_intro/2528880779.html)")
+            code = f"_imod({a.code}, {b.code})"
         elif op == "**":
             self.math_calls += 1
             code = f"_expt({a.code}, {b.code})"

@@ -4,7 +4,10 @@ Layout rules (Beckhoff Infosys, TwinCAT 3 PLC, "Attribute 'pack_mode'" and "Data
 
 - elementary sizes: BOOL, BYTE, SINT, USINT 1; WORD, INT, UINT 2; DWORD, DINT, UDINT, REAL, TIME,
   TOD, DATE, DT 4; LWORD, LINT, ULINT, LREAL, LTIME 8; POINTER and REFERENCE 8 (64-bit runtime);
-  STRING(n) n+1 bytes, alignment 1; an enum has the size of its base type (default INT);
+  STRING(n) n+1 bytes, alignment 1; an enum has the size of its base type (default INT); an enum
+  declared ``{attribute 'strict'}`` takes only its own values (Infosys tc3_plc_intro, Attribute 'strict',
+  https://infosys.beckhoff.com/content/1033/tc3_plc_intro/3363142027.html: no arithmetic with it, no
+  other constant, no value of another type);
 - a STRUCT member sits at the next multiple of min(member alignment, pack mode); the struct's size
   is rounded up to min(largest member alignment, pack mode). The default pack mode is 8 (natural
   alignment); ``{attribute 'pack_mode' := '1'}`` packs without gaps;
@@ -57,6 +60,7 @@ class DType:
     members: dict = field(default_factory=dict)   # struct/union/fb: name -> (offset, DType)
     values: dict = field(default_factory=dict)    # enum: name -> int
     pou: object = None                  # fb/program: the compiled POU description
+    strict: bool = False                # enum declared {attribute 'strict'}
 
     @property
     def scalar(self) -> bool:
@@ -120,12 +124,16 @@ def array_type(elem: DType, dims: tuple) -> DType:
     return DType(name, "array", n * elem.size, elem.align, elem=elem, dims=tuple(dims))
 
 
-def enum_type(name: str, base: DType, values: dict) -> DType:
-    return DType(name, "enum", base.size, base.align, base.fmt, base.signed, elem=base, values=dict(values))
+def enum_type(name: str, base: DType, values: dict, strict: bool = False) -> DType:
+    return DType(name, "enum", base.size, base.align, base.fmt, base.signed, elem=base, values=dict(values),
+                 strict=strict)
 
 
 def layout(name: str, kind: str, members: list[tuple[str, DType]], pack: int = 8) -> DType:
-    """A struct / union / fb type from its members in declaration order."""
+    """A struct / union / fb type from its members in declaration order. ``pack``: the pack mode; 0 packs
+    without gaps as 1 does (Infosys tc3_plc_intro, Attribute 'pack_mode',
+    https://infosys.beckhoff.com/content/1033/tc3_plc_intro/2529746059.html: 0 'aligned', no gaps)."""
+    pack = max(pack, 1)
     offs, at, align = {}, 0, 1
     for mname, t in members:
         a = min(t.align, pack)

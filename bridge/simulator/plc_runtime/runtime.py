@@ -20,12 +20,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pmcal.bridge.simulator.plc_runtime.builtins import PlcException, crc16_ccitt, make_helpers
-from pmcal.bridge.simulator.plc_runtime.compiler import Compiler, Program
+from pmcal.bridge.simulator.plc_runtime.compiler import LIBRARY_FILE, Compiler, Program
 from pmcal.bridge.simulator.plc_runtime.cost_model import CX_SLOWEST, CpuModel
 from pmcal.bridge.simulator.plc_runtime.datatypes import DType, strides
 from pmcal.bridge.simulator.plc_runtime.source import parse_files, project_files
 
-LIBRARY = Path(__file__).with_name("library.st")
+LIBRARY = Path(__file__).with_name(LIBRARY_FILE)
 #: the project's save program and its task's cycle in task cycles (plc/PersistTask.TcTTO: 10 ms at 1 ms)
 SAVE_PROGRAM, SAVE_EVERY = "PRG_CompTableSave", 10
 #: TwinCAT's implicit GVL TwinCAT_SystemInfoVarList (_AppInfo), compiled with every program

@@ -19,6 +19,7 @@ from pathlib import Path
 from pmcal.errors import InputError
 
 _PACK = re.compile(r"\{\s*attribute\s+'pack_mode'\s*:=\s*'(\d+)'\s*\}", re.I)
+_STRICT = re.compile(r"\{\s*attribute\s+'strict'\s*\}", re.I)
 _TYPE_NAME = re.compile(r"\bTYPE\s+(\w+)", re.I)
 SUFFIXES = (".TcPOU", ".TcDUT", ".TcGVL")
 
@@ -37,6 +38,7 @@ class Unit:
     methods: dict = field(default_factory=dict)   # name -> Unit (item: blark Method)
     file: str = ""
     pack: dict = field(default_factory=dict)      # DUT name -> pack mode
+    strict: frozenset = frozenset()                # DUT names declared {attribute 'strict'}
     qualified: bool = False                        # GVL with {attribute 'qualified_only'}
 
 
@@ -55,23 +57,27 @@ def _blark():
     return bp
 
 
-def _packs(text: str) -> dict:
-    """DUT name -> pack mode for every TYPE declaration preceded by a pack_mode attribute."""
-    out, pending = {}, None
+def _type_pragmas(text: str) -> tuple[dict, frozenset]:
+    """The DUT attributes the interpreter honours, each from the pragmas above its TYPE line: DUT name ->
+    pack mode (``{attribute 'pack_mode' := 'N'}``), and the names declared ``{attribute 'strict'}``."""
+    packs, strict, pending, pending_strict = {}, set(), None, False
     for line in text.splitlines():
         if m := _PACK.search(line):
             pending = int(m[1])
+        pending_strict = pending_strict or _STRICT.search(line) is not None
         if m := _TYPE_NAME.search(line):
             if pending is not None:
-                out[m[1]] = pending
-            pending = None
-    return out
+                packs[m[1]] = pending
+            if pending_strict:
+                strict.add(m[1])
+            pending, pending_strict = None, False
+    return packs, frozenset(strict)
 
 
 def _collect(results, file: str, raw: str) -> list[Unit]:
     units: list[Unit] = []
     by_name: dict[str, Unit] = {}
-    packs = _packs(raw)
+    packs, strict = _type_pragmas(raw)
     for res in results:
         if res.exception is not None:
             raise PlcSourceError(f"{file}: {res.exception}")
@@ -111,7 +117,7 @@ def _collect(results, file: str, raw: str) -> list[Unit]:
                     by_name[name.lower()].item.append(item)
                     continue
                 item = [item]
-            unit = Unit(name, item, getattr(item, "body", None), file=file, pack=packs,
+            unit = Unit(name, item, getattr(item, "body", None), file=file, pack=packs, strict=strict,
                         qualified="qualified_only" in raw)
             units.append(unit)
             by_name[name.lower()] = unit
