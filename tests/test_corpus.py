@@ -132,6 +132,27 @@ def test_a_free_joint_that_moves_the_nests_is_refused_naming_it(tmp_path):
     assert "yaw_body" in str(exc.value) and "machine.toml" in str(exc.value)
 
 
+def test_an_open_home_keyframe_is_refused_naming_its_gap(tmp_path):
+    """gepetto_cassie with its ``home`` keyframe at the URDF export's configuration (every joint at 0: the rods'
+    halves 0.36-0.41 m apart, as MuJoCo's URDF importer leaves them). The twin took the keyframe as assembled
+    and its mobility check, at that open assembly, told the user to list the passive joint free_ankle under
+    [[motors]]; the keyframe is what is wrong, and the refusal says so with the gap."""
+    import re
+    import shutil
+
+    folder = tmp_path / "leg"
+    shutil.copytree(CORPUS / "gepetto_cassie", folder)
+    xml = folder / "gepetto_cassie.xml"
+    text = xml.read_text()
+    key = re.search(r'<key name="home" qpos="([^"]*)"', text)
+    xml.write_text(text.replace(key.group(1), " ".join("0" for _ in key.group(1).split())))
+    with pytest.raises(InputError) as exc:
+        Machine.from_folder(folder).twin
+    msg = str(exc.value)
+    assert exc.value.field == "keyframe" and "keyframe 'home' does not close the loops" in msg, msg
+    assert "407 mm at closedloop2" in msg and "free_ankle" not in msg, msg
+
+
 def test_prediction_covers_a_task_frame_no_nest_sits_on():
     """gepetto_5bar's task site sits on the URDF's fixed `effector` frame, a child body of `end_rod`; the nests
     sit on `end_rod`. The effector frame's six errors move the task and no tracker reading, so no campaign

@@ -220,14 +220,29 @@ class ClosedChainTwin:
         if self.spec.home is not None:
             return m.key_qpos[mujoco.mj_name2id(m, _OBJ.mjOBJ_KEY, self.spec.home)].copy()
         q0 = m.qpos0.copy()
-        jp, jr = self._kin(q0, closure_only=True)
-        gap = float(np.max(np.abs(self._closure(jp, jr, with_jac=False)[0][:self.n_equations] / self._sqrt_w)))
+        gap, _ = self._gap_at(q0)
         q, ok = self._newton(q0)
         if gap > self.HOME_TOL_M or not ok:
             raise InputError(f"no 'home' keyframe and the model's default configuration does not close its "
                              f"loops (gap {gap * 1e3:.3g} mm): add an assembled <key name=\"home\" qpos=...> "
                              f"(docs/machine_toml.md)", file=self._file, field="keyframe")
         return q
+
+    def _gap_at(self, q: np.ndarray) -> tuple[float, str]:
+        """The largest closure gap at the configuration ``q`` (nq,) (m; rad for a weld's rotation), and the
+        largest of the positions and of the welds' rotations in words (``"746 mm at loop1, 162 deg at loop2"``)."""
+        self._kin(q, jac=False)
+        d = self.data
+        r = np.abs(self._gaps(d.site_xpos[self.points][None],
+                              d.site_xmat[self.points].reshape(1, -1, 3, 3) if self._weld.any() else None)[0])
+        names = [c.name for c in self.closures] + [c.name for c in self.closures if c.weld]
+        n_pos = 3 * len(self.closures)
+        words = []
+        for part, scale, unit in ((slice(0, n_pos), 1e3, "mm"), (slice(n_pos, None), np.degrees(1.0), "deg")):
+            if r[part].size:
+                i = int(np.argmax(r[part]))
+                words.append(f"{r[part][i] * scale:.3g} {unit} at {names[(part.start + i) // 3]}")
+        return float(r.max()), ", ".join(words)
 
     #: Relative size (of the largest singular value) below which a direction of the passive dofs counts as
     #: free of the closures, and motion (m per unit, of the nests or the task site) above which it matters:
@@ -260,6 +275,12 @@ class ClosedChainTwin:
         extent = float(np.linalg.norm(np.ptp(self.data.xpos[1:], axis=0))) if self.model.nbody > 1 else 0.0
         if np.max(np.abs(motion), initial=0.0) <= max(self.FREE_MOVES_M, self.FREE_MOVES_SHARE * extent):
             return
+        gap, where = self._gap_at(self.home_qpos)
+        if self.spec.home is not None and self.spec.closures is None and gap > self.HOME_TOL_M:
+            # an open assembly's free joints say nothing of the machine's: the keyframe is what is wrong
+            raise InputError(f"keyframe {self.spec.home!r} does not close the loops (gap {where}): store an "
+                             f"assembled configuration, every closure met (docs/machine_toml.md, [machine] home)",
+                             file=self._file, field="keyframe")
         u, _, _ = np.linalg.svd(motion.T @ motion)
         direction = free @ u[:, 0]                                       # the free direction that moves most
         dof = self.passive[np.argsort(-np.abs(direction))]
