@@ -132,11 +132,17 @@ def test_a_free_joint_that_moves_the_nests_is_refused_naming_it(tmp_path):
     assert "yaw_body" in str(exc.value) and "machine.toml" in str(exc.value)
 
 
-def test_an_open_home_keyframe_is_refused_naming_its_gap(tmp_path):
-    """gepetto_cassie with its ``home`` keyframe at the URDF export's configuration (every joint at 0: the rods'
-    halves 0.36-0.41 m apart, as MuJoCo's URDF importer leaves them). The twin took the keyframe as assembled
-    and its mobility check, at that open assembly, told the user to list the passive joint free_ankle under
-    [[motors]]; the keyframe is what is wrong, and the refusal says so with the gap."""
+@pytest.mark.parametrize("how,words", [
+    ("export", "407 mm at closedloop2"),      # every joint at 0: the URDF export's open assembly
+    ("rod", "at closedloop2"),                # one achilles-rod hinge 0.01 rad off: a 2.5 mm gap
+])
+def test_an_open_home_keyframe_is_refused_naming_its_gap(tmp_path, how, words):
+    """gepetto_cassie with a ``home`` keyframe that does not close its rods. The twin took any keyframe as
+    assembled: at the URDF export's configuration (rod halves 0.36-0.41 m apart) its mobility check judged the
+    open assembly and told the user to list the passive joint free_ankle under [[motors]]; a keyframe a little
+    open (a hinge 0.01 rad off; the first conversion's welds closed in position and 162 deg off in rotation)
+    loaded without a word, its motor values naming no pose of the machine. The keyframe is refused with its
+    gap."""
     import re
     import shutil
 
@@ -145,12 +151,18 @@ def test_an_open_home_keyframe_is_refused_naming_its_gap(tmp_path):
     xml = folder / "gepetto_cassie.xml"
     text = xml.read_text()
     key = re.search(r'<key name="home" qpos="([^"]*)"', text)
-    xml.write_text(text.replace(key.group(1), " ".join("0" for _ in key.group(1).split())))
+    q = np.array(key.group(1).split(), float)
+    if how == "export":
+        q[:] = 0.0
+    else:
+        q[Machine.from_folder(CORPUS / "gepetto_cassie").twin.model.joint("tigh_half_hachil_rode_2_rev1").qposadr[0]] \
+            += 0.01
+    xml.write_text(text.replace(key.group(1), " ".join(repr(float(v)) for v in q)))
     with pytest.raises(InputError) as exc:
         Machine.from_folder(folder).twin
     msg = str(exc.value)
     assert exc.value.field == "keyframe" and "keyframe 'home' does not close the loops" in msg, msg
-    assert "407 mm at closedloop2" in msg and "free_ankle" not in msg, msg
+    assert words in msg and "free_ankle" not in msg, msg
 
 
 def test_prediction_covers_a_task_frame_no_nest_sits_on():

@@ -159,6 +159,7 @@ class ClosedChainTwin:
         self._read_sites()
         self.home_qpos = self._read_home()
         self._read_redundancy()
+        self._check_home_closes()
         self._check_mobility()
         # Under frames = "all" the closure sites carry errors; the tracker nests do not (they define the
         # moving frames they sit on: their coordinates there come from a CMM or the drawing), nor does the
@@ -209,7 +210,8 @@ class ClosedChainTwin:
         return D
 
     #: Closure residual (m) up to which the model's default configuration counts as closed when there is no
-    #: ``home`` keyframe (a CAD export's rounding: 1e-7 m on Reachy Mini); it is then assembled exactly.
+    #: ``home`` keyframe (a CAD export's rounding: 1e-7 m on Reachy Mini); it is then assembled exactly. A
+    #: ``home`` keyframe open by more is refused (:meth:`_check_home_closes`).
     HOME_TOL_M = 1e-5
 
     def _read_home(self) -> np.ndarray:
@@ -227,6 +229,22 @@ class ClosedChainTwin:
                              f"loops (gap {gap * 1e3:.3g} mm): add an assembled <key name=\"home\" qpos=...> "
                              f"(docs/machine_toml.md)", file=self._file, field="keyframe")
         return q
+
+    def _check_home_closes(self) -> None:
+        """InputError naming the gap when the ``home`` keyframe leaves a rigid loop open by more than
+        :data:`HOME_TOL_M` along the directions the twin closes there (a redundant closure equation is the
+        joints' play: :meth:`_local_keep`): every solve would start off the assembly and land on whichever
+        one Newton finds (the keyframe's motor values then name no pose of the machine), and the mobility
+        check would judge an open assembly's free joints. Compliant closures (``[closures]``) settle with a
+        gap and are not checked."""
+        if self.spec.home is None or self.spec.closures is not None:
+            return
+        jp, jr = self._kin(self.home_qpos, closure_only=True)
+        gap = float(np.max(np.abs(self._closure(jp, jr)[0][:self.n_equations]), initial=0.0))
+        if gap > self.HOME_TOL_M:
+            raise InputError(f"keyframe {self.spec.home!r} does not close the loops (gap "
+                             f"{self._gap_at(self.home_qpos)[1]}): store an assembled configuration, every "
+                             f"closure met (docs/machine_toml.md, [machine] home)", file=self._file, field="keyframe")
 
     def _gap_at(self, q: np.ndarray) -> tuple[float, str]:
         """The largest closure gap at the configuration ``q`` (nq,) (m; rad for a weld's rotation), and the
@@ -275,12 +293,6 @@ class ClosedChainTwin:
         extent = float(np.linalg.norm(np.ptp(self.data.xpos[1:], axis=0))) if self.model.nbody > 1 else 0.0
         if np.max(np.abs(motion), initial=0.0) <= max(self.FREE_MOVES_M, self.FREE_MOVES_SHARE * extent):
             return
-        gap, where = self._gap_at(self.home_qpos)
-        if self.spec.home is not None and self.spec.closures is None and gap > self.HOME_TOL_M:
-            # an open assembly's free joints say nothing of the machine's: the keyframe is what is wrong
-            raise InputError(f"keyframe {self.spec.home!r} does not close the loops (gap {where}): store an "
-                             f"assembled configuration, every closure met (docs/machine_toml.md, [machine] home)",
-                             file=self._file, field="keyframe")
         u, _, _ = np.linalg.svd(motion.T @ motion)
         direction = free @ u[:, 0]                                       # the free direction that moves most
         dof = self.passive[np.argsort(-np.abs(direction))]
