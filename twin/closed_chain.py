@@ -232,15 +232,22 @@ class ClosedChainTwin:
 
     def _check_home_closes(self) -> None:
         """InputError naming the gap when the ``home`` keyframe leaves a rigid loop open by more than
-        :data:`HOME_TOL_M` along the directions the twin closes there (a redundant closure equation is the
-        joints' play: :meth:`_local_keep`): every solve would start off the assembly and land on whichever
-        one Newton finds (the keyframe's motor values then name no pose of the machine), and the mobility
-        check would judge an open assembly's free joints. Compliant closures (``[closures]``) settle with a
+        :data:`HOME_TOL_M`, as the default configuration may not (:meth:`_read_home`): a machine as drawn
+        closes every equation at home, a redundant one too (the redundant directions found at an open
+        keyframe can hold its whole gap: 57 mm on Gepetto's kangaroo_like leg). A model export-model wrote
+        (its redundant directions stored, :data:`REDUNDANT_NUMERIC`) is the identified machine, whose loops
+        keep the strain its errors leave: only the directions the twin closes there count
+        (:meth:`_local_keep`). Every solve would start off the assembly and land on whichever one Newton
+        finds (the keyframe's motor values then name no pose of the machine), and the mobility check would
+        judge an open assembly's free joints. Compliant closures (``[closures]``) settle with a
         gap and are not checked."""
         if self.spec.home is None or self.spec.closures is not None:
             return
-        jp, jr = self._kin(self.home_qpos, closure_only=True)
-        gap = float(np.max(np.abs(self._closure(jp, jr)[0][:self.n_equations]), initial=0.0))
+        if mujoco.mj_name2id(self.model, _OBJ.mjOBJ_NUMERIC, REDUNDANT_NUMERIC) >= 0:
+            jp, jr = self._kin(self.home_qpos, closure_only=True)
+            gap = float(np.max(np.abs(self._closure(jp, jr)[0][:self.n_equations]), initial=0.0))
+        else:
+            gap = self._gap_at(self.home_qpos)[0]
         if gap > self.HOME_TOL_M:
             raise InputError(f"keyframe {self.spec.home!r} does not close the loops (gap "
                              f"{self._gap_at(self.home_qpos)[1]}): store an assembled configuration, every "
