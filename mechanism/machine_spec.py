@@ -400,6 +400,12 @@ class _Loader:
         sigma = self.number(tracker, "sigma_mm", "tracker", positive=True)
         self.known(tracker, "tracker", ("targets", "measure", "sigma_mm", "reference"))
         task = self.task()
+        if len(task.coordinates) > len(motors):
+            raise self.err("task.coordinates", f"{len(task.coordinates)} coordinates for {len(motors)} motors: "
+                                               f"the motors move the task site with {len(motors)} degrees of "
+                                               f"freedom, so a target of {len(task.coordinates)} coordinates is "
+                                               f"met only by chance; list the {len(motors)} (or fewer) that the "
+                                               f"motors set (docs/machine_toml.md, [task])")
         workspace = self.workspace(task)
         table_axes = self.table_axes(task)
         table = self.table_grid(table_axes, workspace)

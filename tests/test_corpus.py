@@ -132,6 +132,60 @@ def test_a_free_joint_that_moves_the_nests_is_refused_naming_it(tmp_path):
     assert "yaw_body" in str(exc.value) and "machine.toml" in str(exc.value)
 
 
+@pytest.mark.parametrize("how,words", [
+    ("export", "407 mm at closedloop2"),      # every joint at 0: the URDF export's open assembly
+    ("rod", "at closedloop2"),                # one achilles-rod hinge 0.01 rad off: a 2.5 mm gap
+])
+def test_an_open_home_keyframe_is_refused_naming_its_gap(tmp_path, how, words):
+    """gepetto_cassie with a ``home`` keyframe that does not close its rods. The twin took any keyframe as
+    assembled: at the URDF export's configuration (rod halves 0.36-0.41 m apart) its mobility check judged the
+    open assembly and told the user to list the passive joint free_ankle under [[motors]]; a keyframe a little
+    open (a hinge 0.01 rad off; the first conversion's welds closed in position and 162 deg off in rotation)
+    loaded without a word, its motor values naming no pose of the machine. The keyframe is refused with its
+    gap."""
+    import re
+    import shutil
+
+    folder = tmp_path / "leg"
+    shutil.copytree(CORPUS / "gepetto_cassie", folder)
+    xml = folder / "gepetto_cassie.xml"
+    text = xml.read_text()
+    key = re.search(r'<key name="home" qpos="([^"]*)"', text)
+    q = np.array(key.group(1).split(), float)
+    if how == "export":
+        q[:] = 0.0
+    else:
+        q[Machine.from_folder(CORPUS / "gepetto_cassie").twin.model.joint("tigh_half_hachil_rode_2_rev1").qposadr[0]] \
+            += 0.01
+    xml.write_text(text.replace(key.group(1), " ".join(repr(float(v)) for v in q)))
+    with pytest.raises(InputError) as exc:
+        Machine.from_folder(folder).twin
+    msg = str(exc.value)
+    assert exc.value.field == "keyframe" and "keyframe 'home' does not close the loops" in msg, msg
+    assert words in msg and "free_ankle" not in msg, msg
+
+
+def test_a_home_open_along_a_redundant_closure_equation_is_refused(tmp_path):
+    """gepetto_5bar closes its planar loop with a 3-D connect: the out-of-plane equation is redundant, and the
+    twin closes the loop along the other two (docs/closed_chain.md, "Over-constraint"). With the closing site
+    drawn 1 mm out of the plane, the keyframe leaves that 1 mm gap; the twin found the redundant direction at
+    home, took the gap for the joints' play and loaded the drawing without a word (Gepetto's kangaroo_like leg,
+    whose robot.yaml closures do not assemble, so loaded with a keyframe 57 mm open). A drawing closes every
+    equation at home, as the default configuration must."""
+    import shutil
+
+    folder = tmp_path / "five"
+    shutil.copytree(CORPUS / "gepetto_5bar", folder)
+    xml = folder / "gepetto_5bar.xml"
+    text = xml.read_text()
+    site = '<site name="closing_1_B" pos="0 -0.46 0.05"'
+    assert site in text
+    xml.write_text(text.replace(site, site.replace("0.05", "0.051")))
+    with pytest.raises(InputError) as exc:
+        Machine.from_folder(folder).twin
+    assert "keyframe 'home' does not close the loops (gap 1 mm at closedloop1)" in str(exc.value)
+
+
 def test_prediction_covers_a_task_frame_no_nest_sits_on():
     """gepetto_5bar's task site sits on the URDF's fixed `effector` frame, a child body of `end_rod`; the nests
     sit on `end_rod`. The effector frame's six errors move the task and no tracker reading, so no campaign

@@ -555,6 +555,21 @@ def test_demo_of_a_folder_machine(delta, capsys):
     assert (out / "table.json").is_file()
 
 
+def test_demo_refuses_when_the_identified_machine_reaches_no_held_out_target(delta, capsys, monkeypatch):
+    """A 5-motor leg described with six task coordinates (gepetto_cassie's first machine.toml, now refused at
+    load) left the identified machine none of the held-out targets; the demo then stopped on "ValueError:
+    cannot reshape array of size 0 ... (a bug: please report it)". When no held-out target is reached the demo
+    says so in one line naming machine.toml."""
+    import pmcal.studies.chain_demo as chain_demo
+
+    folder, d = delta
+    monkeypatch.setattr(chain_demo, "reachable_targets",
+                        lambda machine, params, task: (task[:0], np.zeros((0, machine.twin.n_motors))))
+    status, _, err = run(capsys, "--machine", folder, "demo", "--out", d / "demo_none", "--seed", "4")
+    assert status == 2 and "a bug" not in err, err
+    assert "reaches none of the 60 held-out targets" in err and "machine.toml" in err, err
+
+
 def test_demo_warns_when_compensation_is_worse_than_predicted():
     """The demo's warning lines: an error family compensated to more than 3x the identification's prediction,
     errors no tracker reading sees that move the task, a barely seen combination of errors that carries the

@@ -59,6 +59,8 @@ def _edit(folder, old, new, count=1):
     ('site = "tcp"', 'site = "tool"', "task.site", "'tool' is not a site"),
     ('"x_mm", "y_mm", "z_mm"]\n\n[workspace]', '"x_mm", "y_mm", "z"]\n\n[workspace]', "task.coordinates",
      "unknown coordinate 'z'"),
+    ('"x_mm", "y_mm", "z_mm"]\n\n[workspace]', '"x_mm", "y_mm", "z_mm", "rz_deg"]\n\n[workspace]\n'
+     'rz_deg = [-1.0, 1.0]', "task.coordinates", "4 coordinates for 3 motors"),      # a target met by chance
     ('z_mm = [-950.0, -650.0]', '', "workspace.z_mm", "every task coordinate needs"),
     ('frames = "all"', 'frames = ["rod1a", "elbow"]', "errors.frames", "'elbow' is neither"),
     ('components = ["dx", "dy", "dz", "drx", "dry", "drz"]', 'components = ["dx", "rx"]', "errors.components",

@@ -159,6 +159,7 @@ class ClosedChainTwin:
         self._read_sites()
         self.home_qpos = self._read_home()
         self._read_redundancy()
+        self._check_home_closes()
         self._check_mobility()
         # Under frames = "all" the closure sites carry errors; the tracker nests do not (they define the
         # moving frames they sit on: their coordinates there come from a CMM or the drawing), nor does the
@@ -209,7 +210,8 @@ class ClosedChainTwin:
         return D
 
     #: Closure residual (m) up to which the model's default configuration counts as closed when there is no
-    #: ``home`` keyframe (a CAD export's rounding: 1e-7 m on Reachy Mini); it is then assembled exactly.
+    #: ``home`` keyframe (a CAD export's rounding: 1e-7 m on Reachy Mini); it is then assembled exactly. A
+    #: ``home`` keyframe open by more is refused (:meth:`_check_home_closes`).
     HOME_TOL_M = 1e-5
 
     def _read_home(self) -> np.ndarray:
@@ -220,14 +222,52 @@ class ClosedChainTwin:
         if self.spec.home is not None:
             return m.key_qpos[mujoco.mj_name2id(m, _OBJ.mjOBJ_KEY, self.spec.home)].copy()
         q0 = m.qpos0.copy()
-        jp, jr = self._kin(q0, closure_only=True)
-        gap = float(np.max(np.abs(self._closure(jp, jr, with_jac=False)[0][:self.n_equations] / self._sqrt_w)))
+        gap, _ = self._gap_at(q0)
         q, ok = self._newton(q0)
         if gap > self.HOME_TOL_M or not ok:
             raise InputError(f"no 'home' keyframe and the model's default configuration does not close its "
                              f"loops (gap {gap * 1e3:.3g} mm): add an assembled <key name=\"home\" qpos=...> "
                              f"(docs/machine_toml.md)", file=self._file, field="keyframe")
         return q
+
+    def _check_home_closes(self) -> None:
+        """InputError naming the gap when the ``home`` keyframe leaves a rigid loop open by more than
+        :data:`HOME_TOL_M`, as the default configuration may not (:meth:`_read_home`): a machine as drawn
+        closes every equation at home, a redundant one too (the redundant directions found at an open
+        keyframe can hold its whole gap: 57 mm on Gepetto's kangaroo_like leg). A model export-model wrote
+        (its redundant directions stored, :data:`REDUNDANT_NUMERIC`) is the identified machine, whose loops
+        keep the strain its errors leave: only the directions the twin closes there count
+        (:meth:`_local_keep`). Every solve would start off the assembly and land on whichever one Newton
+        finds (the keyframe's motor values then name no pose of the machine), and the mobility check would
+        judge an open assembly's free joints. Compliant closures (``[closures]``) settle with a
+        gap and are not checked."""
+        if self.spec.home is None or self.spec.closures is not None:
+            return
+        if mujoco.mj_name2id(self.model, _OBJ.mjOBJ_NUMERIC, REDUNDANT_NUMERIC) >= 0:
+            jp, jr = self._kin(self.home_qpos, closure_only=True)
+            gap = float(np.max(np.abs(self._closure(jp, jr)[0][:self.n_equations]), initial=0.0))
+        else:
+            gap = self._gap_at(self.home_qpos)[0]
+        if gap > self.HOME_TOL_M:
+            raise InputError(f"keyframe {self.spec.home!r} does not close the loops (gap "
+                             f"{self._gap_at(self.home_qpos)[1]}): store an assembled configuration, every "
+                             f"closure met (docs/machine_toml.md, [machine] home)", file=self._file, field="keyframe")
+
+    def _gap_at(self, q: np.ndarray) -> tuple[float, str]:
+        """The largest closure gap at the configuration ``q`` (nq,) (m; rad for a weld's rotation), and the
+        largest of the positions and of the welds' rotations in words (``"746 mm at loop1, 162 deg at loop2"``)."""
+        self._kin(q, jac=False)
+        d = self.data
+        r = np.abs(self._gaps(d.site_xpos[self.points][None],
+                              d.site_xmat[self.points].reshape(1, -1, 3, 3) if self._weld.any() else None)[0])
+        names = [c.name for c in self.closures] + [c.name for c in self.closures if c.weld]
+        n_pos = 3 * len(self.closures)
+        words = []
+        for part, scale, unit in ((slice(0, n_pos), 1e3, "mm"), (slice(n_pos, None), np.degrees(1.0), "deg")):
+            if r[part].size:
+                i = int(np.argmax(r[part]))
+                words.append(f"{r[part][i] * scale:.3g} {unit} at {names[(part.start + i) // 3]}")
+        return float(r.max()), ", ".join(words)
 
     #: Relative size (of the largest singular value) below which a direction of the passive dofs counts as
     #: free of the closures, and motion (m per unit, of the nests or the task site) above which it matters:

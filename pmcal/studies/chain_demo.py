@@ -18,6 +18,7 @@ from pmcal import progress
 from pmcal.calib.closed_chain import compensate_targets
 from pmcal.chain import (campaign, compensation_table, dominant_line, identify, params_document, plan, random_errors,
                          sample_targets, table_refusal)
+from pmcal.errors import InputError
 from pmcal.fileio import atomic_directory, write_json
 from pmcal.io_chain import write_measurements, write_plan, write_setpoints, write_targets
 from pmcal.mechanism.task_space import error_families, position_distance, rms, task_difference
@@ -174,6 +175,11 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
         step("compensate")
         task = sample_targets(machine, HELD_OUT, seed=seed + 1000)
         task, compensated = reachable_targets(machine, res.params, task)
+        if not len(task):
+            raise InputError(f"the identified machine reaches none of the {HELD_OUT} held-out targets the nominal "
+                             f"one reaches (each named above): nothing to compensate; check that the motor ranges "
+                             f"reach the workspace box with a margin", file=str(machine.spec.folder / "machine.toml"),
+                             field="workspace")
         nominal = twin.inverse(task, None)
         done("compensate")
         step("table")
