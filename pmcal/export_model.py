@@ -35,7 +35,7 @@ import numpy as np
 from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write, check_output
 from pmcal.io_chain import read_params as read_chain_params
-from pmcal.twin.closed_chain import REDUNDANT_NUMERIC
+from pmcal.twin.closed_chain import IDENTIFIED_NUMERIC, REDUNDANT_NUMERIC
 from pmcal.twin.export import calibrated_xml
 
 #: What the machine.toml written beside a calibrated MJCF starts with: an existing file of that name is
@@ -124,6 +124,7 @@ def frame_parts(twin, spec, params: dict):
     # an over-constrained loop: which equations the joints' play takes up stays the design's (the twin of the
     # exported model reads it back instead of finding it at its own, error-tilted home)
     custom = {REDUNDANT_NUMERIC: twin.redundant_directions.ravel()} if len(twin.redundant_directions) else {}
+    custom[IDENTIFIED_NUMERIC] = np.ones(1)               # the identified machine, not a drawing (its twin's checks)
     if spec.home is None:                       # the default configuration: written as a 'home' keyframe
         keyframe = ("home", qpos, np.zeros(m.nu))
     else:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from pmcal.cli import main
+from pmcal.errors import InputError
 from pmcal.machines import Machine
 from pmcal.twin.closures import compile_with_site_closures
 from tests.chain_references import fivebar_fk
@@ -124,3 +125,53 @@ def test_body_based_fivebar_whole_chain_and_export(tmp_path, capsys):
         # a planar loop closed by a connect, with out-of-plane errors: closed in the least-squares sense;
         # MuJoCo reads back the calibrated twin's own compromise (its gap, site1 - site2, m)
         assert np.abs(gap - (xs[0] - xs[1])).max() < 1e-9
+
+
+_STRETCHED = """<mujoco model="stretched">
+  <worldbody>
+    <body name="slider" pos="60 0 0">
+      <joint name="m1" type="slide" axis="1 0 0"/>
+      <geom type="box" size="0.1 0.1 0.1"/>
+      <site name="anchor"/>
+      <site name="tool" pos="0 0 0.1"/>
+    </body>
+    <body name="link1">
+      <joint name="j1" type="hinge" axis="0 0 1"/>
+      <geom type="capsule" fromto="0 0 0 30 0 0" size="0.05"/>
+      <body name="link2" pos="30 0 0">
+        <joint name="j2" type="hinge" axis="0 0 1"/>
+        <geom type="capsule" fromto="0 0 0 30 0 0" size="0.05"/>
+        <site name="tip" pos="30 0 0"/>
+        <site name="nest1" pos="29.999 0 0"/>
+        <site name="nest2" pos="30 0.001 0"/>
+      </body>
+    </body>
+  </worldbody>
+  <equality><connect site1="tip" site2="anchor"/></equality>
+  <keyframe><key name="home" qpos="HOME"/></keyframe>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("home, refused", [("0 0 0", True), (f"{60 * (float(np.cos(0.5)) - 1)!r} 0.5 -1.0", False)])
+def test_a_home_at_a_singular_pose_is_refused(tmp_path, home, refused):
+    """Two 30 m links closed on a slider, the nests 1 mm from where they meet it. Stretched straight (home
+    0 0 0) the loop is singular: the elbow is free to first order and turns the nests, by 0.45 mm per rad
+    of that free direction. Gepetto's Disney-like leg, its knees folded near such a pose at home, loaded
+    (0.2-0.6 mm/rad was below 1 % of its size per rad, the allowance for export-model outputs), and its
+    solves then landed 0.06 mm apart depending on where they started: its own twin's data fitted at chi2/dof
+    1.9. A model as drawn is refused, naming the joints, the motion and the singular pose; bent (elbow
+    0.5 rad), the same machine loads."""
+    (tmp_path / "sing.xml").write_text(_STRETCHED.replace("HOME", home))
+    (tmp_path / "machine.toml").write_text(
+        '[machine]\nname = "sing"\nmodel = "sing.xml"\n\n[[motors]]\njoint = "m1"\nrange = [-9000.0, 0.0]\n\n'
+        '[tracker]\ntargets = ["nest1", "nest2"]\nsigma_mm = 0.01\n\n[task]\nsite = "tool"\ncoordinates = ["x_mm"]\n\n'
+        '[workspace]\nx_mm = [51000.0, 59000.0]\n\n[errors]\nframes = "all"\n')
+    if not refused:
+        assert Machine.from_folder(tmp_path).twin.n_free == 0
+        return
+    with pytest.raises(InputError) as exc:
+        Machine.from_folder(tmp_path).twin
+    msg = str(exc.value)
+    assert exc.value.field == "motors" and "singular pose" in msg and "j1" in msg and "j2" in msg, msg
+    assert 0.40 < float(msg.split(" mm/rad at home")[0].rsplit("; ", 1)[1]) < 0.50, msg

@@ -80,6 +80,9 @@ from pmcal.twin.overconstraint import redundant_directions
 #: custom numeric of an exported model: the redundant closure directions of the machine it was calibrated
 #: from (rows of ``n_equations`` numbers, :meth:`ClosedChainTwin._read_redundancy`)
 REDUNDANT_NUMERIC = "pmcal_redundant_directions"
+#: custom numeric export-model writes into every model it exports: the identified machine, whose errors may
+#: leave its loops strained and couple free rod spins to the nests slightly (a model as drawn does neither)
+IDENTIFIED_NUMERIC = "pmcal_identified_machine"
 
 _OBJ = mujoco.mjtObj
 _EQ = mujoco.mjtEq
@@ -230,6 +233,13 @@ class ClosedChainTwin:
                              f"(docs/machine_toml.md)", file=self._file, field="keyframe")
         return q
 
+    @property
+    def _exported(self) -> bool:
+        """Whether the model is an identified machine export-model wrote (:data:`IDENTIFIED_NUMERIC`, or the
+        redundant directions it stores), not a model as drawn."""
+        return any(mujoco.mj_name2id(self.model, _OBJ.mjOBJ_NUMERIC, n) >= 0
+                   for n in (IDENTIFIED_NUMERIC, REDUNDANT_NUMERIC))
+
     def _check_home_closes(self) -> None:
         """InputError naming the gap when the ``home`` keyframe leaves a rigid loop open by more than
         :data:`HOME_TOL_M`, as the default configuration may not (:meth:`_read_home`): a machine as drawn
@@ -243,7 +253,7 @@ class ClosedChainTwin:
         gap and are not checked."""
         if self.spec.home is None or self.spec.closures is not None:
             return
-        if mujoco.mj_name2id(self.model, _OBJ.mjOBJ_NUMERIC, REDUNDANT_NUMERIC) >= 0:
+        if self._exported:
             jp, jr = self._kin(self.home_qpos, closure_only=True)
             gap = float(np.max(np.abs(self._closure(jp, jr)[0][:self.n_equations]), initial=0.0))
         else:
@@ -276,6 +286,11 @@ class ClosedChainTwin:
     #: them not at all on the drawing, and by about the size of the geometric errors per radian on a machine
     #: whose joint axes the errors moved (a calibrated model, export-model: 0.1 mm/rad on gepetto_wl16).
     FREE_RTOL, FREE_MOVES_M, FREE_MOVES_SHARE = 1e-9, 1e-9, 0.01
+    #: motion (m per unit) above which a free direction matters on a model as drawn (not an export-model output,
+    #: whose errors couple free rod spins to the nests slightly): every model as drawn here shows none (below
+    #: 1e-9 m/rad); LAAS's Disney-like leg, folded near a singularity at its home, 2e-4 to 6e-4 m/rad, its
+    #: solves then landing 0.06 mm apart depending on where they start
+    FREE_MOVES_DRAWN_M = 1e-6
 
     def _check_mobility(self) -> None:
         """InputError naming the joints when, at ``home``, the closures leave a direction of the passive dofs
@@ -294,11 +309,13 @@ class ClosedChainTwin:
         self.n_free = int(free.shape[1])
         if not free.size:
             return
-        seen = np.concatenate([np.arange(self._n_closure_points, len(self.points))])
-        moves = np.concatenate([jp[seen][..., self.passive], jr[seen][..., self.passive]]).reshape(-1, len(self.passive))
-        motion = moves @ free                                            # (rows, nfree)
         extent = float(np.linalg.norm(np.ptp(self.data.xpos[1:], axis=0))) if self.model.nbody > 1 else 0.0
-        if np.max(np.abs(motion), initial=0.0) <= max(self.FREE_MOVES_M, self.FREE_MOVES_SHARE * extent):
+        seen = np.arange(self._n_closure_points, len(self.points))       # the nests and the task site: where
+        turns = [self._task_p] if set(self.spec.task.coordinates) - set(POSITION) else []   # ... and its turn
+        moves = np.concatenate([jp[seen], jr[turns] * max(extent, 1.0)])[..., self.passive]   # m per unit
+        motion = moves.reshape(-1, len(self.passive)) @ free             # (rows, nfree)
+        limit = max(self.FREE_MOVES_M, self.FREE_MOVES_SHARE * extent) if self._exported else self.FREE_MOVES_DRAWN_M
+        if np.max(np.abs(motion), initial=0.0) <= limit:
             return
         u, _, _ = np.linalg.svd(motion.T @ motion)
         direction = free @ u[:, 0]                                       # the free direction that moves most
@@ -307,10 +324,10 @@ class ClosedChainTwin:
         names = list(dict.fromkeys(mujoco.mj_id2name(self.model, _OBJ.mjOBJ_JOINT, int(j)) or f"joint {j}"
                                    for j in jnt[:3]))
         raise InputError(f"the loops leave joint {names[0]} free and it moves the tracker nests or the task site "
-                         f"(with {', '.join(names[1:]) or 'no other joint'}): list it under [[motors]] if it is "
-                         f"actuated, or close the loop that should hold it", file=str(self.spec.folder /
-                                                                                        "machine.toml"),
-                         field="motors")
+                         f"(with {', '.join(names[1:]) or 'no other joint'}; "
+                         f"{np.max(np.abs(motion)) * 1e3:.3g} mm/rad at home): list it under [[motors]] if it is "
+                         "actuated, close the loop that should hold it, or store a home away from a singular pose "
+                         "(a leg folded or stretched)", file=str(self.spec.folder / "machine.toml"), field="motors")
 
     def _read_task_frame(self) -> None:
         """World pose (m, rotation matrix) of the frame task coordinates are written in: ``[task] frame``, a
