@@ -36,11 +36,11 @@ from pmcal.errors import InputError, RunError
 from pmcal.fileio import atomic_write, check_output
 from pmcal.io_chain import read_params as read_chain_params
 from pmcal.twin.closed_chain import IDENTIFIED_NUMERIC, REDUNDANT_NUMERIC
-from pmcal.twin.export import calibrated_xml
+from pmcal.twin.export import CALIBRATED_TOML_START, calibrated_xml
 
 #: What the machine.toml written beside a calibrated MJCF starts with: an existing file of that name is
 #: replaced only if it is one
-SIDE_FILE_START = "# Calibrated "
+SIDE_FILE_START = CALIBRATED_TOML_START
 
 #: effects written as a comment and in the machine.toml only
 AS_COMMENT = {"backlash": "full dead band of lost motion per motor (deg), as diagnose reports it: 2b in "

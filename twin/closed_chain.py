@@ -61,6 +61,7 @@ Example
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Mapping
 
 import mujoco
@@ -74,6 +75,7 @@ from pmcal.mechanism.rotations import rotvec_matrix
 from pmcal.mechanism.task_space import POSITION, task_coordinates, task_difference
 from pmcal.twin.closures import solve_stacked
 from pmcal.twin.closures import compile_with_site_closures
+from pmcal.twin.export import CALIBRATED_TOML_START
 from pmcal.twin.frame_errors import DEG, MM, FrameErrors
 from pmcal.twin.overconstraint import redundant_directions
 
@@ -235,10 +237,13 @@ class ClosedChainTwin:
 
     @property
     def _exported(self) -> bool:
-        """Whether the model is an identified machine export-model wrote (:data:`IDENTIFIED_NUMERIC`, or the
-        redundant directions it stores), not a model as drawn."""
-        return any(mujoco.mj_name2id(self.model, _OBJ.mjOBJ_NUMERIC, n) >= 0
-                   for n in (IDENTIFIED_NUMERIC, REDUNDANT_NUMERIC))
+        """Whether the model is an identified machine export-model wrote (:data:`IDENTIFIED_NUMERIC`, the
+        redundant directions it stores, or its machine.toml's first words), not a model as drawn."""
+        if any(mujoco.mj_name2id(self.model, _OBJ.mjOBJ_NUMERIC, n) >= 0
+               for n in (IDENTIFIED_NUMERIC, REDUNDANT_NUMERIC)):
+            return True
+        toml = Path(self.spec.folder) / "machine.toml" if self.spec.folder is not None else None
+        return bool(toml and toml.is_file() and toml.read_text(encoding="utf-8").startswith(CALIBRATED_TOML_START))
 
     def _check_home_closes(self) -> None:
         """InputError naming the gap when the ``home`` keyframe leaves a rigid loop open by more than

@@ -27,6 +27,10 @@ import numpy as np
 
 from pmcal.twin.closures import sites_for_body_closures
 
+#: What the machine.toml export-model writes beside a calibrated MJCF starts with (its twin knows the model is
+#: an identified machine by it, the exports written before ``pmcal_identified_machine`` included)
+CALIBRATED_TOML_START = "# Calibrated "
+
 #: attributes that give an element's orientation besides ``quat`` (removed when ``quat`` is written)
 ORIENTATIONS = ("euler", "axisangle", "xyaxes", "zaxis")
 
