@@ -113,20 +113,27 @@ def test_body_based_closure_sites_can_be_named_in_errors(tmp_path):
     assert {"closure0_site1", "closure0_site2", "closure1_site1", "closure1_site2"} <= compiled
 
 
+def _edited_copy(tmp_path, name: str, file: str, old: str, new: str) -> Path:
+    """A copy of corpus model ``name`` in ``tmp_path`` with ``old`` (asserted present) replaced by ``new`` in its
+    ``file``."""
+    import shutil
+
+    folder = tmp_path / name
+    shutil.copytree(CORPUS / name, folder)
+    path = folder / file
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new))
+    return folder
+
+
 def test_a_free_joint_that_moves_the_nests_is_refused_naming_it(tmp_path):
     """Reachy Mini's Stewart platform sits on a turning body (joint yaw_body, actuated). A machine.toml
     without it as a motor leaves the head free to turn: refused at load naming the joint (before the fix its
     own campaign's truth left 1.6 mm rms). The rods' free spin and the antennas, which move no nest, are
     not refused (the corpus machine.toml loads)."""
-    import shutil
-
-    folder = tmp_path / "head"
-    shutil.copytree(CORPUS / "reachy_mini", folder)
-    toml = folder / "machine.toml"
-    text = toml.read_text()
     yaw = '[[motors]]\njoint = "yaw_body"\nrange = [-10.0, 10.0]\n\n'
-    assert yaw in text
-    toml.write_text(text.replace(yaw, ""))
+    folder = _edited_copy(tmp_path, "reachy_mini", "machine.toml", yaw, "")
     with pytest.raises(InputError) as exc:
         Machine.from_folder(folder).twin
     assert "yaw_body" in str(exc.value) and "machine.toml" in str(exc.value)
@@ -172,15 +179,8 @@ def test_a_home_open_along_a_redundant_closure_equation_is_refused(tmp_path):
     home, took the gap for the joints' play and loaded the drawing without a word (Gepetto's kangaroo_like leg,
     whose robot.yaml closures do not assemble, so loaded with a keyframe 57 mm open). A drawing closes every
     equation at home, as the default configuration must."""
-    import shutil
-
-    folder = tmp_path / "five"
-    shutil.copytree(CORPUS / "gepetto_5bar", folder)
-    xml = folder / "gepetto_5bar.xml"
-    text = xml.read_text()
     site = '<site name="closing_1_B" pos="0 -0.46 0.05"'
-    assert site in text
-    xml.write_text(text.replace(site, site.replace("0.05", "0.051")))
+    folder = _edited_copy(tmp_path, "gepetto_5bar", "gepetto_5bar.xml", site, site.replace("0.05", "0.051"))
     with pytest.raises(InputError) as exc:
         Machine.from_folder(folder).twin
     assert "keyframe 'home' does not close the loops (gap 1 mm at closedloop1)" in str(exc.value)
