@@ -66,7 +66,7 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     commands, pose_id : (n, M) explicit commands (a plan, :func:`plan`) and their ids, instead of drawn
         poses.
     seconds_per_pose : time between poses, s (the ``time_s`` column).
-    source : the file ``task`` came from (for messages).
+    source : the file ``task`` or ``commands`` came from (for messages).
 
     Each pose is held at its commands plus the motors' motion error (``[[motors]] sigma``, if set; the
     file records the commands). A machine measuring a distance gets scale readings: the change of the
@@ -126,7 +126,7 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
         given = list(pose_id) if pose_id is not None else [f"P{i + 1}" for i in range(wanted)]
         ids = [i for i, k in zip(given, kept) if k]
         lost = [i for i, k in zip(given, kept) if not k]
-        what = "targets" if task is not None else "planned poses"
+        what = ("targets" if task is not None else "planned poses") + (f" in {source}" if source else "")
         if 2 * short > wanted:
             raise RunError(f"{short} of the {wanted} {what} cannot be assembled on the erroneous machine (on the "
                            "nominal machine's branch): its errors are too large for this workspace")
