@@ -1173,7 +1173,7 @@ class ClosedChainTwin:
             if out.size:
                 j = out[0]
                 mot = self.spec.motors[j]
-                reasons[i] = (f"{mot.name} command {c[j]:.3f} {mot.unit} outside its range "
+                reasons[i] = (f"{mot.name} (joint {mot.joint}) command {c[j]:.3f} {mot.unit} outside its range "
                               f"[{lo[j]:g}, {hi[j]:g}]")
                 continue
             cmd[i] = c
