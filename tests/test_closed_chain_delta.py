@@ -53,13 +53,15 @@ def test_inverse_matches_closed_form(twin, commands):
 
 def test_inverse_out_of_reach_says_why(twin):
     """z = -2000 mm: farther than arm + rod; z = -490 mm (tcp; platform at -450): the closed form needs
-    -46.3 deg on every motor, below the -35 deg limit of machine.toml."""
+    -46.3 deg on every motor, below the -35 deg limit of machine.toml. The motor is named by its column (m1)
+    and by the joint machine.toml gave it: a user of LAAS's Talos-like leg read "m6 command -17.186 deg", six
+    [[motors]] entries down from the joint names they wrote."""
     cmd, why = twin.inverse_report(np.array([[0.0, 0.0, -2000.0], [0.0, 0.0, -490.0], [0.0, 0.0, -700.0],
                                              [0.0, np.nan, -700.0]]))
     assert np.isnan(cmd[[0, 1, 3]]).all() and np.isfinite(cmd[2]).all() and why[2] == ""
     assert "missing (NaN)" in why[3]
     assert "no assembly" in why[0]
-    assert why[1].startswith("m1 command -46.28") and "outside its range [-35, 80]" in why[1]
+    assert why[1].startswith("m1 (joint arm1_motor) command -46.28") and "outside its range [-35, 80]" in why[1]
 
 
 def test_samples_respect_workspace_and_motor_ranges(twin, commands):

@@ -293,8 +293,8 @@ class ClosedChainTwin:
     FREE_RTOL, FREE_MOVES_M, FREE_MOVES_SHARE = 1e-9, 1e-9, 0.01
     #: motion (m per unit) above which a free direction matters on a model as drawn (not an export-model output,
     #: whose errors couple free rod spins to the nests slightly): every model as drawn here shows none (below
-    #: 1e-9 m/rad); LAAS's Disney-like leg, folded near a singularity at its home, 2e-4 to 6e-4 m/rad, its
-    #: solves then landing 0.06 mm apart depending on where they start
+    #: 1e-9 m/rad); LAAS's Disney-like leg, a hinge drawn 0.295 mm off a ball's centre (_near_axis), 2e-4 to
+    #: 6e-4 m/rad, its solves then landing 0.06 mm apart depending on where they start
     FREE_MOVES_DRAWN_M = 1e-6
 
     def _check_mobility(self) -> None:
@@ -328,11 +328,38 @@ class ClosedChainTwin:
         jnt = self.model.dof_jntid[dof]
         names = list(dict.fromkeys(mujoco.mj_id2name(self.model, _OBJ.mjOBJ_JOINT, int(j)) or f"joint {j}"
                                    for j in jnt[:3]))
-        raise InputError(f"the loops leave joint {names[0]} free and it moves the tracker nests or the task site "
-                         f"(with {', '.join(names[1:]) or 'no other joint'}; "
-                         f"{np.max(np.abs(motion)) * 1e3:.3g} mm/rad at home): list it under [[motors]] if it is "
-                         "actuated, close the loop that should hold it, or store a home away from a singular pose "
-                         "(a leg folded or stretched)", file=str(self.spec.folder / "machine.toml"), field="motors")
+        head = (f"the loops leave joint {names[0]} free and it moves the tracker nests or the task site "
+                f"(with {', '.join(names[1:]) or 'no other joint'}; {np.max(np.abs(motion)) * 1e3:.3g} mm/rad at home)")
+        near = self._near_axis(self.passive[np.abs(direction) > 0.1 * np.abs(direction).max()], extent)
+        if near:
+            raise InputError(f"{head}: {near}, so the model nearly repeats a rotation: a drawing whose axes almost "
+                             "meet, not a pose (no home helps): put the axis through that centre or make one of the "
+                             "two joints fixed", file=str(self.spec.folder / "machine.toml"), field="motors")
+        raise InputError(f"{head}: list it under [[motors]] if it is actuated, close the loop that should hold it, "
+                         "or store a home away from a singular pose (a leg folded or stretched)",
+                         file=str(self.spec.folder / "machine.toml"), field="motors")
+
+    #: distance (m) below which a joint's anchor counts as on another's axis (the drawing's precision:
+    #: 6 significant digits of a 1 m machine), and share of the machine's size (1 mm on a 1 m leg) below
+    #: which a larger one is an axis that nearly meets it (LAAS's Disney-like leg: a hinge 0.295 mm from a
+    #: ball's centre, which no home frees the nests from)
+    ON_AXIS_M, NEAR_AXIS_SHARE = 1e-6, 0.001
+
+    def _near_axis(self, dofs: np.ndarray, extent: float) -> str:
+        """In words, the hinge among the degrees of freedom ``dofs`` whose axis passes nearest another of
+        their joints' anchors, off it by more than ON_AXIS_M and less than NEAR_AXIS_SHARE of ``extent``
+        (the machine's size, m) at the configuration last computed (home); "" if none does."""
+        m, d = self.model, self.data
+        jnts = [int(j) for j in dict.fromkeys(m.dof_jntid[dofs])]
+        best = (self.NEAR_AXIS_SHARE * extent, "")
+        for a in (j for j in jnts if m.jnt_type[j] == _JNT.mjJNT_HINGE):
+            for b in jnts:
+                v = d.xanchor[b] - d.xanchor[a]
+                off = float(np.linalg.norm(v - d.xaxis[a] * (v @ d.xaxis[a])))
+                if self.ON_AXIS_M < off < best[0]:
+                    best = (off, f"joint {mujoco.mj_id2name(m, _OBJ.mjOBJ_JOINT, a)}'s axis passes {off * 1e3:.3g} "
+                                 f"mm from joint {mujoco.mj_id2name(m, _OBJ.mjOBJ_JOINT, b)}'s anchor")
+        return best[1]
 
     def _read_task_frame(self) -> None:
         """World pose (m, rotation matrix) of the frame task coordinates are written in: ``[task] frame``, a
@@ -1146,7 +1173,7 @@ class ClosedChainTwin:
             if out.size:
                 j = out[0]
                 mot = self.spec.motors[j]
-                reasons[i] = (f"{mot.name} command {c[j]:.3f} {mot.unit} outside its range "
+                reasons[i] = (f"{mot.name} (joint {mot.joint}) command {c[j]:.3f} {mot.unit} outside its range "
                               f"[{lo[j]:g}, {hi[j]:g}]")
                 continue
             cmd[i] = c
