@@ -121,9 +121,12 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
     kept = np.concatenate([ok for ok, _ in got])
     commands, y = commands[kept], np.concatenate([v for _, v in got])
     short = wanted - len(commands)
+    def pose_ids(n: int) -> list[str]:
+        return list(pose_id) if pose_id is not None else [f"P{i + 1}" for i in range(n)]
+
     ids = None
     if explicit:                   # the given poses: one the erroneous machine does not reach is left out
-        given = list(pose_id) if pose_id is not None else [f"P{i + 1}" for i in range(wanted)]
+        given = pose_ids(wanted)
         ids = [i for i, k in zip(given, kept) if k]
         lost = [i for i, k in zip(given, kept) if not k]
         what = ("targets" if task is not None else "planned poses") + (f" in {source}" if source else "")
@@ -145,7 +148,7 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
         raise RunError(f"the erroneous machine assembles too few of the drawn poses ({short} missing)")
     n = len(commands)
     if ids is None:
-        ids = list(pose_id) if pose_id is not None else [f"P{i + 1}" for i in range(n)]
+        ids = pose_ids(n)
     readings = None
     if distance:
         D = reading_operator(n, machine.spec.reference)

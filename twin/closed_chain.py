@@ -60,6 +60,7 @@ Example
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
@@ -235,7 +236,7 @@ class ClosedChainTwin:
                              f"(docs/machine_toml.md)", file=self._file, field="keyframe")
         return q
 
-    @property
+    @functools.cached_property
     def _exported(self) -> bool:
         """Whether the model is an identified machine export-model wrote (:data:`IDENTIFIED_NUMERIC`, the
         redundant directions it stores, or its machine.toml's first words), not a model as drawn."""
