@@ -121,8 +121,21 @@ class Machine:
                 self._twin = ClosedChainTwin(self.spec)
             except ValueError as exc:         # MuJoCo's compiler refused the MJCF
                 text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
-                raise InputError(f"MuJoCo cannot compile the model: {text}", file=str(self.spec.model_path)) from None
+                raise InputError(f"MuJoCo cannot compile the model: {text}{_plugin_hint(text)}",
+                                 file=str(self.spec.model_path)) from None
         return self._twin
+
+
+def _plugin_hint(text: str) -> str:
+    """Advice for a model that names an engine plugin this MuJoCo lacks (onshape-to-robot's ``sdf`` option
+    writes ``mujoco.sdf.sdflib`` geoms, a plugin the pip wheel does not bundle): pmcal needs no collision
+    geometry, so the geoms can be plain meshes. Empty for any other compiler message."""
+    found = re.search(r"plugin (\S+) not found", text)
+    if not found:
+        return ""
+    return (f" (this MuJoCo has no plugin {found.group(1)}; pmcal needs no collision geometry: give the geoms "
+            "that use it type=\"mesh\" and delete their <plugin instance=.../> and the <extension> that declares "
+            "it, or install a MuJoCo built with that plugin)")
 
 
 def resolve(value: str | Path) -> Machine:

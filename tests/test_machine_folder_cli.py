@@ -130,6 +130,12 @@ BAD_FOLDERS = {
                                 ["delta_3dof.xml", "no loop to close"]),
     "MJCF that MuJoCo rejects": (lambda f: _break(f, "delta_3dof.xml", "<joint ", '<joint foo="1" '),
                                  ["delta_3dof.xml", "foo"]),
+    # onshape-to-robot's sdf option: the pip wheel has no sdflib, MuJoCo's parser stops at the declaration
+    "a plugin this MuJoCo lacks": (lambda f: _break(f, "delta_3dof.xml", '<mujoco model="delta_3dof">',
+                                                    '<mujoco model="delta_3dof"><extension><plugin '
+                                                    'plugin="mujoco.sdf.sdflib"><instance name="sdf"/></plugin>'
+                                                    '</extension>'),
+                                   ["delta_3dof.xml", "mujoco.sdf.sdflib", 'type="mesh"', "no collision"]),
 }
 
 
