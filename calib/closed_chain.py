@@ -359,6 +359,29 @@ class ChainIdentResult:
                 "success": self.success, "message": self.message}
 
 
+def prior_set_directions(info: np.ndarray, prior_cov: np.ndarray, n_poses: int) -> dict:
+    """The directions of the base set that the prior, not the data, determines: ``{"count", "poses_needed"}``.
+
+    The data's information ``info`` (base units^-2) whitened by the prior covariance ``prior_cov``
+    (``L^T info L``, ``prior_cov = L L^T``) has an eigenvalue below 1 along each direction the campaign's
+    ``n_poses`` poses know less of than the prior does (a base parameter's CRLB above its prior size reads
+    the same, but one such direction makes every base parameter with a part in it look so). More poses of the
+    same kind add information in proportion: ``poses_needed`` is how many bring the weakest to 1
+    (``n_poses / lambda_min``; inf when the data do not see it at all), 0 when none is below 1.
+
+    >>> prior_set_directions(np.diag([4.0, 0.5]), np.eye(2), 48)
+    {'count': 1, 'poses_needed': 96}
+    """
+    L = np.linalg.cholesky(prior_cov)
+    lam = np.linalg.eigvalsh(L.T @ info @ L)
+    low = lam[lam < 1.0]
+    if not low.size:
+        return {"count": 0, "poses_needed": 0}
+    weakest = float(low.min())
+    need = int(np.ceil(n_poses / weakest)) if weakest > n_poses / 1e12 else float("inf")
+    return {"count": int(low.size), "poses_needed": need}
+
+
 def base_prior_cov(model: ChainModel, basis: BaseSet) -> np.ndarray:
     """Prior covariance (len(base), len(base)) of the base parameters, their units squared. A base parameter
     estimates the combination ``b = p_base + B p_dep``, so ``cov_b = S_base^2 + B S_dep^2 B^T`` with ``S`` the
@@ -668,6 +691,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
     p_eff = float(np.trace(cov @ info_data))
     fisher = _spd_inverse(info_data) if prior else cov
     crlb_std = np.sqrt(np.clip(np.diag(fisher), 0.0, None))
+    weak_dirs = prior_set_directions(info_data, prior_cov, int(len(commands)))
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     chi2 = float(np.sum((resid / sigma) ** 2))
     dof = max(y.size - p_eff, 1.0)
@@ -685,7 +709,7 @@ def identify_chain(model: ChainModel, commands, targets, sigma_mm: float | None 
         success=bool(sol.success), message=str(sol.message), nfev=int(sol.n_eval),
         wall_time=time.perf_counter() - t0, basis=basis, solver=sol, realization=M, error_covariance=error_cov,
         info={"effective_parameters": p_eff, "prior_std": dict(zip(base, map(float, sb))),
-              "prior_covariance": prior_cov, "basis": which, "held_out": held_out,
+              "prior_covariance": prior_cov, "basis": which, "held_out": held_out, "prior_set": weak_dirs,
               "beyond_prior": [k for k, v, s in zip(base, x, sb) if abs(v) > PRIOR_SIGMAS * s]})
 
 

@@ -372,6 +372,14 @@ UNSEEN_FRACTION = 0.95
 UNSEEN_ARM_MM = 100.0
 
 
+def _prior_set_json(dirs: dict | None) -> dict | None:
+    """``info["prior_set"]`` for the JSON: ``poses_needed`` null where no number of poses would do."""
+    if dirs is None:
+        return None
+    need = dirs["poses_needed"]
+    return {"count": int(dirs["count"]), "poses_needed": int(need) if np.isfinite(need) else None}
+
+
 def unseen_task_errors(machine, result, poses: int = 8) -> list[str]:
     """Errors that move the task point but that the campaign's readings do not see: the data leave them at
     their prior (:attr:`~pmcal.calib.closed_chain.ChainIdentResult.error_covariance`), so no compensation
@@ -538,7 +546,8 @@ def params_document(machine, result, source: str | None = None) -> dict:
         "covariance": np.asarray(result.covariance, float).tolist(), "crlb": dict(result.crlb),
         "prior_covariance": np.asarray(result.info["prior_covariance"], float).tolist(),
         "combinations": dict(result.combinations), "unidentifiable": list(result.unidentifiable),
-        "weak": list(result.weak), "rank": int(result.rank), "n_errors": len(result.params),
+        "weak": list(result.weak), "prior_set": _prior_set_json(result.info.get("prior_set")),
+        "rank": int(result.rank), "n_errors": len(result.params),
         "condition_number": float(result.condition_number), "chi2_per_dof": float(result.chi2_per_dof),
         "residual_rms_mm": float(result.residual_rms_mm), "sigma_mm": float(result.sigma_mm),
         "n_poses": int(result.n_poses), "source": source, "success": bool(result.success),

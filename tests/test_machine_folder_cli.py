@@ -10,6 +10,7 @@ import argparse
 import json
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -38,7 +39,7 @@ def one_line_error(capsys, *argv, says=(), status=2) -> str:
     return lines[0]
 
 
-def copy_machine(src: str, dest) -> "Path":  # noqa: F821
+def copy_machine(src: str, dest) -> Path:
     """A copy of a built-in machine folder under another folder name (the TOML's name kept)."""
     out = dest / f"my_{src}"
     shutil.copytree(machine_dir(src), out)
@@ -631,3 +632,34 @@ def test_ctrl_c_during_an_extension_import_is_an_interruption_not_a_bug(monkeypa
     monkeypatch.setattr(targets, "dispatch", lambda c, a: interrupted_import(c, a, cli.Terminated))
     assert cli.main(["targets", "-o", "t.csv"]) == cli.TERMINATED_STATUS == 143
     assert not list(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------- directions the prior sets
+def _identify_json(capsys, folder, poses, out):
+    """A random campaign of ``poses`` on the machine's twin, identified: (JSON document, warnings)."""
+    meas = out.parent / f"{out.stem}.csv"
+    assert main(["--quiet", "--machine", str(folder), "twin", "measure", "--poses", str(poses), "--seed", "2",
+                 "-o", str(meas)]) == 0
+    capsys.readouterr()
+    assert main(["--machine", str(folder), "identify", str(meas), "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    return json.loads(out.read_text()), [x for x in err.splitlines() if "set by the prior" in x]
+
+
+def test_directions_the_prior_sets_are_counted_and_more_poses_advised_only_where_they_help(capsys, tmp_path):
+    # gepetto_delta: a third of its base set lies along directions its two nests barely see; the warning
+    # says more poses hardly help, and four times the poses (measured, not extrapolated) indeed leave most
+    # of them to the prior. The Delta at 6 poses: more poses advised, and 12 poses determine every direction.
+    corpus = Path(__file__).parent / "corpus" / "gepetto_delta"
+    doc, warn = _identify_json(capsys, corpus, 48, tmp_path / "g48.json")
+    k48 = doc["prior_set"]["count"]
+    assert 1 <= k48 < doc["rank"] and doc["prior_set"]["poses_needed"] > 1000
+    assert len(warn) == 1 and f"{k48} of the {doc['rank']} identifiable directions" in warn[0]
+    assert "hardly help" in warn[0]
+    doc4, _ = _identify_json(capsys, corpus, 192, tmp_path / "g192.json")
+    assert doc4["prior_set"]["count"] >= k48 // 2 and doc4["prior_set"]["poses_needed"] > 1000
+    delta = machine_dir("delta_3dof")
+    doc6, warn6 = _identify_json(capsys, delta, 6, tmp_path / "d6.json")
+    assert doc6["prior_set"]["count"] >= 1 and len(warn6) == 1 and "measure more poses" in warn6[0]
+    doc12, warn12 = _identify_json(capsys, delta, 12, tmp_path / "d12.json")
+    assert doc12["prior_set"] == {"count": 0, "poses_needed": 0} and not warn12

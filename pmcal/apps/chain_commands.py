@@ -151,6 +151,32 @@ def file_history(machine, res, basis, campaign: str, folder: str) -> None:
     print(f"pmcal: wrote {file_calibration(record, folder)}")
 
 
+#: more poses of the same kind are advised for the directions the prior sets when at most this many would
+#: determine them (a long day of tracker work at 30 s a pose); beyond it a nest elsewhere or fewer error frames
+MORE_POSES_HELP = 1000
+
+
+def _prior_set_warning(res, n_poses: int) -> str:
+    """The warning for base parameters the prior sets (``res.weak``): how many directions of the base set the
+    poses know less of than the prior (``info["prior_set"]``, :func:`pmcal.calib.closed_chain.
+    prior_set_directions`), which errors lean on them, and whether more poses of the same kind would help."""
+    names = f"{', '.join(res.weak[:3])}{', ...' if len(res.weak) > 3 else ''}"
+    dirs = res.info.get("prior_set") or {}
+    k, need = dirs.get("count", 0), dirs.get("poses_needed", 0)
+    if not k:
+        return (f"{len(res.weak)} of the {res.rank} identifiable errors are set by the prior, not by the {n_poses} "
+                f"poses ({names}): measure more poses spread over the workspace")
+    head = (f"{k} of the {res.rank} identifiable directions are set by the prior, not by the {n_poses} poses "
+            f"({len(res.weak)} errors have a part in them: {names})")
+    if need <= MORE_POSES_HELP:
+        return f"{head}: measure more poses spread over the workspace"
+    many = "no number of poses would" if not np.isfinite(need) else \
+        f"at the rate these {n_poses} poses add information, about {need:.2g} would"
+    return (f"{head}: more poses of the same kind hardly help ({many} determine them); the prior keeps them "
+            "at their [errors] size, which the predicted uncertainty counts. A tracker nest elsewhere on the moving "
+            "parts may see them; [errors] frames you know to be exact can be left out")
+
+
 def identify_warnings(res, n_poses: int, outliers: bool = False) -> list[str]:
     """What a user must know about an identification that still succeeded (docs/ADDING_A_MACHINE.md,
     "When fewer errors are identifiable than expected"); with ``outliers`` (gross outliers found, named
@@ -159,9 +185,7 @@ def identify_warnings(res, n_poses: int, outliers: bool = False) -> list[str]:
     if not res.success:
         out.append(f"the fit did not converge: {res.message}")
     if res.weak:
-        out.append(f"{len(res.weak)} of the {res.rank} identifiable errors are set by the prior, not by the "
-                   f"{n_poses} poses ({', '.join(res.weak[:3])}{', ...' if len(res.weak) > 3 else ''}): measure "
-                   "more poses spread over the workspace")
+        out.append(_prior_set_warning(res, n_poses))
     if res.chi2_per_dof > CHI2_WARN and not outliers:
         out.append(f"the model leaves {res.residual_rms_mm:.4f} mm rms (chi2/dof {res.chi2_per_dof:.1f}, "
                    f"{res.sigma_mm:g} mm tracker noise): an error frame missing from [errors], a wrong "
