@@ -60,6 +60,11 @@ NOT_LICENSED = {
     "planar 3-RRR parallel manipulator (Simscape/SolidWorks)":
         "github.com/nhuthinh04/Parallel_robot_3RRR simscape/rrr.slx @15da134f: no licence file; Simulink and "
         "SolidWorks files only, no URDF/SDF/MJCF",
+    # issue 34 item 8, fifth search (kind (a) found: haskell_delta, an Onshape URDF export under CC BY 4.0)
+    "spatial delta kinematics for a ROS 2 driver (C++, no model file)":
+        "github.com/Sharwin24/DeltaRobot deltarobot_kinematics/src/kinematics.cpp @ccde131d: no licence file",
+    "spatial delta kinematics in an OpenGL simulator (C++, no model file)":
+        "github.com/sampsmith/Delta_Robot_Sim_Open src/kinematics/DeltaRobot.cpp @3bd46567: no licence file",
 }
 
 

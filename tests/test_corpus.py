@@ -316,6 +316,26 @@ def test_transcribed_spherical_manipulator_agrees_with_its_source():
     np.testing.assert_allclose(twin.inverse(np.array(rows)), np.array(list(source.values())), atol=0.006)
 
 
+def test_transcribed_delta_keeps_its_effector_parallel_and_its_exported_pose():
+    """haskell_delta was transcribed from an Onshape URDF export (KirkEHaskell/delta-robot-act-vs-diffusion
+    hardware/onshape_export/assembly_1/urdf/assembly_1.urdf): at the servo angles of the export (each arm's angle
+    below horizontal, the machine.toml's zeros) the task site is the centre of the export's six effector balls
+    (its part frame at (26.3128, -99.2005, 224.9328) mm, the balls 9 mm below it), and the three parallelograms
+    of ball-jointed rods keep the effector parallel to the base over the motor ranges (a Clavel delta), to the
+    export's six-digit rounding (the balls' centres agree to 1.8 um over 46.8 mm pairs: 0.002 deg)."""
+    machine = Machine.from_folder(CORPUS / "haskell_delta")
+    twin = machine.twin
+    exported = np.array([mot.zero for mot in machine.spec.motors])
+    np.testing.assert_allclose(twin.forward(exported[None])[0], [26.3128, -99.2005, 215.9328], atol=1e-3)
+    eff = twin.model.body("effector").id
+    twin._kin(twin.solve(exported[None])[0], jac=False)
+    home = twin.data.xmat[eff].reshape(3, 3).copy()
+    for q in twin.solve(twin.sample_commands(20, np.random.default_rng(5))):
+        twin._kin(q, jac=False)
+        turn = np.degrees(np.arccos(np.clip((np.trace(home.T @ twin.data.xmat[eff].reshape(3, 3)) - 1) / 2, -1, 1)))
+        assert turn < 0.005                                  # deg
+
+
 def test_a_planned_pose_the_erroneous_machine_does_not_reach_is_left_out_with_its_name(capsys):
     """A real campaign skips a pose the machine does not reach and measures the rest; so does the twin's campaign
     at explicit commands (the demo's plan, ``twin measure --commands``): the 3-RRR does not close at two of six
