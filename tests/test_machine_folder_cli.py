@@ -137,6 +137,10 @@ BAD_FOLDERS = {
                                                     'plugin="mujoco.sdf.sdflib"><instance name="sdf"/></plugin>'
                                                     '</extension>'),
                                    ["delta_3dof.xml", "mujoco.sdf.sdflib", 'type="mesh"', "no collision"]),
+    # a user's input, not a bug (was exit 1, 'RuntimeError: ... a bug: please report it')
+    "motor ranges no pose of the workspace meets": (
+        lambda f: _break(f, "machine.toml", "range = [-35.0, 80.0]", "range = [0.0, 1.0]"),
+        ["machine.toml", "field 'workspace'", "outside its range [0, 1]", "[[motors]] range"]),
 }
 
 

@@ -1219,16 +1219,18 @@ class ClosedChainTwin:
         """``n`` commands (n, M) whose poses are uniform over the workspace box, filtered by reach and motor
         ranges (the inverse kinematics of the machine with ``params``, default nominal)."""
         got: list[np.ndarray] = []
-        count = 0
+        count, why = 0, ""
         for _ in range(max_rounds):
-            cmd = self.inverse(self.sample_task(max(2 * (n - count), 4), rng), params)
+            cmd, reasons = self.inverse_report(self.sample_task(max(2 * (n - count), 4), rng), params)
+            why = why or next((r for r in reasons if r), "")
             cmd = cmd[np.isfinite(cmd).all(axis=1)]
             got.append(cmd)
             count += len(cmd)
             if count >= n:
                 return np.concatenate(got)[:n]
-        raise RuntimeError(f"only {count} of {n} workspace samples of {self.spec.name} are reachable: check "
-                           f"[workspace] in machine.toml")
+        raise InputError(f"only {count} of {n} poses drawn from [workspace] are reachable within the motor ranges "
+                         f"(e.g. {why}): check [workspace] and [[motors]] range and zero",
+                         file=str(self.spec.folder / "machine.toml"), field="workspace")
 
 
 def _least_squares_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
