@@ -260,6 +260,7 @@ BAD_PARAMS = {
     "implausible": ({"mechanism": "delta_3dof", "params": {"m1.dzero": 45.0}},
                     ["field 'params.m1.dzero'", "implausible"]),
     "not a number": ({"mechanism": "delta_3dof", "params": {"base.dx": "1"}}, ["field 'params.base.dx'"]),
+    "nested 100 000 deep": ("[" * 100_000 + "]" * 100_000, ["p.json", "nest"]),      # was a RecursionError
 }
 
 
@@ -268,7 +269,7 @@ def test_a_bad_parameters_file_is_one_line(capsys, delta, tmp_path, case):
     folder, d = delta
     doc, says = BAD_PARAMS[case]
     p = tmp_path / "p.json"
-    p.write_text(json.dumps(doc))
+    p.write_text(doc if isinstance(doc, str) else json.dumps(doc))
     one_line_error(capsys, "--machine", folder, "compensate", p, "--targets", d / "tg.csv", "-o",
                    tmp_path / "s.csv", says=says)
     assert not (tmp_path / "s.csv").exists()
