@@ -298,6 +298,11 @@ def test_a_delta_table_over_its_table_axes(capsys, delta, tmp_path):
                                                                               ["m1_deg", "m2_deg", "m3_deg"])
     one_line_error(capsys, "--machine", folder, "compensate", d / "nominal.json", "--table", tmp_path / "u.json",
                    "--grid", "3,3", says="--grid")
+    big = copy_machine("delta_3dof", tmp_path)           # nodes from machine.toml, not --grid: the line says so
+    _break(big, "machine.toml", "nodes = [13, 13, 9]", "nodes = [1000, 1000, 1000]")
+    one_line_error(capsys, "--machine", big, "compensate", d / "nominal.json", "--table", tmp_path / "u.json",
+                   says=[str(big / "machine.toml"), "field 'table.nodes'", "more than the PLC's 20000"])
+    assert not (tmp_path / "u.json").exists()
 
 
 def test_a_delta_table_holds_corrections_to_the_controllers_ik(capsys, delta, tmp_path):
