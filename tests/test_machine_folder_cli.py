@@ -137,6 +137,9 @@ BAD_FOLDERS = {
                                                     'plugin="mujoco.sdf.sdflib"><instance name="sdf"/></plugin>'
                                                     '</extension>'),
                                    ["delta_3dof.xml", "mujoco.sdf.sdflib", 'type="mesh"', "no collision"]),
+    # was "field 'motors[1].joint': 'arm1_motor' is not a joint of delta_3dof.xml (joints: )", blaming the TOML
+    "a URDF in place of the MJCF": (lambda f: (f / "delta_3dof.xml").write_text('<robot name="delta"/>'),
+                                    ["delta_3dof.xml", "<robot>", "not <mujoco>"]),
     # a user's input, not a bug (was exit 1, 'RuntimeError: ... a bug: please report it')
     "motor ranges no pose of the workspace meets": (
         lambda f: _break(f, "machine.toml", "range = [-35.0, 80.0]", "range = [0.0, 1.0]"),
