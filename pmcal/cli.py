@@ -147,7 +147,7 @@ def output_paths(args, suffixes: bool = False) -> list:
             continue
         folder = f.role == "folder"
         out.append((f.label, str(value), folder, f.suffixes, None))
-        if f.companion and not folder:
+        if f.companion and not folder and Path(str(value)).name:     # '', '.', '/': refused by the guard
             suffix, module = f.companion
             start = importlib.import_module(module).SIDE_FILE_START if suffixes else None
             out.append((f.label, str(Path(str(value)).with_suffix(suffix)), False, (), start))
