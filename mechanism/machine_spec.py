@@ -57,6 +57,8 @@ LEGACY_KINDS = ("ocpm_2dof", "planar_2dof")
 NOISE_MAX_MM = 10.0
 NOISE_MAX_WHY = "mm: a larger noise is likelier a unit mix-up, metres or micrometres"
 
+#: the largest motion error (``[[motors]] sigma``, deg or mm) and why
+MOTOR_SIGMA_MAX = (10.0, "deg or mm: a servo's repeatability; a larger one is a unit mix-up")
 #: the largest prior size of an error (``[errors]``), by unit, and why
 ERROR_SIZE_MAX = {"mm": (1000.0, "mm: a metre is no error of a drawing"), "deg": (180.0, "deg: half a turn")}
 
@@ -492,7 +494,7 @@ class _Loader:
                 raise self.err(f"{where}.unit", f"a {kind} motor's commands are in {unit!r}, got {given!r}")
             rng = self.interval(row.get("range"), f"{where}.range")
             zero = self.number(row, "zero", where, default=0.0)
-            sigma = self.number(row, "sigma", where, default=0.0)
+            sigma = self.number(row, "sigma", where, default=0.0, high=MOTOR_SIGMA_MAX)
             if sigma < 0:
                 raise self.err(f"{where}.sigma", f"must be >= 0 (a standard deviation in {unit}), got {sigma!r}")
             self.known(row, where, ("joint", "kind", "unit", "range", "zero", "sigma"))
