@@ -22,22 +22,27 @@ File formats: ``docs/formats.md``.
 
 from __future__ import annotations
 
-import argparse
-import contextlib
-import importlib
-import os
-import pkgutil
-import signal
 import sys
-import threading
-from pathlib import Path
 
-from pmcal import __version__, machines, progress, threads
-from pmcal.commands.options import CommandSet
-from pmcal.commands.routing import option_help
-from pmcal.errors import InputError, RunError
-from pmcal.fileio import check_output
-from pmcal.option_ranges import check_ranges
+try:                     # the console script imports this module before run() can catch a Ctrl-C: 0.4 s of imports
+    import argparse
+    import contextlib
+    import importlib
+    import os
+    import pkgutil
+    import signal
+    import threading
+    from pathlib import Path
+
+    from pmcal import __version__, machines, progress, threads
+    from pmcal.commands.options import CommandSet
+    from pmcal.commands.routing import option_help
+    from pmcal.errors import InputError, RunError
+    from pmcal.fileio import check_output
+    from pmcal.option_ranges import check_ranges
+except KeyboardInterrupt:
+    print("pmcal: interrupted", file=sys.stderr)
+    raise SystemExit(130) from None
 
 DEFAULT_MACHINE = machines.DEFAULT_MACHINE
 

@@ -647,6 +647,23 @@ def test_ctrl_c_during_an_extension_import_is_an_interruption_not_a_bug(monkeypa
     assert not list(tmp_path.iterdir())
 
 
+def test_ctrl_c_while_the_command_line_loads_is_one_line(tmp_path):
+    """Ctrl-C in the first 0.4 s, while the console script imports pmcal.cli (numpy, ...) before run() can
+    catch it: exit 130 and one line (was a traceback from inside numpy's import). The console script's own
+    lines, with the interrupt raised where the first numpy import is."""
+    import subprocess
+    import sys
+
+    script = ("import builtins\nreal = builtins.__import__\n"
+              "def imp(name, *a, **k):\n"
+              "    if name.startswith('numpy'):\n        raise KeyboardInterrupt\n    return real(name, *a, **k)\n"
+              "builtins.__import__ = imp\nfrom pmcal.cli import run\nrun()\n")
+    proc = subprocess.run([sys.executable, "-c", script, "targets", "-o", "t.csv"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60)
+    assert (proc.returncode, proc.stderr) == (130, "pmcal: interrupted\n"), proc.stderr
+    assert not list(tmp_path.iterdir())
+
+
 # ---------------------------------------------------------------- directions the prior sets
 def _identify_json(capsys, folder, poses, out):
     """A random campaign of ``poses`` on the machine's twin, identified: (JSON document, warnings)."""
