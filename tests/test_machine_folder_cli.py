@@ -144,6 +144,9 @@ BAD_FOLDERS = {
     "motor ranges no pose of the workspace meets": (
         lambda f: _break(f, "machine.toml", "range = [-35.0, 80.0]", "range = [0.0, 1.0]"),
         ["machine.toml", "field 'workspace'", "outside its range [0, 1]", "[[motors]] range"]),
+    # was 6.5 minutes of continuation walks per campaign (each target hundreds of box sizes from home)
+    "a workspace in metres": (lambda f: _break(f, "machine.toml", "z_mm = [-950.0, -650.0]", "z_mm = [-0.95, -0.65]"),
+                              ["machine.toml", "field 'workspace'", "box sizes", "in metres?"]),
 }
 
 
