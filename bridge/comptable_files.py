@@ -22,7 +22,7 @@ from pmcal.bridge.comptable import (CONTROLLER, FORMAT, FORMAT_VERSION, NMOTOR_M
                                     CompTable, ControllerReference, Motor, crc32)
 from pmcal.bridge.nominal import NominalReference
 from pmcal.errors import InputError
-from pmcal.fileio import atomic_write
+from pmcal.fileio import atomic_write, read_json as read_json_document
 
 #: ST_CompTableHeader of format 3 (104 bytes), for the CRC of format-3 files
 _HEADER_V3 = struct.Struct("<7dI4H2I28s")
@@ -88,12 +88,7 @@ def write_csv(table: CompTable, path: str | Path) -> None:
 def read_json(path: str | Path) -> CompTable:
     """Read and check a JSON table (structure, grid shape, checksums); values not validated."""
     src = str(path)
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
-    except FileNotFoundError:
-        raise InputError("file not found", file=src) from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"not a JSON file: {exc}", file=src) from None
+    doc = read_json_document(path)
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InputError(f"not a compensation table (expected \"format\": \"{FORMAT}\")", file=src, field="format")
     fv = _check_format_version(doc.get("format_version"), src)

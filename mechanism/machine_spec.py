@@ -52,6 +52,16 @@ DISTANCE_REFERENCES = ("previous", "first")
 #: ``[machine] kind`` values routed to the seeded machines' dedicated code.
 LEGACY_KINDS = ("ocpm_2dof", "planar_2dof")
 
+#: tracker or scale noise, mm (``[tracker] sigma_mm``, ``--noise``, ``--sigma``): above this a unit mix-up
+#: (metres, micrometres) is likelier than the noise
+NOISE_MAX_MM = 10.0
+NOISE_MAX_WHY = "mm: a larger noise is likelier a unit mix-up, metres or micrometres"
+
+#: the largest motion error (``[[motors]] sigma``, deg or mm) and why
+MOTOR_SIGMA_MAX = (10.0, "deg or mm: a servo's repeatability; a larger one is a unit mix-up")
+#: the largest prior size of an error (``[errors]``), by unit, and why
+ERROR_SIZE_MAX = {"mm": (1000.0, "mm: a metre is no error of a drawing"), "deg": (180.0, "deg: half a turn")}
+
 #: sections ``pmcal export-model`` writes into a calibrated machine's TOML: a record of the calibration
 #: (source, date, identified values, named effects), not read by the machine's description
 RECORD_SECTIONS = ("calibration", "effects")
@@ -313,7 +323,8 @@ class _Loader:
         return v
 
     def number(self, tab: dict, key: str, where: str, default: float | None = None,
-               positive: bool = False) -> float:
+               positive: bool = False, high: tuple[float, str] | None = None) -> float:
+        """The number ``where.key``; ``high``: (largest value, why) it may take."""
         v = tab.get(key, default)
         if v is None:
             raise self.err(f"{where}.{key}", "missing key (a number)")
@@ -321,6 +332,8 @@ class _Loader:
             raise self.err(f"{where}.{key}", f"must be a finite number, got {v!r}")
         if positive and v <= 0:
             raise self.err(f"{where}.{key}", f"must be positive, got {v!r}")
+        if high is not None and v > high[0]:
+            raise self.err(f"{where}.{key}", f"must be at most {high[0]:g} ({high[1]}), got {v!r}")
         return float(v)
 
     def interval(self, v: Any, key: str) -> tuple[float, float]:
@@ -397,7 +410,7 @@ class _Loader:
         if "reference" in tracker and measure != "distance":
             raise self.err("tracker.reference", "only a 'distance' measurement has a reference pose")
         reference = self.text(tracker, "reference", "tracker", default="previous", choices=DISTANCE_REFERENCES)
-        sigma = self.number(tracker, "sigma_mm", "tracker", positive=True)
+        sigma = self.number(tracker, "sigma_mm", "tracker", positive=True, high=(NOISE_MAX_MM, NOISE_MAX_WHY))
         self.known(tracker, "tracker", ("targets", "measure", "sigma_mm", "reference"))
         task = self.task()
         if len(task.coordinates) > len(motors):
@@ -481,7 +494,7 @@ class _Loader:
                 raise self.err(f"{where}.unit", f"a {kind} motor's commands are in {unit!r}, got {given!r}")
             rng = self.interval(row.get("range"), f"{where}.range")
             zero = self.number(row, "zero", where, default=0.0)
-            sigma = self.number(row, "sigma", where, default=0.0)
+            sigma = self.number(row, "sigma", where, default=0.0, high=MOTOR_SIGMA_MAX)
             if sigma < 0:
                 raise self.err(f"{where}.sigma", f"must be >= 0 (a standard deviation in {unit}), got {sigma!r}")
             self.known(row, where, ("joint", "kind", "unit", "range", "zero", "sigma"))
@@ -577,7 +590,7 @@ class _Loader:
         mz = tab.get("motor_zero", True)
         if not isinstance(mz, bool):
             raise self.err("errors.motor_zero", f"must be true or false, got {mz!r}")
-        sizes = {k: self.number(tab, k, "errors", default=d, positive=True)
+        sizes = {k: self.number(tab, k, "errors", default=d, positive=True, high=ERROR_SIZE_MAX[k.rsplit("_", 1)[1]])
                  for k, d in (("position_mm", 1.0), ("angle_deg", 0.3), ("zero_deg", 1.0), ("zero_mm", 1.0))}
         self.known(tab, "errors", ("frames", "exclude", "components", "motor_zero", *sizes))
         return ErrorSpec(frames=frames, exclude=exclude, components=comps, motor_zero=mz, **sizes)

@@ -91,6 +91,8 @@ def read_names(path: Path) -> MjcfNames:
     if it is not well-formed MJCF; the caller turns those into an input error naming the file.
     """
     root = _expand(Path(path), set())
+    if root.tag != "mujoco":                 # an HTML page, a URDF (<robot>): every name would be 'missing'
+        raise ValueError(f"its root element is <{root.tag}>, not <mujoco>: not an MJCF model")
     types, parent = _default_types(root)
 
     def joint_type(cls: str | None) -> str:

@@ -732,14 +732,15 @@ def compensation_table(machine, params: Mapping[str, float], version: int, nodes
     spec = machine.spec
     grid = spec.table
     toml = str(spec.folder / "machine.toml")
+    where = {"field": "--grid"} if nodes else {"file": toml, "field": "table.nodes"}   # who chose the nodes
     nodes = tuple(int(n) for n in (nodes or grid.nodes))
     if len(nodes) != len(spec.table_axes) or min(nodes) < 2:
         raise InputError(f"expected {len(spec.table_axes)} node counts >= 2 (one per table axis "
-                         f"{', '.join(spec.table_axes)}), got {','.join(map(str, nodes))}", field="--grid")
+                         f"{', '.join(spec.table_axes)}), got {','.join(map(str, nodes))}", **where)
     values = int(np.prod(nodes, dtype=object)) * len(spec.motors)        # before anything is built
     if values > NVALUES_MAX:
         raise InputError(f"grid {'x'.join(map(str, nodes))} x {len(spec.motors)} motors = {values} values, more than "
-                         f"the PLC's {NVALUES_MAX}: fewer nodes per axis", field="--grid")
+                         f"the PLC's {NVALUES_MAX}: fewer nodes per axis", **where)
     box = table_box(machine, nodes)
     axes = [Axis.of_column(a, *box[a], n) for a, n in zip(spec.table_axes, nodes)]
     motors = [Motor(m.name, m.unit, m.range[0], m.range[1], grid.max_step) for m in spec.motors]

@@ -22,22 +22,27 @@ File formats: ``docs/formats.md``.
 
 from __future__ import annotations
 
-import argparse
-import contextlib
-import importlib
-import os
-import pkgutil
-import signal
 import sys
-import threading
-from pathlib import Path
 
-from pmcal import __version__, machines, progress, threads
-from pmcal.commands.options import CommandSet
-from pmcal.commands.routing import option_help
-from pmcal.errors import InputError, RunError
-from pmcal.fileio import check_output
-from pmcal.option_ranges import check_ranges
+try:                     # the console script imports this module before run() can catch a Ctrl-C: 0.4 s of imports
+    import argparse
+    import contextlib
+    import importlib
+    import os
+    import pkgutil
+    import signal
+    import threading
+    from pathlib import Path
+
+    from pmcal import __version__, machines, progress, threads
+    from pmcal.commands.options import CommandSet
+    from pmcal.commands.routing import option_help
+    from pmcal.errors import InputError, RunError
+    from pmcal.fileio import check_output
+    from pmcal.option_ranges import check_ranges
+except KeyboardInterrupt:
+    print("pmcal: interrupted", file=sys.stderr)
+    raise SystemExit(130) from None
 
 DEFAULT_MACHINE = machines.DEFAULT_MACHINE
 
@@ -147,7 +152,7 @@ def output_paths(args, suffixes: bool = False) -> list:
             continue
         folder = f.role == "folder"
         out.append((f.label, str(value), folder, f.suffixes, None))
-        if f.companion and not folder:
+        if f.companion and not folder and Path(str(value)).name:     # '', '.', '/': refused by the guard
             suffix, module = f.companion
             start = importlib.import_module(module).SIDE_FILE_START if suffixes else None
             out.append((f.label, str(Path(str(value)).with_suffix(suffix)), False, (), start))

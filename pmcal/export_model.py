@@ -229,10 +229,11 @@ def export_model(parts: ExportParts, params_path: str | Path, output: str | Path
     toml_out = Path(output).with_suffix(".toml")
     check_output(output, suffixes=(".xml",), machine_folder=keep)
     check_output(toml_out, machine_folder=keep, own=SIDE_FILE_START)
+    toml = (f"{SIDE_FILE_START}{facts['machine']} (pmcal export-model, {stamp}): the nominal machine.toml and the\n"
+            "# calibration below it. Units: mm, degrees (the MJCF itself is SI).\n" + nominal.rstrip() + "\n\n"
+            + toml_text(extra))                  # both texts before either file: none written alone
     with atomic_write(output) as fh:
         fh.write(text)
     with atomic_write(toml_out) as fh:
-        fh.write(f"{SIDE_FILE_START}{facts['machine']} (pmcal export-model, {stamp}): the nominal machine.toml and the\n"
-                 "# calibration below it. Units: mm, degrees (the MJCF itself is SI).\n" + nominal.rstrip() + "\n\n"
-                 + toml_text(extra))
+        fh.write(toml)
     return {"in_mjcf": in_mjcf, "comment_only": comment_only, "not_in_mjcf": not_in, "toml": str(toml_out)}

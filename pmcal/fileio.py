@@ -60,14 +60,18 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def read_json(path: str | os.PathLike) -> object:
+def read_json(path: str | os.PathLike, field: str | None = None) -> object:
     """The JSON document in ``path`` (a byte-order mark accepted); :class:`InputError` naming the file for a
     missing, unreadable or malformed file (with the line and column of a syntax error)."""
-    text = read_text(path)
+    text = read_text(path, field=field)
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
-        raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=str(path)) from None
+        raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=str(path),
+                         field=field) from None
+    except RecursionError:                   # [[[[... : Python's decoder recurses per level
+        raise InputError("not a JSON file pmcal wrote: its arrays or objects nest thousands of levels deep",
+                         file=str(path), field=field) from None
 
 
 def check_param_values(params: dict, path: str, unit_of, limits: dict[str, float], prefix: str = "params."

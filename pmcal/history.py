@@ -26,7 +26,6 @@ Units: mm and degrees.
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 
 from dataclasses import dataclass, field
@@ -37,7 +36,7 @@ import numpy as np
 from scipy import stats
 
 from pmcal.errors import InputError, for_option
-from pmcal.fileio import check_output, write_json
+from pmcal.fileio import check_output, read_json, write_json
 
 #: two-sided 95 % interval half-width in standard deviations
 Z95 = float(stats.norm.ppf(0.975))
@@ -165,12 +164,7 @@ def check_history_dir(folder: str | Path) -> None:
 def read_record(path: str | Path) -> Record:
     """One history record; InputError naming the file and field."""
     p = str(path)
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read file ({exc})", file=p) from None
-    except json.JSONDecodeError as exc:
-        raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=p) from None
+    doc = read_json(path)
     if not isinstance(doc, dict) or "pmcal_history" not in doc:
         raise InputError("not a pmcal history record", file=p, field="pmcal_history")
     try:

@@ -155,7 +155,7 @@ def file_machine(path: str | Path) -> str | None:
     if head.lstrip().startswith("{"):
         try:
             doc = json.loads(head if len(head) < 64 * 1024 else Path(path).read_text(encoding="utf-8-sig"))
-        except (ValueError, OSError):
+        except (ValueError, OSError, RecursionError):
             return None
         name = doc.get("mechanism") or doc.get("machine") if isinstance(doc, dict) else None
         return name if isinstance(name, str) else None

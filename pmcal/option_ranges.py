@@ -14,11 +14,10 @@ import math
 import numpy as np
 
 from pmcal.errors import InputError
+from pmcal.mechanism.machine_spec import NOISE_MAX_MM
 
 #: the largest seed: numpy's legacy generators and MuJoCo's take 32-bit seeds
 SEED_MAX = 2**32 - 1
-#: tracker or scale noise, mm: above this a unit mix-up (metres, micrometres) is likelier than the noise
-NOISE_MAX_MM = 10.0
 #: a time-out or waiting time, s: a day
 SECONDS_MAX = 86400.0
 

@@ -170,6 +170,7 @@ BAD_MEAS = [
     ("metres", scale_columns("t", 1e-3), "metres", 1),
     ("radians", scale_columns("m", np.pi / 180), "radians", 1),
     ("outside workspace", set_cell(3, "m1_cmd_deg", "170"), "m1_cmd_deg", 4),
+    ("not an angle", set_cell(3, "m2_cmd_deg", "1e12"), "m2_cmd_deg", 4),     # was a LinAlgError, exit 1
     ("unreachable pose", lift_row(8, 250.0), "out of reach", 9),
 ]
 

@@ -146,6 +146,15 @@ def test_export_bad_input(tmp_path, capsys):
     assert not (tmp_path / "c.xml").exists()
 
 
+def test_a_planar_file_with_model_null_exports_both_files(tmp_path, capsys):
+    """read_params accepts "model": null; export-model wrote the XML, then failed on the TOML (exit 1, a
+    TypeError "bug") and left the XML without its TOML. Both texts are made before either file is written."""
+    (tmp_path / "p.json").write_text('{"mechanism": "planar_2dof", "model": null, "params": {"dtheta1": 0.1}}')
+    assert main(["--machine", "planar_2dof", "export-model", str(tmp_path / "p.json"), "-o",
+                 str(tmp_path / "c.xml")]) == 0, capsys.readouterr().err
+    assert (tmp_path / "c.xml").is_file() and 'model = ""' in (tmp_path / "c.toml").read_text()
+
+
 def test_export_refuses_the_paper_model(tmp_path, capsys):
     (tmp_path / "p.json").write_text('{"mechanism": "ocpm_2dof", "model": "paper", "params": {"L1.dbx": 0.1}}')
     assert main(["export-model", str(tmp_path / "p.json"), "-o", str(tmp_path / "c.xml")]) == 2

@@ -137,6 +137,16 @@ BAD_FOLDERS = {
                                                     'plugin="mujoco.sdf.sdflib"><instance name="sdf"/></plugin>'
                                                     '</extension>'),
                                    ["delta_3dof.xml", "mujoco.sdf.sdflib", 'type="mesh"', "no collision"]),
+    # was "field 'motors[1].joint': 'arm1_motor' is not a joint of delta_3dof.xml (joints: )", blaming the TOML
+    "a URDF in place of the MJCF": (lambda f: (f / "delta_3dof.xml").write_text('<robot name="delta"/>'),
+                                    ["delta_3dof.xml", "<robot>", "not <mujoco>"]),
+    # a user's input, not a bug (was exit 1, 'RuntimeError: ... a bug: please report it')
+    "motor ranges no pose of the workspace meets": (
+        lambda f: _break(f, "machine.toml", "range = [-35.0, 80.0]", "range = [0.0, 1.0]"),
+        ["machine.toml", "field 'workspace'", "outside its range [0, 1]", "[[motors]] range"]),
+    # was 6.5 minutes of continuation walks per campaign (each target hundreds of box sizes from home)
+    "a workspace in metres": (lambda f: _break(f, "machine.toml", "z_mm = [-950.0, -650.0]", "z_mm = [-0.95, -0.65]"),
+                              ["machine.toml", "field 'workspace'", "box sizes", "in metres?"]),
 }
 
 
@@ -256,6 +266,7 @@ BAD_PARAMS = {
     "implausible": ({"mechanism": "delta_3dof", "params": {"m1.dzero": 45.0}},
                     ["field 'params.m1.dzero'", "implausible"]),
     "not a number": ({"mechanism": "delta_3dof", "params": {"base.dx": "1"}}, ["field 'params.base.dx'"]),
+    "nested 100 000 deep": ("[" * 100_000 + "]" * 100_000, ["p.json", "nest"]),      # was a RecursionError
 }
 
 
@@ -264,7 +275,7 @@ def test_a_bad_parameters_file_is_one_line(capsys, delta, tmp_path, case):
     folder, d = delta
     doc, says = BAD_PARAMS[case]
     p = tmp_path / "p.json"
-    p.write_text(json.dumps(doc))
+    p.write_text(doc if isinstance(doc, str) else json.dumps(doc))
     one_line_error(capsys, "--machine", folder, "compensate", p, "--targets", d / "tg.csv", "-o",
                    tmp_path / "s.csv", says=says)
     assert not (tmp_path / "s.csv").exists()
@@ -293,6 +304,11 @@ def test_a_delta_table_over_its_table_axes(capsys, delta, tmp_path):
                                                                               ["m1_deg", "m2_deg", "m3_deg"])
     one_line_error(capsys, "--machine", folder, "compensate", d / "nominal.json", "--table", tmp_path / "u.json",
                    "--grid", "3,3", says="--grid")
+    big = copy_machine("delta_3dof", tmp_path)           # nodes from machine.toml, not --grid: the line says so
+    _break(big, "machine.toml", "nodes = [13, 13, 9]", "nodes = [1000, 1000, 1000]")
+    one_line_error(capsys, "--machine", big, "compensate", d / "nominal.json", "--table", tmp_path / "u.json",
+                   says=[str(big / "machine.toml"), "field 'table.nodes'", "more than the PLC's 20000"])
+    assert not (tmp_path / "u.json").exists()
 
 
 def test_a_delta_table_holds_corrections_to_the_controllers_ik(capsys, delta, tmp_path):
@@ -631,6 +647,23 @@ def test_ctrl_c_during_an_extension_import_is_an_interruption_not_a_bug(monkeypa
     assert capsys.readouterr().err.strip() == "pmcal: interrupted; nothing half-written"
     monkeypatch.setattr(targets, "dispatch", lambda c, a: interrupted_import(c, a, cli.Terminated))
     assert cli.main(["targets", "-o", "t.csv"]) == cli.TERMINATED_STATUS == 143
+    assert not list(tmp_path.iterdir())
+
+
+def test_ctrl_c_while_the_command_line_loads_is_one_line(tmp_path):
+    """Ctrl-C in the first 0.4 s, while the console script imports pmcal.cli (numpy, ...) before run() can
+    catch it: exit 130 and one line (was a traceback from inside numpy's import). The console script's own
+    lines, with the interrupt raised where the first numpy import is."""
+    import subprocess
+    import sys
+
+    script = ("import builtins\nreal = builtins.__import__\n"
+              "def imp(name, *a, **k):\n"
+              "    if name.startswith('numpy'):\n        raise KeyboardInterrupt\n    return real(name, *a, **k)\n"
+              "builtins.__import__ = imp\nfrom pmcal.cli import run\nrun()\n")
+    proc = subprocess.run([sys.executable, "-c", script, "targets", "-o", "t.csv"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60)
+    assert (proc.returncode, proc.stderr) == (130, "pmcal: interrupted\n"), proc.stderr
     assert not list(tmp_path.iterdir())
 
 

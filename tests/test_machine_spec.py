@@ -56,6 +56,11 @@ def _edit(folder, old, new, count=1):
     ('"nest1", "nest2"', '"nest1", "nest9"', "tracker.targets[2]", "'nest9' is not a site"),
     ('measure = "position"', 'measure = "pose"\nsigma = 1', "tracker.sigma", "unknown key"),
     ('sigma_mm = 0.01', 'sigma_mm = -0.01', "tracker.sigma_mm", "positive"),
+    ('sigma_mm = 0.01', 'sigma_mm = 10000.0', "tracker.sigma_mm", "at most 10"),    # micrometres? (was exit 1)
+    ('angle_deg = 0.1', 'angle_deg = 1e300', "errors.angle_deg", "at most 180"),   # was exit 1: a bug, SVD
+    ('zero_deg = 0.1', 'zero_deg = 1e300', "errors.zero_deg", "at most 180"),
+    ('position_mm = 0.5', 'position_mm = 1e300', "errors.position_mm", "at most 1000"),
+    ('zero = 0.0                      #', 'zero = 0.0\nsigma = 1e300 #', "motors[1].sigma", "at most 10"),
     ('site = "tcp"', 'site = "tool"', "task.site", "'tool' is not a site"),
     ('"x_mm", "y_mm", "z_mm"]\n\n[workspace]', '"x_mm", "y_mm", "z"]\n\n[workspace]', "task.coordinates",
      "unknown coordinate 'z'"),

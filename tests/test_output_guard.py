@@ -94,6 +94,10 @@ def refused_in(root: Path, capsys, *argv, says: str) -> str:
     (["--machine", "../machines/my_delta", "export-model", "dp.json", "-o", "../machines/my_delta/my_delta.xml"],
      "is inside the machine folder"),
     (["compensate", "params.json", "--targets", "t.csv", "-o", "./t.csv"], "is also the input --targets"),
+    # outputs with a side file: the side file's name comes from the output's (was a ValueError, exit 1)
+    (["compensate", "params.json", "--table", "."], "is the working folder"),
+    (["compensate", "params.json", "--table", ""], "empty output path"),
+    (["--machine", "../machines/my_delta", "export-model", "dp.json", "-o", "/"], "contains the working folder"),
 ])
 def test_no_output_may_lose_the_users_files(user, capsys, argv, says):
     refused_in(user, capsys, *argv, says=says)

@@ -139,6 +139,18 @@ def test_bad_targets_and_options(tmp_path, capsys):
     assert "--preset" in capsys.readouterr().err and not meas.exists()
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_an_astronomic_target_is_one_line_without_a_numpy_warning(tmp_path, capsys):
+    truth = tmp_path / "p.json"
+    truth.write_text(json.dumps({"mechanism": "planar_2dof", "params": {}}))
+    targets = tmp_path / "t.csv"
+    targets.write_text("x_mm,y_mm\n0,-700\n1e300,-632\n")      # was an overflow RuntimeWarning on stderr first
+    out = tmp_path / "s.csv"
+    assert run("compensate", str(truth), "--targets", str(targets), "-o", str(out)) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "row 2" in err and "out of the robot's reach" in err and not out.exists()
+
+
 def test_demo_writes_report_and_json(tmp_path):
     out = tmp_path / "demo"
     assert app.demo(Namespace(out=str(out), seed=2, runs=2, max_iterations=4, picture=False,

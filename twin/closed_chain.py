@@ -146,6 +146,10 @@ class ClosedChainTwin:
     #: Largest motor move per continuation sub-step, as a fraction of the motor's range (the task-space
     #: path of the inverse kinematics: of the workspace box).
     PATH_STEP = 0.1
+    #: A target farther than this from every assembled pose, in sizes of the workspace box, is out of reach
+    #: without a walk of thousands of sub-steps (a box in metres: minutes per target). Machines' homes lie
+    #: within 1.1 box sizes of every corner of their box.
+    MAX_PATH_BOXES = 100.0
 
     def __init__(self, spec: MachineSpec, model: mujoco.MjModel | None = None):
         if spec.legacy:
@@ -1137,7 +1141,10 @@ class ClosedChainTwin:
         start = np.argmin(dist, axis=1)
         start_task = known_t[start]
         delta = task_difference(task, start_task, coords)
-        n_sub = np.maximum(1, np.ceil(dist[np.arange(len(task)), start] / self.PATH_STEP)).astype(int)
+        gap = dist[np.arange(len(task)), start]
+        far = alive & (gap > self.MAX_PATH_BOXES)
+        alive &= ~far
+        n_sub = np.maximum(1, np.ceil(np.where(far, 0.0, gap) / self.PATH_STEP)).astype(int)
         Q = known_q[start].copy()
         for step in range(1, int(n_sub[alive].max(initial=0)) + 1):
             idx = np.flatnonzero(alive & (step <= n_sub))
@@ -1153,7 +1160,7 @@ class ClosedChainTwin:
         for i, goal in enumerate(task):
             if alive[i]:
                 q, ok = Q[i], True
-            elif not np.isfinite(goal).all():
+            elif not np.isfinite(goal).all() or far[i]:
                 q, ok = self.home_qpos, False
             else:
                 dist = np.max(np.abs(task_difference(goal, np.array(known_task), coords)) / width, axis=1)
@@ -1163,6 +1170,8 @@ class ClosedChainTwin:
                     q, ok = self._reach_task(goal, home_task, self.home_qpos, dist[0])
             if not ok:
                 reasons[i] = ("the target has missing (NaN) coordinates" if not np.isfinite(goal).all() else
+                              f"the target is {gap[i]:.3g} [workspace] box sizes from every assembled pose "
+                              "(out of reach; a box in metres?)" if far[i] else
                               "no assembly of the chain reaches this target (out of the workspace or singular)")
                 continue
             if not alive[i]:
@@ -1219,16 +1228,18 @@ class ClosedChainTwin:
         """``n`` commands (n, M) whose poses are uniform over the workspace box, filtered by reach and motor
         ranges (the inverse kinematics of the machine with ``params``, default nominal)."""
         got: list[np.ndarray] = []
-        count = 0
+        count, why = 0, ""
         for _ in range(max_rounds):
-            cmd = self.inverse(self.sample_task(max(2 * (n - count), 4), rng), params)
+            cmd, reasons = self.inverse_report(self.sample_task(max(2 * (n - count), 4), rng), params)
+            why = why or next((r for r in reasons if r), "")
             cmd = cmd[np.isfinite(cmd).all(axis=1)]
             got.append(cmd)
             count += len(cmd)
             if count >= n:
                 return np.concatenate(got)[:n]
-        raise RuntimeError(f"only {count} of {n} workspace samples of {self.spec.name} are reachable: check "
-                           f"[workspace] in machine.toml")
+        raise InputError(f"only {count} of {n} poses drawn from [workspace] are reachable within the motor ranges "
+                         f"(e.g. {why}): check [workspace] and [[motors]] range and zero",
+                         file=str(self.spec.folder / "machine.toml"), field="workspace")
 
 
 def _least_squares_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:

@@ -32,6 +32,9 @@ MECHANISM = "ocpm_2dof"
 PLAUSIBLE_POINTING_DEG = 5.0
 #: Largest target coordinate a measurement file may hold, mm (100 m: beyond any laser tracker's range).
 MAX_COORDINATE_MM = 1e5
+#: Largest azimuth a targets file or motor command a measurement file may give, deg (either sign): one turn;
+#: beyond it a value is a unit or typing error, not an orientation.
+PHI_LIMIT_DEG = 360.0
 #: Largest plausible error of a measured distance between two targets (mm).
 PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
 #: The same in the tracker frame, where gross outliers are expected and rejected (named) by the robust fit:
@@ -140,6 +143,9 @@ def check_plausible(meas: Measurements, geom: Geometry, path: str, frame: str = 
         raise InputError(f"targets t{a + 1} and t{b + 1} are {d_meas[row, p]:.4g} mm apart, the platform "
                          f"has them {d_nom[p]:.4g} mm apart{hint}", file=path, row=int(row) + 1,
                          field=f"t{b + 1}_x")
+    for i, j in np.argwhere(np.abs(meas.m_cmd_deg) > PHI_LIMIT_DEG)[:1]:   # not an angle (was a LinAlgError)
+        raise InputError(f"command {meas.m_cmd_deg[i, j]:g} deg is outside -{PHI_LIMIT_DEG:g}..{PHI_LIMIT_DEG:g} "
+                         "deg", file=path, row=int(i) + 1, field=f"m{j + 1}_cmd_deg")
     beta = np.deg2rad(meas.m_cmd_deg)
     phi, theta = nominal_fk(beta, geom)
     _, R_meas, _ = meas.poses(geom)
@@ -249,10 +255,6 @@ def write_params(path: str | Path, params: dict[str, float], **extra) -> None:
     doc.update(extra)
     write_json(path, doc)
 
-
-#: Largest azimuth a targets file may give, deg (either sign): one turn; beyond it a value is a unit or
-#: typing error, not an orientation.
-PHI_LIMIT_DEG = 360.0
 
 
 def read_targets(path: str | Path, theta_max_deg: float = 90.0) -> tuple[np.ndarray, np.ndarray]:

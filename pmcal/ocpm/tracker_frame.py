@@ -7,7 +7,6 @@ Units at the interface: mm and degrees. See docs/tracker_frame.md.
 
 from __future__ import annotations
 
-import json
 from dataclasses import replace
 
 import numpy as np
@@ -18,7 +17,7 @@ from pmcal.calib.ocpm.registration import FRAME_KEYS, read_registration
 from pmcal.calib.ocpm.tracker_fit import BadCampaignError, TrackerOptions, identify_tracker
 from pmcal import progress
 from pmcal.errors import InputError
-from pmcal.fileio import read_text
+from pmcal.fileio import read_json
 
 FRAMES = ("base", "tracker")
 #: Robust residual scale (in tracker sigmas) beyond which the diagnosis' registration calls the campaign
@@ -34,11 +33,7 @@ def parse_frame(text: str | None) -> tuple[str, tuple[np.ndarray, np.ndarray] | 
         raise InputError(f"unknown frame '{text}' (base, tracker or tracker:T.json)", field="--frame")
     if not path:
         return frame, None
-    text = read_text(path, field="--frame")
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"cannot read the registration ({exc})", file=path) from None
+    doc = read_json(path, field="--frame")
     if isinstance(doc, dict) and isinstance(doc.get("registration"), dict):
         doc = doc["registration"]                      # a params JSON of an earlier tracker-frame fit
     try:

@@ -209,7 +209,7 @@ def export_parts(params_path: str) -> ExportParts:
     errors, doc = read_params(params_path)
     planar = PlanarTwin(errors, default_machine())
     m, edits = frame_parts(planar.chain, planar.chain.spec, planar.params)
-    facts = {"machine": "planar_2dof", "model": doc.get("model", ""),
+    facts = {"machine": "planar_2dof", "model": doc.get("model") or "",       # "model": null is accepted
              "zero_offsets_deg": list(np.rad2deg(errors.dtheta)),
              "zero_offsets_as": "motor joints' ref = -dtheta: joint coordinate = commanded angle"}
     return ExportParts(PLANAR_XML, PLANAR_XML.parent / "machine.toml", m, edits, doc.get("params", {}), doc, facts)

@@ -155,7 +155,8 @@ def read_targets(path: str | Path, geom: Geometry) -> tuple[np.ndarray, list[lis
     t = read_csv(path)
     t.require(["x_mm", "y_mm"])
     r = np.stack([t.numbers("x_mm"), t.numbers("y_mm")], axis=1)
-    theta = inverse(geom, r)
+    with np.errstate(over="ignore", invalid="ignore"):      # 1e300 mm: out of reach below, not a warning
+        theta = inverse(geom, r)
     bad = ~np.all(np.isfinite(theta), axis=1) | (r[:, 1] >= 0)
     if np.any(bad):
         row = int(np.flatnonzero(bad)[0]) + 1

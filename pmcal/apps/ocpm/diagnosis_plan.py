@@ -101,7 +101,7 @@ def unidentified(path: str) -> list[tuple[str, str]]:
         with open(path, encoding="utf-8") as fh:
             doc = json.load(fh)
         cands = doc["candidates"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
         raise InputError(f"not a diagnosis JSON ({exc})", file=path) from None
     out = []
     for c in cands:
