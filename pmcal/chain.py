@@ -145,7 +145,8 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
         commands, y = np.concatenate([commands, cmd[ok]]), np.concatenate([y, more])
         short -= int(ok.sum())
     if short > 0:
-        raise RunError(f"the erroneous machine assembles too few of the drawn poses ({short} missing)")
+        raise RunError(f"the erroneous machine assembles too few of the drawn poses ({short} missing): its errors "
+                       "are too large for this workspace (the [errors] sizes in machine.toml, or --errors)")
     n = len(commands)
     if ids is None:
         ids = pose_ids(n)

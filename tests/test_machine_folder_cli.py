@@ -159,6 +159,16 @@ def test_a_bad_machine_folder_is_one_line_naming_file_and_key(capsys, tmp_path, 
     assert not (tmp_path / "t.csv").exists()
 
 
+def test_errors_too_large_for_the_workspace_point_at_their_sizes(capsys, tmp_path):
+    # 10 deg frame errors: the erroneous Delta assembles none of the drawn poses on the nominal branch; the one
+    # line says where the sizes come from, not only that poses are missing
+    folder = copy_machine("delta_3dof", tmp_path)
+    _break(folder, "machine.toml", "angle_deg = 0.1", "angle_deg = 10.0")
+    one_line_error(capsys, "--machine", folder, "twin", "measure", "--poses", "12", "-o", tmp_path / "m.csv",
+                   status=1, says=["assembles too few", "[errors] sizes in machine.toml"])
+    assert not (tmp_path / "m.csv").exists()
+
+
 def test_a_copy_of_a_seeded_machine_says_to_use_its_name(capsys, tmp_path):
     folder = copy_machine("ocpm_2dof", tmp_path)
     one_line_error(capsys, "--machine", folder, "targets", "-o", tmp_path / "t.csv",
