@@ -43,7 +43,8 @@ def chain_demo_report(demo) -> Report:
         rep.card("What to know", warnings, css="warn")
     try:
         png = render_machine_png(m.spec, m.twin.solve(m.twin.home_commands[None])[0], 800, 500)
-        rep.image_png(png, f"{m.name} at its home keyframe (scene.xml)")
+        drawn = "scene.xml" if (m.spec.folder / "scene.xml").is_file() else m.spec.model_path.name
+        rep.image_png(png, f"{m.name} at its home configuration ({drawn})")
     except (RenderUnavailable, ValueError) as exc:
         rep.paragraph(f"No picture: {exc}", "note")
 
