@@ -76,8 +76,14 @@ class TrackerExport:
 
 
 def _is_number(tok: str) -> bool:
+    return _is_float(tok) and math.isfinite(float(tok))
+
+
+def _is_float(tok: str) -> bool:
+    """A number, finite or not: where a coordinate is ``nan`` or ``inf`` it is refused by name, not read as a name."""
     try:
-        return math.isfinite(float(tok))
+        float(tok)
+        return True
     except ValueError:
         return False
 
@@ -171,7 +177,7 @@ def read_sa_ascii(path: str | Path, units: str | None = None) -> TrackerExport:
             header_units = header_units or _header_units(text)
             continue
         toks = [t for t in re.split(r"[,\s]+", s) if t]
-        first = next((i for i in range(1, len(toks) - 2) if all(_is_number(t) for t in toks[i:i + 3])), None)
+        first = next((i for i in range(1, len(toks) - 2) if all(_is_float(t) for t in toks[i:i + 3])), None)
         if first is None:
             raise InputError("expected a point: NAME x y z (name fields, then three numbers)", file=f"{p}:{n}",
                              field="x")
@@ -192,7 +198,8 @@ def read_sa_ascii(path: str | Path, units: str | None = None) -> TrackerExport:
                              file=where, field="z")
         for k, axis in enumerate("xyz"):
             if not _is_number(toks[n_name + k]):
-                raise InputError(f"'{toks[n_name + k]}' is not a number", file=where, field=axis)
+                what = "a finite number" if _is_float(toks[n_name + k]) else "a number"
+                raise InputError(f"'{toks[n_name + k]}' is not {what}", file=where, field=axis)
         tail = toks[n_name + 3:]
         t_start = next((i for i, t in enumerate(tail) if not _is_number(t)), None)
         stamp = math.nan
