@@ -119,6 +119,17 @@ def test_bad_export_one_line(tmp_path, capsys, text, where, field):
     assert not (tmp_path / "m.csv").exists()
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_astronomic_coordinates_one_line(tmp_path, capsys):
+    """1e300 mm is refused by the nests' distance check, without numpy's overflow warnings on stderr first."""
+    text = open(SA, encoding="utf-8").read().replace("76.7069", "1e300")
+    (tmp_path / "bad.txt").write_text(text)
+    assert run("import", str(tmp_path / "bad.txt"), "--log", LOG, "-o", str(tmp_path / "m.csv")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.txt" in err[0] and "pose 1" in err[0], err
+    assert not (tmp_path / "m.csv").exists()
+
+
 def test_bad_log_and_options(tmp_path, capsys):
     (tmp_path / "log.csv").write_text("pose_id,m1_cmd_deg,m2_cmd_deg\n1,-43.1,-37.7\n2,x,-54.2\n")
     assert run("import", SA, "--log", str(tmp_path / "log.csv"), "-o", str(tmp_path / "m.csv")) == 2
