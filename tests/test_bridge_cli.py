@@ -88,6 +88,19 @@ def test_bad_arguments_exit_2(tmp_path, capsys, args, field):
     assert f"field '{field}'" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("version", [-1, 2**40])
+def test_table_version_outside_udint_is_bad_input(tmp_path, capsys, version):
+    """A version the PLC header cannot hold is named (was struct.error, exit 1), before any connection."""
+    jp, cp = make_table(version=1).save(tmp_path / "comp.json")
+    doc = json.loads(jp.read_text())
+    jp.write_text(json.dumps(dict(doc, table_version=version)))
+    cp.write_text(cp.read_text().replace("# table_version=1\n", f"# table_version={version}\n"))
+    for path in (jp, cp):
+        assert main(["push", str(path), "--modbus", "127.0.0.1:1", "--no-audit"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and path.name in err[0] and "field 'table_version'" in err[0], err
+
+
 def test_mock_plc_command_serves_a_push(tmp_path):
     good, new = make_table(version=1), make_table(version=2, offset_deg=0.1)
     gp, _ = good.save(tmp_path / "good.json")
