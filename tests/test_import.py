@@ -134,6 +134,9 @@ def test_bad_log_and_options(tmp_path, capsys):
     (tmp_path / "log.csv").write_text("pose_id,m1_cmd_deg,m2_cmd_deg\n1,-43.1,-37.7\n2,x,-54.2\n")
     assert run("import", SA, "--log", str(tmp_path / "log.csv"), "-o", str(tmp_path / "m.csv")) == 2
     assert "log.csv, row 2, field 'm1_cmd_deg'" in capsys.readouterr().err
+    (tmp_path / "log.csv").write_text("pose_id,m1_cmd_deg,m2_cmd_deg\n1,-43.1,-37.7\n2,1e300,-54.2\n")
+    assert run("import", SA, "--log", str(tmp_path / "log.csv"), "-o", str(tmp_path / "m.csv")) == 2   # was exit 1
+    assert "log.csv, row 2, field 'm1_cmd_deg'" in capsys.readouterr().err
     assert run("import", SA, "--log", LOG, "-o", str(tmp_path / "m.csv"), "--columns", "x=X") == 2
     assert "--columns" in capsys.readouterr().err
     assert run("import", SA, "--log", LOG, "-o", str(tmp_path / "m.csv"), "--names", "(?P<pose>P") == 2
