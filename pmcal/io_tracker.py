@@ -233,7 +233,11 @@ def parse_columns(text: str) -> dict[str, str]:
         if not sep or key.strip() not in COLUMN_KEYS or not col.strip():
             raise InputError(f"'{part}' is not KEY=COLUMN with KEY one of {', '.join(COLUMN_KEYS)}",
                              field="--columns")
+        if key.strip() in out:
+            raise InputError(f"'{key.strip()}' is given twice ({out[key.strip()]}, {col.strip()})", field="--columns")
         out[key.strip()] = col.strip()
+    if "name" in out and ("pose" in out or "target" in out):
+        raise InputError("give name=COL, or pose=COL,target=COL instead of it, not both", field="--columns")
     missing = [k for k in ("x", "y", "z") if k not in out]
     if not ("name" in out or ("pose" in out and "target" in out)):
         missing.insert(0, "name (or pose and target)")
@@ -254,7 +258,7 @@ def read_point_csv(path: str | Path, columns: dict[str, str], units: str | None 
     points = []
     for i in range(len(xyz)):
         where = f"{t.path} row {i + 1}"
-        stamp = parse_time(text["time"][i], t.path, columns["time"]) if text.get("time") and text["time"][i] \
+        stamp = parse_time(text["time"][i], where, columns["time"]) if text.get("time") and text["time"][i] \
             else math.nan
         name = text["name"][i] if "name" in text else f"{text['pose'][i]} {text['target'][i]}"
         points.append(TrackerPoint(name=name, xyz=xyz[i], time_s=stamp, where=where,

@@ -75,6 +75,25 @@ def test_point_csv_with_column_map(tmp_path):
     assert meas.pose_id == ["1", "2"] and meas.targets[0, 2].tolist() == [-72.9301, -76.3543, 480.3567]
 
 
+@pytest.mark.parametrize("columns", ["name=Point,name=Xmm,x=Xmm,y=Ymm,z=Zmm",
+                                     "name=Point,pose=Point,target=Point,x=Xmm,y=Ymm,z=Zmm"])
+def test_ambiguous_column_map_is_refused(tmp_path, capsys, columns):
+    """A key given twice, or name with pose/target, was read silently (the last one, or name ignored)."""
+    (tmp_path / "pts.csv").write_text("Point,Xmm,Ymm,Zmm\nP001_T1,76.7,10.4,489.4\n")
+    assert run("import", str(tmp_path / "pts.csv"), "--log", LOG, "-o", str(tmp_path / "m.csv"),
+               "--columns", columns) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "field '--columns'" in err[0], err
+
+
+def test_bad_time_in_point_csv_names_the_row(tmp_path, capsys):
+    (tmp_path / "pts.csv").write_text("Point,X,Y,Z,T\nP001 T1,76.7,10.4,489.4,0\nP001 T2,-72.7,96.7,474.0,soon\n")
+    assert run("import", str(tmp_path / "pts.csv"), "--log", LOG, "-o", str(tmp_path / "m.csv"),
+               "--columns", "name=Point,x=X,y=Y,z=Z,time=T") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pts.csv row 2, field 'T'" in err[0], err
+
+
 def test_join_by_time_and_ambiguity(tmp_path):
     meas = run_campaign(Twin(), plan_campaign(6, 40, seed=2), LaserTracker(0.01, np.random.default_rng(3)))
     write_sa_export(tmp_path / "t.txt", meas, units="mm", names="Target")   # no pose in the names
