@@ -81,7 +81,8 @@ def test_rejection_exits_3_and_link_failure_exits_1(tmp_path, capsys):
 
 @pytest.mark.parametrize("args, field", [(["--ads", "1.2.3@x"], "--ads"), (["--modbus", "h:99999"], "--modbus"),
                                          (["--modbus", "h", "--attempts", "0"], "--attempts"),
-                                         (["--modbus", "127.0.0.1:502:3"], "--modbus")])
+                                         (["--modbus", "127.0.0.1:502:3"], "--modbus"),
+                                         (["--ads", "1.2.3.4.1.1@127.0.0.1:1", "--ams-port", "70000"], "--ams-port")])
 def test_bad_arguments_exit_2(tmp_path, capsys, args, field):
     jp, _ = make_table(version=1).save(tmp_path / "comp.json")
     assert main(["push", str(jp), *args]) == 2
