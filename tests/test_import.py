@@ -238,6 +238,21 @@ def test_machine_folder_campaign_imports_and_identifies_as_native(tmp_path, caps
     assert d.max() < 2e-4           # mm: the export's rounding (1.3e-5 mm per coordinate) through the fit
 
 
+def test_machine_folder_log_command_outside_the_motor_range_names_the_log(tmp_path, capsys):
+    """Was imported (1e300 deg written to the output), and identify then blamed the output file."""
+    from pmcal.mjcf import machine_dir
+
+    folder = tmp_path / "my_delta"
+    shutil.copytree(machine_dir("delta_3dof"), folder)
+    (tmp_path / "t.txt").write_text("DELTA P001 nest1 179.2 3.3 -816.1\nDELTA P001 nest2 104.3 46.8 -816.3\n")
+    (tmp_path / "log.csv").write_text("pose_id,m1_cmd_deg,m2_cmd_deg,m3_cmd_deg\n1,12.9,31.1,32.0\n2,1e300,31.1,32.0\n")
+    assert run("--machine", str(folder), "import", str(tmp_path / "t.txt"), "--log", str(tmp_path / "log.csv"),
+               "-o", str(tmp_path / "m.csv")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "log.csv, row 2, field 'm1_cmd_deg'" in err[0], err
+    assert not (tmp_path / "m.csv").exists()
+
+
 def test_machine_folder_points_off_the_base_frame_are_said(tmp_path, capsys):
     """Points 120 mm away from where the Delta's commands put its nests (a tracker frame): imported, with
     one warning saying so and what to do."""
