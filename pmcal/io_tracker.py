@@ -174,7 +174,11 @@ def read_sa_ascii(path: str | Path, units: str | None = None) -> TrackerExport:
                 frame = text.split(":", 1)[1].strip()
             elif ("spatialanalyzer" in low.replace(" ", "") or low.startswith("sa ")) and version is None:
                 version = text
-            header_units = header_units or _header_units(text)
+            named = _header_units(text)
+            if named is None and units is None and re.match(r"units?\s*:", low):     # Meters, Feet: not mm
+                raise InputError(f"the unit line says '{text.split(':', 1)[1].strip()}': pmcal reads Millimeters or "
+                                 "Inches (export in one of them, or give --units)", file=f"{p}:{n}", field="units")
+            header_units = header_units or named
             continue
         toks = [t for t in re.split(r"[,\s]+", s) if t]
         first = next((i for i in range(1, len(toks) - 2) if all(_is_float(t) for t in toks[i:i + 3])), None)
