@@ -461,7 +461,7 @@ def place_points(export: TrackerExport, log: ControllerLog, nests: list[str], na
                             "the last one is kept")
         slots[key] = pt
     if not slots:
-        raise InputError("no point of the export matches a pose of the log (names, --names pattern, pose "
+        raise InputError(f"no point of the export matches a pose of the log {log.path} (names, --names pattern, pose "
                          "numbers, time stamps?)" + (f"; first: {warnings[0]}" if warnings else ""), file=export.path)
     N = len(log.pose_id)
     coords = np.full((N, n_nests, 3), np.nan)

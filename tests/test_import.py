@@ -157,6 +157,9 @@ def test_bad_log_and_options(tmp_path, capsys):
     (tmp_path / "log.csv").write_text("pose_id,m1_cmd_deg,m2_cmd_deg\n1,-43.1,-37.7\n2,1e300,-54.2\n")
     assert run("import", SA, "--log", str(tmp_path / "log.csv"), "-o", str(tmp_path / "m.csv")) == 2   # was exit 1
     assert "log.csv, row 2, field 'm1_cmd_deg'" in capsys.readouterr().err
+    (tmp_path / "ids.csv").write_text("pose_id,m1_cmd_deg,m2_cmd_deg\n101,-43.1,-37.7\n102,-33.6,-54.2\n")
+    assert run("import", SA, "--log", str(tmp_path / "ids.csv"), "-o", str(tmp_path / "m.csv")) == 2
+    assert "ids.csv" in capsys.readouterr().err          # which log has no such pose: both files named
     assert run("import", SA, "--log", LOG, "-o", str(tmp_path / "m.csv"), "--columns", "x=X") == 2
     assert "--columns" in capsys.readouterr().err
     assert run("import", SA, "--log", LOG, "-o", str(tmp_path / "m.csv"), "--names", "(?P<pose>P") == 2
