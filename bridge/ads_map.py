@@ -17,7 +17,7 @@ from importlib import resources
 
 import pyads
 
-from pmcal.bridge.plc_types import SYMBOL, SYMBOLS, Symbol
+from pmcal.bridge.plc_types import HOST_PATTERN, SYMBOL, SYMBOLS, Symbol
 
 #: ADS router TCP port of a TwinCAT system
 ADS_TCP_PORT = 48898
@@ -160,7 +160,7 @@ class AdsTarget:
     @classmethod
     def parse(cls, text: str) -> "AdsTarget":
         """``NETID@HOST[:PORT]``, e.g. ``5.80.201.232.1.1@192.168.1.10`` (ValueError if malformed)."""
-        m = re.fullmatch(r"((?:\d{1,3}\.){5}\d{1,3})@([A-Za-z0-9_.\-]+)(?::(\d{1,5}))?", text.strip())
+        m = re.fullmatch(rf"((?:\d{{1,3}}\.){{5}}\d{{1,3}})@({HOST_PATTERN})(?::(\d{{1,5}}))?", text.strip())
         if not m or any(int(x) > 255 for x in m[1].split(".")) or (m[3] and not 0 < int(m[3]) < 65536):
             raise ValueError(f"ADS target {text!r}: expected NETID@HOST[:PORT] with a six-byte AMS NetID "
                              "like 5.80.201.232.1.1")

@@ -373,6 +373,12 @@ class CompTable:
         """
         return self.header_defect(active_version) or self.data_defect()
 
+    def version_defect(self) -> Defect | None:
+        """The version is not a UDINT 1..VERSION_MAX (the header image cannot hold it)."""
+        if not (isinstance(self.version, (int, np.integer)) and 1 <= int(self.version) <= VERSION_MAX):
+            return Defect("version", f"table version {self.version!r} outside 1..{VERSION_MAX}", field="table_version")
+        return None
+
     def header_defect(self, active_version: int | None = None) -> Defect | None:
         """Grid size, reference, grid limits, motor limits and max steps, version, machine name."""
         size = self.size_defect()
@@ -400,8 +406,8 @@ class CompTable:
             if self.controller_reference and max(abs(m.min), abs(m.max)) > CORRECTION_ABS_MAX:
                 return Defect("limits", f"motor {m.name}: correction bounds [{m.min:g}, {m.max:g}] {m.unit} exceed "
                                         f"the PLC's CORRECTION_ABS_MAX {CORRECTION_ABS_MAX:g}", field=m.column)
-        if not (isinstance(self.version, (int, np.integer)) and 1 <= int(self.version) <= VERSION_MAX):
-            return Defect("version", f"table version {self.version!r} outside 1..{VERSION_MAX}")
+        if self.version_defect():
+            return self.version_defect()
         if active_version is not None and int(self.version) <= int(active_version):
             return Defect("stale_version", f"table version {self.version} is not newer than the active "
                                            f"version {active_version} on the PLC")

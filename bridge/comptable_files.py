@@ -324,6 +324,9 @@ def _check_sums(table: CompTable, doc: dict, src: str, format_version: int = FOR
                              "(write it with pmcal; edited files are refused)", file=src, field=key)
     if not np.isfinite(table.values).all():
         return   # validate() names the bad node; a checksum message would hide it
+    bad_version = table.version_defect()
+    if bad_version:              # not packable into the header image the CRC covers
+        raise InputError(bad_version.message, file=src, field=bad_version.field)
     try:
         crc = int(str(crc_text), 16)
     except ValueError:

@@ -9,6 +9,7 @@ a Modbus exception response is the PLC refusing a request (:class:`pmcal.bridge.
 
 from __future__ import annotations
 
+import re
 import time
 
 from pymodbus.client import ModbusTcpClient
@@ -19,17 +20,16 @@ from pmcal.bridge.link import LinkBase
 from pmcal.bridge.modbus_map import (MAGIC, PAGE_LOAD, PAGE_OK, PAGE_STORE, ModbusMap, from_registers,
                                to_registers)
 from pmcal.bridge.comptable import NAXES_MAX, NMOTOR_MAX, NVALUES_MAX
-from pmcal.bridge.plc_types import INTERFACE_VERSION, LREAL_SIZE, PUSH_WRITES
+from pmcal.bridge.plc_types import HOST_PATTERN, INTERFACE_VERSION, LREAL_SIZE, PUSH_WRITES
 
 MODBUS_TCP_PORT = 502
 
 
 def parse_host_port(text: str, default_port: int = MODBUS_TCP_PORT) -> tuple[str, int]:
     """``HOST[:PORT]`` -> (host, port); ValueError if malformed."""
-    host, sep, port = text.strip().rpartition(":")
-    if not sep:
-        host, port = port, str(default_port)
-    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+    m = re.fullmatch(rf"({HOST_PATTERN})(?::(\d{{1,5}}))?", text.strip(), flags=re.ASCII)
+    host, port = (m[1], m[2] or str(default_port)) if m else ("", "")
+    if not host or not 0 < int(port) < 65536:
         raise ValueError(f"Modbus target {text!r}: expected HOST[:PORT]")
     return host, int(port)
 

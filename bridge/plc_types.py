@@ -23,6 +23,8 @@ from pmcal.bridge.nominal import REFERENCE_CONTROLLER, REFERENCE_NONE  # noqa: F
 #: in is dropped with SWAP_TIMEOUT after this long. The bridge's ack time-out (5 s) is longer, so the
 #: user always sees the PLC's verdict.
 COMMIT_TIMEOUT_S = 4.0
+#: a PLC's host name or IPv4 address in a target (ADS NETID@HOST[:PORT], Modbus HOST[:PORT])
+HOST_PATTERN = r"[A-Za-z0-9_.\-]+"
 #: interface version of GVL_CompTable (bumped when any layout below changes)
 INTERFACE_VERSION = 5
 LREAL_SIZE = 8

@@ -76,8 +76,14 @@ class TrackerExport:
 
 
 def _is_number(tok: str) -> bool:
+    return _is_float(tok) and math.isfinite(float(tok))
+
+
+def _is_float(tok: str) -> bool:
+    """A number, finite or not: where a coordinate is ``nan`` or ``inf`` it is refused by name, not read as a name."""
     try:
-        return math.isfinite(float(tok))
+        float(tok)
+        return True
     except ValueError:
         return False
 
@@ -168,10 +174,14 @@ def read_sa_ascii(path: str | Path, units: str | None = None) -> TrackerExport:
                 frame = text.split(":", 1)[1].strip()
             elif ("spatialanalyzer" in low.replace(" ", "") or low.startswith("sa ")) and version is None:
                 version = text
-            header_units = header_units or _header_units(text)
+            named = _header_units(text)
+            if named is None and units is None and re.match(r"units?\s*:", low):     # Meters, Feet: not mm
+                raise InputError(f"the unit line says '{text.split(':', 1)[1].strip()}': pmcal reads Millimeters or "
+                                 "Inches (export in one of them, or give --units)", file=f"{p}:{n}", field="units")
+            header_units = header_units or named
             continue
         toks = [t for t in re.split(r"[,\s]+", s) if t]
-        first = next((i for i in range(1, len(toks) - 2) if all(_is_number(t) for t in toks[i:i + 3])), None)
+        first = next((i for i in range(1, len(toks) - 2) if all(_is_float(t) for t in toks[i:i + 3])), None)
         if first is None:
             raise InputError("expected a point: NAME x y z (name fields, then three numbers)", file=f"{p}:{n}",
                              field="x")
@@ -192,7 +202,8 @@ def read_sa_ascii(path: str | Path, units: str | None = None) -> TrackerExport:
                              file=where, field="z")
         for k, axis in enumerate("xyz"):
             if not _is_number(toks[n_name + k]):
-                raise InputError(f"'{toks[n_name + k]}' is not a number", file=where, field=axis)
+                what = "a finite number" if _is_float(toks[n_name + k]) else "a number"
+                raise InputError(f"'{toks[n_name + k]}' is not {what}", file=where, field=axis)
         tail = toks[n_name + 3:]
         t_start = next((i for i, t in enumerate(tail) if not _is_number(t)), None)
         stamp = math.nan
@@ -226,7 +237,11 @@ def parse_columns(text: str) -> dict[str, str]:
         if not sep or key.strip() not in COLUMN_KEYS or not col.strip():
             raise InputError(f"'{part}' is not KEY=COLUMN with KEY one of {', '.join(COLUMN_KEYS)}",
                              field="--columns")
+        if key.strip() in out:
+            raise InputError(f"'{key.strip()}' is given twice ({out[key.strip()]}, {col.strip()})", field="--columns")
         out[key.strip()] = col.strip()
+    if "name" in out and ("pose" in out or "target" in out):
+        raise InputError("give name=COL, or pose=COL,target=COL instead of it, not both", field="--columns")
     missing = [k for k in ("x", "y", "z") if k not in out]
     if not ("name" in out or ("pose" in out and "target" in out)):
         missing.insert(0, "name (or pose and target)")
@@ -247,7 +262,7 @@ def read_point_csv(path: str | Path, columns: dict[str, str], units: str | None 
     points = []
     for i in range(len(xyz)):
         where = f"{t.path} row {i + 1}"
-        stamp = parse_time(text["time"][i], t.path, columns["time"]) if text.get("time") and text["time"][i] \
+        stamp = parse_time(text["time"][i], where, columns["time"]) if text.get("time") and text["time"][i] \
             else math.nan
         name = text["name"][i] if "name" in text else f"{text['pose'][i]} {text['target'][i]}"
         points.append(TrackerPoint(name=name, xyz=xyz[i], time_s=stamp, where=where,
@@ -446,7 +461,7 @@ def place_points(export: TrackerExport, log: ControllerLog, nests: list[str], na
                             "the last one is kept")
         slots[key] = pt
     if not slots:
-        raise InputError("no point of the export matches a pose of the log (names, --names pattern, pose "
+        raise InputError(f"no point of the export matches a pose of the log {log.path} (names, --names pattern, pose "
                          "numbers, time stamps?)" + (f"; first: {warnings[0]}" if warnings else ""), file=export.path)
     N = len(log.pose_id)
     coords = np.full((N, n_nests, 3), np.nan)

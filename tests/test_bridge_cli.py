@@ -80,11 +80,26 @@ def test_rejection_exits_3_and_link_failure_exits_1(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, field", [(["--ads", "1.2.3@x"], "--ads"), (["--modbus", "h:99999"], "--modbus"),
-                                         (["--modbus", "h", "--attempts", "0"], "--attempts")])
+                                         (["--modbus", "h", "--attempts", "0"], "--attempts"),
+                                         (["--modbus", "127.0.0.1:502:3"], "--modbus"),
+                                         (["--ads", "1.2.3.4.1.1@127.0.0.1:1", "--ams-port", "70000"], "--ams-port")])
 def test_bad_arguments_exit_2(tmp_path, capsys, args, field):
     jp, _ = make_table(version=1).save(tmp_path / "comp.json")
     assert main(["push", str(jp), *args]) == 2
     assert f"field '{field}'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("version", [-1, 2**40])
+def test_table_version_outside_udint_is_bad_input(tmp_path, capsys, version):
+    """A version the PLC header cannot hold is named (was struct.error, exit 1), before any connection."""
+    jp, cp = make_table(version=1).save(tmp_path / "comp.json")
+    doc = json.loads(jp.read_text())
+    jp.write_text(json.dumps(dict(doc, table_version=version)))
+    cp.write_text(cp.read_text().replace("# table_version=1\n", f"# table_version={version}\n"))
+    for path in (jp, cp):
+        assert main(["push", str(path), "--modbus", "127.0.0.1:1", "--no-audit"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and path.name in err[0] and "field 'table_version'" in err[0], err
 
 
 def test_mock_plc_command_serves_a_push(tmp_path):

@@ -154,7 +154,7 @@ def test_lookup_over_modbus_gives_the_interpolated_targets(modbus_plc):
 def test_host_port_parsing():
     assert parse_host_port("plc.local") == ("plc.local", 502)
     assert parse_host_port("127.0.0.1:1502") == ("127.0.0.1", 1502)
-    for bad in ("", ":502", "h:0", "h:x"):
+    for bad in ("", ":502", "h:0", "h:x", "127.0.0.1:502:3", "::1", "host name:502"):   # not a host: exit 2
         with pytest.raises(ValueError):
             parse_host_port(bad)
 

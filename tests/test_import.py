@@ -75,6 +75,25 @@ def test_point_csv_with_column_map(tmp_path):
     assert meas.pose_id == ["1", "2"] and meas.targets[0, 2].tolist() == [-72.9301, -76.3543, 480.3567]
 
 
+@pytest.mark.parametrize("columns", ["name=Point,name=Xmm,x=Xmm,y=Ymm,z=Zmm",
+                                     "name=Point,pose=Point,target=Point,x=Xmm,y=Ymm,z=Zmm"])
+def test_ambiguous_column_map_is_refused(tmp_path, capsys, columns):
+    """A key given twice, or name with pose/target, was read silently (the last one, or name ignored)."""
+    (tmp_path / "pts.csv").write_text("Point,Xmm,Ymm,Zmm\nP001_T1,76.7,10.4,489.4\n")
+    assert run("import", str(tmp_path / "pts.csv"), "--log", LOG, "-o", str(tmp_path / "m.csv"),
+               "--columns", columns) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "field '--columns'" in err[0], err
+
+
+def test_bad_time_in_point_csv_names_the_row(tmp_path, capsys):
+    (tmp_path / "pts.csv").write_text("Point,X,Y,Z,T\nP001 T1,76.7,10.4,489.4,0\nP001 T2,-72.7,96.7,474.0,soon\n")
+    assert run("import", str(tmp_path / "pts.csv"), "--log", LOG, "-o", str(tmp_path / "m.csv"),
+               "--columns", "name=Point,x=X,y=Y,z=Z,time=T") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pts.csv row 2, field 'T'" in err[0], err
+
+
 def test_join_by_time_and_ambiguity(tmp_path):
     meas = run_campaign(Twin(), plan_campaign(6, 40, seed=2), LaserTracker(0.01, np.random.default_rng(3)))
     write_sa_export(tmp_path / "t.txt", meas, units="mm", names="Target")   # no pose in the names
@@ -108,6 +127,9 @@ def test_tracker_frame_detected_and_recorded(tmp_path, capsys):
     ("OCPM P001 T1 76.7 10.4 abc\n", ":1", "x"),
     ("// Frame: Base\nOCPM P001 T1 76.7 10.4 489.4 0.05 0.01 13/45/2026 99:00:01 XM\n", ":2", "time"),
     ("// only comments\n", "", None),
+    ("OCPM P001 T1 nan 10.4 489.4 0.05 0.01\n", ":1", "x"),
+    ("// Units: Meters\nOCPM P001 T1 0.0767 0.0104 0.4894\n", ":1", "units"),     # was read as mm          # not read as a fourth name field
+    ("OCPM P001 T1 76.7 10.4 489.4 0.05 0.01\nOCPM P001 T2 -72.7 inf 474.0 0.05 0.01\n", ":2", "y"),
 ])
 def test_bad_export_one_line(tmp_path, capsys, text, where, field):
     (tmp_path / "bad.txt").write_text(text)
@@ -117,10 +139,27 @@ def test_bad_export_one_line(tmp_path, capsys, text, where, field):
     assert not (tmp_path / "m.csv").exists()
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_astronomic_coordinates_one_line(tmp_path, capsys):
+    """1e300 mm is refused by the nests' distance check, without numpy's overflow warnings on stderr first."""
+    text = open(SA, encoding="utf-8").read().replace("76.7069", "1e300")
+    (tmp_path / "bad.txt").write_text(text)
+    assert run("import", str(tmp_path / "bad.txt"), "--log", LOG, "-o", str(tmp_path / "m.csv")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.txt" in err[0] and "pose 1" in err[0], err
+    assert not (tmp_path / "m.csv").exists()
+
+
 def test_bad_log_and_options(tmp_path, capsys):
     (tmp_path / "log.csv").write_text("pose_id,m1_cmd_deg,m2_cmd_deg\n1,-43.1,-37.7\n2,x,-54.2\n")
     assert run("import", SA, "--log", str(tmp_path / "log.csv"), "-o", str(tmp_path / "m.csv")) == 2
     assert "log.csv, row 2, field 'm1_cmd_deg'" in capsys.readouterr().err
+    (tmp_path / "log.csv").write_text("pose_id,m1_cmd_deg,m2_cmd_deg\n1,-43.1,-37.7\n2,1e300,-54.2\n")
+    assert run("import", SA, "--log", str(tmp_path / "log.csv"), "-o", str(tmp_path / "m.csv")) == 2   # was exit 1
+    assert "log.csv, row 2, field 'm1_cmd_deg'" in capsys.readouterr().err
+    (tmp_path / "ids.csv").write_text("pose_id,m1_cmd_deg,m2_cmd_deg\n101,-43.1,-37.7\n102,-33.6,-54.2\n")
+    assert run("import", SA, "--log", str(tmp_path / "ids.csv"), "-o", str(tmp_path / "m.csv")) == 2
+    assert "ids.csv" in capsys.readouterr().err          # which log has no such pose: both files named
     assert run("import", SA, "--log", LOG, "-o", str(tmp_path / "m.csv"), "--columns", "x=X") == 2
     assert "--columns" in capsys.readouterr().err
     assert run("import", SA, "--log", LOG, "-o", str(tmp_path / "m.csv"), "--names", "(?P<pose>P") == 2
@@ -201,6 +240,21 @@ def test_machine_folder_campaign_imports_and_identifies_as_native(tmp_path, caps
     cmd = mach.twin.sample_commands(30, np.random.default_rng(2))
     d = np.linalg.norm(mach.twin.targets(cmd, a) - mach.twin.targets(cmd, b), axis=2)
     assert d.max() < 2e-4           # mm: the export's rounding (1.3e-5 mm per coordinate) through the fit
+
+
+def test_machine_folder_log_command_outside_the_motor_range_names_the_log(tmp_path, capsys):
+    """Was imported (1e300 deg written to the output), and identify then blamed the output file."""
+    from pmcal.mjcf import machine_dir
+
+    folder = tmp_path / "my_delta"
+    shutil.copytree(machine_dir("delta_3dof"), folder)
+    (tmp_path / "t.txt").write_text("DELTA P001 nest1 179.2 3.3 -816.1\nDELTA P001 nest2 104.3 46.8 -816.3\n")
+    (tmp_path / "log.csv").write_text("pose_id,m1_cmd_deg,m2_cmd_deg,m3_cmd_deg\n1,12.9,31.1,32.0\n2,1e300,31.1,32.0\n")
+    assert run("--machine", str(folder), "import", str(tmp_path / "t.txt"), "--log", str(tmp_path / "log.csv"),
+               "-o", str(tmp_path / "m.csv")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "log.csv, row 2, field 'm1_cmd_deg'" in err[0], err
+    assert not (tmp_path / "m.csv").exists()
 
 
 def test_machine_folder_points_off_the_base_frame_are_said(tmp_path, capsys):

@@ -38,6 +38,8 @@ def import_tracker_campaign(args, join, write, advice: str) -> int:
     named points with ``--columns``), ``join(export) -> ImportResult`` it with the controller log the
     machine's way, say what could not be placed and whether the points are in the base frame (else
     ``advice``), then ``write(result)`` the measurement CSV (:mod:`pmcal.io_tracker`)."""
+    import numpy as np
+
     from pmcal import progress
     from pmcal.errors import InputError
     from pmcal.io_tracker import parse_columns, read_point_csv, read_sa_ascii
@@ -49,7 +51,8 @@ def import_tracker_campaign(args, join, write, advice: str) -> int:
         export = read_point_csv(args.tracker, parse_columns(args.columns), args.units)
     else:
         export = read_sa_ascii(args.tracker, args.units)
-    res = join(export)
+    with np.errstate(over="ignore", invalid="ignore"):   # 1e300 mm: refused by the join's checks, not a warning
+        res = join(export)
     for w in res.warnings:
         progress.warning(w)
     if res.frame != "base":

@@ -248,12 +248,19 @@ def import_campaign(args) -> int:
     from pmcal.chain import distance_from_nominal
     from pmcal.io_tracker import join_machine, read_controller_log
 
+    from pmcal.io_chain import check_commands
+
     machine = _machine(args)
     spec = machine.spec
+
+    def joined(export):
+        log = read_controller_log(args.log, spec.motor_columns)
+        check_commands(log.commands, spec, log.path, spec.motor_columns)   # the log's rows, not the output's
+        return join_machine(export, log, spec, lambda c, t: distance_from_nominal(machine, c, t), names=args.names,
+                            time_tolerance_s=args.time_tolerance)
+
     return import_tracker_campaign(
-        args, lambda export: join_machine(export, read_controller_log(args.log, spec.motor_columns), spec,
-                                          lambda c, t: distance_from_nominal(machine, c, t), names=args.names,
-                                          time_tolerance_s=args.time_tolerance),
+        args, joined,
         lambda res: write_measurements(args.output, spec, res.meas, comments=res.comments),
         "transform them into the base frame (the frame of the MJCF's world) before identifying")
 

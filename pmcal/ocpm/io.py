@@ -125,6 +125,14 @@ def read_campaign_context(path: str | Path) -> dict[str, np.ndarray]:
     return out
 
 
+def check_commands(m_cmd_deg: np.ndarray, path: str) -> None:
+    """Motor commands (rows of a file, deg) within +-PHI_LIMIT_DEG: anything else is not an angle (was a
+    LinAlgError in the forward kinematics)."""
+    for i, j in np.argwhere(np.abs(m_cmd_deg) > PHI_LIMIT_DEG)[:1]:
+        raise InputError(f"command {m_cmd_deg[i, j]:g} deg is outside -{PHI_LIMIT_DEG:g}..{PHI_LIMIT_DEG:g} "
+                         "deg", file=path, row=int(i) + 1, field=f"m{j + 1}_cmd_deg")
+
+
 def check_plausible(meas: Measurements, geom: Geometry, path: str, frame: str = "base") -> None:
     """Catch unit mix-ups and impossible rows with a message naming the row and field (blocked targets
     skipped; in the tracker frame only the distances between targets are checked)."""
@@ -143,9 +151,7 @@ def check_plausible(meas: Measurements, geom: Geometry, path: str, frame: str = 
         raise InputError(f"targets t{a + 1} and t{b + 1} are {d_meas[row, p]:.4g} mm apart, the platform "
                          f"has them {d_nom[p]:.4g} mm apart{hint}", file=path, row=int(row) + 1,
                          field=f"t{b + 1}_x")
-    for i, j in np.argwhere(np.abs(meas.m_cmd_deg) > PHI_LIMIT_DEG)[:1]:   # not an angle (was a LinAlgError)
-        raise InputError(f"command {meas.m_cmd_deg[i, j]:g} deg is outside -{PHI_LIMIT_DEG:g}..{PHI_LIMIT_DEG:g} "
-                         "deg", file=path, row=int(i) + 1, field=f"m{j + 1}_cmd_deg")
+    check_commands(meas.m_cmd_deg, path)
     beta = np.deg2rad(meas.m_cmd_deg)
     phi, theta = nominal_fk(beta, geom)
     _, R_meas, _ = meas.poses(geom)
@@ -304,6 +310,7 @@ def join(export: TrackerExport, log: ControllerLog, names: str | None = None,
     (24, 3, 3)
     """
     geom = geom or default_geometry()
+    check_commands(log.commands, log.path)
     placed = place_points(export, log, [f"T{k + 1}" for k in range(len(geom.targets))], names, time_tolerance_s,
                           min_points=2)
     idx = placed.keep
