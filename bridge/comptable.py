@@ -406,8 +406,9 @@ class CompTable:
             if self.controller_reference and max(abs(m.min), abs(m.max)) > CORRECTION_ABS_MAX:
                 return Defect("limits", f"motor {m.name}: correction bounds [{m.min:g}, {m.max:g}] {m.unit} exceed "
                                         f"the PLC's CORRECTION_ABS_MAX {CORRECTION_ABS_MAX:g}", field=m.column)
-        if self.version_defect():
-            return self.version_defect()
+        bad_version = self.version_defect()
+        if bad_version:
+            return bad_version
         if active_version is not None and int(self.version) <= int(active_version):
             return Defect("stale_version", f"table version {self.version} is not newer than the active "
                                            f"version {active_version} on the PLC")

@@ -36,8 +36,7 @@ RANGES: dict[str, tuple[str, type, float, float, bool, str]] = {
     "cycle_ms": ("--cycle-ms", float, 0.0, 1000.0, True, "the PLC cycle must be a positive number of ms"),
     "attempts": ("--attempts", int, 1, 100, False, "attempts must be a whole number"),
     "port": ("--port", int, 0, 65535, False, "a TCP port must be a whole number; 0 picks a free one"),
-    "ams_port": ("--ams-port", int, 1, 65535, False,
-                 "an AMS port must be a whole number"),
+    "ams_port": ("--ams-port", int, 1, 65535, False, "an AMS port must be a whole number"),
 }
 
 

@@ -246,9 +246,8 @@ def import_campaign(args) -> int:
     export and the controller log with its motor columns (:func:`pmcal.io_tracker.join_machine`)."""
     from pmcal.apps import import_tracker_campaign
     from pmcal.chain import distance_from_nominal
-    from pmcal.io_tracker import join_machine, read_controller_log
-
     from pmcal.io_chain import check_commands
+    from pmcal.io_tracker import join_machine, read_controller_log
 
     machine = _machine(args)
     spec = machine.spec

@@ -262,7 +262,6 @@ def write_params(path: str | Path, params: dict[str, float], **extra) -> None:
     write_json(path, doc)
 
 
-
 def read_targets(path: str | Path, theta_max_deg: float = 90.0) -> tuple[np.ndarray, np.ndarray]:
     """Target orientations (``phi_deg``, ``theta_deg``) from a targets CSV."""
     t = read_csv(path)
