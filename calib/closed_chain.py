@@ -343,6 +343,33 @@ class ChainIdentResult:
         Jb = self.base_derivative(J)
         return np.sqrt(np.einsum("ncp,pq,ncq->nc", Jb, self.covariance, Jb))
 
+    def predicted_task_law(self, J: np.ndarray, columns=None) -> np.ndarray:
+        """How the compensated task error's RMS over ``n`` targets spreads from one campaign to the next, from
+        the derivatives ``J`` (n, C, len(params)) as in :meth:`predicted_task_std`, over the task coordinates
+        ``columns`` (indices; all when None).
+
+        Over campaigns the mean square error is ``sum_i w_i z_i^2``, ``z_i`` independent standard normal: one
+        term per direction of the posterior the targets see, ``w_i`` the eigenvalues of ``A P`` (``A`` the
+        targets' mean ``J^T J``, ``P`` the posterior covariance). Their sum is the square of what
+        :meth:`predicted_task_std` gives as RMS; ``sum(w)^2 / sum(w^2)`` counts the directions that carry it.
+        One direction: a campaign ends above 1.5x the prediction with probability 13 %, however good the
+        identification; many: the prediction holds campaign by campaign. :func:`rms_band` and
+        :func:`share_above` read the law.
+
+        Returns the weights ``w`` (largest first; the coordinates' units squared)."""
+        J = np.asarray(J, float)
+        if columns is not None:
+            J = J[:, list(columns), :]
+        if self.error_covariance is not None:
+            P = self.error_covariance
+        else:
+            J, P = self.base_derivative(J), self.covariance
+        A = np.einsum("ncp,ncq->pq", J, J) / max(J.shape[0], 1)
+        lam, V = np.linalg.eigh((P + P.T) / 2.0)
+        root = (V * np.sqrt(np.clip(lam, 0.0, None))) @ V.T
+        w = np.linalg.eigvalsh(root @ A @ root)[::-1]
+        return np.clip(w, 0.0, None)
+
     def base_derivative(self, J: np.ndarray) -> np.ndarray:
         """Derivatives (..., len(base)) by the identified base values from derivatives (..., len(params)) by
         every error considered (in the order of ``params``) at the identified machine: ``J M``
@@ -524,6 +551,58 @@ class _Observations:
 
 
 #: :func:`held_out_check`'s answer where it cannot judge (too few poses, a direction left free, no prior)
+#: draws of the campaign-to-campaign law (:func:`rms_band`, :func:`share_above`): quantiles to about 0.5 %
+LAW_DRAWS = 100_000
+
+
+def _law_draws(weights) -> np.ndarray:
+    """Mean square errors of :data:`LAW_DRAWS` campaigns under the law of ``weights``
+    (:meth:`ChainIdentResult.predicted_task_law`), from a fixed seed: the same law gives the same figures."""
+    w = np.asarray(weights, float)
+    w = w[w > 1e-12 * max(float(w.sum()), 1e-300)]
+    if w.size == 0:
+        return np.zeros(LAW_DRAWS)
+    rng = np.random.default_rng(0)
+    return np.concatenate([rng.chisquare(1.0, size=(10_000, w.size)) @ w for _ in range(LAW_DRAWS // 10_000)])
+
+
+def law_directions(weights) -> float:
+    """How many independent error directions carry a prediction: ``sum(w)^2 / sum(w^2)`` of the law's weights
+    (1 when one direction carries it all; 0 when nothing is predicted)."""
+    w = np.asarray(weights, float)
+    square_sum = float(np.sum(w ** 2))
+    return float(w.sum() ** 2 / square_sum) if square_sum > 0 else 0.0
+
+
+def rms_band(weights, level: float = 0.9) -> tuple[float, float]:
+    """The central ``level`` band (low, high) of a campaign's RMS error under the law of ``weights``
+    (:meth:`ChainIdentResult.predicted_task_law`), in the error's units.
+
+    Examples
+    --------
+    >>> lo, hi = rms_band([1.0])            # one direction carries the error: chi-square(1), a wide band
+    >>> round(lo, 2), round(hi, 2)
+    (0.06, 1.96)
+    """
+    tail = (1.0 - level) / 2.0
+    lo, hi = np.quantile(_law_draws(weights), [tail, 1.0 - tail])
+    return float(np.sqrt(lo)), float(np.sqrt(hi))
+
+
+def share_above(ratio: float, weights) -> float:
+    """Probability that a campaign's RMS error exceeds ``ratio`` times the predicted RMS (``sqrt(sum(w))``)
+    under the law of ``weights`` (:meth:`ChainIdentResult.predicted_task_law`): 13.4 % at 1.5x for one
+    direction.
+
+    Examples
+    --------
+    >>> round(share_above(1.5, [1.0]), 2)
+    0.13
+    """
+    draws = _law_draws(weights)
+    return float(np.mean(draws > ratio ** 2 * float(np.sum(weights))))
+
+
 NOT_CHECKED = {"folds": 0, "passed": None, "rms_mm": None, "predicted_rms_mm": None, "chi2_per_dof": None,
                "p_value": None}
 

@@ -45,3 +45,11 @@ def test_mixed_task_gets_both_units(tmp_path, capsys):
                                                        rel=1e-9)
     assert s["orientation_rms_after_deg"] == pytest.approx(
         math.sqrt(sum(per[c] ** 2 for c in ("rx_deg", "ry_deg", "rz_deg"))), rel=1e-9)
+    for fam, u in (("position", "mm"), ("orientation", "deg")):
+        lo, hi = s[f"{fam}_predicted_band_{u}"]
+        predicted, law = s[f"{fam}_rms_predicted_{u}"], s[f"{fam}_predicted_law_{u}2"]
+        assert lo < predicted < hi
+        assert sum(law) == pytest.approx(predicted ** 2, rel=0.002)     # the weights that carry 99.9 %
+        assert s[f"{fam}_predicted_directions"] >= 1.0
+    report = (tmp_path / "d" / "report.html").read_text()
+    assert report.count("90 % of campaigns like this one end between") == 2

@@ -14,6 +14,17 @@ from pmcal.twin.render import RenderUnavailable, render_machine_png
 TABLE_ROWS = 20
 
 
+def band_sentence(s: dict, name: str, unit: str) -> str:
+    """The end of the compensation sentence: the band 90 % of campaigns like this one end in, and how many
+    error directions carry the prediction (:meth:`pmcal.studies.chain_demo.ChainDemo.summary`)."""
+    band = s.get(f"{name}_predicted_band_{unit}")
+    if not band:
+        return "."
+    nu = s[f"{name}_predicted_directions"]
+    few = (" (few directions carry it, so one campaign may well end near either edge)" if nu < 3 else "")
+    return (f"; 90 % of campaigns like this one end between {band[0]:.4f} and {band[1]:.4f} {unit} RMS, "
+            f"about {nu:.1f} independent error directions carrying the prediction{few}.")
+
 def chain_demo_report(demo) -> Report:
     """The self-contained report of ``demo``."""
     matplotlib_agg()
@@ -36,7 +47,7 @@ def chain_demo_report(demo) -> Report:
           f"{s[f'{n}_rms_before_{u}']:.4f} {u} RMS (max {s[f'{n}_max_before_{u}']:.4f}) with the nominal inverse "
           f"kinematics, {s[f'{n}_rms_after_{u}']:.4f} {u} RMS (max {s[f'{n}_max_after_{u}']:.4f}) compensated; "
           f"the identification predicts {s[f'{n}_rms_predicted_{u}']:.4f} {u} RMS (the posterior over every error, "
-          "propagated to the task)." for n, u, _, _ in fam)],
+          "propagated to the task)" + band_sentence(s, n, u) for n, u, _, _ in fam)],
         css="ok" if ok else "bad")
     warnings = demo.warnings(s)
     if warnings:

@@ -15,13 +15,19 @@ from pathlib import Path
 import numpy as np
 
 from pmcal import progress
-from pmcal.calib.closed_chain import compensate_targets
+from pmcal.calib.closed_chain import compensate_targets, law_directions, rms_band
 from pmcal.chain import (campaign, compensation_table, dominant_line, identify, params_document, plan, random_errors,
                          sample_targets, table_refusal)
 from pmcal.errors import InputError
 from pmcal.fileio import atomic_directory, write_json
 from pmcal.io_chain import write_measurements, write_plan, write_setpoints, write_targets
 from pmcal.mechanism.task_space import error_families, position_distance, rms, task_difference
+
+def carrying(weights: np.ndarray, share: float = 0.999) -> int:
+    """How many of the largest ``weights`` (sorted, largest first) carry ``share`` of their sum."""
+    total = float(np.sum(weights))
+    return int(np.searchsorted(np.cumsum(weights), share * total) + 1) if total > 0 else 0
+
 
 #: poses of the demo's campaign, held-out targets of its evaluation
 CAMPAIGN_POSES, HELD_OUT = 48, 60
@@ -36,7 +42,8 @@ class ChainDemo:
     identification (:class:`pmcal.calib.closed_chain.ChainIdentResult`). task : (n, C) held-out targets.
     error_nominal, error_compensated : (n, C) task-coordinate errors of the true machine driven by the
     nominal inverse kinematics and by the compensated commands. predicted : (n, C) standard deviation of
-    the compensated error the identification's covariance predicts. table : the compensation table for the
+    the compensated error the identification's covariance predicts. predicted_law : per error family
+    (position, orientation) the weights of the law of the compensated mean square error over campaigns (:meth:`pmcal.calib.closed_chain.ChainIdentResult.predicted_task_law`). table : the compensation table for the
     PLC (:class:`pmcal.bridge.comptable.CompTable`; None when the machine gets none, ``table_note`` says
     why). inside : the held-out targets inside its grid. error_table : (inside, C) the true machine's error
     driven by the controller's nominal inverse kinematics plus the table's correction (the PLC's lookup).
@@ -57,6 +64,7 @@ class ChainDemo:
     error_nominal: np.ndarray
     error_compensated: np.ndarray
     predicted: np.ndarray
+    predicted_law: dict = field(default_factory=dict)
     table: object = None
     table_note: str = ""
     inside: np.ndarray | None = None
@@ -77,7 +85,13 @@ class ChainDemo:
         """The figures of the report's first card (JSON-ready), in the task's own units: for each error family
         the task holds (:func:`pmcal.mechanism.task_space.error_families`) ``<family>_rms_before_<unit>``,
         ``_max_before_``, ``_rms_after_``, ``_max_after_``, ``_rms_predicted_`` (position in mm, orientation
-        in deg; a mixed task has both), and the same through the table (``<family>_rms_<unit>``)."""
+        in deg; a mixed task has both), ``<family>_predicted_band_<unit>`` (the band [low, high] that 90 % of
+        campaigns like this one end in, :func:`pmcal.calib.closed_chain.rms_band`) and
+        ``<family>_predicted_directions`` (how many independent error directions carry the prediction: near 1,
+        one campaign may well end at 2x the predicted RMS or at a tenth of it), ``<family>_predicted_law_<unit>2``
+        (the law's largest weights, those that carry 99.9 % of it, unit^2: the mean square error over campaigns
+        is ``sum w_i z_i^2``), and the same through the table
+        (``<family>_rms_<unit>``)."""
         r, coords = self.result, self.coordinates
         out = {"machine": self.machine.name, "seed": self.seed, "campaign_poses": len(self.meas),
                "held_out_targets": len(self.task), "errors": len(r.params), "base_errors": len(r.base),
@@ -92,6 +106,11 @@ class ChainDemo:
             out.update({f"{name}_rms_before_{unit}": rms(before), f"{name}_max_before_{unit}": float(before.max()),
                         f"{name}_rms_after_{unit}": rms(after), f"{name}_max_after_{unit}": float(after.max()),
                         f"{name}_rms_predicted_{unit}": rms(np.sqrt(np.sum(self.predicted[:, idx] ** 2, axis=1)))})
+            if name in self.predicted_law:
+                weights = self.predicted_law[name]
+                out.update({f"{name}_predicted_band_{unit}": list(rms_band(weights)),
+                            f"{name}_predicted_directions": law_directions(weights),
+                            f"{name}_predicted_law_{unit}2": [float(w) for w in weights[:carrying(weights)]]})
             if table is not None:
                 through = size(self.error_table, coords)
                 table.update({f"{name}_rms_{unit}": rms(through), f"{name}_max_{unit}": float(through.max())})
@@ -199,12 +218,15 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
         step("evaluate")
         err_nominal = task_difference(twin.forward(nominal, truth), task, coords)
         err_comp = task_difference(twin.forward(compensated, truth), task, coords)
-        predicted = res.predicted_task_std(twin.task_jacobian(compensated, res.params, list(res.params)))
+        J = twin.task_jacobian(compensated, res.params, list(res.params))
+        predicted = res.predicted_task_std(J)
+        law = {name: res.predicted_task_law(J, [i for i, c in enumerate(coords) if c in members])
+               for name, _, members, _ in error_families(coords)}
         done("evaluate")
     doc = params_document(machine, res, "measurements.csv")       # what the demo says of the result, as identify
     demo = ChainDemo(machine=machine, seed=seed, truth=truth, design=design, meas=meas, result=res, task=task,
                      commands_nominal=nominal, commands_compensated=compensated, error_nominal=err_nominal,
-                     error_compensated=err_comp, predicted=predicted, table=table, table_note=note, inside=inside,
+                     error_compensated=err_comp, predicted=predicted, predicted_law=law, table=table, table_note=note, inside=inside,
                      error_table=err_table, timings=timings, unseen=doc["unseen_by_tracker"],
                      dominant=doc["dominant_task_uncertainty"])
     if out is not None:
