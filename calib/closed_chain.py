@@ -550,7 +550,6 @@ class _Observations:
         return self._white(self.D @ self.model.observation_jacobian(self.commands, params, keys)[:, 0, :])
 
 
-#: :func:`held_out_check`'s answer where it cannot judge (too few poses, a direction left free, no prior)
 #: draws of the campaign-to-campaign law (:func:`rms_band`, :func:`share_above`): quantiles to about 0.5 %
 LAW_DRAWS = 100_000
 
@@ -603,6 +602,7 @@ def share_above(ratio: float, weights) -> float:
     return float(np.mean(draws > ratio ** 2 * float(np.sum(weights))))
 
 
+#: :func:`held_out_check`'s answer where it cannot judge (too few poses, a direction left free, no prior)
 NOT_CHECKED = {"folds": 0, "passed": None, "rms_mm": None, "predicted_rms_mm": None, "chi2_per_dof": None,
                "p_value": None}
 
