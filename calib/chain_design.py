@@ -30,7 +30,11 @@ class CampaignDesign:
     """A planned campaign (:func:`design_campaign`).
 
     commands : (n, M) motor commands in driving order, deg / mm.
-    base : the base errors the campaign determines (those of the candidate pool).
+    base : the base errors of the candidate pool, in which the poses are chosen and :attr:`covariance` is
+        given.
+    determined : how many base errors the chosen poses determine (the rank ``identify`` finds on the plan's
+        own poses: it may be smaller than ``len(base)`` where a machine's directions thin out without a gap,
+        as on CAD models whose loops barely see some errors).
     covariance : (len(base), len(base)) posterior covariance of the base errors after the planned campaign
         (data and prior, at the nominal machine), their units.
     std : its standard deviations.
@@ -45,6 +49,7 @@ class CampaignDesign:
     std: np.ndarray
     std_random: np.ndarray
     pool: int
+    determined: int = 0
 
     @property
     def gain(self) -> float:
@@ -126,6 +131,7 @@ def design_campaign(model: ChainModel, candidates: np.ndarray, n_poses: int, *, 
     tour = _driving_order(candidates[chosen], candidates[0] if start is None else np.asarray(start, float), span)
     chosen = chosen[tour]
     cov = _posterior_cov(blocks[chosen], prior_info, scale)
+    rows = J.reshape(len(candidates), -1, J.shape[1])[chosen].reshape(-1, J.shape[1])
     return CampaignDesign(commands=candidates[chosen], base=list(basis.base), covariance=cov, std=_std(cov),
                           std_random=_std(_posterior_cov(blocks[:n_poses], prior_info, scale)),
-                          pool=len(candidates))
+                          pool=len(candidates), determined=base_parameters(rows, keys, model.prior_std(keys)).rank)

@@ -8,8 +8,11 @@ Jacobian ``d targets / d errors`` is all this module needs.
 tracker noise and with each column scaled by the error's prior size (so mm and deg compare), is reduced as
 figaroh does for serial robots (D. V. T. Nguyen, V. Bonnet et al., FIGAROH, 2023; github.com/thanhndv212/figaroh,
 ``tools/qrdecomposition.py``: ``get_baseIndex`` / ``get_baseParams``): a QR decomposition with column
-pivoting ``J P = Q R`` gives the rank ``r`` (the columns that keep more than ``rank_tol`` of their length
-beyond the pivots before them) and the base parameters (the first ``r`` pivots); the others are linear
+pivoting ``J P = Q R`` of the column-normalised Jacobian gives the base parameters (the first ``r`` pivots,
+``r`` the number of singular values of the scaled Jacobian above ``rank_tol`` times the largest: the
+directions along which prior-sized errors move the readings by more than that share of the most visible
+one; a count of ``|R_ii|`` above a tolerance would depend on the pivot order where a CAD model's directions
+thin out without a gap, and the pivot order on the last bits: talos gave 30 and 32); the others are linear
 combinations of them, ``J_dep = J_base B`` with ``B = R^-1 Q^T J_dep`` (rescaled to the parameters'
 units). Equivalent errors (a frame's offset and its child's) tie exactly for a pivot; LAPACK's ``geqp3``
 breaks such a tie by the last bits of the norms, which differ between BLAS kernels (another base set,
@@ -80,6 +83,9 @@ from pmcal.threads import blas_policy
 
 #: Relative threshold on the pivoted QR diagonal below which a direction counts as unseen (structural rank).
 RANK_TOL = 1e-7
+#: a direction above RANK_MARGIN x RANK_TOL of the most visible one is one every campaign must determine
+#: (:meth:`BaseSet.clear_rank`): two decades of margin over the tolerance, where CAD models' spectra thin out
+RANK_MARGIN = 100.0
 
 #: Folds of the held-out self-check (:func:`held_out_check`): poses ``i % HELD_OUT_FOLDS`` left out in turn.
 HELD_OUT_FOLDS = 5
@@ -104,6 +110,8 @@ class BaseSet:
     rank : number of base parameters.
     condition_number : of the base columns (whitened, prior-scaled, unit-normalised).
     diag_r : |R_ii| of the pivoted QR (whitened, prior-scaled units: noise sigmas per prior size).
+    singular_values : of the whitened, prior-scaled Jacobian, largest first: ``rank`` of them are above the
+        rank tolerance times the largest (:meth:`clear_rank` counts those well above it).
     """
 
     keys: list[str]
@@ -115,6 +123,18 @@ class BaseSet:
     rank: int
     condition_number: float
     diag_r: np.ndarray
+    singular_values: np.ndarray | None = None
+
+    def clear_rank(self, share: float = RANK_TOL * RANK_MARGIN) -> int:
+        """How many directions are above ``share`` of the most visible one (default :data:`RANK_MARGIN` times
+        the rank tolerance): the ones a campaign must determine too. Where a CAD model's directions thin out
+        without a gap (gepetto_digit: 3e-7, 2e-7, 1e-7, 8e-8 ... of the largest), the count at the tolerance
+        itself differs by one or two between two spreads of poses, and a campaign of random poses was called
+        unusable for missing a direction at 1e-7 that no campaign measures."""
+        sv = self.singular_values
+        if sv is None or not sv.size or sv[0] <= 0:
+            return self.rank
+        return min(self.rank, int(np.sum(sv > share * sv[0])))
 
     def combination_values(self, params: Mapping[str, float]) -> np.ndarray:
         """The values (len(base),) the base parameters estimate on a machine with errors ``params``:
@@ -163,15 +183,17 @@ def _ties_to_first(R: np.ndarray, piv: np.ndarray, rank: int) -> bool:
     return bool(np.all(np.argmin(np.where(tied, piv[None, :], n), axis=1) == np.arange(rank)))
 
 
-def _gram_schmidt_pivots(A: np.ndarray, stop: float) -> np.ndarray:
+def _gram_schmidt_pivots(A: np.ndarray, stop: float, count: int | None = None) -> np.ndarray:
     """The pivot order of ``A``'s columns by Gram-Schmidt with column pivoting: repeatedly the column that
     keeps the most of its length beyond the ones taken, ties within :data:`TIE_TOL` to the lowest index,
-    while it keeps more than ``stop``; the columns not taken follow in index order. (Modified Gram-Schmidt,
-    each new direction removed twice: the lengths compared are accurate to ~1e-15.)"""
+    while it keeps more than ``stop`` (and at most ``count`` columns); the columns not taken follow in index
+    order. (Modified Gram-Schmidt, each new direction removed twice: the lengths compared are accurate to
+    ~1e-15.)"""
     V = np.array(A, float)
     rest = list(range(A.shape[1]))
     taken: list[int] = []
-    while rest and len(taken) < A.shape[0]:
+    most = A.shape[0] if count is None else min(int(count), A.shape[0])
+    while rest and len(taken) < most:
         norms = np.linalg.norm(V[:, rest], axis=0)
         best = norms.max()
         if best <= stop:
@@ -185,31 +207,33 @@ def _gram_schmidt_pivots(A: np.ndarray, stop: float) -> np.ndarray:
     return np.r_[np.asarray(taken, int), np.asarray(rest, int)]
 
 
-def _rank(R: np.ndarray, rank_tol: float) -> int:
-    d = np.abs(np.diag(R))
-    return int(np.sum(d > rank_tol * d[0])) if d.size and d[0] > 0 else 0
+def _rank(A: np.ndarray, rank_tol: float) -> tuple[int, np.ndarray]:
+    """The numerical rank of ``A`` (its singular values above ``rank_tol`` times the largest) and the singular
+    values. They do not depend on the column order, so neither does the rank (the count of ``|R_ii|`` above a
+    tolerance does)."""
+    sv = scipy.linalg.svdvals(A) if A.size else np.zeros(0)
+    return (int(np.sum(sv > rank_tol * sv[0])) if sv.size and sv[0] > 0 else 0), sv
 
 
-def _pivoted_qr_r(A: np.ndarray, rank_tol: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """``R`` (min(m, n), n), the column order ``piv`` (``A[:, piv] = Q R``) and the rank (``|R_ii|`` above
-    ``rank_tol |R_00|``) of a QR with column pivoting in which every tie between columns of equal remaining
-    length (:data:`TIE_TOL`) goes to the lowest index. LAPACK's ``geqp3`` breaks such ties by the last bits
-    of the norms, which differ between BLAS kernels: its result is kept where it broke none otherwise
-    (no equivalent errors), else the pivots come from :func:`_gram_schmidt_pivots` and the columns are
-    factored in that order. Where every column is a base one, the order is the columns' own (nothing to decide)."""
+def _pivoted_qr_r(A: np.ndarray, rank: int) -> tuple[np.ndarray, np.ndarray]:
+    """``R`` (min(m, n), n) and the column order ``piv`` (``A[:, piv] = Q R``) of a QR with column pivoting
+    whose first ``rank`` pivots break every tie between columns of equal remaining length (:data:`TIE_TOL`) to
+    the lowest index. LAPACK's ``geqp3`` breaks such ties by the last bits of the norms, which differ between
+    BLAS kernels: its result is kept where it broke none among the first ``rank`` pivots (no equivalent
+    errors), else those pivots come from :func:`_gram_schmidt_pivots` and the columns are factored in that
+    order. Where every column is a base one, the order is the columns' own (nothing to decide)."""
     R, piv = _geqp3(A)
-    rank = _rank(R, rank_tol)
     if rank == A.shape[1]:                     # every column a base one: key order, no tie to decide
-        return R, np.sort(piv), rank           # (R's columns stay in pivot order: only its singular values
+        return R, np.sort(piv)                 # (R's columns stay in pivot order: only its singular values
                                                # are used, the same in any column order)
     if _ties_to_first(R, piv, rank):
-        return R, piv, rank
+        return R, piv
     C = R[:, np.argsort(piv)]                   # A = Q C: same lengths and angles, min(m, n) rows only
-    piv = _gram_schmidt_pivots(C, rank_tol * abs(R[0, 0]))
-    R = np.linalg.qr(C[:, piv], mode="r")
-    return R, piv, _rank(R, rank_tol)
+    piv = _gram_schmidt_pivots(C, 0.0, rank)
+    return np.linalg.qr(C[:, piv], mode="r"), piv
 
 
+@blas_policy()
 def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = None,
                     rank_tol: float = RANK_TOL) -> BaseSet:
     """Base-parameter reduction of a Jacobian by QR with column pivoting, ties to key order (module docstring).
@@ -219,7 +243,11 @@ def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = N
     J : (m, P) whitened Jacobian (residual units: noise sigmas) per parameter unit.
     keys : the P parameter names.
     scale : (P,) typical size of each parameter (its prior), so columns of mixed units compare; default 1.
-    rank_tol : relative threshold on ``|R_ii|`` (of column-normalised, scaled columns).
+    rank_tol : the rank is the number of singular values of the scaled Jacobian ``J * scale`` above
+        ``rank_tol`` times the largest (directions along which errors of their typical size move the readings
+        by more than that share of what the most visible direction does); a column whose whole effect is
+        below that share is an error with no effect. The pivots that name the base parameters are chosen
+        on column-normalised columns.
 
     Example
     -------
@@ -233,9 +261,10 @@ def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = N
     scale = np.ones(P) if scale is None else np.asarray(scale, float)
     Js = J * scale
     norms = np.linalg.norm(Js, axis=0)
-    zero = norms <= rank_tol * 1e-3 * max(float(norms.max(initial=0.0)), 1e-300)   # numerically no effect
+    zero = norms <= rank_tol * max(float(norms.max(initial=0.0)), 1e-300)   # no effect the rank can count
     Jn = Js / np.where(zero, 1.0, norms)
-    R, piv, r = _pivoted_qr_r(np.where(zero, 0.0, Jn), rank_tol)
+    r, sv_all = _rank(np.where(zero, 0.0, Js), rank_tol)
+    R, piv = _pivoted_qr_r(np.where(zero, 0.0, Jn), r)
     d = np.abs(np.diag(R))
     dep_order = np.argsort(piv[r:], kind="stable")          # the dependent ones in key order, not LAPACK's
     base_idx, dep_idx = piv[:r], piv[r:][dep_order]
@@ -265,7 +294,7 @@ def base_parameters(J: np.ndarray, keys: list[str], scale: np.ndarray | None = N
     sv = np.linalg.svd(R[:r, :r], compute_uv=False) if r else np.zeros(0)     # = Jn[:, base]'s (Q orthonormal)
     cond = float(sv[0] / sv[-1]) if r and sv[-1] > 0 else np.inf
     return BaseSet(keys=list(keys), base=base, dependent=dep, regroup=B, combinations=combos,
-                   unidentifiable=unid, rank=r, condition_number=cond, diag_r=d)
+                   unidentifiable=unid, rank=r, condition_number=cond, diag_r=d, singular_values=sv_all)
 
 
 @dataclass

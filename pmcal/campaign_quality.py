@@ -88,7 +88,7 @@ FIT_CHI2_PER_DOF = 1.5
 
 
 def chain_quality(rank: int, reference_rank: int, n_poses: int, distinct_poses: int, readings_per_pose: int,
-                  outliers: list[str], fit: dict | None = None) -> dict:
+                  outliers: list[str], fit: dict | None = None, required_rank: int | None = None) -> dict:
     """The ``quality`` object of a folder machine's identification (docs/formats.md, "Campaign quality").
 
     Parameters
@@ -102,16 +102,19 @@ def chain_quality(rank: int, reference_rank: int, n_poses: int, distinct_poses: 
     outliers : one text per gross outlier found (row, pose, target, how far), empty if none.
     fit : the fit's ``chi2``, ``dof``, ``residual_rms_mm``, ``sigma_mm`` and ``held_out``
         (:func:`pmcal.calib.closed_chain.held_out_check`); None: not judged.
+    required_rank : the reference's combinations a campaign must determine (those well above the rank
+        tolerance, :meth:`pmcal.calib.closed_chain.BaseSet.clear_rank`); None: all ``reference_rank``.
 
-    Not usable when the campaign determines fewer combinations than the reference, when it has fewer
+    Not usable when the campaign determines fewer combinations than the reference requires, when it has fewer
     distinct poses than ``MIN_READINGS_PER_COMBINATION x reference_rank / readings_per_pose``, when it
     holds gross outliers, when the fit stops above the noise floor (chi-square beyond :data:`FIT_P` and
     chi2/dof above :data:`FIT_CHI2_PER_DOF`), or when it does not predict the poses it did not fit.
     """
     needed = -(-MIN_READINGS_PER_COMBINATION * reference_rank // readings_per_pose)
     why = []
-    if rank < reference_rank:
-        why.append(f"the campaign determines {rank} of the {reference_rank} error combinations a campaign spread "
+    required = reference_rank if required_rank is None else min(int(required_rank), reference_rank)
+    if rank < required:
+        why.append(f"the campaign determines {rank} of the {required} error combinations a campaign spread "
                    "over the workspace determines")
     if distinct_poses < needed:
         repeated = f" ({n_poses - distinct_poses} rows repeat a pose)" if distinct_poses < n_poses else ""
@@ -126,8 +129,9 @@ def chain_quality(rank: int, reference_rank: int, n_poses: int, distinct_poses: 
             "distinct_poses": distinct_poses, "poses_needed": needed, "outliers": list(outliers),
             "usable": not why, "why": "; ".join(why) if why else None,
             "note": ("determined directions: the rank of the campaign's base set, of the machine's structural base "
-                     f"set; not usable below it, below {MIN_READINGS_PER_COMBINATION} readings per combination on "
-                     "distinct poses, or with gross outliers (docs/formats.md)")}
+                     "set; not usable below its clear part (directions above 1e-5 of the most visible), below "
+                     f"{MIN_READINGS_PER_COMBINATION} readings per combination on distinct poses, or with gross "
+                     "outliers (docs/formats.md)")}
 
 
 def _fit_reasons(fit: dict) -> list[str]:

@@ -348,7 +348,7 @@ def campaign_quality(machine, meas: ChainMeasurements, res, sigma_mm: float | No
     fit = {"chi2": float(res.chi2), "dof": float(res.dof), "residual_rms_mm": float(res.residual_rms_mm),
            "sigma_mm": float(res.sigma_mm), "held_out": res.info.get("held_out")}
     return chain_quality(int(res.rank), int(reference.rank), len(meas), distinct_poses(meas), per_pose, outliers,
-                         fit)
+                         fit, required_rank=reference.clear_rank())
 
 
 #: poses of the reference campaign of :func:`reference_basis` (at least; more for a machine with many errors)

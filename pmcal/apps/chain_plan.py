@@ -31,10 +31,10 @@ def twin_plan(args) -> int:
     write_plan(args.output, machine.spec, design.commands, [
         f"pmcal twin plan: machine {machine.name}, {args.poses} poses chosen D-optimally from {design.pool} drawn "
         f"over the workspace (seed {args.seed}), in driving order from the home keyframe",
-        f"determines {len(design.base)} base errors; their uncertainty is {design.gain:.2f}x smaller (geometric "
+        f"determines {design.determined} base errors; their uncertainty is {design.gain:.2f}x smaller (geometric "
         f"mean; {ratio.min():.2f}x .. {ratio.max():.2f}x) than with {args.poses} random poses",
         "drive the rows in this order; log the tracker targets t1_x .. at each (the measurement CSV)"])
-    print(f"{args.poses} poses determine {len(design.base)} base errors, with uncertainties {design.gain:.2f}x "
+    print(f"{args.poses} poses determine {design.determined} base errors, with uncertainties {design.gain:.2f}x "
           f"smaller (geometric mean) than {args.poses} random poses give")
     return 0
 
