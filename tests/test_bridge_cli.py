@@ -123,3 +123,16 @@ def test_mock_plc_command_serves_a_push(tmp_path):
             proc.kill()
             out, _ = proc.communicate()
     assert "active version 2" in out
+
+
+def test_a_key_given_twice_in_the_table_json_is_refused(tmp_path, capsys):
+    """The last of two ``table_version`` keys won without a word (json keeps the last); the CRC does not see it
+    when the last one is the true one. Refused naming the file and the key, before any connection."""
+    jp, _ = make_table(version=1).save(tmp_path / "comp.json")
+    jp.write_text(jp.read_text().replace('"table_version": 1,', '"table_version": 5,\n "table_version": 1,', 1))
+    with running(ModbusMockPlc(lifetime_s=60.0)) as plc:
+        assert main(["push", str(jp), "--modbus", plc.target, "--json", str(tmp_path / "r.json")]) == 2
+        assert plc.requests == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{jp}: duplicate key 'table_version'" in err[0], err
+    assert not (tmp_path / "r.json").exists() and not (tmp_path / "bridge_audit.log").exists()
