@@ -19,6 +19,19 @@ from pmcal.errors import InputError
 from pmcal.fileio import atomic_write, read_text
 
 
+def parse_number(text: str, kind: type = float) -> float | int:
+    """The one reader of a number in a text file: as pmcal's files write it (``-2.5``, ``1e3``, ``7``; blanks
+    around it allowed), as ``kind`` (``float`` or ``int``).
+
+    ``ValueError`` for anything else, also for what Python's ``float`` and ``int`` take but no file means:
+    digits grouped with ``_`` (``1_000``). ``inf`` and ``nan`` are returned as floats; the callers refuse
+    them by name.
+    """
+    if "_" in text:
+        raise ValueError(f"digits grouped with '_' in {text!r}")
+    return kind(text)
+
+
 @dataclass
 class CsvTable:
     """A parsed CSV file: header, string rows, comment lines and the file's name (for messages)."""
@@ -51,9 +64,10 @@ class CsvTable:
                 out[i] = default
                 continue
             try:
-                v = float(cell)
+                v = parse_number(cell)
             except ValueError:
-                raise InputError(f"'{cell}' is not a number", file=self.path, row=i + 1, field=column) from None
+                raise InputError(f"'{cell}' is not a number" + (" (write it without '_')" if "_" in cell else ""),
+                                 file=self.path, row=i + 1, field=column) from None
             if not math.isfinite(v):
                 raise InputError(f"value '{cell}' is not finite", file=self.path, row=i + 1, field=column)
             out[i] = v

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pmcal.csvio import MAX_CSV_BYTES, read_csv
+from pmcal.csvio import MAX_CSV_BYTES, parse_number, read_csv
 from pmcal.errors import InputError
 from pmcal.csvio import MAX_POSES, check_context
 from pmcal.io_chain import ChainMeasurements
@@ -80,9 +80,10 @@ def _is_number(tok: str) -> bool:
 
 
 def _is_float(tok: str) -> bool:
-    """A number, finite or not: where a coordinate is ``nan`` or ``inf`` it is refused by name, not read as a name."""
+    """A number, finite or not: where a coordinate is ``nan`` or ``inf`` it is refused by name, not read as a name
+    (:func:`pmcal.csvio.parse_number`: ``1_000`` is none)."""
     try:
-        float(tok)
+        parse_number(tok)
         return True
     except ValueError:
         return False
