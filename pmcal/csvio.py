@@ -173,6 +173,14 @@ def check_context(path: str, approach: np.ndarray | None = None, temp_c: np.ndar
                              "(degrees Fahrenheit or kelvin?)", file=path, row=int(far[0]) + 1, field=temp_field)
 
 
+def check_time_order(time_s: np.ndarray, path: str, field: str = "time_s") -> None:
+    """Time stamps (s) of rows in measurement order: never decreasing (equal stamps allowed: a clock of 1 s
+    steps gives them). An :class:`InputError` names the first row whose time is earlier than the row's before."""
+    for i in np.flatnonzero(np.diff(time_s) < 0)[:1]:
+        raise InputError(f"time goes backwards ({time_s[i + 1]:g} s after {time_s[i]:g} s): the rows are the "
+                         "measurement order", file=path, row=int(i) + 2, field=field)
+
+
 def check_blocked(coords: np.ndarray, path: str, min_visible: int = 2) -> None:
     """Blocked targets (all three cells empty, NaN in ``coords`` of shape (n, k, 3)) are allowed; a
     half-empty target or a row with fewer than ``min_visible`` measured targets is an :class:`InputError`

@@ -24,7 +24,7 @@ import numpy as np
 
 from pmcal.csvio import MAX_CSV_BYTES, parse_number, read_csv
 from pmcal.errors import InputError
-from pmcal.csvio import MAX_POSES, check_context
+from pmcal.csvio import MAX_POSES, check_context, check_time_order
 from pmcal.io_chain import ChainMeasurements
 
 #: millimetres per unit of length a tracker export may use
@@ -302,8 +302,10 @@ def read_controller_log(path: str | Path, motor_columns: tuple[str, ...] = OCPM_
     time_s = None
     if t.has("time_s"):
         time_s = t.numbers("time_s")
+        check_time_order(time_s, t.path)
     elif t.has("time"):
         time_s = np.array([parse_time(v, f"{t.path} row {i + 1}", "time") for i, v in enumerate(t.text("time"))])
+        check_time_order(time_s, t.path, "time")
     temp = t.numbers("temp_c") if t.has("temp_c") else None
     check_context(t.path, temp_c=temp)
     return ControllerLog(path=t.path, pose_id=ids, commands=m, time_s=time_s, temp_c=temp)

@@ -257,6 +257,26 @@ def test_machine_folder_log_command_outside_the_motor_range_names_the_log(tmp_pa
     assert not (tmp_path / "m.csv").exists()
 
 
+def test_machine_folder_log_whose_time_goes_backwards_is_refused(tmp_path, capsys):
+    """A controller log whose time_s decreases was imported (the time join and drift then read a wrong order):
+    refused naming the log, the row and time_s, nothing written; equal times (a clock of 1 s steps) are kept."""
+    from pmcal.mjcf import machine_dir
+
+    folder = tmp_path / "my_delta"
+    shutil.copytree(machine_dir("delta_3dof"), folder)
+    (tmp_path / "t.txt").write_text("DELTA P001 nest1 179.2 3.3 -816.1\nDELTA P001 nest2 104.3 46.8 -816.3\n")
+    argv = ["--machine", str(folder), "import", str(tmp_path / "t.txt"), "--log", str(tmp_path / "log.csv"), "-o"]
+    log = "pose_id,m1_cmd_deg,m2_cmd_deg,m3_cmd_deg,time_s\n1,12.9,31.1,32.0,{}\n2,12.9,31.1,32.0,{}\n"
+    (tmp_path / "log.csv").write_text(log.format(60.0, 30.0))
+    capsys.readouterr()
+    assert run(*argv, str(tmp_path / "m.csv")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "log.csv, row 2, field 'time_s': time goes backwards" in err[0], err
+    assert not (tmp_path / "m.csv").exists()
+    (tmp_path / "log.csv").write_text(log.format(30.0, 30.0))
+    assert run(*argv, str(tmp_path / "m.csv")) == 0
+
+
 def test_machine_folder_points_off_the_base_frame_are_said(tmp_path, capsys):
     """Points 120 mm away from where the Delta's commands put its nests (a tracker frame): imported, with
     one warning saying so and what to do."""

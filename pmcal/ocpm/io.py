@@ -18,8 +18,8 @@ from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_fk, nominal_pose
 from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, PAPER_LIMB_FIELDS, check_key
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
-from pmcal.csvio import (LONG_POSES, MAX_POSES, check_blocked, check_context, read_csv, target_columns,  # noqa: F401
-                         write_columns, write_csv)
+from pmcal.csvio import (LONG_POSES, MAX_POSES, check_blocked, check_context, check_time_order,  # noqa: F401
+                         read_csv, target_columns, write_columns, write_csv)
 from pmcal.errors import InputError
 from pmcal.fileio import check_param_values, read_json, read_text, write_json
 from pmcal.io_tracker import (BASE_FRAME_LIMITS, BASE_FRAME_NAMES, ControllerLog, ImportResult, TrackerExport,  # noqa: F401
@@ -113,9 +113,7 @@ def read_campaign_context(path: str | Path) -> dict[str, np.ndarray]:
         out["payload_kg"] = t.numbers("payload_kg")
     if t.has("time_s"):
         out["time_s"] = t.numbers("time_s")
-        for i in np.flatnonzero(np.diff(out["time_s"]) < 0)[:1]:
-            raise InputError("time goes backwards: the rows are the measurement order", file=t.path,
-                             row=int(i) + 2, field="time_s")
+        check_time_order(out["time_s"], t.path)
     temp_field = next((c for c in ("temp_c", "temp_c_planned") if t.has(c)), None)
     if temp_field:
         out["temp_c"] = t.numbers(temp_field)
