@@ -14,11 +14,13 @@ tells whether that frame is the machine's base frame (otherwise identify needs `
 
 from __future__ import annotations
 
+import contextlib
 import math
 import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -482,6 +484,19 @@ def place_points(export: TrackerExport, log: ControllerLog, nests: list[str], na
     how = f"by nearest time within {time_tolerance_s:g} s" if by_time else "by pose number"
     return PlacedPoints(coords=coords, keep=np.flatnonzero(keep), slots=slots, warnings=warnings,
                         left_out=left_out, blocked=blocked, how=how)
+
+
+@contextlib.contextmanager
+def export_pose_errors(meas, tracker: str, units: str | None) -> Iterator[None]:
+    """Inside, an :class:`InputError` naming a row of the imported measurements ``meas`` (a check of the join's
+    result, such as :func:`pmcal.csvio.check_nest_distances`) is about the tracker export: re-raised naming
+    the export ``tracker`` and the row's pose, with the unit to check (``units``: the ``--units`` given)."""
+    try:
+        yield
+    except InputError as exc:
+        pose = meas.pose_id[exc.row - 1] if exc.row else None
+        unit = f"--units {units}" if units else "the unit its header names (else --units)"
+        raise InputError(f"pose {pose}: {exc.message}; check the export's unit ({unit})", file=tracker) from None
 
 
 def named_base_frame(frame_name: str | None) -> tuple[bool, str]:

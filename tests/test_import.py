@@ -277,6 +277,34 @@ def test_machine_folder_log_whose_time_goes_backwards_is_refused(tmp_path, capsy
     assert run(*argv, str(tmp_path / "m.csv")) == 0
 
 
+def test_machine_folder_nest_distances_are_checked_as_ocpm_2dofs(tmp_path, capsys):
+    """The nests of one pose 1.5 times as far apart as the Delta's (a wrong point, a unit slip) were imported;
+    ocpm_2dof's import refuses that. Now the folder's import does the same check (the same code and limit),
+    naming the export and the pose; nothing is written."""
+    from pmcal.io_chain import read_measurements as read_chain
+    from pmcal.machines import Machine
+    from pmcal.mjcf import machine_dir
+
+    folder = tmp_path / "my_delta"
+    shutil.copytree(machine_dir("delta_3dof"), folder)
+    spec = Machine.from_folder(folder).spec
+    assert run("--quiet", "--machine", str(folder), "twin", "measure", "--poses", "6", "-o",
+               str(tmp_path / "n.csv")) == 0
+    meas = read_chain(tmp_path / "n.csv", spec)
+    centre = meas.targets[2].mean(axis=0)
+    meas.targets[2] = centre + 1.5 * (meas.targets[2] - centre)
+    write_sa_export(tmp_path / "t.txt", meas, units="mm", frame="Base", targets=list(spec.targets))
+    write_log(tmp_path / "log.csv", meas, motor_columns=spec.motor_columns)
+    capsys.readouterr()
+    assert run("--machine", str(folder), "import", str(tmp_path / "t.txt"), "--log", str(tmp_path / "log.csv"),
+               "-o", str(tmp_path / "m.csv")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    pose = int("".join(c for c in meas.pose_id[2] if c.isdigit()))
+    assert len(err) == 1 and f"{tmp_path / 't.txt'}: pose {pose}: targets t1 and t2 are" in err[0], err
+    assert "the platform has them" in err[0] and "check the export's unit" in err[0], err
+    assert not (tmp_path / "m.csv").exists()
+
+
 def test_machine_folder_points_off_the_base_frame_are_said(tmp_path, capsys):
     """Points 120 mm away from where the Delta's commands put its nests (a tracker frame): imported, with
     one warning saying so and what to do."""
