@@ -108,6 +108,27 @@ def test_join_by_time_and_ambiguity(tmp_path):
         join(exp, log)                                   # no tolerance: nothing can be joined
 
 
+def test_many_stray_points_are_one_warning_line(tmp_path, capsys):
+    """An export with thousands of points of poses the log does not have printed one warning line each (a 57 MB
+    export: thousands of lines, 77 s): now one line with the count and the first three by name and line."""
+    meas = run_campaign(Twin(), plan_campaign(6, 40, seed=2), LaserTracker(0.01, np.random.default_rng(3)))
+    write_sa_export(tmp_path / "t.txt", meas, units="mm", collection="OCPM")
+    write_log(tmp_path / "log.csv", meas)
+    with open(tmp_path / "t.txt", "a", encoding="utf-8") as fh:
+        fh.writelines(f"OCPM P{900 + i} T{i % 3 + 1} 1.0 2.0 3.0\n" for i in range(2000))
+    first = len((tmp_path / "t.txt").read_text().splitlines()) - 2000 + 1
+    capsys.readouterr()
+    assert run("import", str(tmp_path / "t.txt"), "--log", str(tmp_path / "log.csv"), "-o",
+               str(tmp_path / "m.csv")) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("pmcal: warning:")]
+    assert len(warnings) == 1, warnings[:5]
+    assert warnings[0] == (f"pmcal: warning: {tmp_path / 't.txt'}: 2000 points name a pose that is not in the log: "
+                           f"left out ('OCPM P900 T1' ({tmp_path / 't.txt'}:{first}), 'OCPM P901 T2' "
+                           f"({tmp_path / 't.txt'}:{first + 1}), 'OCPM P902 T3' ({tmp_path / 't.txt'}:{first + 2}) "
+                           "and 1997 more)")
+    assert len(read_measurements(tmp_path / "m.csv")) == 6
+
+
 def test_tracker_frame_detected_and_recorded(tmp_path, capsys):
     pose = random_tracker_pose(np.random.default_rng(4))
     meas = run_campaign(Twin(), plan_campaign(6, 40, seed=2), LaserTracker(0.01, np.random.default_rng(3), pose=pose))
