@@ -55,7 +55,7 @@ class AdsLink(LinkBase):
             return
         plc = pyads.Connection(self.address.netid, self.amap.ams_port,
                                f"{self.address.host}:{self.address.tcp_port}")
-        self._call("open the ADS connection", plc.open)
+        self._call(OPEN_STEP, plc.open)
         self._plc = plc
         self._call("set the ADS time-out", plc.set_timeout, int(self.timeout_s * 1000))
 
@@ -220,9 +220,12 @@ class AdsLink(LinkBase):
             raise LinkError(f"ADS link to {self.target} failed to {what}: {exc}") from None
 
     def _raise(self, what: str, code: int | None, text: str):
-        if code in ROUTING_HINTS:            # retried: AdsLib also says so while a PLC boots
+        hints = {**ROUTING_HINTS, **OPEN_HINTS} if what == OPEN_STEP else ROUTING_HINTS
+        if code in hints:            # retried: AdsLib also says so while a PLC boots
+            a = self.address
             raise LinkError(f"ADS link to {self.target} failed to {what}: ADS error {code} ({text}): "
-                            f"{ROUTING_HINTS[code].format(port=self.amap.ams_port)}") from None
+                            + hints[code].format(port=self.amap.ams_port, host=a.host, tcp=a.tcp_port, netid=a.netid)
+                            ) from None
         if code is None or code < 0 or code in LINK_ERRORS:
             hint = f": {TIMEOUT_HINT}" if code == ADS_TIMEOUT else ""
             raise LinkError(f"ADS link to {self.target} failed to {what}: {text}{hint}") from None
@@ -235,6 +238,18 @@ ROUTING_HINTS = {
        "(851 for the first TwinCAT 3 PLC runtime)?",
     7: "the router does not know that AMS NetID: check the NetID in --ads NETID@HOST and the route on the PLC "
        "for this client's NetID (--local-netid, docs/bridge.md 'Routes')",
+}
+
+
+#: the step of :meth:`AdsLink.open` whose failures :data:`OPEN_HINTS` explain
+OPEN_STEP = "open the ADS connection"
+#: AdsLib's codes when opening fails: 6 there means no TCP connection to the host's ADS router came about (an
+#: unreachable or unrouted host, a refused port), not a missing runtime, which shows only on the first request
+OPEN_HINTS = {
+    6: "no ADS connection to {host} (TCP port {tcp}, AMS NetID {netid}, AMS port {port}): check that {host} is on "
+       "and reachable from here (network, firewall for TCP {tcp}), that the PLC has a route for this client's AMS "
+       "NetID (--local-netid, docs/bridge.md 'Routes'), the AMS NetID in --ads NETID@HOST, and --ams-port (851 for "
+       "the first TwinCAT 3 PLC runtime)",
 }
 
 

@@ -21,6 +21,7 @@ import numpy as np
 from pmcal.bridge.comptable import (CONTROLLER, FORMAT, FORMAT_VERSION, NMOTOR_MAX, PHI, READ_VERSIONS, THETA, Axis,
                                     CompTable, ControllerReference, Motor, crc32)
 from pmcal.bridge.nominal import NominalReference
+from pmcal.csvio import parse_number
 from pmcal.errors import InputError
 from pmcal.fileio import atomic_write, read_json as read_json_document
 
@@ -174,7 +175,7 @@ def read_csv(path: str | Path) -> CompTable:
         nums = []
         for name, text in zip(columns, row):
             try:
-                nums.append(float(text))
+                nums.append(parse_number(text))
             except ValueError:
                 raise InputError(f"not a number: {text!r}", file=src, row=r, field=name) from None
         for name, got, want in zip(columns, nums, x[r - 1]):
@@ -293,7 +294,7 @@ def _parse(meta: dict, key: str, kind: type, src: str):
     if key not in meta:
         raise InputError(f"missing '{key}=' in the # header lines", file=src, field=key)
     try:
-        return kind(meta[key])
+        return kind(meta[key]) if kind is str else parse_number(meta[key], kind)
     except ValueError:
         raise InputError(f"bad value {meta[key]!r} in the # header lines", file=src, field=key) from None
 

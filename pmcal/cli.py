@@ -359,10 +359,14 @@ def _silence_stdout() -> None:
         pass
 
 
-def run() -> None:
-    """Entry point of the console script (``pmcal``): :func:`main`; Ctrl-C ends with one line (exit 130), a
-    closed stdout (``pmcal ... | head``) with none (exit 141), never with a traceback."""
+def run(loading_handler=None) -> None:
+    """Entry point of the console script (``pmcal``, through :func:`pmcal.console.run`): :func:`main`; Ctrl-C
+    ends with one line (exit 130), a closed stdout (``pmcal ... | head``) with none (exit 141), never with a
+    traceback. ``loading_handler``: the SIGINT handler that stopped the process while the command line
+    loaded (:mod:`pmcal.console`); Python's own is put back in its place, inside the handling below."""
     try:
+        if loading_handler is not None and signal.getsignal(signal.SIGINT) is loading_handler:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
         status = main()
         sys.stdout.flush()
     except Terminated:

@@ -19,6 +19,19 @@ from pmcal.errors import InputError
 from pmcal.fileio import atomic_write, read_text
 
 
+def parse_number(text: str, kind: type = float) -> float | int:
+    """The one reader of a number in a text file: as pmcal's files write it (``-2.5``, ``1e3``, ``7``; blanks
+    around it allowed), as ``kind`` (``float`` or ``int``).
+
+    ``ValueError`` for anything else, also for what Python's ``float`` and ``int`` take but no file means:
+    digits grouped with ``_`` (``1_000``). ``inf`` and ``nan`` are returned as floats; the callers refuse
+    them by name.
+    """
+    if "_" in text:
+        raise ValueError(f"digits grouped with '_' in {text!r}")
+    return kind(text)
+
+
 @dataclass
 class CsvTable:
     """A parsed CSV file: header, string rows, comment lines and the file's name (for messages)."""
@@ -51,9 +64,10 @@ class CsvTable:
                 out[i] = default
                 continue
             try:
-                v = float(cell)
+                v = parse_number(cell)
             except ValueError:
-                raise InputError(f"'{cell}' is not a number", file=self.path, row=i + 1, field=column) from None
+                raise InputError(f"'{cell}' is not a number" + (" (write it without '_')" if "_" in cell else ""),
+                                 file=self.path, row=i + 1, field=column) from None
             if not math.isfinite(v):
                 raise InputError(f"value '{cell}' is not finite", file=self.path, row=i + 1, field=column)
             out[i] = v
@@ -157,6 +171,60 @@ def check_context(path: str, approach: np.ndarray | None = None, temp_c: np.ndar
         if far.size:
             raise InputError(f"temperature {temp_c[far[0]]:g} degC is implausible for a machine in use "
                              "(degrees Fahrenheit or kelvin?)", file=path, row=int(far[0]) + 1, field=temp_field)
+
+
+#: Largest plausible error of a measured distance between two targets (mm).
+PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
+#: The same in the tracker frame, where gross outliers are expected and rejected (named) by the robust fit:
+#: only a unit mix-up or a swapped column is an input error there (mm); also the limit of ``pmcal import``,
+#: which does not know the frame yet.
+PLAUSIBLE_TARGET_DISTANCE_TRACKER_MM = 20.0
+
+
+def check_nest_distances(targets: np.ndarray, nominal: np.ndarray, path: str, limit_mm: float) -> None:
+    """The distances between the measured targets of each row against the machine's nest geometry.
+
+    Parameters
+    ----------
+    targets : ndarray, shape (n, k, 3)
+        Measured nest positions, mm, any frame (NaN: a blocked target, skipped).
+    nominal : ndarray, shape (k, 3) or (n, k, 3)
+        The nests on the nominal machine, mm: on the platform, or where the nominal machine puts them at each
+        row's commands (NaN: a row it cannot assemble, skipped).
+    path : str
+        The file named in the error.
+    limit_mm : float
+        Largest accepted difference of a measured distance from the nominal one, mm.
+
+    Raises
+    ------
+    pmcal.errors.InputError
+        Naming the first row and pair beyond ``limit_mm`` (field ``tB_x``; values in metres said so).
+    """
+    k = targets.shape[1]
+    pairs = [(a, b) for a in range(k) for b in range(a + 1, k)]
+    if not pairs:
+        return
+    nominal = np.broadcast_to(nominal, targets.shape)
+    d_nom = np.stack([np.linalg.norm(nominal[:, a] - nominal[:, b], axis=1) for a, b in pairs], 1)
+    d_meas = np.stack([np.linalg.norm(targets[:, a] - targets[:, b], axis=1) for a, b in pairs], 1)
+    bad = np.abs(d_meas - d_nom) > limit_mm
+    if bad.any():
+        row, p = np.argwhere(bad)[0]
+        a, b = pairs[p]
+        ratio = d_meas[row, p] / d_nom[row, p]
+        hint = " (values look like metres: the file must be in mm)" if 5e-4 < ratio < 2e-3 else ""
+        raise InputError(f"targets t{a + 1} and t{b + 1} are {d_meas[row, p]:.4g} mm apart, the platform "
+                         f"has them {d_nom[row, p]:.4g} mm apart{hint}", file=path, row=int(row) + 1,
+                         field=f"t{b + 1}_x")
+
+
+def check_time_order(time_s: np.ndarray, path: str, field: str = "time_s") -> None:
+    """Time stamps (s) of rows in measurement order: never decreasing (equal stamps allowed: a clock of 1 s
+    steps gives them). An :class:`InputError` names the first row whose time is earlier than the row's before."""
+    for i in np.flatnonzero(np.diff(time_s) < 0)[:1]:
+        raise InputError(f"time goes backwards ({time_s[i + 1]:g} s after {time_s[i]:g} s): the rows are the "
+                         "measurement order", file=path, row=int(i) + 2, field=field)
 
 
 def check_blocked(coords: np.ndarray, path: str, min_visible: int = 2) -> None:

@@ -60,12 +60,30 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+class _DuplicateKey(Exception):
+    """A key given twice in one JSON object (raised by :func:`_unique_keys`, turned into an InputError)."""
+
+
+def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    """``object_pairs_hook`` of :func:`read_json`: the object's pairs as a dict, a key given twice refused
+    (``json`` would keep the last one without a word)."""
+    doc = {}
+    for key, value in pairs:
+        if key in doc:
+            raise _DuplicateKey(key)
+        doc[key] = value
+    return doc
+
+
 def read_json(path: str | os.PathLike, field: str | None = None) -> object:
     """The JSON document in ``path`` (a byte-order mark accepted); :class:`InputError` naming the file for a
-    missing, unreadable or malformed file (with the line and column of a syntax error)."""
+    missing, unreadable or malformed file (with the line and column of a syntax error) and for a key given
+    twice in one object (``FILE: duplicate key 'K'``; the last one would win silently)."""
     text = read_text(path, field=field)
     try:
-        return json.loads(text)
+        return json.loads(text, object_pairs_hook=_unique_keys)
+    except _DuplicateKey as exc:
+        raise InputError(f"duplicate key '{exc.args[0]}'", file=str(path), field=field) from None
     except json.JSONDecodeError as exc:
         raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})", file=str(path),
                          field=field) from None

@@ -14,17 +14,19 @@ tells whether that frame is the machine's base frame (otherwise identify needs `
 
 from __future__ import annotations
 
+import contextlib
 import math
 import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
-from pmcal.csvio import MAX_CSV_BYTES, read_csv
+from pmcal.csvio import MAX_CSV_BYTES, parse_number, read_csv
 from pmcal.errors import InputError
-from pmcal.csvio import MAX_POSES, check_context
+from pmcal.csvio import MAX_POSES, check_context, check_time_order
 from pmcal.io_chain import ChainMeasurements
 
 #: millimetres per unit of length a tracker export may use
@@ -80,9 +82,10 @@ def _is_number(tok: str) -> bool:
 
 
 def _is_float(tok: str) -> bool:
-    """A number, finite or not: where a coordinate is ``nan`` or ``inf`` it is refused by name, not read as a name."""
+    """A number, finite or not: where a coordinate is ``nan`` or ``inf`` it is refused by name, not read as a name
+    (:func:`pmcal.csvio.parse_number`: ``1_000`` is none)."""
     try:
-        float(tok)
+        parse_number(tok)
         return True
     except ValueError:
         return False
@@ -301,8 +304,10 @@ def read_controller_log(path: str | Path, motor_columns: tuple[str, ...] = OCPM_
     time_s = None
     if t.has("time_s"):
         time_s = t.numbers("time_s")
+        check_time_order(time_s, t.path)
     elif t.has("time"):
         time_s = np.array([parse_time(v, f"{t.path} row {i + 1}", "time") for i, v in enumerate(t.text("time"))])
+        check_time_order(time_s, t.path, "time")
     temp = t.numbers("temp_c") if t.has("temp_c") else None
     check_context(t.path, temp_c=temp)
     return ControllerLog(path=t.path, pose_id=ids, commands=m, time_s=time_s, temp_c=temp)
@@ -371,6 +376,36 @@ def join_machine(export: TrackerExport, log: ControllerLog, spec, distance_from_
                          "transform the points into the machine's base frame before identifying")
 
 
+#: how many points a warning about several points left out for one reason names (the first ones, in file order)
+LEFT_OUT_NAMED = 3
+
+
+class LeftOutPoints:
+    """The exported points :func:`place_points` leaves out, by reason: one warning line per reason, however
+    many points it holds (an export of thousands of stray points gives a few lines, not thousands)."""
+
+    def __init__(self) -> None:
+        self.by_reason: dict[str, list[tuple[TrackerPoint, str]]] = {}
+
+    def add(self, pt: TrackerPoint, why: str, reason: str) -> None:
+        """Leave out ``pt``: ``why`` worded for this point, ``reason`` for several (its group)."""
+        self.by_reason.setdefault(reason, []).append((pt, why))
+
+    def lines(self, path: str) -> list[str]:
+        """One line per reason: the point's own line for a single point, else the count and the first
+        :data:`LEFT_OUT_NAMED` points by name and ``FILE:LINE``."""
+        out = []
+        for reason, items in self.by_reason.items():
+            if len(items) == 1:
+                pt, why = items[0]
+                out.append(f"{pt.where}: point '{pt.name}': {why}: left out")
+                continue
+            named = ", ".join(f"'{pt.name}' ({pt.where})" for pt, _ in items[:LEFT_OUT_NAMED])
+            more = f" and {len(items) - LEFT_OUT_NAMED} more" if len(items) > LEFT_OUT_NAMED else ""
+            out.append(f"{path}: {len(items)} points {reason}: left out ({named}{more})")
+        return out
+
+
 @dataclass
 class PlacedPoints:
     """Tracker points placed on the log's poses and the machine's nests (:func:`place_points`).
@@ -419,47 +454,50 @@ def place_points(export: TrackerExport, log: ControllerLog, nests: list[str], na
                 raise InputError(f"pose ids '{log.pose_id[by_number[k]]}' and '{pid}' have the same number {k}: "
                                  "points cannot be told apart by pose", file=log.path, row=i + 1, field="pose_id")
             by_number[k] = i
-    warnings, slots = [], {}
+    warnings, slots, left = [], {}, LeftOutPoints()
     times = log.time_s
+    nest_names = f"T1..T{n_nests}" + (f" or {', '.join(nests)}" if nests[0] != "T1" else "")
     for pt in export.points:
         pose_label, target_label = pt.pose, pt.target
         if target_label is None:
             mt = rx.fullmatch(pt.name)
             if mt is None or not mt.groupdict().get("target"):
-                warnings.append(f"{pt.where}: point '{pt.name}' does not fit the name pattern: left out")
+                left.add(pt, "does not fit the name pattern", "do not fit the name pattern")
                 continue
             target_label, pose_label = mt.group("target"), mt.groupdict().get("pose")
         number = re.fullmatch(r"[Tt]?(\d+)", target_label)
         nest = by_name.get(target_label.lower(), int(number.group(1)) - 1 if number else -1)
         if not 0 <= nest < n_nests:
-            warnings.append(f"{pt.where}: point '{pt.name}': '{target_label}' is not a nest of the machine "
-                            f"(T1..T{n_nests}" + (f" or {', '.join(nests)}" if nests[0] != "T1" else "")
-                            + "): left out")
+            left.add(pt, f"'{target_label}' is not a nest of the machine ({nest_names})",
+                     f"name no nest of the machine ({nest_names})")
             continue
         row = None
         if pose_label is not None and pose_number(pose_label) is not None:
             row = by_number.get(pose_number(pose_label))
             if row is None:
-                warnings.append(f"{pt.where}: point '{pt.name}': no pose {pose_number(pose_label)} in the log: "
-                                "left out")
+                left.add(pt, f"no pose {pose_number(pose_label)} in the log", "name a pose that is not in the log")
                 continue
         elif math.isfinite(pt.time_s) and times is not None and time_tolerance_s is not None:
             near = np.flatnonzero(np.abs(times - pt.time_s) <= time_tolerance_s)
             if len(near) != 1:
                 what = "no log row" if len(near) == 0 else \
                     "log rows " + ", ".join(log.pose_id[i] for i in near) + " (ambiguous)"
-                warnings.append(f"{pt.where}: point '{pt.name}': {what} within {time_tolerance_s:g} s: left out")
+                left.add(pt, f"{what} within {time_tolerance_s:g} s",
+                         f"have {'no log row' if len(near) == 0 else 'two or more log rows (ambiguous)'} within "
+                         f"{time_tolerance_s:g} s")
                 continue
             row = int(near[0])
         else:
             need = "--time-tolerance S and time stamps on both sides" if pose_label is None else "a pose number"
-            warnings.append(f"{pt.where}: point '{pt.name}' has no pose in its name ({need} to join it): left out")
+            left.add(pt, f"has no pose in its name ({need} to join it)",
+                     f"have no pose in their name ({need} to join them)")
             continue
         key = (row, nest)
         if key in slots:
             warnings.append(f"{pt.where}: point '{pt.name}' measured again (first at {slots[key].where}): "
                             "the last one is kept")
         slots[key] = pt
+    warnings = left.lines(export.path) + warnings
     if not slots:
         raise InputError(f"no point of the export matches a pose of the log {log.path} (names, --names pattern, pose "
                          "numbers, time stamps?)" + (f"; first: {warnings[0]}" if warnings else ""), file=export.path)
@@ -479,6 +517,19 @@ def place_points(export: TrackerExport, log: ControllerLog, nests: list[str], na
     how = f"by nearest time within {time_tolerance_s:g} s" if by_time else "by pose number"
     return PlacedPoints(coords=coords, keep=np.flatnonzero(keep), slots=slots, warnings=warnings,
                         left_out=left_out, blocked=blocked, how=how)
+
+
+@contextlib.contextmanager
+def export_pose_errors(meas, tracker: str, units: str | None) -> Iterator[None]:
+    """Inside, an :class:`InputError` naming a row of the imported measurements ``meas`` (a check of the join's
+    result, such as :func:`pmcal.csvio.check_nest_distances`) is about the tracker export: re-raised naming
+    the export ``tracker`` and the row's pose, with the unit to check (``units``: the ``--units`` given)."""
+    try:
+        yield
+    except InputError as exc:
+        pose = meas.pose_id[exc.row - 1] if exc.row else None
+        unit = f"--units {units}" if units else "the unit its header names (else --units)"
+        raise InputError(f"pose {pose}: {exc.message}; check the export's unit ({unit})", file=tracker) from None
 
 
 def named_base_frame(frame_name: str | None) -> tuple[bool, str]:

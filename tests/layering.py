@@ -33,7 +33,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("application: reports", ("pmcal.reports",)),
     ("application: apps", ("pmcal.apps", "pmcal.studies")),
     ("application: commands", ("pmcal.commands",)),
-    ("application: cli", ("pmcal.cli",)),
+    ("application: cli", ("pmcal.cli", "pmcal.console")),
 ]
 #: (importer prefix, forbidden prefix, why)
 FORBIDDEN = [

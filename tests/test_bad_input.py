@@ -164,6 +164,35 @@ def test_a_large_input_reports_its_steps_also_when_piped(work, capsys, tmp_path)
     assert capsys.readouterr() == ("", "")
 
 
+def _cell_replaced(src: Path, dst: Path, column: str, value: str) -> Path:
+    """``src`` with the first data row's ``column`` set to ``value``."""
+    lines = src.read_text().splitlines()
+    head = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    k = lines[head].split(",").index(column)
+    cells = lines[head + 1].split(",")
+    cells[k] = value
+    lines[head + 1] = ",".join(cells)
+    dst.write_text("\n".join(lines) + "\n")
+    return dst
+
+
+def test_digits_grouped_with_underscores_are_refused_in_every_csv(work, capsys, tmp_path):
+    """``1_0`` was read as 10 (Python's float takes underscores): now refused naming file, row and field, nothing
+    written; blanks around a number and 1e1 stay accepted, inf and nan stay refused."""
+    targets = _cell_replaced(work / "targets.csv", tmp_path / "t.csv", "phi_deg", "1_0")
+    line = one_line_error(capsys, "compensate", work / "params.json", "--targets", targets, "-o", tmp_path / "s.csv")
+    assert f"{targets}, row 1, field 'phi_deg'" in line and "without '_'" in line
+    meas = _cell_replaced(work / "m.csv", tmp_path / "m.csv", "m1_cmd_deg", "-4_0.5")
+    one_line_error(capsys, "identify", meas, "-o", tmp_path / "p.json", says=f"{meas}, row 1, field 'm1_cmd_deg'")
+    bad_table = _cell_replaced(work / "table.csv", tmp_path / "bad_table.csv", "dm1_deg", "1_0")
+    one_line_error(capsys, "push", bad_table, "--modbus", "127.0.0.1:1", "--json", tmp_path / "r.json",
+                   says=f"{bad_table}, row 1, field 'dm1_deg'")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad_table.csv", "m.csv", "t.csv"]
+    for value, status in ((" 1e1 ", 0), ("inf", 2), ("nan", 2)):
+        ok = _cell_replaced(work / "targets.csv", tmp_path / "t.csv", "phi_deg", value)
+        assert run(capsys, "compensate", work / "params.json", "--targets", ok, "-o", tmp_path / "s.csv")[0] == status
+
+
 # ---------------------------------------------------------------- planar plausibility
 def test_planar_readings_in_metres_are_refused(work, capsys, tmp_path):
     lines = (work / "planar.csv").read_text().splitlines()

@@ -123,3 +123,38 @@ def test_mock_plc_command_serves_a_push(tmp_path):
             proc.kill()
             out, _ = proc.communicate()
     assert "active version 2" in out
+
+
+def test_a_key_given_twice_in_the_table_json_is_refused(tmp_path, capsys):
+    """The last of two ``table_version`` keys won without a word (json keeps the last); the CRC does not see it
+    when the last one is the true one. Refused naming the file and the key, before any connection."""
+    jp, _ = make_table(version=1).save(tmp_path / "comp.json")
+    jp.write_text(jp.read_text().replace('"table_version": 1,', '"table_version": 5,\n "table_version": 1,', 1))
+    with running(ModbusMockPlc(lifetime_s=60.0)) as plc:
+        assert main(["push", str(jp), "--modbus", plc.target, "--json", str(tmp_path / "r.json")]) == 2
+        assert plc.requests == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{jp}: duplicate key 'table_version'" in err[0], err
+    assert not (tmp_path / "r.json").exists() and not (tmp_path / "bridge_audit.log").exists()
+
+
+def test_ads_host_without_an_ads_router_names_host_ports_and_what_to_check(tmp_path, capsys):
+    """An unreachable host (here a closed TCP port) made AdsLib answer 'ADS error 6' at the connection, which
+    the line blamed on a stopped PLC runtime: it now names the host, TCP port, AMS NetID and AMS port and says
+    what to check (reachability, the route on the PLC, the NetID, --ams-port 851). A connection failure:
+    exit 1, within the push's time bound."""
+    import socket
+    import time
+
+    with socket.socket() as s:                 # a port nothing listens on: the connection is refused
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    jp, _ = make_table(version=1).save(tmp_path / "comp.json")
+    t0 = time.monotonic()
+    assert main(["push", str(jp), "--ads", f"1.2.3.4.1.1@127.0.0.1:{port}", "--no-audit"]) == 1
+    assert time.monotonic() - t0 < 5.0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert f"no ADS connection to 127.0.0.1 (TCP port {port}, AMS NetID 1.2.3.4.1.1, AMS port 851)" in err[0], err
+    assert "route for this client's AMS NetID" in err[0] and "851 for the first TwinCAT 3 PLC runtime" in err[0]
+    assert "nothing committed" in err[0]

@@ -108,6 +108,27 @@ def test_join_by_time_and_ambiguity(tmp_path):
         join(exp, log)                                   # no tolerance: nothing can be joined
 
 
+def test_many_stray_points_are_one_warning_line(tmp_path, capsys):
+    """An export with thousands of points of poses the log does not have printed one warning line each (a 57 MB
+    export: thousands of lines, 77 s): now one line with the count and the first three by name and line."""
+    meas = run_campaign(Twin(), plan_campaign(6, 40, seed=2), LaserTracker(0.01, np.random.default_rng(3)))
+    write_sa_export(tmp_path / "t.txt", meas, units="mm", collection="OCPM")
+    write_log(tmp_path / "log.csv", meas)
+    with open(tmp_path / "t.txt", "a", encoding="utf-8") as fh:
+        fh.writelines(f"OCPM P{900 + i} T{i % 3 + 1} 1.0 2.0 3.0\n" for i in range(2000))
+    first = len((tmp_path / "t.txt").read_text().splitlines()) - 2000 + 1
+    capsys.readouterr()
+    assert run("import", str(tmp_path / "t.txt"), "--log", str(tmp_path / "log.csv"), "-o",
+               str(tmp_path / "m.csv")) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("pmcal: warning:")]
+    assert len(warnings) == 1, warnings[:5]
+    assert warnings[0] == (f"pmcal: warning: {tmp_path / 't.txt'}: 2000 points name a pose that is not in the log: "
+                           f"left out ('OCPM P900 T1' ({tmp_path / 't.txt'}:{first}), 'OCPM P901 T2' "
+                           f"({tmp_path / 't.txt'}:{first + 1}), 'OCPM P902 T3' ({tmp_path / 't.txt'}:{first + 2}) "
+                           "and 1997 more)")
+    assert len(read_measurements(tmp_path / "m.csv")) == 6
+
+
 def test_tracker_frame_detected_and_recorded(tmp_path, capsys):
     pose = random_tracker_pose(np.random.default_rng(4))
     meas = run_campaign(Twin(), plan_campaign(6, 40, seed=2), LaserTracker(0.01, np.random.default_rng(3), pose=pose))
@@ -254,6 +275,54 @@ def test_machine_folder_log_command_outside_the_motor_range_names_the_log(tmp_pa
                "-o", str(tmp_path / "m.csv")) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "log.csv, row 2, field 'm1_cmd_deg'" in err[0], err
+    assert not (tmp_path / "m.csv").exists()
+
+
+def test_machine_folder_log_whose_time_goes_backwards_is_refused(tmp_path, capsys):
+    """A controller log whose time_s decreases was imported (the time join and drift then read a wrong order):
+    refused naming the log, the row and time_s, nothing written; equal times (a clock of 1 s steps) are kept."""
+    from pmcal.mjcf import machine_dir
+
+    folder = tmp_path / "my_delta"
+    shutil.copytree(machine_dir("delta_3dof"), folder)
+    (tmp_path / "t.txt").write_text("DELTA P001 nest1 179.2 3.3 -816.1\nDELTA P001 nest2 104.3 46.8 -816.3\n")
+    argv = ["--machine", str(folder), "import", str(tmp_path / "t.txt"), "--log", str(tmp_path / "log.csv"), "-o"]
+    log = "pose_id,m1_cmd_deg,m2_cmd_deg,m3_cmd_deg,time_s\n1,12.9,31.1,32.0,{}\n2,12.9,31.1,32.0,{}\n"
+    (tmp_path / "log.csv").write_text(log.format(60.0, 30.0))
+    capsys.readouterr()
+    assert run(*argv, str(tmp_path / "m.csv")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "log.csv, row 2, field 'time_s': time goes backwards" in err[0], err
+    assert not (tmp_path / "m.csv").exists()
+    (tmp_path / "log.csv").write_text(log.format(30.0, 30.0))
+    assert run(*argv, str(tmp_path / "m.csv")) == 0
+
+
+def test_machine_folder_nest_distances_are_checked_as_ocpm_2dofs(tmp_path, capsys):
+    """The nests of one pose 1.5 times as far apart as the Delta's (a wrong point, a unit slip) were imported;
+    ocpm_2dof's import refuses that. Now the folder's import does the same check (the same code and limit),
+    naming the export and the pose; nothing is written."""
+    from pmcal.io_chain import read_measurements as read_chain
+    from pmcal.machines import Machine
+    from pmcal.mjcf import machine_dir
+
+    folder = tmp_path / "my_delta"
+    shutil.copytree(machine_dir("delta_3dof"), folder)
+    spec = Machine.from_folder(folder).spec
+    assert run("--quiet", "--machine", str(folder), "twin", "measure", "--poses", "6", "-o",
+               str(tmp_path / "n.csv")) == 0
+    meas = read_chain(tmp_path / "n.csv", spec)
+    centre = meas.targets[2].mean(axis=0)
+    meas.targets[2] = centre + 1.5 * (meas.targets[2] - centre)
+    write_sa_export(tmp_path / "t.txt", meas, units="mm", frame="Base", targets=list(spec.targets))
+    write_log(tmp_path / "log.csv", meas, motor_columns=spec.motor_columns)
+    capsys.readouterr()
+    assert run("--machine", str(folder), "import", str(tmp_path / "t.txt"), "--log", str(tmp_path / "log.csv"),
+               "-o", str(tmp_path / "m.csv")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    pose = int("".join(c for c in meas.pose_id[2] if c.isdigit()))
+    assert len(err) == 1 and f"{tmp_path / 't.txt'}: pose {pose}: targets t1 and t2 are" in err[0], err
+    assert "the platform has them" in err[0] and "check the export's unit" in err[0], err
     assert not (tmp_path / "m.csv").exists()
 
 

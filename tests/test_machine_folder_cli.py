@@ -677,6 +677,84 @@ def test_ctrl_c_while_the_command_line_loads_is_one_line(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
+def _console_entry() -> tuple[str, str]:
+    """(module, function) of the ``pmcal`` console script, as pyproject declares it."""
+    import tomllib
+
+    from tests.layering import ROOT
+
+    entry = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]["pmcal"]
+    module, _, function = entry.partition(":")
+    return module, function
+
+
+@pytest.mark.parametrize("kill_at", ["pmcal.cli", "argparse", "numpy", "pmcal.option_ranges"])
+def test_ctrl_c_from_the_first_moment_of_the_console_script_is_one_line(tmp_path, kill_at):
+    """A real SIGINT, sent when the console script's import of ``kill_at`` starts (its audit event): exit 130,
+    one line, no traceback, nothing written. Deterministic: the points are import steps, not delays. The
+    import of pmcal.cli itself (before its own ``try``) gave a KeyboardInterrupt traceback from the console
+    script's ``from pmcal.cli import run``; now pmcal.console's handler holds from its first line."""
+    import subprocess
+    import sys
+
+    module, function = _console_entry()
+    script = ("import os, signal, sys\n"
+              "def hook(event, args):\n"
+              f"    if event == 'import' and args[0] == {kill_at!r}:\n"
+              "        os.kill(os.getpid(), signal.SIGINT)\n"
+              "sys.addaudithook(hook)\n"
+              f"from {module} import {function}\n"
+              f"sys.exit({function}())\n")
+    proc = subprocess.run([sys.executable, "-c", script, "targets", "-o", "t.csv"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60)
+    assert (proc.returncode, proc.stderr) == (130, "pmcal: interrupted\n"), proc.stderr
+    assert not list(tmp_path.iterdir())
+
+
+def test_ctrl_c_at_early_delays_of_the_real_console_script(tmp_path):
+    """The installed ``pmcal`` script, SIGINT at a few delays after its entry module has loaded (seen in
+    Python's ``-v`` import lines: before that the interpreter's own start-up answers a signal, outside pmcal),
+    during the imports and after: exit 130 and no traceback, whenever it lands; nothing written."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+    from pathlib import Path
+
+    script = Path(sys.executable).parent / "pmcal"
+    if not script.exists():
+        pytest.skip("no installed pmcal console script beside this Python")
+    module, _ = _console_entry()
+    for delay in (0.0, 0.05, 0.25):
+        proc = subprocess.Popen([str(script), "--machine", "planar_2dof", "twin", "measure", "--poses", "2000",
+                                 "-o", "m.csv"], cwd=tmp_path, stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, "PYTHONVERBOSE": "1"})
+        loaded, lines = threading.Event(), []
+
+        def read(proc=proc, loaded=loaded, lines=lines):
+            for line in proc.stderr:
+                lines.append(line)
+                if line.startswith(f"import '{module}'"):
+                    loaded.set()
+
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        try:
+            assert loaded.wait(30), "".join(lines)[-2000:]
+            time.sleep(delay)
+            assert proc.poll() is None, "".join(lines)[-2000:]
+            proc.send_signal(signal.SIGINT)
+            status = proc.wait(timeout=60)
+        finally:
+            proc.kill()
+        reader.join(10)
+        err = "".join(lines)
+        assert status == 130 and "Traceback" not in err and "pmcal: interrupted" in err, (delay, err[-2000:])
+        assert not list(tmp_path.iterdir())
+
+
 # ---------------------------------------------------------------- directions the prior sets
 def _identify_json(capsys, folder, poses, out):
     """A random campaign of ``poses`` on the machine's twin, identified: (JSON document, warnings)."""

@@ -246,8 +246,9 @@ def import_campaign(args) -> int:
     export and the controller log with its motor columns (:func:`pmcal.io_tracker.join_machine`)."""
     from pmcal.apps import import_tracker_campaign
     from pmcal.chain import distance_from_nominal
+    from pmcal.csvio import PLAUSIBLE_TARGET_DISTANCE_TRACKER_MM, check_nest_distances
     from pmcal.io_chain import check_commands
-    from pmcal.io_tracker import join_machine, read_controller_log
+    from pmcal.io_tracker import export_pose_errors, join_machine, read_controller_log
 
     machine = _machine(args)
     spec = machine.spec
@@ -255,8 +256,13 @@ def import_campaign(args) -> int:
     def joined(export):
         log = read_controller_log(args.log, spec.motor_columns)
         check_commands(log.commands, spec, log.path, spec.motor_columns)   # the log's rows, not the output's
-        return join_machine(export, log, spec, lambda c, t: distance_from_nominal(machine, c, t), names=args.names,
-                            time_tolerance_s=args.time_tolerance)
+        res = join_machine(export, log, spec, lambda c, t: distance_from_nominal(machine, c, t), names=args.names,
+                           time_tolerance_s=args.time_tolerance)
+        if len(spec.targets) > 1:      # the nests' distances against the machine's, as ocpm_2dof's import checks
+            with export_pose_errors(res.meas, args.tracker, args.units):
+                check_nest_distances(res.meas.targets, machine.twin.targets(res.meas.commands), args.tracker,
+                                     PLAUSIBLE_TARGET_DISTANCE_TRACKER_MM)
+        return res
 
     return import_tracker_campaign(
         args, joined,

@@ -18,8 +18,9 @@ from pmcal.mechanism.ocpm.data import Measurements
 from pmcal.mechanism.ocpm.kinematics import nominal_fk, nominal_pose
 from pmcal.mechanism.ocpm.params import ANGULAR_FIELDS, PAPER_LIMB_FIELDS, check_key
 from pmcal.mechanism.rotations import pointing_error, tilt_torsion
-from pmcal.csvio import (LONG_POSES, MAX_POSES, check_blocked, check_context, read_csv, target_columns,  # noqa: F401
-                         write_columns, write_csv)
+from pmcal.csvio import (LONG_POSES, MAX_POSES, PLAUSIBLE_TARGET_DISTANCE_MM,  # noqa: F401
+                         PLAUSIBLE_TARGET_DISTANCE_TRACKER_MM, check_blocked, check_context, check_nest_distances,
+                         check_time_order, read_csv, target_columns, write_columns, write_csv)
 from pmcal.errors import InputError
 from pmcal.fileio import check_param_values, read_json, read_text, write_json
 from pmcal.io_tracker import (BASE_FRAME_LIMITS, BASE_FRAME_NAMES, ControllerLog, ImportResult, TrackerExport,  # noqa: F401
@@ -35,11 +36,6 @@ MAX_COORDINATE_MM = 1e5
 #: Largest azimuth a targets file or motor command a measurement file may give, deg (either sign): one turn;
 #: beyond it a value is a unit or typing error, not an orientation.
 PHI_LIMIT_DEG = 360.0
-#: Largest plausible error of a measured distance between two targets (mm).
-PLAUSIBLE_TARGET_DISTANCE_MM = 2.0
-#: The same in the tracker frame, where gross outliers are expected and rejected (named) by the robust fit:
-#: only a unit mix-up or a swapped column is an input error there (mm).
-PLAUSIBLE_TARGET_DISTANCE_TRACKER_MM = 20.0
 
 
 def read_measurements(path: str | Path, geom: Geometry | None = None, check_units: bool = True,
@@ -113,9 +109,7 @@ def read_campaign_context(path: str | Path) -> dict[str, np.ndarray]:
         out["payload_kg"] = t.numbers("payload_kg")
     if t.has("time_s"):
         out["time_s"] = t.numbers("time_s")
-        for i in np.flatnonzero(np.diff(out["time_s"]) < 0)[:1]:
-            raise InputError("time goes backwards: the rows are the measurement order", file=t.path,
-                             row=int(i) + 2, field="time_s")
+        check_time_order(out["time_s"], t.path)
     temp_field = next((c for c in ("temp_c", "temp_c_planned") if t.has(c)), None)
     if temp_field:
         out["temp_c"] = t.numbers(temp_field)
@@ -136,21 +130,8 @@ def check_commands(m_cmd_deg: np.ndarray, path: str) -> None:
 def check_plausible(meas: Measurements, geom: Geometry, path: str, frame: str = "base") -> None:
     """Catch unit mix-ups and impossible rows with a message naming the row and field (blocked targets
     skipped; in the tracker frame only the distances between targets are checked)."""
-    X = geom.targets[: meas.targets.shape[1]]
-    k = len(X)
-    pairs = [(a, b) for a in range(k) for b in range(a + 1, k)]
-    d_nom = np.array([np.linalg.norm(X[a] - X[b]) for a, b in pairs])
-    d_meas = np.stack([np.linalg.norm(meas.targets[:, a] - meas.targets[:, b], axis=1) for a, b in pairs], 1)
     limit = PLAUSIBLE_TARGET_DISTANCE_MM if frame == "base" else PLAUSIBLE_TARGET_DISTANCE_TRACKER_MM
-    bad = np.abs(d_meas - d_nom) > limit
-    if bad.any():
-        row, p = np.argwhere(bad)[0]
-        a, b = pairs[p]
-        ratio = d_meas[row, p] / d_nom[p]
-        hint = " (values look like metres: the file must be in mm)" if 5e-4 < ratio < 2e-3 else ""
-        raise InputError(f"targets t{a + 1} and t{b + 1} are {d_meas[row, p]:.4g} mm apart, the platform "
-                         f"has them {d_nom[p]:.4g} mm apart{hint}", file=path, row=int(row) + 1,
-                         field=f"t{b + 1}_x")
+    check_nest_distances(meas.targets, geom.targets[: meas.targets.shape[1]], path, limit)
     check_commands(meas.m_cmd_deg, path)
     beta = np.deg2rad(meas.m_cmd_deg)
     phi, theta = nominal_fk(beta, geom)

@@ -173,17 +173,12 @@ def import_campaign(args) -> int:
     before anything is written (points in metres are refused here, not blamed on the frame later)."""
     from pmcal.apps import import_tracker_campaign
     from pmcal.ocpm.io import check_plausible, join, write_measurements
-    from pmcal.io_tracker import read_controller_log
+    from pmcal.io_tracker import export_pose_errors, read_controller_log
 
     def joined(export):
         res = join(export, read_controller_log(args.log), names=args.names, time_tolerance_s=args.time_tolerance)
-        try:
+        with export_pose_errors(res.meas, args.tracker, args.units):
             check_plausible(res.meas, default_geometry(), args.tracker, "tracker")
-        except InputError as exc:
-            pose = res.meas.pose_id[exc.row - 1] if exc.row else None
-            unit = f"--units {args.units}" if args.units else "the unit its header names (else --units)"
-            raise InputError(f"pose {pose}: {exc.message}; check the export's unit ({unit})",
-                             file=args.tracker) from None
         return res
 
     return import_tracker_campaign(
