@@ -841,15 +841,15 @@ class ClosedChainTwin:
                 solved_cmd = np.concatenate([solved_cmd, cmd[i][None]])
                 solved_q = np.concatenate([solved_q, q[None]])
         good = np.isfinite(out).all(axis=1)
-        if self.n_free and self.spec.closures is None:
-            for i in np.flatnonzero(good):
+        if self.n_free and self.spec.closures is None and not any(dict(params or {}).values()):
+            for i in np.flatnonzero(good):                # the nominal machine's: what base sets are made of
                 out[i] = self._centre_free(out[i])
         self._remember(np.concatenate([self._warm_cmd, cmd[good]]), np.concatenate([self._warm_qpos, out[good]]))
         return out
 
     #: largest move (rad or m, in the passive dofs' tangent space) a free direction may keep from ``home``'s
-    #: value after :meth:`_centre_free`, and its iterations
-    CENTRE_TOL, CENTRE_ITER = 1e-10, 8
+    #: value after :meth:`_centre_free` (a spin 1e-9 rad off changes no derivative measurably), and its iterations
+    CENTRE_TOL, CENTRE_ITER = 1e-9, 8
 
     def _centre_free(self, q: np.ndarray) -> np.ndarray:
         """``q`` (assembled) moved along the directions its closures leave free (a ball-ball rod's spin, an
@@ -859,7 +859,10 @@ class ClosedChainTwin:
         a talos ankle rod's spin, carried from whichever earlier solve was nearest, changed a direction of the
         error Jacobian 500x (5e-6 against 6e-9 of the largest), and with it the base set (29 or 28 errors).
         Gauss-Newton on the free coordinates (their part of ``q - home``, :func:`mujoco.mj_differentiatePos`,
-        in the closure Jacobian's null space); ``q`` unchanged where a step fails to close."""
+        in the closure Jacobian's null space); ``q`` unchanged where a step fails to close. Done on the nominal
+        machine's solves (:meth:`solve` with no errors), whose derivatives make the base sets and plans: on a
+        machine with errors the free coordinates stay where the solve left them (a fit's iterations would pay
+        for it, 3 of wl16's 6 s, and their derivatives along a free spin differ by 1e-6 of the largest)."""
         m = self.model
         d = np.zeros(m.nv)
         for _ in range(self.CENTRE_ITER):
