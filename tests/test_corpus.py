@@ -354,3 +354,24 @@ def test_a_planned_pose_the_erroneous_machine_does_not_reach_is_left_out_with_it
     commands[[0, 2]] += 150.0
     with pytest.raises(RunError, match="4 of the 6 planned poses"):
         campaign(machine, 6, seed=1, commands=commands)
+
+
+def test_a_model_without_visible_geometry_is_drawn_as_its_skeleton():
+    """reachy_mini's meshes are Git LFS files absent from its source, so its model has no geom: its picture in
+    the demo report was black but for three nests (0.04 % of the pixels lit; 6 % now). It is drawn as its kinematic
+    skeleton and sites (MuJoCo's autoconnect), and the caption says so."""
+    import io
+
+    import matplotlib.image
+
+    from pmcal.twin.render import RenderUnavailable, render_machine_png, visible_moving_geoms
+
+    machine = Machine.from_folder(CORPUS / "reachy_mini")
+    assert visible_moving_geoms(machine.twin.model) == 0
+    try:
+        png = render_machine_png(machine.spec, machine.twin.home_qpos, 320, 200)
+    except RenderUnavailable as exc:
+        pytest.skip(str(exc))
+    pixels = matplotlib.image.imread(io.BytesIO(png))[..., :3]
+    lit = np.mean(pixels.max(axis=2) > 0.15)
+    assert lit > 0.02, lit

@@ -17,7 +17,6 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 
 
-
 class RenderUnavailable(RuntimeError):
     """No offscreen OpenGL context could be created."""
 
@@ -40,18 +39,33 @@ def render_machine_png(spec, qpos: np.ndarray, width: int = 800, height: int = 6
     mujoco.mj_forward(m, d)
     cam = mujoco.MjvCamera()
     mujoco.mjv_defaultFreeCamera(m, cam)
-    return render_model_png(m, d, width, height, cam)
+    option = None
+    if not visible_moving_geoms(m):            # nothing of the machine would show: draw its skeleton and sites
+        option = mujoco.MjvOption()
+        option.flags[mujoco.mjtVisFlag.mjVIS_AUTOCONNECT] = True
+        option.sitegroup[:] = 1
+    return render_model_png(m, d, width, height, cam, option)
 
 
-def render_model_png(m: mujoco.MjModel, d: mujoco.MjData, width: int, height: int, camera=None) -> bytes:
-    """PNG of any model in state ``d`` (forward already run), seen from ``camera`` (name, id or MjvCamera)."""
+def visible_moving_geoms(m: mujoco.MjModel) -> int:
+    """How many geoms of the bodies (not the world's: a scene's floor) a picture shows: MuJoCo's visible groups
+    (0-2) and not transparent. A CAD export whose meshes were left out (Git LFS files absent) has none; its
+    picture is then the kinematic skeleton (MuJoCo's ``mjVIS_AUTOCONNECT``) with every site."""
+    shown = (m.geom_bodyid > 0) & (m.geom_group < 3) & (m.geom_rgba[:, 3] > 0)
+    return int(np.sum(shown))
+
+
+def render_model_png(m: mujoco.MjModel, d: mujoco.MjData, width: int, height: int, camera=None,
+                     option: mujoco.MjvOption | None = None) -> bytes:
+    """PNG of any model in state ``d`` (forward already run), seen from ``camera`` (name, id or MjvCamera), with
+    the visualisation ``option`` (default MuJoCo's)."""
     try:
         renderer = mujoco.Renderer(m, height=height, width=width)
     except Exception as exc:  # MuJoCo raises FatalError without a usable OpenGL context
         raise RenderUnavailable(f"offscreen rendering is unavailable (MUJOCO_GL={os.environ.get('MUJOCO_GL')}): "
                                 f"{exc}; install EGL (libegl1) or OSMesa and set MUJOCO_GL=egl|osmesa") from None
     try:
-        renderer.update_scene(d, camera=camera if camera is not None else -1)
+        renderer.update_scene(d, camera=camera if camera is not None else -1, scene_option=option)
         return _to_png(renderer.render())
     finally:
         renderer.close()

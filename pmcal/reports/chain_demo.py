@@ -8,7 +8,7 @@ import numpy as np
 
 from pmcal.mechanism.task_space import POSITION, error_families, rms
 from pmcal.reports.html import Report, matplotlib_agg
-from pmcal.twin.render import RenderUnavailable, render_machine_png
+from pmcal.twin.render import RenderUnavailable, render_machine_png, visible_moving_geoms
 
 #: base errors listed in the report's table (largest identified first)
 TABLE_ROWS = 20
@@ -55,6 +55,8 @@ def chain_demo_report(demo) -> Report:
     try:
         png = render_machine_png(m.spec, m.twin.solve(m.twin.home_commands[None])[0], 800, 500)
         drawn = "scene.xml" if (m.spec.folder / "scene.xml").is_file() else m.spec.model_path.name
+        if not visible_moving_geoms(m.twin.model):
+            drawn += "; the model has no visible geometry: its kinematic skeleton and sites"
         rep.image_png(png, f"{m.name} at its home configuration ({drawn})")
     except (RenderUnavailable, ValueError) as exc:
         rep.paragraph(f"No picture: {exc}", "note")
