@@ -169,6 +169,16 @@ def test_errors_too_large_for_the_workspace_point_at_their_sizes(capsys, tmp_pat
     assert not (tmp_path / "m.csv").exists()
 
 
+def test_a_workspace_off_the_machine_stops_after_the_first_draws(capsys, tmp_path):
+    # the hexapod's legs reach x = 5 m, 10 times past their range: was 20 rounds of draws before the one line
+    # (demo's 288 poses: 11520 solves, minutes); now it stops once 200 drawn poses reached none
+    folder = copy_machine("hexapod_6dof", tmp_path)
+    _break(folder, "machine.toml", "x_mm = [-40.0, 40.0]", "x_mm = [5000.0, 6000.0]")
+    one_line_error(capsys, "--machine", folder, "targets", "-o", tmp_path / "t.csv",
+                   says=["machine.toml", "field 'workspace'", "only 0 of 12", "(216 drawn;", "outside its range"])
+    assert not (tmp_path / "t.csv").exists()
+
+
 def test_a_copy_of_a_seeded_machine_says_to_use_its_name(capsys, tmp_path):
     folder = copy_machine("ocpm_2dof", tmp_path)
     one_line_error(capsys, "--machine", folder, "targets", "-o", tmp_path / "t.csv",

@@ -150,6 +150,9 @@ class ClosedChainTwin:
     #: without a walk of thousands of sub-steps (a box in metres: minutes per target). Machines' homes lie
     #: within 1.1 box sizes of every corner of their box.
     MAX_PATH_BOXES = 100.0
+    #: :meth:`sample_commands` gives up when none of this many drawn poses is reachable (a workspace box off
+    #: the machine, motor ranges that exclude it): its 20 rounds would take minutes and find none either
+    HOPELESS_DRAWS = 200
 
     def __init__(self, spec: MachineSpec, model: mujoco.MjModel | None = None):
         if spec.legacy:
@@ -1267,17 +1270,20 @@ class ClosedChainTwin:
         """``n`` commands (n, M) whose poses are uniform over the workspace box, filtered by reach and motor
         ranges (the inverse kinematics of the machine with ``params``, default nominal)."""
         got: list[np.ndarray] = []
-        count, why = 0, ""
+        count, drawn, why = 0, 0, ""
         for _ in range(max_rounds):
             cmd, reasons = self.inverse_report(self.sample_task(max(2 * (n - count), 4), rng), params)
+            drawn += len(reasons)
             why = why or next((r for r in reasons if r), "")
             cmd = cmd[np.isfinite(cmd).all(axis=1)]
             got.append(cmd)
             count += len(cmd)
             if count >= n:
                 return np.concatenate(got)[:n]
+            if count == 0 and drawn >= self.HOPELESS_DRAWS:
+                break
         raise InputError(f"only {count} of {n} poses drawn from [workspace] are reachable within the motor ranges "
-                         f"(e.g. {why}): check [workspace] and [[motors]] range and zero",
+                         f"({drawn} drawn; e.g. {why}): check [workspace] and [[motors]] range and zero",
                          file=str(self.spec.folder / "machine.toml"), field="workspace")
 
 
