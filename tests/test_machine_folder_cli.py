@@ -115,6 +115,11 @@ def _break(folder, file, old, new):
     text = p.read_text()
     assert old in text, old
     p.write_text(text.replace(old, new))
+    return folder
+
+
+def _measure(folder, measure):
+    return _break(folder, "machine.toml", 'measure = "position"', f'measure = "{measure}"')
 
 
 def _drop_equalities(path):
@@ -144,6 +149,20 @@ BAD_FOLDERS = {
     "motor ranges no pose of the workspace meets": (
         lambda f: _break(f, "machine.toml", "range = [-35.0, 80.0]", "range = [0.0, 1.0]"),
         ["machine.toml", "field 'workspace'", "outside its range [0, 1]", "[[motors]] range"]),
+    # sites on the wrong part: was a demo reporting 0 mm before and after (task site on the base), a nest that
+    # reads the base, a task frame taken at home from a moving part (then a minute to a [workspace] line)
+    "a task site on the fixed base": (lambda f: _break(f, "machine.toml", 'site = "tcp"', 'site = "base_origin"'),
+                                      ["machine.toml", "field 'task.site'", "'base_origin' is on the fixed base"]),
+    "a nest on the fixed base": (lambda f: _break(f, "machine.toml", 'targets = ["nest1"', 'targets = ["base_origin"'),
+                                 ["machine.toml", "field 'tracker.targets[1]'", "'base_origin' is on the fixed base"]),
+    "a task frame on a moving part": (
+        lambda f: _break(f, "machine.toml", 'site = "tcp"', 'site = "tcp"\nframe = "nest2"'),
+        ["machine.toml", "field 'task.frame'", "'nest2' is on body platform, which moves"]),
+    "a pose fit over two parts": (
+        lambda f: _measure(_break(f, "machine.toml", '"nest3"]', '"rod1a_tip"]'), "pose"),
+        ["machine.toml", "field 'tracker.targets'", "'rod1a_tip' on body rod1a"]),
+    "a scale on one part": (lambda f: _measure(_break(f, "machine.toml", ', "nest3"]', ']'), "distance"),
+                            ["machine.toml", "field 'tracker.targets'", "on one rigid part (body platform)"]),
     # was 6.5 minutes of continuation walks per campaign (each target hundreds of box sizes from home)
     "a workspace in metres": (lambda f: _break(f, "machine.toml", "z_mm = [-950.0, -650.0]", "z_mm = [-0.95, -0.65]"),
                               ["machine.toml", "field 'workspace'", "box sizes", "in metres?"]),

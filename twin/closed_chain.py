@@ -170,6 +170,7 @@ class ClosedChainTwin:
         self._read_motors()
         self._read_closures()
         self._read_sites()
+        self._check_site_parts()
         self.home_qpos = self._read_home()
         self._read_redundancy()
         self._check_home_closes()
@@ -510,6 +511,40 @@ class ClosedChainTwin:
         self._tp = np.array([pos[s] for s in self.target_sites])
         self._task_p = pos[self.task_site]
         self.n_targets = len(self.target_sites)
+
+    def _check_site_parts(self) -> None:
+        """InputError naming the machine.toml key when a site sits on the wrong part: the task site or a
+        tracker nest on the fixed base (they would not move with the motors: a demo reported 0 mm before and
+        after), a ``[task] frame`` on a moving part, the two ends of a ``distance`` scale or the nests of a
+        ``pose`` fit on different parts (one part, one rigid fit; a scale on one part reads nothing)."""
+        m, spec = self.model, self.spec
+        part = lambda s: int(m.body_weldid[m.site_bodyid[s]])  # noqa: E731
+        body = lambda s: mujoco.mj_id2name(m, _OBJ.mjOBJ_BODY, int(m.site_bodyid[s])) or "world"  # noqa: E731
+        fail = lambda key, text: InputError(text, file=str(spec.folder / "machine.toml"), field=key)  # noqa: E731
+        if part(self.task_site) == 0:
+            raise fail("task.site", f"site {spec.task.site!r} is on the fixed base (body {body(self.task_site)}): "
+                                    "the task site must move with the motors (the tool centre point, the platform)")
+        if spec.task.frame:
+            s = mujoco.mj_name2id(m, _OBJ.mjOBJ_SITE, spec.task.frame)
+            if part(s) != 0:
+                raise fail("task.frame", f"site {spec.task.frame!r} is on body {body(s)}, which moves: the task "
+                                         "frame is a site on the fixed base (the frame of the machine's drawing)")
+        parts = [part(s) for s in self.target_sites]
+        if spec.measure == "distance":
+            if parts[0] == parts[1]:
+                raise fail("tracker.targets", f"the scale's ends {spec.targets[0]!r} and {spec.targets[1]!r} are "
+                                              f"on one rigid part (body {body(self.target_sites[0])}): their "
+                                              "distance never changes")
+            return
+        for k, (name, s, p) in enumerate(zip(spec.targets, self.target_sites, parts), 1):
+            if p == 0:
+                raise fail(f"tracker.targets[{k}]", f"site {name!r} is on the fixed base (body {body(s)}): a nest "
+                                              "measures a moving part")
+        if spec.measure == "pose" and len(set(parts)) > 1:
+            k = parts.index(next(p for p in parts if p != parts[0]))
+            raise fail("tracker.targets", f"'pose' fits one rigid part to the nests, but {spec.targets[0]!r} is on "
+                                          f"body {body(self.target_sites[0])} and {spec.targets[k]!r} on body "
+                                          f"{body(self.target_sites[k])} (measure = \"position\" reads each nest)")
 
     # ------------------------------------------------------------------ parameters
     def error_units(self, keys: list[str] | None = None) -> list[str]:
