@@ -149,6 +149,9 @@ BAD_FOLDERS = {
     "motor ranges no pose of the workspace meets": (
         lambda f: _break(f, "machine.toml", "range = [-35.0, 80.0]", "range = [0.0, 1.0]"),
         ["machine.toml", "field 'workspace'", "outside its range [0, 1]", "[[motors]] range"]),
+    # was "MuJoCo cannot compile the model: SVD did not converge", naming neither the keyframe nor the NaN
+    "a NaN in the home keyframe": (lambda f: _break(f, "delta_3dof.xml", 'home" qpos="0 ', 'home" qpos="nan '),
+                                   ["delta_3dof.xml", "field 'keyframe'", "'home': qpos value 1 of", "is nan"]),
     # sites on the wrong part: was a demo reporting 0 mm before and after (task site on the base), a nest that
     # reads the base, a task frame taken at home from a moving part (then a minute to a [workspace] line)
     "a task site on the fixed base": (lambda f: _break(f, "machine.toml", 'site = "tcp"', 'site = "base_origin"'),

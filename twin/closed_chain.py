@@ -234,7 +234,12 @@ class ClosedChainTwin:
         InputError naming the model when it is not within :data:`HOME_TOL_M` of closing."""
         m = self.model
         if self.spec.home is not None:
-            return m.key_qpos[mujoco.mj_name2id(m, _OBJ.mjOBJ_KEY, self.spec.home)].copy()
+            q = m.key_qpos[mujoco.mj_name2id(m, _OBJ.mjOBJ_KEY, self.spec.home)].copy()
+            bad = np.flatnonzero(~np.isfinite(q))
+            if bad.size:
+                raise InputError(f"keyframe {self.spec.home!r}: qpos value {bad[0] + 1} of {m.nq} is {q[bad[0]]} "
+                                 "(an assembled configuration is finite numbers)", file=self._file, field="keyframe")
+            return q
         q0 = m.qpos0.copy()
         gap, _ = self._gap_at(q0)
         q, ok = self._newton(q0)
