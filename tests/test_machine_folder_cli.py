@@ -149,6 +149,10 @@ BAD_FOLDERS = {
     "motor ranges no pose of the workspace meets": (
         lambda f: _break(f, "machine.toml", "range = [-35.0, 80.0]", "range = [0.0, 1.0]"),
         ["machine.toml", "field 'workspace'", "outside its range [0, 1]", "[[motors]] range"]),
+    # was "machine.toml, field 'machine.model': model file not found: .../parts.xml", blaming the TOML
+    "an include of a missing file": (lambda f: _break(f, "delta_3dof.xml", '<mujoco model="delta_3dof">',
+                                                      '<mujoco model="delta_3dof"><include file="parts.xml"/>'),
+                                     ["delta_3dof.xml: cannot read", "includes file='parts.xml', which is no file"]),
     # was "MuJoCo cannot compile the model: SVD did not converge", naming neither the keyframe nor the NaN
     "a NaN in the home keyframe": (lambda f: _break(f, "delta_3dof.xml", 'home" qpos="0 ', 'home" qpos="nan '),
                                    ["delta_3dof.xml", "field 'keyframe'", "'home': qpos value 1 of", "is nan"]),
