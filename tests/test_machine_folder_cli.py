@@ -205,6 +205,18 @@ def test_a_workspace_off_the_machine_stops_after_the_first_draws(capsys, tmp_pat
     assert not (tmp_path / "t.csv").exists()
 
 
+@pytest.mark.parametrize("command", [["demo", "--out", "out"], ["twin", "plan", "--poses", "12", "-o", "out.csv"]])
+def test_errors_that_select_none_are_one_line(capsys, tmp_path, command):
+    # was exit 1, "ValueError: cannot reshape array of size 0 ... (a bug: please report it)" from demo and
+    # "field '--poses': cannot reshape array ..." from twin plan
+    folder = copy_machine("delta_3dof", tmp_path)
+    _break(_break(folder, "machine.toml", 'frames = "all"', "frames = []"), "machine.toml", "motor_zero = true",
+           "motor_zero = false")
+    one_line_error(capsys, "--machine", folder, *command[:-1], tmp_path / command[-1],
+                   says=["machine.toml", "field 'errors'", "leaves no error to identify"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == [folder.name]
+
+
 def test_a_copy_of_a_seeded_machine_says_to_use_its_name(capsys, tmp_path):
     folder = copy_machine("ocpm_2dof", tmp_path)
     one_line_error(capsys, "--machine", folder, "targets", "-o", tmp_path / "t.csv",

@@ -183,6 +183,10 @@ class ClosedChainTwin:
         self.errors = FrameErrors(spec, m, self.points, error_sites, self.motor_dof, self.motor_unit)
         #: every geometric error of the machine, ``"<frame>.<component>"`` and ``"mK.dzero"``
         self.error_keys = self.errors.keys
+        if not self.error_keys:     # every campaign, plan and fit is about them (was a reshape error, exit 1)
+            raise InputError("leaves no error to identify (frames, exclude and components select no frame, and "
+                             "motor_zero = false): list frames, or set motor_zero = true",
+                             file=str(spec.folder / "machine.toml"), field="errors")
         self._warm_cmd = np.zeros((0, self.n_motors))
         self._warm_qpos = np.zeros((0, m.nq))
         self.home_commands = self._commands_of(self.home_qpos[None])[0]
