@@ -537,9 +537,13 @@ class _Loader:
         """``[table] nodes`` (per axis, default 9), one ``[lo, hi]`` per axis (default: the workspace box),
         ``max_step`` (deg or mm, default 10), ``reference`` (``controller`` default, or ``none``),
         ``max_correction`` (default 1) and ``max_correction_step`` (default 0.25), deg or mm."""
-        if not axes:
-            return None
         tab = self.table("table", required=False)
+        if not axes:        # a grid key would do nothing: say so rather than ignore a value the user set
+            grid = next((k for k in tab if k != "axes"), None)
+            if grid is not None:
+                raise self.err(f"table.{grid}", "a table without axes has no grid (axes = []: offline compensation "
+                                                "of target lists); name the axes or remove the key")
+            return None
         nodes = tab.get("nodes", [TABLE_NODES_DEFAULT] * len(axes))
         if (not isinstance(nodes, list) or len(nodes) != len(axes)
                 or any(isinstance(n, bool) or not isinstance(n, int) or n < 2 for n in nodes)):

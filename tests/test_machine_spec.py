@@ -71,6 +71,8 @@ def _edit(folder, old, new, count=1):
     ('components = ["dx", "dy", "dz", "drx", "dry", "drz"]', 'components = ["dx", "rx"]', "errors.components",
      "unknown component 'rx'"),
     ('axes = ["x_mm", "y_mm", "z_mm"]', 'axes = ["x_mm", "y_mm", "z_mm", "x_mm"]', "table.axes", "repeat"),
+    # a grid key of a table without axes did nothing, silently, whatever its value (nodes = [1, 1, 1])
+    ('axes = ["x_mm", "y_mm", "z_mm"]', 'axes = []', "table.nodes", "a table without axes has no grid"),
     ('home = "home"', 'home = "rest"', "machine.home", "no keyframe 'rest'"),
     ('model = "delta_3dof.xml"', 'model = "delta.xml"', "machine.model", "not found"),
 ])
