@@ -289,6 +289,9 @@ class _Loader:
                              file=self.file) from None
         except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise InputError(f"cannot read machine configuration ({exc})", file=self.file) from None
+        except RecursionError:      # tomllib recurses per nesting level: [[[[... thousands deep
+            raise InputError("cannot read machine configuration (arrays or tables nested too deep)",
+                             file=self.file) from None
         self.names: MjcfNames | None = None
 
     # ------------------------------------------------------------------ helpers
@@ -318,9 +321,16 @@ class _Loader:
             raise self.err(f"{where}.{key}", "missing key" + (f" (one of: {', '.join(choices)})" if choices else ""))
         if not isinstance(v, str) or not v:
             raise self.err(f"{where}.{key}", f"must be a non-empty string, got {v!r}")
+        self.one_line(v, f"{where}.{key}")
         if choices and v not in choices:
             raise self.err(f"{where}.{key}", f"must be one of {', '.join(choices)}, got {v!r}")
         return v
+
+    def one_line(self, v: str, key: str) -> None:
+        """InputError unless ``v`` is one line without control characters: names and the title go into the
+        comment lines of every file written (a newline there made the rest of the line a CSV row)."""
+        if any(ord(c) < 32 or ord(c) == 127 for c in v):
+            raise self.err(key, f"must be one line without control characters (it heads the files written), got {v!r}")
 
     def number(self, tab: dict, key: str, where: str, default: float | None = None,
                positive: bool = False, high: tuple[float, str] | None = None) -> float:
@@ -371,6 +381,7 @@ class _Loader:
         title = mach.get("title", "")
         if not isinstance(title, str):
             raise self.err("machine.title", f"must be a string, got {title!r}")
+        self.one_line(title, "machine.title")
         kind = self.text(mach, "kind", "machine", default="chain" if "motors" in self.doc else "legacy",
                          choices=("chain",) + LEGACY_KINDS + (("legacy",) if "kind" not in mach else ()))
         model_name = self.text(mach, "model", "machine", default=f"{name}.xml")
