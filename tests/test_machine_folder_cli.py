@@ -195,6 +195,16 @@ def test_errors_too_large_for_the_workspace_point_at_their_sizes(capsys, tmp_pat
     assert not (tmp_path / "m.csv").exists()
 
 
+def test_demo_with_errors_too_large_points_at_their_sizes(capsys, tmp_path):
+    # the demo's planned poses: the line said "its errors are too large for this workspace" without saying where
+    # their sizes come from; and nothing of the demo's folder is written
+    folder = copy_machine("delta_3dof", tmp_path)
+    _break(folder, "machine.toml", "angle_deg = 0.1", "angle_deg = 10.0")
+    one_line_error(capsys, "--machine", folder, "demo", "--out", tmp_path / "demo", status=1,
+                   says=["planned poses cannot be assembled", "[errors] sizes in machine.toml"])
+    assert not (tmp_path / "demo").exists()
+
+
 def test_a_workspace_off_the_machine_stops_after_the_first_draws(capsys, tmp_path):
     # the hexapod's legs reach x = 5 m, 10 times past their range: was 20 rounds of draws before the one line
     # (demo's 288 poses: 11520 solves, minutes); now it stops once 200 drawn poses reached none
