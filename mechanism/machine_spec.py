@@ -483,16 +483,16 @@ class _Loader:
         rows = self.doc.get("motors")
         if not isinstance(rows, list) or not rows or not all(isinstance(r, dict) for r in rows):
             raise self.err("[[motors]]", "needs one [[motors]] table per actuated joint")
-        out, seen = [], set()
+        out, seen = [], {}                  # joint -> its motor's number
         for i, row in enumerate(rows, start=1):
             where = f"motors[{i}]"
             joint = self.text(row, "joint", where)
             if joint not in self.names.joints:
                 raise self.err(f"{where}.joint", f"{joint!r} is not a joint of {self.model.name} "
-                                                 f"(joints: {', '.join(self.names.joints)})")
+                                                 f"(joints: {', '.join(self.names.joints) or 'none'})")
             if joint in seen:
-                raise self.err(f"{where}.joint", f"{joint!r} is already motor {sorted(seen).index(joint) + 1}")
-            seen.add(joint)
+                raise self.err(f"{where}.joint", f"{joint!r} is already motor {seen[joint]}")
+            seen[joint] = i
             jtype = self.names.joints[joint]
             default_kind = {"hinge": "revolute", "slide": "prismatic"}.get(jtype)
             kind = self.text(row, "kind", where, default=default_kind, choices=tuple(MOTOR_KINDS))

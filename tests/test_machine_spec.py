@@ -101,6 +101,14 @@ def test_a_toml_nested_too_deep_is_one_line(folder):
     assert str(exc.value).startswith(str(p))
 
 
+def test_a_joint_driven_twice_names_the_motor_that_drives_it(folder):
+    # m1 = arm3_motor, m2 = arm2_motor, m3 = arm3_motor: was "already motor 2" (its place among the joints sorted)
+    _edit(folder, 'joint = "arm1_motor"', 'joint = "arm3_motor"')
+    with pytest.raises(InputError, match=re.escape("'arm3_motor' is already motor 1")) as exc:
+        MachineSpec.load(folder)
+    assert exc.value.field == "motors[3].joint"
+
+
 def test_unknown_joint_lists_the_joints(folder):
     _edit(folder, 'joint = "arm3_motor"', 'joint = "hip3"')
     with pytest.raises(InputError, match=re.escape("(joints: arm1_motor, rod1a_u1")):
