@@ -37,8 +37,10 @@ from pmcal.twin.overconstraint import loop_summary
 
 #: poses measured per step of the progress bar
 _CHUNK = 8
-#: why a campaign's poses do not assemble on the erroneous machine, and where the errors' sizes are set
-TOO_LARGE = "its errors are too large for this workspace (the [errors] sizes in machine.toml, or --errors)"
+#: why a campaign's poses do not assemble on the erroneous machine, and where the errors' sizes are set (the
+#: motors' motion errors too: a 10 deg sigma leaves a Delta half its planned poses)
+TOO_LARGE = ("its errors are too large for this workspace (the [errors] sizes in machine.toml, its [[motors]] sigma, "
+             "or --errors)")
 
 
 def random_errors(machine, rng: np.random.Generator) -> dict[str, float]:

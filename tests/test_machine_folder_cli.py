@@ -195,13 +195,18 @@ def test_errors_too_large_for_the_workspace_point_at_their_sizes(capsys, tmp_pat
     assert not (tmp_path / "m.csv").exists()
 
 
-def test_demo_with_errors_too_large_points_at_their_sizes(capsys, tmp_path):
+@pytest.mark.parametrize("old, new, says", [
+    ("angle_deg = 0.1", "angle_deg = 10.0", "[errors] sizes in machine.toml"),
+    ('joint = "arm1_motor"', 'joint = "arm1_motor"\nsigma = 10.0', "[[motors]] sigma"),
+])
+def test_demo_with_errors_too_large_points_at_their_sizes(capsys, tmp_path, old, new, says):
     # the demo's planned poses: the line said "its errors are too large for this workspace" without saying where
-    # their sizes come from; and nothing of the demo's folder is written
+    # their sizes come from (10 deg frame errors, or a 10 deg motion error: the largest allowed); and nothing of
+    # the demo's folder is written
     folder = copy_machine("delta_3dof", tmp_path)
-    _break(folder, "machine.toml", "angle_deg = 0.1", "angle_deg = 10.0")
+    _break(folder, "machine.toml", old, new)
     one_line_error(capsys, "--machine", folder, "demo", "--out", tmp_path / "demo", status=1,
-                   says=["planned poses cannot be assembled", "[errors] sizes in machine.toml"])
+                   says=["planned poses cannot be assembled", says])
     assert not (tmp_path / "demo").exists()
 
 
