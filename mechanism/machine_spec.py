@@ -289,6 +289,9 @@ class _Loader:
                              file=self.file) from None
         except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise InputError(f"cannot read machine configuration ({exc})", file=self.file) from None
+        except RecursionError:      # tomllib recurses per nesting level: [[[[... thousands deep
+            raise InputError("cannot read machine configuration (arrays or tables nested too deep)",
+                             file=self.file) from None
         self.names: MjcfNames | None = None
 
     # ------------------------------------------------------------------ helpers
@@ -318,9 +321,16 @@ class _Loader:
             raise self.err(f"{where}.{key}", "missing key" + (f" (one of: {', '.join(choices)})" if choices else ""))
         if not isinstance(v, str) or not v:
             raise self.err(f"{where}.{key}", f"must be a non-empty string, got {v!r}")
+        self.one_line(v, f"{where}.{key}")
         if choices and v not in choices:
             raise self.err(f"{where}.{key}", f"must be one of {', '.join(choices)}, got {v!r}")
         return v
+
+    def one_line(self, v: str, key: str) -> None:
+        """InputError unless ``v`` is one line without control characters: names and the title go into the
+        comment lines of every file written (a newline there made the rest of the line a CSV row)."""
+        if any(ord(c) < 32 or ord(c) == 127 for c in v):
+            raise self.err(key, f"must be one line without control characters (it heads the files written), got {v!r}")
 
     def number(self, tab: dict, key: str, where: str, default: float | None = None,
                positive: bool = False, high: tuple[float, str] | None = None) -> float:
@@ -371,6 +381,7 @@ class _Loader:
         title = mach.get("title", "")
         if not isinstance(title, str):
             raise self.err("machine.title", f"must be a string, got {title!r}")
+        self.one_line(title, "machine.title")
         kind = self.text(mach, "kind", "machine", default="chain" if "motors" in self.doc else "legacy",
                          choices=("chain",) + LEGACY_KINDS + (("legacy",) if "kind" not in mach else ()))
         model_name = self.text(mach, "model", "machine", default=f"{name}.xml")
@@ -472,16 +483,16 @@ class _Loader:
         rows = self.doc.get("motors")
         if not isinstance(rows, list) or not rows or not all(isinstance(r, dict) for r in rows):
             raise self.err("[[motors]]", "needs one [[motors]] table per actuated joint")
-        out, seen = [], set()
+        out, seen = [], {}                  # joint -> its motor's number
         for i, row in enumerate(rows, start=1):
             where = f"motors[{i}]"
             joint = self.text(row, "joint", where)
             if joint not in self.names.joints:
                 raise self.err(f"{where}.joint", f"{joint!r} is not a joint of {self.model.name} "
-                                                 f"(joints: {', '.join(self.names.joints)})")
+                                                 f"(joints: {', '.join(self.names.joints) or 'none'})")
             if joint in seen:
-                raise self.err(f"{where}.joint", f"{joint!r} is already motor {sorted(seen).index(joint) + 1}")
-            seen.add(joint)
+                raise self.err(f"{where}.joint", f"{joint!r} is already motor {seen[joint]}")
+            seen[joint] = i
             jtype = self.names.joints[joint]
             default_kind = {"hinge": "revolute", "slide": "prismatic"}.get(jtype)
             kind = self.text(row, "kind", where, default=default_kind, choices=tuple(MOTOR_KINDS))
@@ -537,9 +548,13 @@ class _Loader:
         """``[table] nodes`` (per axis, default 9), one ``[lo, hi]`` per axis (default: the workspace box),
         ``max_step`` (deg or mm, default 10), ``reference`` (``controller`` default, or ``none``),
         ``max_correction`` (default 1) and ``max_correction_step`` (default 0.25), deg or mm."""
-        if not axes:
-            return None
         tab = self.table("table", required=False)
+        if not axes:        # a grid key would do nothing: say so rather than ignore a value the user set
+            grid = next((k for k in tab if k != "axes"), None)
+            if grid is not None:
+                raise self.err(f"table.{grid}", "a table without axes has no grid (axes = []: offline compensation "
+                                                "of target lists); name the axes or remove the key")
+            return None
         nodes = tab.get("nodes", [TABLE_NODES_DEFAULT] * len(axes))
         if (not isinstance(nodes, list) or len(nodes) != len(axes)
                 or any(isinstance(n, bool) or not isinstance(n, int) or n < 2 for n in nodes)):

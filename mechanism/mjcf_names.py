@@ -47,6 +47,8 @@ def _expand(path: Path, seen: set[Path]) -> ET.Element:
                 inc = (path.parent / child.get("file", "")).resolve()
                 if inc in seen:
                     raise ValueError(f"{path.name} includes {inc.name} recursively")
+                if not inc.is_file():     # not machine.toml's [machine] model: the include names it
+                    raise ValueError(f"{path.name} includes file={child.get('file', '')!r}, which is no file ({inc})")
                 sub = _expand(inc, seen)
                 elem.remove(child)
                 for k, grand in enumerate(list(sub)):

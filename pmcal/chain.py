@@ -37,6 +37,10 @@ from pmcal.twin.overconstraint import loop_summary
 
 #: poses measured per step of the progress bar
 _CHUNK = 8
+#: why a campaign's poses do not assemble on the erroneous machine, and where the errors' sizes are set (the
+#: motors' motion errors too: a 10 deg sigma leaves a Delta half its planned poses)
+TOO_LARGE = ("its errors are too large for this workspace (the [errors] sizes in machine.toml, its [[motors]] sigma, "
+             "or --errors)")
 
 
 def random_errors(machine, rng: np.random.Generator) -> dict[str, float]:
@@ -132,7 +136,7 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
         what = ("targets" if task is not None else "planned poses") + (f" in {source}" if source else "")
         if 2 * short > wanted:
             raise RunError(f"{short} of the {wanted} {what} cannot be assembled on the erroneous machine (on the "
-                           "nominal machine's branch): its errors are too large for this workspace")
+                           f"nominal machine's branch): {TOO_LARGE}")
         if short:
             progress.warning(f"{short} of the {wanted} {what} cannot be assembled on the erroneous machine (on the "
                              "nominal machine's branch) and are left out, as a real campaign skips a pose the "
@@ -145,8 +149,7 @@ def campaign(machine, poses: int, *, seed: int = 1, errors: str | Mapping[str, f
         commands, y = np.concatenate([commands, cmd[ok]]), np.concatenate([y, more])
         short -= int(ok.sum())
     if short > 0:
-        raise RunError(f"the erroneous machine assembles too few of the drawn poses ({short} missing): its errors "
-                       "are too large for this workspace (the [errors] sizes in machine.toml, or --errors)")
+        raise RunError(f"the erroneous machine assembles too few of the drawn poses ({short} missing): {TOO_LARGE}")
     n = len(commands)
     if ids is None:
         ids = pose_ids(n)

@@ -115,6 +115,11 @@ def _break(folder, file, old, new):
     text = p.read_text()
     assert old in text, old
     p.write_text(text.replace(old, new))
+    return folder
+
+
+def _measure(folder, measure):
+    return _break(folder, "machine.toml", 'measure = "position"', f'measure = "{measure}"')
 
 
 def _drop_equalities(path):
@@ -144,6 +149,27 @@ BAD_FOLDERS = {
     "motor ranges no pose of the workspace meets": (
         lambda f: _break(f, "machine.toml", "range = [-35.0, 80.0]", "range = [0.0, 1.0]"),
         ["machine.toml", "field 'workspace'", "outside its range [0, 1]", "[[motors]] range"]),
+    # was "machine.toml, field 'machine.model': model file not found: .../parts.xml", blaming the TOML
+    "an include of a missing file": (lambda f: _break(f, "delta_3dof.xml", '<mujoco model="delta_3dof">',
+                                                      '<mujoco model="delta_3dof"><include file="parts.xml"/>'),
+                                     ["delta_3dof.xml: cannot read", "includes file='parts.xml', which is no file"]),
+    # was "MuJoCo cannot compile the model: SVD did not converge", naming neither the keyframe nor the NaN
+    "a NaN in the home keyframe": (lambda f: _break(f, "delta_3dof.xml", 'home" qpos="0 ', 'home" qpos="nan '),
+                                   ["delta_3dof.xml", "field 'keyframe'", "'home': qpos value 1 of", "is nan"]),
+    # sites on the wrong part: was a demo reporting 0 mm before and after (task site on the base), a nest that
+    # reads the base, a task frame taken at home from a moving part (then a minute to a [workspace] line)
+    "a task site on the fixed base": (lambda f: _break(f, "machine.toml", 'site = "tcp"', 'site = "base_origin"'),
+                                      ["machine.toml", "field 'task.site'", "'base_origin' is on the fixed base"]),
+    "a nest on the fixed base": (lambda f: _break(f, "machine.toml", 'targets = ["nest1"', 'targets = ["base_origin"'),
+                                 ["machine.toml", "field 'tracker.targets[1]'", "'base_origin' is on the fixed base"]),
+    "a task frame on a moving part": (
+        lambda f: _break(f, "machine.toml", 'site = "tcp"', 'site = "tcp"\nframe = "nest2"'),
+        ["machine.toml", "field 'task.frame'", "'nest2' is on body platform, which moves"]),
+    "a pose fit over two parts": (
+        lambda f: _measure(_break(f, "machine.toml", '"nest3"]', '"rod1a_tip"]'), "pose"),
+        ["machine.toml", "field 'tracker.targets'", "'rod1a_tip' on body rod1a"]),
+    "a scale on one part": (lambda f: _measure(_break(f, "machine.toml", ', "nest3"]', ']'), "distance"),
+                            ["machine.toml", "field 'tracker.targets'", "on one rigid part (body platform)"]),
     # was 6.5 minutes of continuation walks per campaign (each target hundreds of box sizes from home)
     "a workspace in metres": (lambda f: _break(f, "machine.toml", "z_mm = [-950.0, -650.0]", "z_mm = [-0.95, -0.65]"),
                               ["machine.toml", "field 'workspace'", "box sizes", "in metres?"]),
@@ -167,6 +193,43 @@ def test_errors_too_large_for_the_workspace_point_at_their_sizes(capsys, tmp_pat
     one_line_error(capsys, "--machine", folder, "twin", "measure", "--poses", "12", "-o", tmp_path / "m.csv",
                    status=1, says=["assembles too few", "[errors] sizes in machine.toml"])
     assert not (tmp_path / "m.csv").exists()
+
+
+@pytest.mark.parametrize("old, new, says", [
+    ("angle_deg = 0.1", "angle_deg = 10.0", "[errors] sizes in machine.toml"),
+    ('joint = "arm1_motor"', 'joint = "arm1_motor"\nsigma = 10.0', "[[motors]] sigma"),
+])
+def test_demo_with_errors_too_large_points_at_their_sizes(capsys, tmp_path, old, new, says):
+    # the demo's planned poses: the line said "its errors are too large for this workspace" without saying where
+    # their sizes come from (10 deg frame errors, or a 10 deg motion error: the largest allowed); and nothing of
+    # the demo's folder is written
+    folder = copy_machine("delta_3dof", tmp_path)
+    _break(folder, "machine.toml", old, new)
+    one_line_error(capsys, "--machine", folder, "demo", "--out", tmp_path / "demo", status=1,
+                   says=["planned poses cannot be assembled", says])
+    assert not (tmp_path / "demo").exists()
+
+
+def test_a_workspace_off_the_machine_stops_after_the_first_draws(capsys, tmp_path):
+    # the hexapod's legs reach x = 5 m, 10 times past their range: was 20 rounds of draws before the one line
+    # (demo's 288 poses: 11520 solves, minutes); now it stops once 200 drawn poses reached none
+    folder = copy_machine("hexapod_6dof", tmp_path)
+    _break(folder, "machine.toml", "x_mm = [-40.0, 40.0]", "x_mm = [5000.0, 6000.0]")
+    one_line_error(capsys, "--machine", folder, "targets", "-o", tmp_path / "t.csv",
+                   says=["machine.toml", "field 'workspace'", "only 0 of 12", "(216 drawn;", "outside its range"])
+    assert not (tmp_path / "t.csv").exists()
+
+
+@pytest.mark.parametrize("command", [["demo", "--out", "out"], ["twin", "plan", "--poses", "12", "-o", "out.csv"]])
+def test_errors_that_select_none_are_one_line(capsys, tmp_path, command):
+    # was exit 1, "ValueError: cannot reshape array of size 0 ... (a bug: please report it)" from demo and
+    # "field '--poses': cannot reshape array ..." from twin plan
+    folder = copy_machine("delta_3dof", tmp_path)
+    _break(_break(folder, "machine.toml", 'frames = "all"', "frames = []"), "machine.toml", "motor_zero = true",
+           "motor_zero = false")
+    one_line_error(capsys, "--machine", folder, *command[:-1], tmp_path / command[-1],
+                   says=["machine.toml", "field 'errors'", "leaves no error to identify"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == [folder.name]
 
 
 def test_a_copy_of_a_seeded_machine_says_to_use_its_name(capsys, tmp_path):

@@ -71,7 +71,12 @@ def _edit(folder, old, new, count=1):
     ('components = ["dx", "dy", "dz", "drx", "dry", "drz"]', 'components = ["dx", "rx"]', "errors.components",
      "unknown component 'rx'"),
     ('axes = ["x_mm", "y_mm", "z_mm"]', 'axes = ["x_mm", "y_mm", "z_mm", "x_mm"]', "table.axes", "repeat"),
+    # a grid key of a table without axes did nothing, silently, whatever its value (nodes = [1, 1, 1])
+    ('axes = ["x_mm", "y_mm", "z_mm"]', 'axes = []', "table.nodes", "a table without axes has no grid"),
     ('home = "home"', 'home = "rest"', "machine.home", "no keyframe 'rest'"),
+    # a newline in the name or title headed every CSV written with a line that was no comment
+    ('name = "delta_3dof"', 'name = "two\\nlines"', "machine.name", "must be one line"),
+    ('title = "Delta', 'title = "\\tDelta', "machine.title", "without control characters"),
     ('model = "delta_3dof.xml"', 'model = "delta.xml"', "machine.model", "not found"),
 ])
 def test_bad_toml_names_file_key_and_fix(folder, old, new, key, words):
@@ -85,6 +90,23 @@ def test_bad_toml_names_file_key_and_fix(folder, old, new, key, words):
     assert msg.startswith(str(folder / "machine.toml")), msg
     assert exc.value.field == key, msg
     assert words in msg, msg
+
+
+def test_a_toml_nested_too_deep_is_one_line(folder):
+    # tomllib recurses per level: was a RecursionError traceback, exit 1
+    p = folder / "machine.toml"
+    p.write_text(p.read_text() + "\n[deep]\nx = " + "[" * 3000 + "]" * 3000 + "\n")
+    with pytest.raises(InputError, match="nested too deep") as exc:
+        MachineSpec.load(folder)
+    assert str(exc.value).startswith(str(p))
+
+
+def test_a_joint_driven_twice_names_the_motor_that_drives_it(folder):
+    # m1 = arm3_motor, m2 = arm2_motor, m3 = arm3_motor: was "already motor 2" (its place among the joints sorted)
+    _edit(folder, 'joint = "arm1_motor"', 'joint = "arm3_motor"')
+    with pytest.raises(InputError, match=re.escape("'arm3_motor' is already motor 1")) as exc:
+        MachineSpec.load(folder)
+    assert exc.value.field == "motors[3].joint"
 
 
 def test_unknown_joint_lists_the_joints(folder):

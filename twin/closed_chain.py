@@ -150,6 +150,9 @@ class ClosedChainTwin:
     #: without a walk of thousands of sub-steps (a box in metres: minutes per target). Machines' homes lie
     #: within 1.1 box sizes of every corner of their box.
     MAX_PATH_BOXES = 100.0
+    #: :meth:`sample_commands` gives up when none of this many drawn poses is reachable (a workspace box off
+    #: the machine, motor ranges that exclude it): its 20 rounds would take minutes and find none either
+    HOPELESS_DRAWS = 200
 
     def __init__(self, spec: MachineSpec, model: mujoco.MjModel | None = None):
         if spec.legacy:
@@ -167,6 +170,7 @@ class ClosedChainTwin:
         self._read_motors()
         self._read_closures()
         self._read_sites()
+        self._check_site_parts()
         self.home_qpos = self._read_home()
         self._read_redundancy()
         self._check_home_closes()
@@ -179,6 +183,10 @@ class ClosedChainTwin:
         self.errors = FrameErrors(spec, m, self.points, error_sites, self.motor_dof, self.motor_unit)
         #: every geometric error of the machine, ``"<frame>.<component>"`` and ``"mK.dzero"``
         self.error_keys = self.errors.keys
+        if not self.error_keys:     # every campaign, plan and fit is about them (was a reshape error, exit 1)
+            raise InputError("leaves no error to identify (frames, exclude and components select no frame, and "
+                             "motor_zero = false): list frames, or set motor_zero = true",
+                             file=str(spec.folder / "machine.toml"), field="errors")
         self._warm_cmd = np.zeros((0, self.n_motors))
         self._warm_qpos = np.zeros((0, m.nq))
         self.home_commands = self._commands_of(self.home_qpos[None])[0]
@@ -230,7 +238,12 @@ class ClosedChainTwin:
         InputError naming the model when it is not within :data:`HOME_TOL_M` of closing."""
         m = self.model
         if self.spec.home is not None:
-            return m.key_qpos[mujoco.mj_name2id(m, _OBJ.mjOBJ_KEY, self.spec.home)].copy()
+            q = m.key_qpos[mujoco.mj_name2id(m, _OBJ.mjOBJ_KEY, self.spec.home)].copy()
+            bad = np.flatnonzero(~np.isfinite(q))
+            if bad.size:
+                raise InputError(f"keyframe {self.spec.home!r}: qpos value {bad[0] + 1} of {m.nq} is {q[bad[0]]} "
+                                 "(an assembled configuration is finite numbers)", file=self._file, field="keyframe")
+            return q
         q0 = m.qpos0.copy()
         gap, _ = self._gap_at(q0)
         q, ok = self._newton(q0)
@@ -507,6 +520,40 @@ class ClosedChainTwin:
         self._tp = np.array([pos[s] for s in self.target_sites])
         self._task_p = pos[self.task_site]
         self.n_targets = len(self.target_sites)
+
+    def _check_site_parts(self) -> None:
+        """InputError naming the machine.toml key when a site sits on the wrong part: the task site or a
+        tracker nest on the fixed base (they would not move with the motors: a demo reported 0 mm before and
+        after), a ``[task] frame`` on a moving part, the two ends of a ``distance`` scale or the nests of a
+        ``pose`` fit on different parts (one part, one rigid fit; a scale on one part reads nothing)."""
+        m, spec = self.model, self.spec
+        part = lambda s: int(m.body_weldid[m.site_bodyid[s]])  # noqa: E731
+        body = lambda s: mujoco.mj_id2name(m, _OBJ.mjOBJ_BODY, int(m.site_bodyid[s])) or "world"  # noqa: E731
+        fail = lambda key, text: InputError(text, file=str(spec.folder / "machine.toml"), field=key)  # noqa: E731
+        if part(self.task_site) == 0:
+            raise fail("task.site", f"site {spec.task.site!r} is on the fixed base (body {body(self.task_site)}): "
+                                    "the task site must move with the motors (the tool centre point, the platform)")
+        if spec.task.frame:
+            s = mujoco.mj_name2id(m, _OBJ.mjOBJ_SITE, spec.task.frame)
+            if part(s) != 0:
+                raise fail("task.frame", f"site {spec.task.frame!r} is on body {body(s)}, which moves: the task "
+                                         "frame is a site on the fixed base (the frame of the machine's drawing)")
+        parts = [part(s) for s in self.target_sites]
+        if spec.measure == "distance":
+            if parts[0] == parts[1]:
+                raise fail("tracker.targets", f"the scale's ends {spec.targets[0]!r} and {spec.targets[1]!r} are "
+                                              f"on one rigid part (body {body(self.target_sites[0])}): their "
+                                              "distance never changes")
+            return
+        for k, (name, s, p) in enumerate(zip(spec.targets, self.target_sites, parts), 1):
+            if p == 0:
+                raise fail(f"tracker.targets[{k}]", f"site {name!r} is on the fixed base (body {body(s)}): a nest "
+                                              "measures a moving part")
+        if spec.measure == "pose" and len(set(parts)) > 1:
+            k = parts.index(next(p for p in parts if p != parts[0]))
+            raise fail("tracker.targets", f"'pose' fits one rigid part to the nests, but {spec.targets[0]!r} is on "
+                                          f"body {body(self.target_sites[0])} and {spec.targets[k]!r} on body "
+                                          f"{body(self.target_sites[k])} (measure = \"position\" reads each nest)")
 
     # ------------------------------------------------------------------ parameters
     def error_units(self, keys: list[str] | None = None) -> list[str]:
@@ -1270,17 +1317,20 @@ class ClosedChainTwin:
         """``n`` commands (n, M) whose poses are uniform over the workspace box, filtered by reach and motor
         ranges (the inverse kinematics of the machine with ``params``, default nominal)."""
         got: list[np.ndarray] = []
-        count, why = 0, ""
+        count, drawn, why = 0, 0, ""
         for _ in range(max_rounds):
             cmd, reasons = self.inverse_report(self.sample_task(max(2 * (n - count), 4), rng), params)
+            drawn += len(reasons)
             why = why or next((r for r in reasons if r), "")
             cmd = cmd[np.isfinite(cmd).all(axis=1)]
             got.append(cmd)
             count += len(cmd)
             if count >= n:
                 return np.concatenate(got)[:n]
+            if count == 0 and drawn >= self.HOPELESS_DRAWS:
+                break
         raise InputError(f"only {count} of {n} poses drawn from [workspace] are reachable within the motor ranges "
-                         f"(e.g. {why}): check [workspace] and [[motors]] range and zero",
+                         f"({drawn} drawn; e.g. {why}): check [workspace] and [[motors]] range and zero",
                          file=str(self.spec.folder / "machine.toml"), field="workspace")
 
 
