@@ -81,7 +81,8 @@ from pmcal.calib.solvers.problem import box_problem
 from pmcal.calib.solvers.result import IdentResult
 from pmcal.threads import blas_policy
 
-#: Relative threshold on the pivoted QR diagonal below which a direction counts as unseen (structural rank).
+#: Share of the largest singular value of the prior-scaled Jacobian below which a direction counts as unseen
+#: (structural rank, :func:`base_parameters`).
 RANK_TOL = 1e-7
 #: a direction above RANK_MARGIN x RANK_TOL of the most visible one is one every campaign must determine
 #: (:meth:`BaseSet.clear_rank`): two decades of margin over the tolerance, where CAD models' spectra thin out
@@ -123,7 +124,7 @@ class BaseSet:
     rank: int
     condition_number: float
     diag_r: np.ndarray
-    singular_values: np.ndarray | None = None
+    singular_values: np.ndarray
 
     def clear_rank(self, share: float = RANK_TOL * RANK_MARGIN) -> int:
         """How many directions are above ``share`` of the most visible one (default :data:`RANK_MARGIN` times
@@ -132,7 +133,7 @@ class BaseSet:
         itself differs by one or two between two spreads of poses, and a campaign of random poses was called
         unusable for missing a direction at 1e-7 that no campaign measures."""
         sv = self.singular_values
-        if sv is None or not sv.size or sv[0] <= 0:
+        if not sv.size or sv[0] <= 0:
             return self.rank
         return min(self.rank, int(np.sum(sv > share * sv[0])))
 

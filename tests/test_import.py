@@ -148,8 +148,8 @@ def test_tracker_frame_detected_and_recorded(tmp_path, capsys):
     ("OCPM P001 T1 76.7 10.4 abc\n", ":1", "x"),
     ("// Frame: Base\nOCPM P001 T1 76.7 10.4 489.4 0.05 0.01 13/45/2026 99:00:01 XM\n", ":2", "time"),
     ("// only comments\n", "", None),
-    ("OCPM P001 T1 nan 10.4 489.4 0.05 0.01\n", ":1", "x"),
-    ("// Units: Meters\nOCPM P001 T1 0.0767 0.0104 0.4894\n", ":1", "units"),     # was read as mm          # not read as a fourth name field
+    ("OCPM P001 T1 nan 10.4 489.4 0.05 0.01\n", ":1", "x"),                        # not read as a fourth name field
+    ("// Units: Meters\nOCPM P001 T1 0.0767 0.0104 0.4894\n", ":1", "units"),     # was read as mm
     ("OCPM P001 T1 76.7 10.4 489.4 0.05 0.01\nOCPM P001 T2 -72.7 inf 474.0 0.05 0.01\n", ":2", "y"),
 ])
 def test_bad_export_one_line(tmp_path, capsys, text, where, field):

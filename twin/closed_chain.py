@@ -321,11 +321,7 @@ class ClosedChainTwin:
         Free directions that move neither (a ball-ball rod's spin about its axis, an unactuated side chain
         such as an antenna or a gripper finger) are allowed: every solve leaves them where they are."""
         jp, jr = self._kin(self.home_qpos)
-        _, C = self._closure(jp, jr)
-        Cp = C[:, self.passive]
-        _, sv, vt = np.linalg.svd(Cp, full_matrices=True)
-        rank = int(np.sum(sv > self.FREE_RTOL * max(sv.max(initial=0.0), 1e-30)))
-        free = vt[rank:].T                                              # (npassive, nfree)
+        free = self._free_directions(jp, jr)                            # (npassive, nfree)
         #: passive directions the closures leave free at home (a ball-ball rod's spin): every solve leaves
         #: them where they are, so where a calibrated model's errors couple them to the nests, slightly
         #: (0.1 mm/rad), the nests depend on the path a solve took, by far less than the tracker noise
@@ -898,6 +894,15 @@ class ClosedChainTwin:
     #: value after :meth:`_centre_free` (a spin 1e-9 rad off changes no derivative measurably), and its iterations
     CENTRE_TOL, CENTRE_ITER = 1e-9, 8
 
+    def _free_directions(self, jp: np.ndarray, jr: np.ndarray) -> np.ndarray:
+        """(npassive, nfree) orthonormal directions of the passive dofs the closures leave free at the
+        configuration whose point Jacobians are ``jp``, ``jr`` (:meth:`_kin`): the closure Jacobian's null space
+        (singular values below :data:`FREE_RTOL` of the largest)."""
+        _, C = self._closure(jp, jr)
+        _, sv, vt = np.linalg.svd(C[:, self.passive], full_matrices=True)
+        rank = int(np.sum(sv > self.FREE_RTOL * max(sv.max(initial=0.0), 1e-30)))
+        return vt[rank:].T
+
     def _centre_free(self, q: np.ndarray) -> np.ndarray:
         """``q`` (assembled) moved along the directions its closures leave free (a ball-ball rod's spin, an
         unactuated side chain: :meth:`_check_mobility`) to where they stand as at ``home``, and closed again:
@@ -913,12 +918,7 @@ class ClosedChainTwin:
         m = self.model
         d = np.zeros(m.nv)
         for _ in range(self.CENTRE_ITER):
-            jp, jr = self._kin(q, closure_only=True)
-            _, C = self._closure(jp, jr)
-            Cp = C[:, self.passive]
-            _, sv, vt = np.linalg.svd(Cp, full_matrices=True)
-            rank = int(np.sum(sv > self.FREE_RTOL * max(sv.max(initial=0.0), 1e-30)))
-            free = vt[rank:].T
+            free = self._free_directions(*self._kin(q, closure_only=True))
             mujoco.mj_differentiatePos(m, d, 1.0, self.home_qpos, q)
             off = free.T @ d[self.passive]
             if not off.size or np.max(np.abs(off)) < self.CENTRE_TOL:

@@ -25,6 +25,7 @@ def band_sentence(s: dict, name: str, unit: str) -> str:
     return (f"; 90 % of campaigns like this one end between {band[0]:.4f} and {band[1]:.4f} {unit} RMS, "
             f"about {nu:.1f} independent error directions carrying the prediction{few}.")
 
+
 def chain_demo_report(demo) -> Report:
     """The self-contained report of ``demo``."""
     matplotlib_agg()

@@ -23,6 +23,7 @@ from pmcal.fileio import atomic_directory, write_json
 from pmcal.io_chain import write_measurements, write_plan, write_setpoints, write_targets
 from pmcal.mechanism.task_space import error_families, position_distance, rms, task_difference
 
+
 def carrying(weights: np.ndarray, share: float = 0.999) -> int:
     """How many of the largest ``weights`` (sorted, largest first) carry ``share`` of their sum."""
     total = float(np.sum(weights))
@@ -43,7 +44,8 @@ class ChainDemo:
     error_nominal, error_compensated : (n, C) task-coordinate errors of the true machine driven by the
     nominal inverse kinematics and by the compensated commands. predicted : (n, C) standard deviation of
     the compensated error the identification's covariance predicts. predicted_law : per error family
-    (position, orientation) the weights of the law of the compensated mean square error over campaigns (:meth:`pmcal.calib.closed_chain.ChainIdentResult.predicted_task_law`). table : the compensation table for the
+    (position, orientation) the weights of the law of the compensated mean square error over campaigns
+    (:meth:`pmcal.calib.closed_chain.ChainIdentResult.predicted_task_law`). table : the compensation table for the
     PLC (:class:`pmcal.bridge.comptable.CompTable`; None when the machine gets none, ``table_note`` says
     why). inside : the held-out targets inside its grid. error_table : (inside, C) the true machine's error
     driven by the controller's nominal inverse kinematics plus the table's correction (the PLC's lookup).
@@ -90,8 +92,7 @@ class ChainDemo:
         ``<family>_predicted_directions`` (how many independent error directions carry the prediction: near 1,
         one campaign may well end at 2x the predicted RMS or at a tenth of it), ``<family>_predicted_law_<unit>2``
         (the law's largest weights, those that carry 99.9 % of it, unit^2: the mean square error over campaigns
-        is ``sum w_i z_i^2``), and the same through the table
-        (``<family>_rms_<unit>``)."""
+        is ``sum w_i z_i^2``), and the same through the table (``<family>_rms_<unit>``)."""
         r, coords = self.result, self.coordinates
         out = {"machine": self.machine.name, "seed": self.seed, "campaign_poses": len(self.meas),
                "held_out_targets": len(self.task), "errors": len(r.params), "base_errors": len(r.base),
@@ -226,8 +227,8 @@ def chain_demo(machine, seed: int = 1, out: Path | None = None) -> ChainDemo:
     doc = params_document(machine, res, "measurements.csv")       # what the demo says of the result, as identify
     demo = ChainDemo(machine=machine, seed=seed, truth=truth, design=design, meas=meas, result=res, task=task,
                      commands_nominal=nominal, commands_compensated=compensated, error_nominal=err_nominal,
-                     error_compensated=err_comp, predicted=predicted, predicted_law=law, table=table, table_note=note, inside=inside,
-                     error_table=err_table, timings=timings, unseen=doc["unseen_by_tracker"],
+                     error_compensated=err_comp, predicted=predicted, predicted_law=law, table=table, table_note=note,
+                     inside=inside, error_table=err_table, timings=timings, unseen=doc["unseen_by_tracker"],
                      dominant=doc["dominant_task_uncertainty"])
     if out is not None:
         spec = machine.spec
