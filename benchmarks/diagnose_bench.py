@@ -50,6 +50,27 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.common import print_table, write_json  # noqa: E402
 
 SIGMA = 0.01
+#: design-study variants (--alpha, --rim-share, --rim-band), set in every worker by :func:`set_variant`;
+#: None keeps the library's default
+VARIANT: dict = {"alpha": None, "rim_share": None, "rim_band_deg": None}
+
+
+def set_variant(variant: dict) -> None:
+    """Pool initializer: the variant this run studies (:data:`VARIANT`)."""
+    VARIANT.update(variant)
+
+
+def options():
+    """The diagnosis options of a run: sigma given, the family-wise level of ``--alpha`` if set."""
+    from pmcal.calib.ocpm.diagnose import DiagnoseOptions
+
+    extra = {} if VARIANT["alpha"] is None else {"alpha": VARIANT["alpha"]}
+    return DiagnoseOptions(sigma_mm=SIGMA, **extra)
+
+
+def plan_design() -> dict:
+    """The diagnosis plan's rim share and band of ``--rim-share``/``--rim-band`` (those set)."""
+    return {k: v for k, v in VARIANT.items() if k.startswith("rim") and v is not None}
 #: case -> (hidden effects, poses (None: --poses), eccentricity amplitude deg (None: realistic),
 #: tilt limit of the campaign deg (None: the diagnosis plan's 80))
 CASES = {
@@ -197,7 +218,7 @@ def within_interval(d, twin, name: str, span_h: tuple[float, float]) -> bool:
 
 
 def run_one(job: tuple[str, int, int, str, str]) -> dict:
-    from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose, limit_blas_threads
+    from pmcal.calib.ocpm.diagnose import diagnose, limit_blas_threads
     from pmcal.twin.ocpm.effect_model import EffectChainModel
     from pmcal.apps.ocpm import effect_scenarios as effects
 
@@ -218,7 +239,7 @@ def run_one(job: tuple[str, int, int, str, str]) -> dict:
     outside_effect(case, meas)
     effects.REALISTIC["encoder_eccentricity"] = 0.01
     t0, c0 = time.perf_counter(), time.process_time()
-    d = diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA))
+    d = diagnose(meas, EffectChainModel(), options())
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     span_h = tuple((d.meas.time_s[[0, -1]] - plan.time_s[0]) / 3600.0)   # the rows the diagnosis fits, h since the twin's t = 0
     inside = {v.name: within_interval(d, twin, v.name, span_h) for v in d.named if v.name in names}
@@ -312,7 +333,7 @@ def xsim_ecc_campaign(seed: int, n: int, drift: bool, poses: str = "uniform"):
         motors["zero_offset_drift"] = [2 - one]
     c = plan(n, 80.0, rng)
     if poses == "plan":
-        d = effects.diagnosis_plan(n, seed, 80.0)
+        d = effects.diagnosis_plan(n, seed, 80.0, **plan_design())
         cmd = np.array([nominal_ik(a, b)[:2] for a, b in zip(d.phi_deg, d.theta_deg)])
         c = Campaign(d.phi_deg, d.theta_deg, cmd, c.time_s, c.temp_c, c.payload_kg)
     return simulate(c, err, fx, SIGMA, rng), fx, motors
@@ -323,7 +344,7 @@ def run_xsim(case: str, seed: int, n: int, poses: str = "uniform") -> dict:
     issue 31's eccentricity campaigns only, :func:`xsim_ecc_campaign`)."""
     import tempfile
 
-    from pmcal.calib.ocpm.diagnose import DiagnoseOptions, diagnose
+    from pmcal.calib.ocpm.diagnose import diagnose
     from pmcal.ocpm.io import read_measurements
     from pmcal.twin.ocpm.effect_model import EffectChainModel
     from tests.crosssim.campaign import hidden_campaign, write_csv
@@ -339,7 +360,7 @@ def run_xsim(case: str, seed: int, n: int, poses: str = "uniform") -> dict:
         write_csv(path, camp)
         meas = read_measurements(path)
     t0, c0 = time.perf_counter(), time.process_time()
-    d = diagnose(meas, EffectChainModel(), DiagnoseOptions(sigma_mm=SIGMA))
+    d = diagnose(meas, EffectChainModel(), options())
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     names = vocabulary_names(XSIM_CASES[case])
     truths = {"backlash": per_motor_truth("backlash", fx.backlash),
@@ -426,6 +447,12 @@ def main(argv=None) -> int:
     ap.add_argument("--xsim-poses", choices=("uniform", "plan"), default="uniform",
                     help="issue 31's eccentricity cases on the independent simulator: poses drawn uniformly over "
                          "the cap (a user's own campaign) or those of pmcal twin plan --for-diagnosis")
+    ap.add_argument("--alpha", type=float, default=None,
+                    help="family-wise naming level of the diagnosis (design study; default the library's)")
+    ap.add_argument("--rim-share", type=float, default=None,
+                    help="share of the diagnosis plan's poses on the rim band (with --xsim-poses plan; design study)")
+    ap.add_argument("--rim-band", type=float, default=None,
+                    help="width of the plan's rim band, deg below the tilt limit (with --xsim-poses plan)")
     ap.add_argument("--partial", type=int, default=0, metavar="K",
                     help="write the runs so far to the JSON every K runs (summarise them with --summarise)")
     ap.add_argument("--summarise", metavar="JSON", default=None,
@@ -449,8 +476,10 @@ def main(argv=None) -> int:
         cases = [c for c in args.cases.split(",") if c in table] if args.cases else list(table)
         jobs += [(c, s, args.poses, source, args.xsim_poses) for c in cases
                  for s in range(args.first_seed, args.first_seed + (args.null_seeds if c.startswith("none") else args.seeds))]
+    variant = {"alpha": args.alpha, "rim_share": args.rim_share, "rim_band_deg": args.rim_band}
+    set_variant(variant)
     t0 = time.perf_counter()
-    with Pool(args.jobs) as pool:
+    with Pool(args.jobs, initializer=set_variant, initargs=(variant,)) as pool:
         rows = []
         runs = pool.imap_unordered(run_one, jobs) if args.jobs > 1 else map(run_one, jobs)
         for i, r in enumerate(runs, 1):
@@ -460,7 +489,7 @@ def main(argv=None) -> int:
                   end="", flush=True)
             if args.partial and i % args.partial == 0 and i < len(jobs):   # a long run stopped early keeps its rows
                 write_json("diagnose_bench", {"poses": args.poses, "xsim_poses": args.xsim_poses, "sigma_mm": SIGMA,
-                                              "partial": f"{i}/{len(jobs)}", "runs": rows}, args.out)
+                                              "variant": variant, "partial": f"{i}/{len(jobs)}", "runs": rows}, args.out)
     print()
     header = HEADER
     table = summarise(rows)
@@ -468,7 +497,7 @@ def main(argv=None) -> int:
     if coverage(rows):
         print_table("Per-motor 95 % intervals", COVERAGE_HEADER, coverage(rows))
     write_json("diagnose_bench", {"poses": args.poses, "xsim_poses": args.xsim_poses, "sigma_mm": SIGMA,
-                                  "wall_s": time.perf_counter() - t0,
+                                  "variant": variant, "wall_s": time.perf_counter() - t0,
                                   "header": header, "table": table, "coverage": coverage(rows), "runs": rows},
                args.out)
     return 0

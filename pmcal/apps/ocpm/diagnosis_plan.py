@@ -78,12 +78,14 @@ def diagnosis_orientations(n: int, theta_max_deg: float, rng: np.random.Generato
 
 
 def diagnosis_campaign(n: int, theta_max_deg: float, seed: int, seconds_per_pose: float = 30.0,
-                       temps=(18.0, 28.0), payloads=(0.0, 10.0), block: int = 32) -> dict[str, np.ndarray]:
-    """The poses of :func:`diagnosis_orientations` in random order (every motor moves both ways: backlash
-    and drift visible, drift not aligned with the pose), payloads changed in blocks of ``block`` rows, a
-    warm-up then cool-down (temperature not monotone in time: drift and thermal separable)."""
+                       temps=(18.0, 28.0), payloads=(0.0, 10.0), block: int = 32, rim_share: float = RIM_SHARE,
+                       rim_band_deg: float = RIM_BAND_DEG) -> dict[str, np.ndarray]:
+    """The poses of :func:`diagnosis_orientations` (``rim_share``, ``rim_band_deg`` as there) in random order
+    (every motor moves both ways: backlash and drift visible, drift not aligned with the pose), payloads
+    changed in blocks of ``block`` rows, a warm-up then cool-down (temperature not monotone in time: drift and
+    thermal separable)."""
     rng = np.random.default_rng(seed)
-    phi, theta = diagnosis_orientations(n, theta_max_deg, rng)
+    phi, theta = diagnosis_orientations(n, theta_max_deg, rng, rim_share=rim_share, rim_band_deg=rim_band_deg)
     order = rng.permutation(n)
     phi, theta = phi[order], theta[order]
     cmd = nominal_commands(phi, theta)

@@ -54,7 +54,7 @@ REALISTIC: dict[str, float] = {"joint_compliance": 5.0e4, "backlash": 0.0125, "e
                                "frame_drift": 0.19}
 
 
-def diagnosis_plan(n: int = 128, seed: int | None = 0, theta_max_deg: float = 80.0) -> CampaignPlan:
+def diagnosis_plan(n: int = 128, seed: int | None = 0, theta_max_deg: float = 80.0, **design) -> CampaignPlan:
     """The campaign the diagnosis is designed for, as ``pmcal twin plan --for-diagnosis`` writes it
     (:func:`pmcal.apps.ocpm.diagnosis_plan.diagnosis_campaign`): poses up to 80 deg, half on the rim, half
     on a spiral over the cap, outside the strained wedge, in random time order, each motor's approach the sign of its last move (the machine starts at home),
@@ -65,8 +65,10 @@ def diagnosis_plan(n: int = 128, seed: int | None = 0, theta_max_deg: float = 80
     and the baseline absorbs 99.83 % of its signature (0.01 deg named in 8 of 20 seeds); at 80 deg they
     span ~126 deg, 99.59 % is absorbed and 0.01 deg is named in >= 90 % (docs/diagnose.md). 80 deg keeps
     7.5 deg from the limbs' stretched-link singularity; a strained machine skips ~1 % of such poses.
+    ``design``: ``rim_share`` and ``rim_band_deg`` of :func:`pmcal.apps.ocpm.diagnosis_plan.diagnosis_orientations`
+    (design studies; the plan's defaults otherwise).
     """
-    c = diagnosis_campaign(n, theta_max_deg, 0 if seed is None else seed)
+    c = diagnosis_campaign(n, theta_max_deg, 0 if seed is None else seed, **design)
     return CampaignPlan(phi_deg=c["phi_deg"], theta_deg=c["theta_deg"],
                         approach=np.stack([c["m1_approach"], c["m2_approach"]], 1), time_s=c["time_s"],
                         temp_c=c["temp_c_planned"], payload_kg=c["payload_kg"])
