@@ -30,8 +30,9 @@ least-squares equilibrium of that elastic energy (converged when the Newton step
 
     dq_p/dp = -C_p^+ (dc/dp),      d y/dp = J_y,p dq_p/dp + dy/dp|_q
 
-(for compliant, conflicting closures this is the Gauss-Newton derivative of the equilibrium: it leaves out
-the closure residual times the second derivatives, second order in the errors)
+(for conflicting closures, compliant or closed along their independent directions, this is the Gauss-Newton
+derivative of the equilibrium: it leaves out the residual the loop keeps times the closure Jacobian's change;
+docs/closed_chain.md "Derivatives" measures what that costs on a strained planar loop)
 
 where ``C_p`` is the closure Jacobian over the passive dofs (MuJoCo), ``dc/dp`` and ``dy/dp|_q`` the
 derivatives of the closure points and targets with respect to the frame errors at fixed joints, in
