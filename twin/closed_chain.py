@@ -30,16 +30,15 @@ least-squares equilibrium of that elastic energy (converged when the Newton step
 
     dq_p/dp = -C_p^+ (dc/dp),      d y/dp = J_y,p dq_p/dp + dy/dp|_q
 
-(for conflicting closures, compliant or closed along their independent directions, this is the Gauss-Newton
-derivative of the equilibrium: it leaves out the residual the loop keeps times the closure Jacobian's change;
-docs/closed_chain.md "Derivatives" measures what that costs on a strained planar loop)
+(for conflicting closures, compliant or closed along their independent directions, the loops keep a gap and
+the derivative gains the gap's second-order terms, :meth:`_strain_terms`; docs/closed_chain.md "Derivatives")
 
 where ``C_p`` is the closure Jacobian over the passive dofs (MuJoCo), ``dc/dp`` and ``dy/dp|_q`` the
 derivatives of the closure points and targets with respect to the frame errors at fixed joints, in
 closed form from the frames' world poses (a translation error moves every point of the frame's subtree
 along the parent axis; a rotation error turns it about the frame origin, the axis mapped through the left
 Jacobian of SO(3) at the current error so the derivative is exact at any error, not only at zero).
-No finite differences and no recompiling; the tests check it against central differences.
+No finite differences of the solve and no recompiling; the tests check it against central differences.
 
 **Inverse kinematics** (:meth:`inverse`): Newton on the closure equations together with the task
 equations over all dofs, from ``home`` with continuation along the straight task-space path when the
@@ -1086,33 +1085,87 @@ class ClosedChainTwin:
         """Kinematics at the assembled commands and the total derivatives (N, npoints, 3, P) of every
         point's position (m) and orientation (rad) per key unit: the IFT of the module docstring."""
         keys = list(keys or self.error_keys)
+        idx = [self.errors.index(k) for k in keys]
         kin = self.kinematics(self.solve(commands, params))
-        dP, dW = self.errors.derivatives(kin, [self.errors.index(k) for k in keys])   # (N, npts, 3, P) SI
+        dP, dW = self.errors.derivatives(kin, idx)                     # (N, npts, 3, P) SI
         N, nv = len(kin.qpos), self.model.nv
-        C = np.concatenate([kin.jacp[:, self._c1] - kin.jacp[:, self._c2],
-                            kin.jacr[:, self._c1[self._weld]] - kin.jacr[:, self._c2[self._weld]]],
-                           axis=1).reshape(N, -1, nv)
-        Ce = np.concatenate([dP[:, self._c1] - dP[:, self._c2],
-                             dW[:, self._c1[self._weld]] - dW[:, self._c2[self._weld]]],
-                            axis=1).reshape(N, -1, len(keys))
-        C, Ce = C * self._sqrt_w[:, None], Ce * self._sqrt_w[:, None]                                  # weights
+        C, Ce = self._closure_columns(kin, dP, dW)
+        strain = self._strain_terms(kin, C, idx)
         keep = self._local_keep(C[..., self.passive])
         C, Ce = self._project(C, keep), self._project(Ce, keep)
         if len(self._spring_dof) or len(self._cpl_q1):                    # joint springs and equalities
             Cs = np.zeros((N, len(self._spring_dof) + len(self._cpl_q1), nv))
             ok = np.isfinite(kin.qpos).all(axis=1)
             Cs[ok] = self._joint_rows(kin.qpos[ok])[1]
-            C, Ce = np.concatenate([C, Cs], axis=1), np.concatenate([Ce, np.zeros(Cs.shape[:2] + (len(keys),))],
-                                                                    axis=1)
+            Ces = np.zeros(Cs.shape[:2] + (len(keys),))
+            for c, dof, unit in self.errors.zero_columns(idx):          # a geared motor's offset moves its pair
+                Ces[..., c] = Cs[..., dof] * unit
+            C, Ce = np.concatenate([C, Cs], axis=1), np.concatenate([Ce, Ces], axis=1)
         dpos = np.full(dP.shape, np.nan)
         drot = np.full(dW.shape, np.nan)
         ok = np.isfinite(kin.qpos).all(axis=1)
         if ok.any():
             Cp = C[ok][:, :, self.passive]
-            dq = -np.linalg.pinv(Cp, rcond=1e-10) @ Ce[ok]                  # (n, npassive, P)
+            if strain is None:
+                dq = -np.linalg.pinv(Cp, rcond=1e-10) @ Ce[ok]              # (n, npassive, P)
+            else:                                                        # the loops keep a residual
+                CpT = np.swapaxes(Cp, 1, 2)
+                dq = -np.linalg.solve(CpT @ Cp + strain[0][ok], CpT @ Ce[ok] + strain[1][ok])
             dpos[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacp[ok][..., self.passive], dq) + dP[ok]
             drot[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacr[ok][..., self.passive], dq) + dW[ok]
         return kin, dpos, drot
+
+    def _closure_columns(self, kin: Kinematics, dP: np.ndarray, dW: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The weighted closure rows' derivatives at configurations ``kin``, not projected: by the dofs
+        (N, n_eq, nv) and by the errors (N, n_eq, P) whose point derivatives are ``dP``, ``dW``."""
+        N, nv = len(kin.qpos), self.model.nv
+        C = np.concatenate([kin.jacp[:, self._c1] - kin.jacp[:, self._c2],
+                            kin.jacr[:, self._c1[self._weld]] - kin.jacr[:, self._c2[self._weld]]],
+                           axis=1).reshape(N, -1, nv)
+        Ce = np.concatenate([dP[:, self._c1] - dP[:, self._c2],
+                             dW[:, self._c1[self._weld]] - dW[:, self._c2[self._weld]]],
+                            axis=1).reshape(N, -1, dP.shape[-1])
+        return C * self._sqrt_w[:, None], Ce * self._sqrt_w[:, None]
+
+    #: closure gap (m, rad) above which a loop counts as strained (:meth:`_strain_terms`), and the step (rad or
+    #: m per passive dof) of the finite differences of the closure rows' derivatives there
+    STRAIN_GAP, STRAIN_STEP = 1e-9, 1e-6
+
+    def _strain_terms(self, kin: Kinematics, C: np.ndarray, idx: list[int]):
+        """Second-order terms of the assembly's derivative where the loops keep a gap (conflicting closures:
+        closed along their independent directions, or compliant), else None.
+
+        The assembly then meets ``C_p^T c = 0`` (the joints' best closure: the gap ``c`` left is what no
+        passive joint motion changes) rather than ``c = 0``, and its derivative by the errors is
+        ``dq_p/dp = -(C_p^T C_p + R_q)^-1 (C_p^T C_e + R_p)`` with ``R_q = d(C_p^T c)/dq_p`` and ``R_p =
+        d(C_e^T c)/dq_p^T`` at ``c`` held (``sum_i c_i d2 c_i / dq dp``: the mixed second derivatives are
+        symmetric), by central differences of MuJoCo's Jacobians and the errors' closed-form derivatives over
+        the passive dofs. Their size is the gap's: a strained planar loop's out-of-plane tilts move its
+        nests through them as much as through the Gauss-Newton part (docs/closed_chain.md, "Derivatives").
+        Returns (R_q (N, np, np), R_p (N, np, P)); needs no free passive direction (else None)."""
+        if (self._keep is None and self.spec.closures is None) or self.n_free:
+            return None
+        ok = np.isfinite(kin.qpos).all(axis=1)
+        gap = np.zeros((len(kin.qpos), C.shape[1]))
+        sm = kin.site_xmat if self._weld.any() else None
+        gap[ok] = self._gaps(kin.site_xpos[ok], None if sm is None else sm[ok]) * self._sqrt_w
+        if not ok.any() or np.max(np.abs(gap[ok] / self._sqrt_w)) < self.STRAIN_GAP:
+            return None
+        m, h, npas = self.model, self.STRAIN_STEP, len(self.passive)
+        Q = np.repeat(kin.qpos, 2 * npas, axis=0)                      # (N * np * 2, nq): + then - per dof
+        for row in np.flatnonzero(np.repeat(ok, 2 * npas)):
+            dv = np.zeros(m.nv)
+            dv[self.passive[(row // 2) % npas]] = h if row % 2 == 0 else -h
+            mujoco.mj_integratePos(m, Q[row], dv, 1.0)
+        moved = self.kinematics(Q)
+        Cm, Cem = self._closure_columns(moved, *self.errors.derivatives(moved, idx))
+        g = np.repeat(gap, 2 * npas, axis=0)[..., None]                  # the gap held
+        Gq = np.sum(Cm[..., self.passive] * g, axis=1).reshape(len(gap), npas, 2, npas)
+        Ge = np.sum(Cem * g, axis=1).reshape(len(gap), npas, 2, -1)
+        Rq = (Gq[:, :, 0] - Gq[:, :, 1]) / (2 * h)                       # [n, j, l] = d(C_p^T c)_l / dq_j
+        Rp = (Ge[:, :, 0] - Ge[:, :, 1]) / (2 * h)                       # [n, j, k] = d(C_e^T c)_k / dq_j
+        Rq = 0.5 * (Rq + np.swapaxes(Rq, 1, 2))                          # a Hessian: symmetric
+        return np.where(ok[:, None, None], Rq, 0.0), np.where(ok[:, None, None], Rp, 0.0)
 
     # ------------------------------------------------------------------ task space
     def targets_in_task_frame(self, params: Mapping[str, float] | None = None) -> np.ndarray:

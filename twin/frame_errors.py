@@ -181,6 +181,13 @@ class FrameErrors:
         self.rot, self.zero_offset, self.x = rot, zero, x
         return True
 
+    def zero_columns(self, idx: list[int]) -> list[tuple[int, int, float]]:
+        """The motor zero offsets among the errors ``idx``: (column in ``idx``, motor dof, SI per command
+        unit) each. A zero offset moves its motor joint: any row's derivative by it is the row's derivative
+        by that dof times the unit."""
+        return [(c, int(self.motor_dof[self._table[i][1]]), float(self.motor_unit[self._table[i][1]]))
+                for c, i in enumerate(idx) if self._table[i][0] == ZERO]
+
     def derivatives(self, kin, idx: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """d position (m) and d orientation (rad) of every point per unit of each error ``idx`` at fixed
         joints, (N, npoints, 3, P) each, from the world poses ``kin``
