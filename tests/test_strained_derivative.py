@@ -6,8 +6,8 @@ to two chains by site connects) has redundant closure equations; out-of-plane er
 settles each pose on the joints' best closure and a gap stays. The derivative of that assembly then has
 terms of the gap's size besides the Gauss-Newton part (twin/closed_chain.py, ``_strain_terms``). Without
 them the Jacobian was off by up to 6 noise units per coordinate at the machine.toml's error sizes and by up
-to 200 at 0.5 deg tilts (a prior-size error's effect, in tracker sigmas), and identification stopped short of the least-squares minimum (docs/closed_chain.md,
-"Derivatives"). A motor geared to a passive joint by a joint equality (ToddlerBot's neck) moves that joint
+to 200 at 0.5 deg tilts (a prior-size error's effect, in tracker sigmas), and identification stopped short
+of the least-squares minimum (docs/closed_chain.md, "Derivatives"). A motor geared to a passive joint by a joint equality (ToddlerBot's neck) moves that joint
 when its zero offset changes: that column was missing (14 noise units).
 """
 
@@ -73,7 +73,7 @@ def test_identification_of_a_strained_loop_reaches_the_least_squares_minimum(tmp
     """0.5 deg tilts and 0.3 mm offsets on the 3-RRR, the demo's 48-pose planned campaign: pmcal's estimate is
     a stationary point of the objective (data chi-square plus the prior's) by the solve's own
     central-difference Jacobian; with the Gauss-Newton derivative alone identification stopped 3.7 to 14.7
-    above the minimum on seeds 1 and 3 and failed on seed 2 (chi-square 18 400)."""
+    above the minimum on seeds 1 and 3 and failed on seed 2 (chi2/dof 36; benchmarks/strained_loop_bench.py)."""
     machine = _machine("nopour_3rrr", tmp_path, {"angle_deg = 0.1": "angle_deg = 0.5",
                                                  "position_mm = 0.1": "position_mm = 0.3"})
     twin = machine.twin
