@@ -1,13 +1,14 @@
 """The twin's derivatives where its loops keep a gap, checked against central differences of the assembly itself
 (the solve, not a formula), and what they decide in identification.
 
-A planar loop closed by a 3-D ``connect`` (tests/corpus/nopour_3rrr: a planar 3-RRR whose platform closes
-to two chains by site connects) has redundant closure equations; out-of-plane errors strain it, the twin
-settles each pose on the joints' best closure and a gap stays. The derivative of that assembly then has
-terms of the gap's size besides the Gauss-Newton part (twin/closed_chain.py, ``_strain_terms``). Without
-them the Jacobian was off by up to 6 noise units per coordinate at the machine.toml's error sizes and by up
-to 200 at 0.5 deg tilts (a prior-size error's effect, in tracker sigmas), and identification stopped short
-of the least-squares minimum (docs/closed_chain.md, "Derivatives"). A motor geared to a passive joint by a joint equality (ToddlerBot's neck) moves that joint
+A planar loop closed by a 3-D ``connect``
+(tests/corpus/nopour_3rrr: a planar 3-RRR whose platform closes to two chains by site connects) has redundant
+closure equations; out-of-plane errors strain it, the twin settles each pose on the joints' best closure and a
+gap stays. The derivative of that assembly then has terms of the gap's size besides the Gauss-Newton part
+(twin/closed_chain.py, ``_strain_terms``). Without them the Jacobian was off by up to 6 noise units per
+coordinate at the machine.toml's error sizes and by up to 200 at 0.5 deg tilts (a prior-size error's effect,
+in tracker sigmas), and identification stopped short of the least-squares minimum (docs/closed_chain.md,
+"Derivatives"). A motor geared to a passive joint by a joint equality (ToddlerBot's neck) moves that joint
 when its zero offset changes: that column was missing (14 noise units).
 """
 
