@@ -5,7 +5,7 @@ it gained on the true machine). Per model and seed: the exit status, the task er
 compensation and the predicted one (the demo's summary.json), chi2/dof, the wall time; a run that fails
 records its stage and message (the demo's one error line).
 
-Run: python benchmarks/corpus_bench.py [--models reachy_mini,...] [--seeds 3] [--json PATH]
+Run: python benchmarks/corpus_bench.py [--corpus DIR] [--models reachy_mini,...] [--seeds 3] [--json PATH]
 """
 
 from __future__ import annotations
@@ -78,14 +78,17 @@ def run_demo(folder: Path, seed: int, out: Path) -> tuple[int, str, str]:
 
 
 def corpus_arguments(argv: list[str] | None, doc: str, name: str, seeds: int):
-    """The corpus benchmarks' command line (``--models``, ``--seeds``, ``--json``): (args, model names)."""
+    """The corpus benchmarks' command line (``--corpus``, ``--models``, ``--seeds``, ``--json``): (args, model
+    names); ``args.corpus`` is the folder of model folders."""
     ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--corpus", type=Path, default=CORPUS,
+                    help="folder of machine folders (default tests/corpus; your own machines work too)")
     ap.add_argument("--models", default=None, help="comma-separated corpus names (default: all)")
     ap.add_argument("--seeds", type=int, default=seeds, help="seeds 1..N")
     ap.add_argument("--json", default=None, help=f"output JSON (default benchmarks/results/{name}.json)")
     args = ap.parse_args(argv)
     names = args.models.split(",") if args.models else sorted(
-        p.name for p in CORPUS.iterdir() if (p / "machine.toml").is_file())
+        p.name for p in args.corpus.iterdir() if (p / "machine.toml").is_file())
     return args, names
 
 
@@ -128,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, seed, tmp in corpus_cases(names, args.seeds):
         out = tmp / f"{name}-{seed}"
         t0 = time.perf_counter()
-        rc, stdout, stderr = run_demo(CORPUS / name, seed, out)
+        rc, stdout, stderr = run_demo(args.corpus / name, seed, out)
         wall = time.perf_counter() - t0
         run = {"model": name, "seed": seed, "exit": rc, "wall_s": wall}
         if rc == 0:

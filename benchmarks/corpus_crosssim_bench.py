@@ -23,7 +23,7 @@ after / reference (the worst family); ``verdict``: ``ok`` (ratio <= 1.5),
 ``above 1.5x``, ``WORSE`` (identify exited 0 and after > before in a family), or ``refused`` (the model refused at
 load, identify exit != 0, quality ``usable`` false, or compensation refused; with its reason).
 
-Run: python benchmarks/corpus_crosssim_bench.py [--models reachy_mini] [--seeds 5] [--json PATH]
+Run: python benchmarks/corpus_crosssim_bench.py [--corpus DIR] [--models reachy_mini] [--seeds 5] [--json PATH]
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
-from benchmarks.corpus_bench import CORPUS, corpus_arguments, corpus_cases  # noqa: E402
+from benchmarks.corpus_bench import corpus_arguments, corpus_cases  # noqa: E402
 from pmcal.chain import compensate, identify, plan, sample_targets  # noqa: E402
 from pmcal.cli import main as pmcal_main  # noqa: E402
 from pmcal.errors import InputError  # noqa: E402
@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     args, names = corpus_arguments(argv, __doc__, "corpus_crosssim_bench", 5)
     runs, rows = [], []
     for name, seed, tmp in corpus_cases(names, args.seeds):
-        r = {"model": name, "seed": seed, **run(CORPUS / name, seed, tmp)}
+        r = {"model": name, "seed": seed, **run(args.corpus / name, seed, tmp)}
         r["verdict"], r["ratio"] = verdict(r)
         runs.append(r)
         print(f"{name} seed {seed}: {r['verdict']} ({r.get('wall_s', 0):.0f} s)", file=sys.stderr, flush=True)
