@@ -1108,9 +1108,11 @@ class ClosedChainTwin:
             Cp = C[ok][:, :, self.passive]
             if strain is None:
                 dq = -np.linalg.pinv(Cp, rcond=1e-10) @ Ce[ok]              # (n, npassive, P)
-            else:                                                        # the loops keep a residual
+            else:                                                        # the loops keep a gap
                 CpT = np.swapaxes(Cp, 1, 2)
-                dq = -np.linalg.solve(CpT @ Cp + strain[0][ok], CpT @ Ce[ok] + strain[1][ok])
+                dq = -solve_stacked(CpT @ Cp + strain[0][ok], CpT @ Ce[ok] + strain[1][ok])
+                bad = ~np.isfinite(dq).all(axis=(1, 2))                 # singular there: the Gauss-Newton part
+                dq[bad] = -np.linalg.pinv(Cp[bad], rcond=1e-10) @ Ce[ok][bad]
             dpos[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacp[ok][..., self.passive], dq) + dP[ok]
             drot[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacr[ok][..., self.passive], dq) + dW[ok]
         return kin, dpos, drot
