@@ -1154,18 +1154,23 @@ class ClosedChainTwin:
         if not ok.any() or np.max(np.abs(gap[ok] / self._sqrt_w)) < self.STRAIN_GAP:
             return None
         m, h, npas = self.model, self.STRAIN_STEP, len(self.passive)
-        Q = np.repeat(kin.qpos, 2 * npas, axis=0)                      # (N * np * 2, nq): + then - per dof
-        for row in np.flatnonzero(np.repeat(ok, 2 * npas)):
-            dv = np.zeros(m.nv)
-            dv[self.passive[(row // 2) % npas]] = h if row % 2 == 0 else -h
-            mujoco.mj_integratePos(m, Q[row], dv, 1.0)
-        moved = self.kinematics(Q)
-        Cm, Cem = self._closure_columns(moved, *self.errors.derivatives(moved, idx))
-        g = np.repeat(gap, 2 * npas, axis=0)[..., None]                  # the gap held
-        Gq = np.sum(Cm[..., self.passive] * g, axis=1).reshape(len(gap), npas, 2, npas)
-        Ge = np.sum(Cem * g, axis=1).reshape(len(gap), npas, 2, -1)
-        Rq = (Gq[:, :, 0] - Gq[:, :, 1]) / (2 * h)                       # [n, j, l] = d(C_p^T c)_l / dq_j
-        Rp = (Ge[:, :, 0] - Ge[:, :, 1]) / (2 * h)                       # [n, j, k] = d(C_e^T c)_k / dq_j
+        Rq, Rp = np.zeros((len(gap), npas, npas)), np.zeros((len(gap), npas, len(idx)))
+        # poses a chunk: the error derivatives of 2 * np moved configurations per pose, at most ~4e6 numbers
+        chunk = max(1, int(4e6 // (2 * npas * len(self.points) * 3 * max(len(idx), 1))))
+        for lo in range(0, len(gap), chunk):
+            part = slice(lo, min(lo + chunk, len(gap)))
+            Q = np.repeat(kin.qpos[part], 2 * npas, axis=0)              # (n * np * 2, nq): + then - per dof
+            for row in np.flatnonzero(np.repeat(ok[part], 2 * npas)):
+                dv = np.zeros(m.nv)
+                dv[self.passive[(row // 2) % npas]] = h if row % 2 == 0 else -h
+                mujoco.mj_integratePos(m, Q[row], dv, 1.0)
+            moved = self.kinematics(Q)
+            Cm, Cem = self._closure_columns(moved, *self.errors.derivatives(moved, idx))
+            g = np.repeat(gap[part], 2 * npas, axis=0)[..., None]        # the gap held
+            Gq = np.sum(Cm[..., self.passive] * g, axis=1).reshape(-1, npas, 2, npas)
+            Ge = np.sum(Cem * g, axis=1).reshape(-1, npas, 2, len(idx))
+            Rq[part] = (Gq[:, :, 0] - Gq[:, :, 1]) / (2 * h)             # [n, j, l] = d(C_p^T c)_l / dq_j
+            Rp[part] = (Ge[:, :, 0] - Ge[:, :, 1]) / (2 * h)             # [n, j, k] = d(C_e^T c)_k / dq_j
         Rq = 0.5 * (Rq + np.swapaxes(Rq, 1, 2))                          # a Hessian: symmetric
         return np.where(ok[:, None, None], Rq, 0.0), np.where(ok[:, None, None], Rp, 0.0)
 
