@@ -2,7 +2,7 @@
 
 tests/corpus/nopour_3rrr (a planar 3-RRR whose platform closes to two chains by 3-D site connects: its
 out-of-plane errors strain the loops, which keep a gap) at its machine.toml's error sizes and at larger ones
-(0.5 deg tilts, 0.3 mm offsets: a hand-built or 3-D printed machine). Per seed, the demo's pipeline
+(0.5 and 1 deg tilts, 0.3 and 0.5 mm offsets: a hand-built or 3-D printed machine). Per seed, the demo's pipeline
 (:func:`pmcal.studies.chain_demo.chain_demo`: D-optimal 48-pose plan, campaign on the twin with random errors
 of the sizes, identify, 60 held-out targets compensated and driven on the true machine) twice: with the
 twin's derivative as it is (the gap's second-order terms, ``ClosedChainTwin._strain_terms``) and with the
@@ -32,7 +32,8 @@ from benchmarks.common import print_table, write_json  # noqa: E402
 MODEL = Path(__file__).resolve().parent.parent / "tests" / "corpus" / "nopour_3rrr"
 #: error sizes studied: label -> replacements in the machine.toml
 SIZES = {"machine.toml (0.1 deg, 0.1 mm)": {},
-         "0.5 deg, 0.3 mm": {"angle_deg = 0.1": "angle_deg = 0.5", "position_mm = 0.1": "position_mm = 0.3"}}
+         "0.5 deg, 0.3 mm": {"angle_deg = 0.1": "angle_deg = 0.5", "position_mm = 0.1": "position_mm = 0.3"},
+         "1.0 deg, 0.5 mm": {"angle_deg = 0.1": "angle_deg = 1.0", "position_mm = 0.1": "position_mm = 0.5"}}
 
 
 def machine_with(sizes: dict[str, str], folder: Path):
