@@ -25,6 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import print_table, write_json  # noqa: E402
+from tests.chain_references import central_differences  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -57,13 +58,7 @@ def check(folder: Path, poses: int) -> list:
     t0 = time.perf_counter()
     J = twin.jacobian(cmd, params)
     wall = time.perf_counter() - t0
-    ref = np.empty_like(J)
-    for i, k in enumerate(keys):
-        h = 1e-3 * prior[i]
-        up, dn = dict(params), dict(params)
-        up[k] = up.get(k, 0.0) + h
-        dn[k] = dn.get(k, 0.0) - h
-        ref[..., i] = (twin.targets(cmd, up) - twin.targets(cmd, dn)) / (2 * h)
+    ref = central_differences(lambda p: twin.targets(cmd, p), params, keys, h=dict(zip(keys, 1e-3 * prior)))
     diff = np.abs(J - ref) * prior / twin.sigma_mm
     per_key = np.nanmax(diff.reshape(-1, len(keys)), axis=0)
     worst = int(np.nanargmax(per_key))

@@ -121,15 +121,17 @@ def hexapod_fk(lengths: np.ndarray, d: dict = HEXAPOD, start=None, tol: float = 
 
 
 # ------------------------------------------------------------------------------- finite differences
-def central_differences(fn, params: dict, keys: list[str], h: float = 1e-4) -> np.ndarray:
+def central_differences(fn, params: dict, keys: list[str], h: float | dict = 1e-4) -> np.ndarray:
     """d fn(params) / d params[k] for every k in ``keys`` by central differences (step ``h`` in the keys'
-    units): ``fn`` maps a parameter dict to an array; the result has a last axis over ``keys``."""
+    units, or ``h[k]`` per key): ``fn`` maps a parameter dict to an array; the result has a last axis over
+    ``keys``."""
     cols = []
     for k in keys:
+        step = h[k] if isinstance(h, dict) else h
         up, dn = dict(params), dict(params)
-        up[k] = up.get(k, 0.0) + h
-        dn[k] = dn.get(k, 0.0) - h
-        cols.append((fn(up) - fn(dn)) / (2 * h))
+        up[k] = up.get(k, 0.0) + step
+        dn[k] = dn.get(k, 0.0) - step
+        cols.append((fn(up) - fn(dn)) / (2 * step))
     return np.stack(cols, axis=-1)
 
 

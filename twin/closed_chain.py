@@ -1105,14 +1105,14 @@ class ClosedChainTwin:
         drot = np.full(dW.shape, np.nan)
         ok = np.isfinite(kin.qpos).all(axis=1)
         if ok.any():
-            Cp = C[ok][:, :, self.passive]
+            Cp, Cep = C[ok][:, :, self.passive], Ce[ok]
             if strain is None:
-                dq = -np.linalg.pinv(Cp, rcond=1e-10) @ Ce[ok]              # (n, npassive, P)
+                dq = -np.linalg.pinv(Cp, rcond=1e-10) @ Cep                 # (n, npassive, P)
             else:                                                        # the loops keep a gap
                 CpT = np.swapaxes(Cp, 1, 2)
-                dq = -solve_stacked(CpT @ Cp + strain[0][ok], CpT @ Ce[ok] + strain[1][ok])
+                dq = -solve_stacked(CpT @ Cp + strain[0][ok], CpT @ Cep + strain[1][ok])
                 bad = ~np.isfinite(dq).all(axis=(1, 2))                 # singular there: the Gauss-Newton part
-                dq[bad] = -np.linalg.pinv(Cp[bad], rcond=1e-10) @ Ce[ok][bad]
+                dq[bad] = -np.linalg.pinv(Cp[bad], rcond=1e-10) @ Cep[bad]
             dpos[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacp[ok][..., self.passive], dq) + dP[ok]
             drot[ok] = np.einsum("nkcv,nvp->nkcp", kin.jacr[ok][..., self.passive], dq) + dW[ok]
         return kin, dpos, drot
@@ -1148,11 +1148,12 @@ class ClosedChainTwin:
         if (self._keep is None and self.spec.closures is None) or self.n_free:
             return None
         ok = np.isfinite(kin.qpos).all(axis=1)
-        gap = np.zeros((len(kin.qpos), C.shape[1]))
         sm = kin.site_xmat if self._weld.any() else None
-        gap[ok] = self._gaps(kin.site_xpos[ok], None if sm is None else sm[ok]) * self._sqrt_w
-        if not ok.any() or np.max(np.abs(gap[ok] / self._sqrt_w)) < self.STRAIN_GAP:
+        raw = self._gaps(kin.site_xpos[ok], None if sm is None else sm[ok])          # m, rad
+        if not raw.size or np.max(np.abs(raw)) < self.STRAIN_GAP:
             return None
+        gap = np.zeros((len(kin.qpos), C.shape[1]))
+        gap[ok] = raw * self._sqrt_w
         m, h, npas = self.model, self.STRAIN_STEP, len(self.passive)
         Rq, Rp = np.zeros((len(gap), npas, npas)), np.zeros((len(gap), npas, len(idx)))
         # poses a chunk: the error derivatives of 2 * np moved configurations per pose, at most ~4e6 numbers
